@@ -1,0 +1,496 @@
+"""Reading and writing frames and images with OpenImageIO.
+
+Frames (`read_buffers` / `write_buffers`) are EXR files, one part, with these
+channel names (the ones `write_buffers` writes; `read_buffers` accepts the
+alternatives in brackets):
+
+| channels | Buffers field | notes |
+|---|---|---|
+| `R`, `G`, `B` | `color` `(H, W, 3)` | linear HDR; required |
+| `A` | `coverage` `(H, W)` | optional, see "Coverage" below |
+| `Z` [`depth.Z`, `depth`, or a name the caller gives] | `depth` `(H, W)` | linear distance along the camera ray, scene units; required |
+| `N.X`, `N.Y`, `N.Z` | `normal` `(H, W, 3)` | optional |
+| `object_id` | `object_id` `(H, W)` | optional; stored as float32, `-1` on sky |
+| `light.Y` [`lightpass`] | `light_pass` `(H, W)` | optional; seed 004's pass |
+| `glow.R`, `glow.G`, `glow.B`, `glow.A` | `glow_pass` `(H, W, 4)` | optional; seed 000's pass |
+
+Sky: depth `+inf` means nothing was hit. Some renderers write a huge finite
+"far" value instead, so depth values `>= 1e30` (`SKY_DEPTH_SENTINEL`) are read
+as `+inf` too. `write_buffers` always writes `+inf`.
+
+Coverage: by default (`coverage="auto"`) coverage is the `A` channel, except
+when `A` is exactly 1 on every sky pixel: that alpha is an opaque background
+composited in (Mitsuba does this with a constant sky emitter), not coverage,
+so coverage then comes from depth (1 where depth is finite, 0 on sky), as it
+does when there is no `A` channel. `coverage="alpha"` / `"depth"` force either.
+
+The light: `write_buffers(..., light_xy=...)` stores the light's pixel position
+(x right, y down, pixel centres at `i + 0.5`) as the `float2` attribute
+`godrays:light_px` and whether it is in front of the camera as the int attribute
+`godrays:light_in_front`; `read_light` reads them back (it also accepts an
+`"x,y"` or `"x y"` string for `godrays:light_px`).
+
+Images (`write_image` / `read_image`): EXR is written linear, as 32-bit float
+(`dtype="float"`, the default) or half (`dtype="half"`). PNG, TIFF and JPEG are
+display-encoded: colour channels clipped to [0, 1] and sRGB-encoded, alpha
+clipped and left linear, quantised to `bit_depth` 8 (the default) or 16 bits
+(JPEG: 8 only, no alpha). Channel counts 1 (written as `Y`), 3 (`R, G, B`) and
+4 (`R, G, B, A`).
+
+Every write goes to a hidden temporary file next to the destination
+(`.name.tmp-XXXXXXXX.ext`) that is renamed over the destination only after the
+whole image was written; on any failure the temporary file is removed, so no
+partial output is ever left behind.
+"""
+
+import os
+import secrets
+from collections.abc import Mapping, Sequence
+from typing import Literal
+
+import jax.numpy as jnp
+import numpy as np
+import OpenImageIO as oiio
+from jaxtyping import Array, ArrayLike, Float
+
+from godrays_jax.buffers import Buffers, coverage_from_depth
+
+SKY_DEPTH_SENTINEL = 1e30
+"""Depth values at or above this are read as sky (`+inf`)."""
+
+_DEPTH_NAMES = ("Z", "depth.Z", "depth")
+_LIGHT_PASS_NAMES = ("light.Y", "lightpass")
+_GLOW_NAMES = ("glow.R", "glow.G", "glow.B", "glow.A")
+_NORMAL_NAMES = ("N.X", "N.Y", "N.Z")
+_OBJECT_ID_NAME = "object_id"
+_LIGHT_PX_ATTR = "godrays:light_px"
+_LIGHT_IN_FRONT_ATTR = "godrays:light_in_front"
+
+_EXR_EXTENSIONS = (".exr",)
+_DISPLAY_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+_JPEG_EXTENSIONS = (".jpg", ".jpeg")
+_CHANNEL_NAMES = {1: ("Y",), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _read_pixels(path: str | os.PathLike) -> tuple[np.ndarray, oiio.ImageSpec]:
+    """All channels of the first subimage as float32 `(H, W, C)`, and its spec."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        if pixels is None:
+            raise ValueError(f"cannot read image '{path}': {inp.geterror()}")
+    finally:
+        inp.close()
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    return pixels, spec
+
+
+def _channels_text(names: Sequence[str]) -> str:
+    return ", ".join(names) if names else "(none)"
+
+
+def read_buffers(
+    path: str | os.PathLike,
+    *,
+    depth_channel: str | None = None,
+    coverage: Literal["auto", "alpha", "depth"] = "auto",
+) -> Buffers:
+    """Read a frame (colour, depth, coverage and any optional passes).
+
+    Args:
+        path: an EXR (or any format OpenImageIO reads) with channels `R, G, B`,
+            a depth channel and optionally `A` and the passes listed in the
+            module docstring.
+        depth_channel: the depth channel's name; by default the first of `Z`,
+            `depth.Z`, `depth` that the file has.
+        coverage: where coverage comes from: `"alpha"` (the `A` channel),
+            `"depth"` (1 where depth is finite, 0 on sky) or `"auto"` (alpha
+            unless it is missing or 1 on every sky pixel; module docstring).
+
+    Returns:
+        `Buffers` with float32 colour `(H, W, 3)` (linear, as stored), depth
+        `(H, W)` in scene units with `+inf` on sky (values `>= 1e30` become
+        `+inf`), coverage `(H, W)`.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is not a readable image, lacks `R, G, B` or a depth
+            channel (the message lists the channels found), or holds invalid
+            values (see `check_buffers`).
+    """
+    if coverage not in ("auto", "alpha", "depth"):
+        raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
+    pixels, spec = _read_pixels(path)
+    names = tuple(spec.channelnames)
+    index = {name: i for i, name in enumerate(names)}
+
+    def channels(wanted: Sequence[str]) -> np.ndarray:
+        return pixels[..., [index[n] for n in wanted]]
+
+    missing = [n for n in ("R", "G", "B") if n not in index]
+    if missing:
+        raise ValueError(
+            f"image '{os.fspath(path)}' has no {', '.join(missing)} colour channel "
+            f"(R, G, B are required); channels found: {_channels_text(names)}"
+        )
+    candidates = (depth_channel,) if depth_channel is not None else _DEPTH_NAMES
+    found = [n for n in candidates if n in index]
+    if not found:
+        raise ValueError(
+            f"image '{os.fspath(path)}' has no depth channel (looked for "
+            f"{', '.join(candidates)}); channels found: {_channels_text(names)}"
+        )
+    depth = pixels[..., index[found[0]]].copy()
+    depth[depth >= SKY_DEPTH_SENTINEL] = np.inf
+
+    sky = np.isposinf(depth)
+    alpha = pixels[..., index["A"]] if "A" in index else None
+    if coverage == "alpha" and alpha is None:
+        raise ValueError(
+            f"image '{os.fspath(path)}' has no A channel for coverage='alpha'; "
+            f"channels found: {_channels_text(names)}"
+        )
+    use_alpha = alpha is not None and (
+        coverage == "alpha" or (coverage == "auto" and not (sky.any() and np.all(alpha[sky] == 1.0)))
+    )
+
+    def optional(wanted: Sequence[str]) -> np.ndarray | None:
+        return channels(wanted) if all(n in index for n in wanted) else None
+
+    light_names = [n for n in _LIGHT_PASS_NAMES if n in index]
+    object_id = optional((_OBJECT_ID_NAME,))
+    buffers = Buffers(
+        color=jnp.asarray(channels(("R", "G", "B"))),
+        depth=jnp.asarray(depth),
+        coverage=jnp.asarray(alpha) if use_alpha else coverage_from_depth(jnp.asarray(depth)),
+        normal=None if (n := optional(_NORMAL_NAMES)) is None else jnp.asarray(n),
+        object_id=None if object_id is None else jnp.asarray(np.rint(object_id[..., 0]).astype(np.int32)),
+        light_pass=jnp.asarray(pixels[..., index[light_names[0]]]) if light_names else None,
+        glow_pass=None if (g := optional(_GLOW_NAMES)) is None else jnp.asarray(g),
+    )
+    check_buffers(buffers, name=os.fspath(path))
+    return buffers
+
+
+def _count_message(count: int, what: str) -> str:
+    return f"{count} pixel{'s' if count != 1 else ''} {what}"
+
+
+def check_buffers(buffers: Buffers, *, name: str) -> None:
+    """Raise `ValueError` if a frame holds values no effect can use.
+
+    Checks on the host with NumPy (input validation, not traced): colour has no
+    NaN or +-inf; depth has no NaN and nothing negative (`+inf` is sky);
+    coverage has no NaN and lies in [0, 1]; the optional float passes have no
+    NaN or +-inf. Each message names `name` (a file name or label), the
+    buffer, and how many pixels are bad.
+    """
+    problems = []
+
+    def nonfinite(label: str, array: ArrayLike | None) -> None:
+        if array is None:
+            return
+        a = np.asarray(array)
+        bad = ~np.isfinite(a)
+        if a.ndim == 3:
+            bad = bad.any(axis=-1)
+        if (count := int(bad.sum())) > 0:
+            problems.append(f"{label} has {_count_message(count, 'with NaN or infinite values')}")
+
+    nonfinite("color", buffers.color)
+    depth = np.asarray(buffers.depth)
+    if (count := int(np.isnan(depth).sum())) > 0:
+        problems.append(f"depth has {_count_message(count, 'with NaN')}")
+    if (count := int((depth < 0).sum())) > 0:
+        problems.append(f"depth has {_count_message(count, 'with negative values')}")
+    cov = np.asarray(buffers.coverage)
+    if (count := int(np.isnan(cov).sum())) > 0:
+        problems.append(f"coverage has {_count_message(count, 'with NaN')}")
+    if (count := int(((cov < 0) | (cov > 1)).sum())) > 0:
+        problems.append(f"coverage has {_count_message(count, 'outside [0, 1]')}")
+    nonfinite("normal", buffers.normal)
+    nonfinite("light_pass", buffers.light_pass)
+    nonfinite("glow_pass", buffers.glow_pass)
+    if problems:
+        raise ValueError(f"invalid buffers in '{name}': " + "; ".join(problems))
+
+
+def _parse_light_px(value: object, path: str) -> tuple[float, float]:
+    if isinstance(value, str):
+        parts = value.replace(",", " ").split()
+    else:
+        parts = list(value) if isinstance(value, Sequence) else [value]
+    try:
+        x, y = (float(p) for p in parts)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"image '{path}': attribute {_LIGHT_PX_ATTR} must be two numbers, got {value!r}"
+        ) from None
+    return x, y
+
+
+def read_light(path: str | os.PathLike) -> tuple[tuple[float, float], bool] | None:
+    """The light stored in a frame's metadata by `write_buffers`.
+
+    Returns:
+        `((x, y), in_front)`: the light's pixel position (x right, y down,
+        pixel centres at `i + 0.5`) and whether it is in front of the camera
+        (True when the file does not say); `None` when the file has no
+        `godrays:light_px` attribute.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is not a readable image, or `godrays:light_px`
+            is not two numbers.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+    finally:
+        inp.close()
+    value = spec.getattribute(_LIGHT_PX_ATTR)
+    if value is None:
+        return None
+    in_front = spec.getattribute(_LIGHT_IN_FRONT_ATTR)
+    return _parse_light_px(value, path), True if in_front is None else bool(int(in_front))
+
+
+def read_image(path: str | os.PathLike) -> Float[Array, "H W C"]:
+    """Read any image as float32 linear `(H, W, C)`, all channels in file order.
+
+    Float files (EXR, float TIFF) are returned as stored. Integer files (8/16-bit
+    PNG, TIFF, JPEG) are taken as display-encoded: mapped to [0, 1], colour
+    channels sRGB-decoded to linear, an alpha channel (`A`) left as is, so
+    `read_image` inverts `write_image` up to quantisation.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is not a readable image.
+    """
+    pixels, spec = _read_pixels(path)
+    if spec.format.basetype not in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE):
+        colour = np.array([name != "A" for name in spec.channelnames])
+        pixels = np.where(colour, _srgb_decode(pixels), pixels).astype(np.float32)
+    return jnp.asarray(pixels)
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _srgb_encode(linear: np.ndarray) -> np.ndarray:
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def _srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    x = np.clip(encoded, 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+
+
+def _set_attribute(spec: oiio.ImageSpec, name: str, value: object) -> None:
+    if isinstance(value, bool | int | np.integer):
+        spec.attribute(name, oiio.TypeInt, int(value))
+    elif isinstance(value, float | np.floating):
+        spec.attribute(name, oiio.TypeFloat, float(value))
+    elif isinstance(value, str):
+        spec.attribute(name, oiio.TypeString, value)
+    elif isinstance(value, Sequence | np.ndarray) and len(value) > 0:
+        floats = tuple(float(v) for v in value)
+        spec.attribute(name, oiio.TypeDesc(f"float[{len(floats)}]"), floats)
+    else:
+        raise ValueError(
+            f"metadata {name!r}: value must be a str, int, float or a sequence of numbers, "
+            f"got {type(value).__name__}"
+        )
+
+
+def _atomic_write(path: str | os.PathLike, spec: oiio.ImageSpec, pixels: np.ndarray) -> None:
+    """Write `pixels` to a temporary file beside `path`, then rename it into place."""
+    path = os.fspath(path)
+    folder, base = os.path.split(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"cannot write image '{path}': folder '{folder}' does not exist")
+    stem, ext = os.path.splitext(base)
+    tmp = os.path.join(folder, f".{stem}.tmp-{secrets.token_hex(4)}{ext}")
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None:
+            raise OSError(f"cannot write image '{path}': {oiio.geterror()}")
+        try:
+            if not out.open(tmp, spec) or not out.write_image(pixels):
+                raise OSError(f"cannot write image '{path}': {out.geterror()}")
+        finally:
+            closed = out.close()
+        if not closed:
+            raise OSError(f"cannot write image '{path}': {out.geterror()}")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def _host_float(name: str, array: ArrayLike, shape: tuple[int, ...]) -> np.ndarray:
+    a = np.asarray(array, dtype=np.float32)
+    if a.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+    return a
+
+
+def write_buffers(
+    path: str | os.PathLike,
+    buffers: Buffers,
+    *,
+    light_xy: tuple[float, float] | None = None,
+    light_in_front: bool = True,
+    metadata: Mapping[str, object] | None = None,
+    half: bool = False,
+) -> None:
+    """Write a frame as an EXR that `read_buffers` reads back.
+
+    Channels (module docstring): `R, G, B, A` (coverage), `Z` (depth, `+inf`
+    on sky), then whichever optional passes `buffers` holds. Zip compression.
+
+    Args:
+        path: destination, must end in `.exr`; written atomically.
+        buffers: the frame; colour must have 3 channels.
+        light_xy: the light's pixel position (x right, y down), stored as
+            `godrays:light_px` with `godrays:light_in_front`; omitted if None.
+        light_in_front: whether the light is in front of the camera.
+        metadata: extra header attributes, `name -> str | int | float |
+            sequence of numbers`.
+        half: store `R, G, B, A` as half floats (max 65504, ~3 significant
+            digits) instead of 32-bit floats; depth and passes stay float32.
+
+    Raises:
+        ValueError: not an `.exr` path, colour not 3 channels, shapes that
+            disagree, or an unsupported metadata value.
+        FileNotFoundError: the destination folder does not exist.
+        OSError: OpenImageIO failed to write (nothing is left behind).
+    """
+    if os.path.splitext(os.fspath(path))[1].lower() not in _EXR_EXTENSIONS:
+        raise ValueError(f"cannot write buffers to '{os.fspath(path)}': the file must end in .exr")
+    color = np.asarray(buffers.color, dtype=np.float32)
+    if color.ndim != 3 or color.shape[-1] != 3:
+        raise ValueError(f"buffers.color must have shape (H, W, 3) to write, got {color.shape}")
+    hw = color.shape[:2]
+    names = ["R", "G", "B", "A", "Z"]
+    planes = [color, _host_float("buffers.coverage", buffers.coverage, hw)[..., None],
+              _host_float("buffers.depth", buffers.depth, hw)[..., None]]
+    if buffers.normal is not None:
+        names += _NORMAL_NAMES
+        planes.append(_host_float("buffers.normal", buffers.normal, (*hw, 3)))
+    if buffers.object_id is not None:
+        names.append(_OBJECT_ID_NAME)
+        planes.append(_host_float("buffers.object_id", buffers.object_id, hw)[..., None])
+    if buffers.light_pass is not None:
+        names.append(_LIGHT_PASS_NAMES[0])
+        planes.append(_host_float("buffers.light_pass", buffers.light_pass, hw)[..., None])
+    if buffers.glow_pass is not None:
+        names += _GLOW_NAMES
+        planes.append(_host_float("buffers.glow_pass", buffers.glow_pass, (*hw, 4)))
+    pixels = np.ascontiguousarray(np.concatenate(planes, axis=-1))
+
+    spec = oiio.ImageSpec(hw[1], hw[0], len(names), oiio.FLOAT)
+    spec.channelnames = tuple(names)
+    spec.alpha_channel = 3
+    spec.z_channel = 4
+    if half:
+        spec.channelformats = tuple(oiio.TypeHalf if i < 4 else oiio.TypeFloat for i in range(len(names)))
+    spec.attribute("compression", "zip")
+    for key, value in (metadata or {}).items():
+        _set_attribute(spec, key, value)
+    if light_xy is not None:
+        x, y = light_xy
+        spec.attribute(_LIGHT_PX_ATTR, oiio.TypeFloat2, (float(x), float(y)))
+        spec.attribute(_LIGHT_IN_FRONT_ATTR, oiio.TypeInt, int(bool(light_in_front)))
+    _atomic_write(path, spec, pixels)
+
+
+def write_image(
+    path: str | os.PathLike,
+    image: Float[ArrayLike, "H W C"] | Float[ArrayLike, "H W"],
+    *,
+    dtype: Literal["float", "half"] | None = None,
+    bit_depth: Literal[8, 16] | None = None,
+    metadata: Mapping[str, object] | None = None,
+) -> None:
+    """Write a linear image; the format follows the extension.
+
+    Args:
+        path: destination ending in `.exr`, `.png`, `.tif`/`.tiff` or
+            `.jpg`/`.jpeg`; written atomically.
+        image: linear float `(H, W, C)` with C = 1, 3 or 4 (channels `Y`,
+            `R G B`, `R G B A`), or `(H, W)` for one channel.
+        dtype: EXR only: `"float"` (32-bit, the default) or `"half"`.
+            Values are written as they are, unclipped.
+        bit_depth: PNG/TIFF/JPEG only: 8 (the default) or 16 (not JPEG).
+            Colour is clipped to [0, 1] and sRGB-encoded, alpha clipped and
+            kept linear, then rounded to the nearest code.
+        metadata: header attributes, `name -> str | int | float | sequence of
+            numbers` (formats other than EXR may keep only some).
+
+    Raises:
+        ValueError: an unknown extension, a wrong shape or channel count, an
+            option that does not fit the format, or an unsupported metadata value.
+        FileNotFoundError: the destination folder does not exist.
+        OSError: OpenImageIO failed to write (nothing is left behind).
+    """
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    pixels = np.asarray(image, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.ndim != 3 or pixels.shape[-1] not in _CHANNEL_NAMES:
+        raise ValueError(f"image must have shape (H, W) or (H, W, C) with C = 1, 3 or 4, got {pixels.shape}")
+    channels = pixels.shape[-1]
+    if ext in _EXR_EXTENSIONS:
+        if bit_depth is not None:
+            raise ValueError(f"bit_depth does not apply to EXR ('{os.fspath(path)}'); use dtype='float' or 'half'")
+        if dtype not in (None, "float", "half"):
+            raise ValueError(f"dtype must be 'float' or 'half', got {dtype!r}")
+        fmt = oiio.HALF if dtype == "half" else oiio.FLOAT
+    elif ext in _DISPLAY_EXTENSIONS:
+        if dtype is not None:
+            raise ValueError(f"dtype applies to EXR only; use bit_depth=8 or 16 for '{os.fspath(path)}'")
+        bits = 8 if bit_depth is None else bit_depth
+        if bits not in (8, 16) or (bits == 16 and ext in _JPEG_EXTENSIONS):
+            allowed = "8" if ext in _JPEG_EXTENSIONS else "8 or 16"
+            raise ValueError(f"bit_depth for '{os.fspath(path)}' must be {allowed}, got {bit_depth!r}")
+        if channels == 4 and ext in _JPEG_EXTENSIONS:
+            raise ValueError(f"JPEG has no alpha channel: cannot write 4 channels to '{os.fspath(path)}'")
+        fmt = oiio.UINT8 if bits == 8 else oiio.UINT16
+        encoded = _srgb_encode(pixels)
+        if channels == 4:
+            encoded[..., 3] = np.clip(pixels[..., 3], 0.0, 1.0)
+        scale = 2**bits - 1
+        pixels = np.rint(encoded * scale).astype(np.uint8 if bits == 8 else np.uint16)
+    else:
+        raise ValueError(
+            f"cannot write image '{os.fspath(path)}': unknown extension {ext or '(none)'!r} "
+            f"(use .exr, .png, .tif, .tiff, .jpg or .jpeg)"
+        )
+    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], channels, fmt)
+    spec.channelnames = _CHANNEL_NAMES[channels]
+    if channels == 4:
+        spec.alpha_channel = 3
+    if ext in _EXR_EXTENSIONS:
+        spec.attribute("compression", "zip")
+    else:
+        spec.attribute("oiio:ColorSpace", "sRGB")
+    for key, value in (metadata or {}).items():
+        _set_attribute(spec, key, value)
+    _atomic_write(path, spec, np.ascontiguousarray(pixels))

@@ -1,0 +1,55 @@
+"""Trace-time argument checks shared by the kernels; each error names the argument."""
+
+import numbers
+
+import jax.numpy as jnp
+
+
+def check_image(image, name: str = "image") -> None:
+    shape = jnp.shape(image)
+    if len(shape) != 3 or shape[-1] not in (1, 2, 3, 4):
+        raise ValueError(f"{name} must have shape (H, W, C) with C in 1..4, got shape {shape}")
+    if shape[0] < 1 or shape[1] < 1:
+        raise ValueError(f"{name} must be at least 1x1, got shape {shape}")
+
+
+def check_plane(plane, name: str, height: int, width: int) -> None:
+    shape = jnp.shape(plane)
+    if shape != (height, width):
+        raise ValueError(f"{name} must have shape ({height}, {width}) to match the image, got {shape}")
+
+
+def check_light(light_xy, name: str = "light_xy") -> None:
+    if jnp.shape(light_xy) != (2,):
+        raise ValueError(f"{name} must be a pixel position (x, y) of shape (2,), got shape {jnp.shape(light_xy)}")
+
+
+def check_scalar(value, name: str) -> None:
+    if jnp.ndim(value) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(value)}")
+
+
+def is_static_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def resolve_count(count, upper, name: str, upper_name: str, *, minimum: int = 1) -> tuple[int, bool]:
+    """The static loop length for an integer count or its continuous relaxation.
+
+    Returns `(static_upper, relaxed)`. A Python int count needs no upper bound; a
+    float or traced count (the relaxation) needs a static Python-int `upper`.
+    """
+    if upper is not None and (not is_static_int(upper) or upper < minimum):
+        raise ValueError(f"{upper_name} must be a Python int >= {minimum}, got {upper!r}")
+    if is_static_int(count):
+        if count < minimum:
+            raise ValueError(f"{name} must be >= {minimum}, got {count}")
+        if upper is not None and count > upper:
+            raise ValueError(f"{name}={count} exceeds {upper_name}={upper}")
+        return count, False
+    check_scalar(count, name)
+    if upper is None:
+        raise ValueError(
+            f"{name} is a float or traced value (the continuous relaxation): pass the static upper bound {upper_name}"
+        )
+    return upper, True

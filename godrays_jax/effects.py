@@ -1,0 +1,317 @@
+"""Whole effects as parameter sets (`equinox.Module`s) and a preset for each source article.
+
+An effect is called as `effect(buffers, light_xy, *, light_in_front=True)` and
+returns the composited frame; `effect.layer(...)` returns the effect alone,
+before blending. Every array field is fittable (a JAX scalar or vector);
+static fields (`eqx.field(static=True)`) are Python values that select the
+algorithm. Sizes are in pixels, except `blur_power`, which is in UV units as
+in seed 000. Presets are tuned for frames around 320 to 1920 pixels wide.
+
+A light behind the camera (`light_in_front` false) produces no effect layer, so
+the frame comes back unchanged.
+"""
+
+import dataclasses
+import json
+import os
+import tempfile
+from typing import Any, ClassVar, Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from godrays_jax._checks import check_light
+from godrays_jax.blur import gaussian_blur, poisson_blur
+from godrays_jax.buffers import Buffers
+from godrays_jax.composite import BLEND_MODES, blend
+from godrays_jax.masks import bright_pass, coverage_mask, light_source_mask
+from godrays_jax.rays import radial_rays, scale_iterated_flares
+from godrays_jax.sampling import pixel_centres
+
+Source = Literal["disc", "sky", "light_pass"]
+SOURCES: tuple[str, ...] = ("disc", "sky", "light_pass")
+
+
+def _array(value) -> Array:
+    return jnp.asarray(value, dtype=jnp.result_type(float))
+
+
+def param(default=None, **kwargs):
+    """A fittable field: stored as a floating JAX array whatever number or list is given."""
+    if default is None:
+        return eqx.field(converter=_array, **kwargs)
+    return eqx.field(converter=_array, default=default, **kwargs)
+
+
+class Effect(eqx.Module):
+    """Base class: subclasses define `layer` and a static `blend_mode` field."""
+
+    _registry: ClassVar[dict[str, type["Effect"]]] = {}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        Effect._registry[cls.__name__] = cls
+
+    def __check_init__(self):
+        mode = getattr(self, "blend_mode", "add")
+        if mode not in BLEND_MODES:
+            raise ValueError(f"blend_mode must be one of {', '.join(BLEND_MODES)}; got {mode!r}")
+        source = getattr(self, "source", "disc")
+        if source not in SOURCES:
+            raise ValueError(f"source must be one of {', '.join(SOURCES)}; got {source!r}")
+
+    def layer(
+        self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True
+    ) -> Float[Array, "H W L"]:
+        raise NotImplementedError
+
+    def __call__(
+        self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True
+    ) -> Float[Array, "H W C"]:
+        """The frame with the effect blended on: `blend(buffers.color, layer, mode=blend_mode)`."""
+        return blend(buffers.color, self.layer(buffers, light_xy, light_in_front=light_in_front), mode=self.blend_mode)
+
+
+def _emitter(
+    source: str,
+    buffers: Buffers,
+    light_xy,
+    radius,
+    light_in_front,
+) -> Float[Array, "H W C"]:
+    """What shines: a disc at the light seen through the sky, the sky's own colour, or the light pass."""
+    dtype = buffers.color.dtype
+    visible = jnp.asarray(light_in_front, dtype)
+    open_sky = coverage_mask(buffers.coverage)[..., None]
+    if source == "disc":
+        disc = light_source_mask(buffers.height, buffers.width, light_xy, radius=radius, dtype=dtype)
+        return disc * open_sky * visible
+    if source == "sky":
+        colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
+        return colour * open_sky * visible
+    if buffers.light_pass is None:
+        raise ValueError("source='light_pass' needs buffers.light_pass (render it, or use source='disc')")
+    return buffers.light_pass[..., None].astype(dtype) * visible
+
+
+class GodRays(Effect):
+    """Radial light shafts, seeds 003 and 004 (GPU Gems 3 ch. 13).
+
+    Passes: the emitter (`source`: `"disc"`, seed 003's light-source mask
+    `2 * saturate(1 - d / light_radius)**2` through the sky; `"sky"`, the frame's
+    own colour on sky pixels; `"light_pass"`, seed 004's white-light/black-occluder
+    pass), then `radial_rays`, then seed 003's `bright_pass` if `use_bright_pass`,
+    times `tint`, then the blend.
+
+    `num_samples` is fittable through `radial_rays`'s relaxation (loop length
+    `max_samples`); at an integer value it is the exact loop.
+    """
+
+    density: Float[Array, ""] = param(0.5)
+    decay: Float[Array, ""] = param(0.95)
+    weight: Float[Array, ""] = param(1.0)
+    exposure: Float[Array, ""] = param(0.15)
+    light_radius: Float[Array, ""] = param(40.0)
+    threshold: Float[Array, ""] = param(0.25)
+    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0))
+    num_samples: Float[Array, ""] = param(128.0)
+    max_samples: int = eqx.field(static=True, default=128)
+    source: Source = eqx.field(static=True, default="disc")
+    use_bright_pass: bool = eqx.field(static=True, default=False)
+    blend_mode: str = eqx.field(static=True, default="add")
+
+    def layer(self, buffers, light_xy, *, light_in_front=True):
+        """The rays alone, `(H, W, 3)` (or 1 channel for a 1-channel `sky` source)."""
+        check_light(light_xy)
+        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front)
+        rays = radial_rays(
+            emitter,
+            light_xy,
+            num_samples=self.num_samples,
+            max_samples=self.max_samples,
+            density=self.density,
+            decay=self.decay,
+            weight=self.weight,
+            exposure=self.exposure,
+        )
+        if self.use_bright_pass:
+            rays = bright_pass(rays, self.threshold)
+        return rays * self.tint.astype(rays.dtype)
+
+
+class FlareOuts(Effect):
+    """kbEngine's screen-space god rays, seed 002.
+
+    The emitter (as in `GodRays`: a disc through the sky by default, kbEngine's
+    "base flare texture x (1 - sign(depth))"), scaled about the light
+    `num_iters` times by `scale_step` each (`scale_iterated_flares`), times
+    `intensity * tint`, a Gaussian blur of `blur_sigma` pixels against banding,
+    then added. `num_iters` is fittable (loop length `max_iters`).
+    """
+
+    scale_step: Float[Array, ""] = param(1.03)
+    intensity: Float[Array, ""] = param(0.1)
+    copy_decay: Float[Array, ""] = param(1.0)
+    light_radius: Float[Array, ""] = param(40.0)
+    blur_sigma: Float[Array, ""] = param(2.0)
+    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0))
+    num_iters: Float[Array, ""] = param(20.0)
+    max_iters: int = eqx.field(static=True, default=20)
+    blur_radius: int = eqx.field(static=True, default=6)
+    source: Source = eqx.field(static=True, default="disc")
+    blend_mode: str = eqx.field(static=True, default="add")
+
+    def layer(self, buffers, light_xy, *, light_in_front=True):
+        """The flare-outs alone, `(H, W, 3)`."""
+        check_light(light_xy)
+        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front)
+        flares = scale_iterated_flares(
+            emitter,
+            light_xy,
+            num_iters=self.num_iters,
+            max_iters=self.max_iters,
+            scale_step=self.scale_step,
+            decay=self.copy_decay,
+        )
+        flares = gaussian_blur(flares * self.intensity, self.blur_sigma, radius=self.blur_radius)
+        return flares * self.tint.astype(flares.dtype)
+
+
+class SunOvercast(Effect):
+    """Seed 000's sun overcasting: a glow pass blurred twice with the Poisson blur, then added.
+
+    The glow pass is `buffers.glow_pass` when the rasterizer rendered it (the
+    source enlarged x1.3 in `glow_color`, occluders shrunk x0.8 in transparent
+    black). For other buffers it is drawn in image space: a disc of
+    `source_radius` pixels at the light in `glow_color`, with the frame's
+    geometry (its coverage) cut out in transparent black. The blurred RGBA is
+    added as `rgb * alpha`, as XNA's additive sprite blend does.
+    `passes` is fittable (relaxation of `poisson_blur`, loop length `max_passes`).
+    """
+
+    blur_power: Float[Array, ""] = param(0.015)
+    glow_color: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65))
+    source_radius: Float[Array, ""] = param(30.0)
+    passes: Float[Array, ""] = param(2.0)
+    max_passes: int = eqx.field(static=True, default=2)
+    blend_mode: str = eqx.field(static=True, default="add")
+
+    def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 4"]:
+        """The unblurred glow pass (RGBA), rendered or drawn in image space."""
+        check_light(light_xy)
+        dtype = buffers.color.dtype
+        if buffers.glow_pass is not None:
+            return buffers.glow_pass.astype(dtype) * jnp.asarray(light_in_front, dtype)
+        x, y = pixel_centres(buffers.height, buffers.width, dtype)
+        light_xy = jnp.asarray(light_xy, dtype)
+        distance = jnp.sqrt((x - light_xy[0]) ** 2 + (y - light_xy[1]) ** 2 + 1e-12)
+        disc = jnp.clip(self.source_radius - distance + 0.5, 0.0, 1.0)
+        open_sky = coverage_mask(buffers.coverage)
+        inside = (disc * open_sky * jnp.asarray(light_in_front, dtype))[..., None]
+        return inside * self.glow_color.astype(dtype)
+
+    def layer(self, buffers, light_xy, *, light_in_front=True):
+        """The blurred glow as added: `(H, W, 3)` = blurred rgb times blurred alpha."""
+        glow = poisson_blur(
+            self.glow(buffers, light_xy, light_in_front=light_in_front),
+            self.blur_power,
+            passes=self.passes,
+            max_passes=self.max_passes,
+        )
+        return glow[..., :3] * glow[..., 3:]
+
+
+def _xna_crepuscular() -> GodRays:
+    """Seed 003: 128 samples, density .5, decay .95, weight 1, exposure .15, bright pass, additive."""
+    return GodRays(
+        density=0.5, decay=0.95, weight=1.0, exposure=0.15, threshold=0.25, num_samples=128.0,
+        max_samples=128, source="disc", use_bright_pass=True, blend_mode="add",
+    )  # fmt: skip
+
+
+def _galaxy_vls() -> GodRays:
+    """Seed 004: light white and occluders black, 200 samples, density 1, decay .98, exposure .05, additive."""
+    return GodRays(
+        density=1.0, decay=0.98, weight=1.0, exposure=0.05, num_samples=200.0, max_samples=200,
+        source="light_pass", use_bright_pass=False, blend_mode="add",
+    )  # fmt: skip
+
+
+def _kbengine_flares() -> FlareOuts:
+    """Seed 002: kbEngine3's 20 flare-outs scaled x1.03 each, blurred against banding, added."""
+    return FlareOuts(scale_step=1.03, num_iters=20.0, max_iters=20, intensity=0.1, blur_sigma=2.0)
+
+
+def _sun_overcast() -> SunOvercast:
+    """Seed 000: orange (0.8, 0.5, 0, 0.65) glow, two Poisson-blur passes, additive."""
+    return SunOvercast(blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2)
+
+
+PRESETS: dict[str, Any] = {
+    "xna_crepuscular": _xna_crepuscular,
+    "galaxy_vls": _galaxy_vls,
+    "kbengine_flares": _kbengine_flares,
+    "sun_overcast": _sun_overcast,
+}
+"""Preset name -> a function making that effect with the source article's constants."""
+
+
+def preset(name: str) -> Effect:
+    """A fresh effect with the constants of the named source article (see `PRESETS`)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of: {', '.join(sorted(PRESETS))}")
+    return PRESETS[name]()
+
+
+def _field_names(cls) -> list[str]:
+    return [field.name for field in dataclasses.fields(cls)]
+
+
+def effect_to_dict(effect: Effect) -> dict:
+    """A JSON-ready description: `{"effect": class name, field: value, ...}`."""
+    fields = {"effect": type(effect).__name__}
+    for name in _field_names(type(effect)):
+        value = getattr(effect, name)
+        fields[name] = np.asarray(value).tolist() if isinstance(value, (jnp.ndarray, np.ndarray)) else value
+    return fields
+
+
+def effect_from_dict(fields: dict) -> Effect:
+    """Rebuild an effect from `effect_to_dict`'s output; unknown keys or effects raise `ValueError`."""
+    fields = dict(fields)
+    kind = fields.pop("effect", None)
+    if kind not in Effect._registry:
+        raise ValueError(f"unknown effect {kind!r}; known effects: {', '.join(sorted(Effect._registry))}")
+    cls = Effect._registry[kind]
+    unknown = sorted(set(fields) - set(_field_names(cls)))
+    if unknown:
+        raise ValueError(f"unknown parameter(s) for {kind}: {', '.join(unknown)}")
+    return cls(**fields)
+
+
+def save_effect(path: str | os.PathLike, effect: Effect) -> None:
+    """Write the effect's parameters as JSON, atomically (a temporary file renamed into place)."""
+    path = os.fspath(path)
+    text = json.dumps(effect_to_dict(effect), indent=2) + "\n"
+    handle, temporary = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
+    try:
+        with os.fdopen(handle, "w") as stream:
+            stream.write(text)
+        os.replace(temporary, path)
+    except BaseException:
+        os.unlink(temporary)
+        raise
+
+
+def load_effect(path: str | os.PathLike) -> Effect:
+    """Read parameters written by `save_effect` (or by `godrays-jax fit`)."""
+    with open(path) as stream:
+        try:
+            fields = json.load(stream)
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{os.fspath(path)} is not valid JSON: {error}") from None
+    if not isinstance(fields, dict):
+        raise ValueError(f"{os.fspath(path)} must hold a JSON object")
+    return effect_from_dict(fields)

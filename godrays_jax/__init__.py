@@ -1,8 +1,37 @@
 """godrays_jax: differentiable screen-space light scattering in JAX."""
 
+from godrays_jax.blur import POISSON_OFFSETS as POISSON_OFFSETS
+from godrays_jax.blur import gaussian_blur as gaussian_blur
+from godrays_jax.blur import poisson_blur as poisson_blur
 from godrays_jax.buffers import Buffers as Buffers
+from godrays_jax.composite import BLEND_MODES as BLEND_MODES
+from godrays_jax.composite import add as add
+from godrays_jax.composite import alpha_over as alpha_over
+from godrays_jax.composite import blend as blend
+from godrays_jax.composite import multiply as multiply
+from godrays_jax.composite import screen as screen
+from godrays_jax.effects import PRESETS as PRESETS
+from godrays_jax.effects import Effect as Effect
+from godrays_jax.effects import FlareOuts as FlareOuts
+from godrays_jax.effects import GodRays as GodRays
+from godrays_jax.effects import SunOvercast as SunOvercast
+from godrays_jax.effects import effect_from_dict as effect_from_dict
+from godrays_jax.effects import effect_to_dict as effect_to_dict
+from godrays_jax.effects import load_effect as load_effect
+from godrays_jax.effects import preset as preset
+from godrays_jax.effects import save_effect as save_effect
+from godrays_jax.masks import bright_pass as bright_pass
+from godrays_jax.masks import coverage_mask as coverage_mask
+from godrays_jax.masks import depth_test_mask as depth_test_mask
+from godrays_jax.masks import flare_mask as flare_mask
+from godrays_jax.masks import light_source_mask as light_source_mask
+from godrays_jax.masks import sky_mask as sky_mask
+from godrays_jax.rays import radial_rays as radial_rays
+from godrays_jax.rays import scale_iterated_flares as scale_iterated_flares
+from godrays_jax.sampling import sample_bilinear as sample_bilinear
 
 __version__ = "0.1.0"
+
 from godrays_jax.io import check_buffers as check_buffers
 from godrays_jax.io import read_buffers as read_buffers
 from godrays_jax.io import read_image as read_image

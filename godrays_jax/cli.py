@@ -1,0 +1,151 @@
+"""The `godrays-jax` command line.
+
+Every command reports an error as one line on stderr and exits non-zero; no
+command leaves a partial output file (writes go through a temporary file that is
+renamed into place). Commands register themselves in `COMMANDS`.
+"""
+
+import argparse
+import math
+import os
+import sys
+from collections.abc import Callable
+
+PROGRAM = "godrays-jax"
+
+
+class CommandError(Exception):
+    """A user error the CLI reports as one line (no traceback)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def parse_light(text: str) -> tuple[float, float]:
+    """`"X,Y"` -> `(x, y)` pixels; both finite numbers."""
+    parts = text.replace(" ", "").split(",")
+    try:
+        x, y = (float(part) for part in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--light must be X,Y in pixels (e.g. 160.5,42), got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise argparse.ArgumentTypeError(f"--light must be finite, got {text!r}")
+    return x, y
+
+
+def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:
+    """The `--light` value, or the position stored in the frame's metadata."""
+    from godrays_jax.io import read_light
+
+    if light is not None:
+        return light, True
+    stored = read_light(buffers_path)
+    if stored is None:
+        raise CommandError(f"{buffers_path} stores no light position (godrays:light_px): pass --light X,Y")
+    return stored
+
+
+def load_effect_option(preset_name: str | None, params_path: str | None):
+    """The effect named by `--preset` or stored in `--params` (the default preset if neither)."""
+    from godrays_jax.effects import load_effect, preset
+
+    if preset_name and params_path:
+        raise CommandError("give --preset or --params, not both")
+    if params_path:
+        return load_effect(params_path)
+    return preset(preset_name or DEFAULT_PRESET)
+
+
+def check_output_path(output: str, *inputs: str) -> None:
+    """Refuse to overwrite an input and to write into a folder that does not exist."""
+    folder = os.path.dirname(os.path.abspath(output))
+    if not os.path.isdir(folder):
+        raise CommandError(f"output folder {folder} does not exist")
+    for path in inputs:
+        if os.path.exists(output) and os.path.exists(path) and os.path.samefile(output, path):
+            raise CommandError(f"refusing to overwrite the input {path}")
+
+
+DEFAULT_PRESET = "xna_crepuscular"
+
+
+def _add_effect_options(parser: argparse.ArgumentParser) -> None:
+    from godrays_jax.effects import PRESETS
+
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--preset", choices=sorted(PRESETS), help=f"a source article's effect (default {DEFAULT_PRESET})"
+    )
+    group.add_argument("--params", metavar="FILE", help="effect parameters as JSON (from `fit` or save_effect)")
+
+
+def _add_apply(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "apply",
+        help="apply an effect to a frame",
+        description="Apply a light-scattering effect to a frame (colour + depth) and write the result.",
+    )
+    parser.add_argument("buffers", help="the frame: EXR (or any OpenImageIO format) with R, G, B and a depth channel")
+    parser.add_argument("-o", "--output", required=True, help="output image (.exr, .png, .tif, .jpg)")
+    parser.add_argument(
+        "--light",
+        type=parse_light,
+        metavar="X,Y",
+        help="the light's pixel position (x right, y down); default: the frame's godrays:light_px metadata",
+    )
+    _add_effect_options(parser)
+    parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
+    parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
+    parser.set_defaults(handler=_run_apply)
+
+
+def _run_apply(args) -> int:
+    import jax.numpy as jnp
+
+    from godrays_jax.io import read_buffers, write_image
+
+    check_output_path(args.output, args.buffers)
+    effect = load_effect_option(args.preset, args.params)
+    buffers = read_buffers(args.buffers, depth_channel=args.depth_channel)
+    light_xy, in_front = resolve_light(args.light, args.buffers)
+    light = jnp.asarray(light_xy, jnp.float32)
+    if args.layer_only:
+        image = effect.layer(buffers, light, light_in_front=in_front)
+    else:
+        image = effect(buffers, light, light_in_front=in_front)
+    write_image(args.output, image)
+    print(f"wrote {args.output}")
+    return 0
+
+
+COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply]
+"""Functions that each add one subcommand (with `set_defaults(handler=...)`)."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog=PROGRAM, description="Differentiable screen-space light scattering (god rays, glow, flares).")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
+    for add_command in COMMANDS:
+        add_command(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; returns the exit status (0 success, 1 error, 2 usage, 130 interrupted)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except KeyboardInterrupt:
+        print(f"{PROGRAM} {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as error:  # every failure becomes one line, never a traceback
+        message = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        print(f"{PROGRAM} {args.command}: error: {message}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

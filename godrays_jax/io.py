@@ -34,8 +34,10 @@ Images (`write_image` / `read_image`): EXR is written linear, as 32-bit float
 (`dtype="float"`, the default) or half (`dtype="half"`). PNG, TIFF and JPEG are
 display-encoded: colour channels clipped to [0, 1] and sRGB-encoded, alpha
 clipped and left linear, quantised to `bit_depth` 8 (the default) or 16 bits
-(JPEG: 8 only, no alpha). Channel counts 1 (written as `Y`), 3 (`R, G, B`) and
-4 (`R, G, B, A`).
+(JPEG: 8 only, no alpha, quality 95 without chroma subsampling). Channel
+counts 1 (written as `Y`), 3 (`R, G, B`) and 4 (`R, G, B, A`). Four-channel images are premultiplied (associated) alpha, as
+in EXR; PNG and TIFF are written with straight alpha (colour divided by alpha
+before encoding) and `read_image` multiplies it back.
 
 Every write goes to a hidden temporary file next to the destination
 (`.name.tmp-XXXXXXXX.ext`) that is renamed over the destination only after the
@@ -75,12 +77,19 @@ _CHANNEL_NAMES = {1: ("Y",), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
 # ----------------------------------------------------------------------------- reading
 
 
-def _read_pixels(path: str | os.PathLike) -> tuple[np.ndarray, oiio.ImageSpec]:
-    """All channels of the first subimage as float32 `(H, W, C)`, and its spec."""
+def _read_pixels(path: str | os.PathLike, *, straight_alpha: bool = False) -> tuple[np.ndarray, oiio.ImageSpec]:
+    """All channels of the first subimage as float32 `(H, W, C)`, and its spec.
+
+    `straight_alpha`: return straight-alpha files (PNG, TIFF) as stored instead
+    of letting OpenImageIO premultiply them.
+    """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"image file '{path}' does not exist")
-    inp = oiio.ImageInput.open(path)
+    config = oiio.ImageSpec()
+    if straight_alpha:
+        config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(path, config)
     if inp is None:
         raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
     try:
@@ -281,11 +290,14 @@ def read_image(path: str | os.PathLike) -> Float[Array, "H W C"]:
         FileNotFoundError: the file does not exist.
         ValueError: the file is not a readable image.
     """
-    pixels, spec = _read_pixels(path)
+    pixels, spec = _read_pixels(path, straight_alpha=True)
     if spec.format.basetype not in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE):
-        colour = np.array([name != "A" for name in spec.channelnames])
-        pixels = np.where(colour, _srgb_decode(pixels), pixels).astype(np.float32)
-    return jnp.asarray(pixels)
+        names = tuple(spec.channelnames)
+        colour = np.array([name != "A" for name in names])
+        pixels = np.where(colour, _srgb_decode(pixels), pixels)
+        if "A" in names:
+            pixels = np.where(colour, pixels * pixels[..., names.index("A"), None], pixels)
+    return jnp.asarray(pixels.astype(np.float32))
 
 
 # ----------------------------------------------------------------------------- writing
@@ -473,9 +485,12 @@ def write_image(
         if channels == 4 and ext in _JPEG_EXTENSIONS:
             raise ValueError(f"JPEG has no alpha channel: cannot write 4 channels to '{os.fspath(path)}'")
         fmt = oiio.UINT8 if bits == 8 else oiio.UINT16
-        encoded = _srgb_encode(pixels)
         if channels == 4:
-            encoded[..., 3] = np.clip(pixels[..., 3], 0.0, 1.0)
+            alpha = np.clip(pixels[..., 3:], 0.0, 1.0)
+            straight = np.where(alpha > 0, pixels[..., :3] / np.where(alpha > 0, alpha, 1.0), 0.0)
+            encoded = np.concatenate([_srgb_encode(straight), alpha], axis=-1)
+        else:
+            encoded = _srgb_encode(pixels)
         scale = 2**bits - 1
         pixels = np.rint(encoded * scale).astype(np.uint8 if bits == 8 else np.uint16)
     else:
@@ -491,6 +506,10 @@ def write_image(
         spec.attribute("compression", "zip")
     else:
         spec.attribute("oiio:ColorSpace", "sRGB")
+        spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels already hold straight alpha
+    if ext in _JPEG_EXTENSIONS:
+        spec.attribute("Compression", "jpeg:95")
+        spec.attribute("jpeg:subsampling", "4:4:4")  # full-resolution colour
     for key, value in (metadata or {}).items():
         _set_attribute(spec, key, value)
     _atomic_write(path, spec, np.ascontiguousarray(pixels))

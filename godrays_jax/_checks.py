@@ -2,6 +2,7 @@
 
 import numbers
 
+import equinox as eqx
 import jax.numpy as jnp
 
 
@@ -53,3 +54,9 @@ def resolve_count(count, upper, name: str, upper_name: str, *, minimum: int = 1)
             f"{name} is a float or traced value (the continuous relaxation): pass the static upper bound {upper_name}"
         )
     return upper, True
+
+
+def checked_count(count, upper: int, name: str, upper_name: str, dtype):
+    """A relaxed count as a `dtype` scalar, with a runtime error if it is outside [0, upper]."""
+    count = jnp.asarray(count, dtype)
+    return eqx.error_if(count, (count < 0) | (count > upper), f"{name} must lie in [0, {upper_name}={upper}]")

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax._checks import check_image, check_scalar, is_static_int, resolve_count
+from godrays_jax._checks import checked_count, check_image, check_scalar, is_static_int, resolve_count
 from godrays_jax.sampling import pixel_centres, sample_bilinear
 
 POISSON_OFFSETS = np.array(
@@ -73,7 +73,7 @@ def poisson_blur(
         for _ in range(loop_length):
             image = _poisson_pass(image, blur_power)
         return image
-    count = jnp.asarray(passes, image.dtype)
+    count = checked_count(passes, loop_length, "passes", "max_passes", image.dtype)
     blurred = image
     total = jnp.clip(1.0 - jnp.abs(count), 0.0, 1.0) * image
     for k in range(1, loop_length + 1):

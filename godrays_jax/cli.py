@@ -142,9 +142,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROGRAM} {args.command}: interrupted", file=sys.stderr)
         return 130
     except Exception as error:  # every failure becomes one line, never a traceback
-        message = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        print(f"{PROGRAM} {args.command}: error: {message}", file=sys.stderr)
+        print(f"{PROGRAM} {args.command}: error: {error_line(error)}", file=sys.stderr)
         return 1
+
+
+def error_line(error: BaseException) -> str:
+    """The one line that says what went wrong, also for errors raised inside jitted code."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    for line in lines:
+        if line.startswith("equinox.EquinoxRuntimeError:"):
+            return line.split(":", 1)[1].strip()
+    return lines[0] if lines else type(error).__name__
 
 
 if __name__ == "__main__":

@@ -38,11 +38,19 @@ def _array(value) -> Array:
     return jnp.asarray(value, dtype=jnp.result_type(float))
 
 
-def param(default=None, **kwargs):
-    """A fittable field: stored as a floating JAX array whatever number or list is given."""
-    if default is None:
-        return eqx.field(converter=_array, **kwargs)
-    return eqx.field(converter=_array, default=default, **kwargs)
+def param(default, *, low: float, high: float):
+    """A fittable field, stored as a floating JAX array whatever number or list is given.
+
+    `[low, high]` is its valid range (every element, for a vector): fitting keeps
+    the value inside it and the tuner's sliders span it.
+    """
+    return eqx.field(converter=_array, default=default, metadata={"bounds": (low, high)})
+
+
+def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, float]]:
+    """`{field name: (low, high)}` for every fittable field of an effect (instance or class)."""
+    cls = effect if isinstance(effect, type) else type(effect)
+    return {field.name: field.metadata["bounds"] for field in dataclasses.fields(cls) if "bounds" in field.metadata}
 
 
 class Effect(eqx.Module):
@@ -109,14 +117,14 @@ class GodRays(Effect):
     `max_samples`); at an integer value it is the exact loop.
     """
 
-    density: Float[Array, ""] = param(0.5)
-    decay: Float[Array, ""] = param(0.95)
-    weight: Float[Array, ""] = param(1.0)
-    exposure: Float[Array, ""] = param(0.15)
-    light_radius: Float[Array, ""] = param(40.0)
-    threshold: Float[Array, ""] = param(0.25)
-    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0))
-    num_samples: Float[Array, ""] = param(128.0)
+    density: Float[Array, ""] = param(0.5, low=0.0, high=2.0)
+    decay: Float[Array, ""] = param(0.95, low=0.5, high=1.0)
+    weight: Float[Array, ""] = param(1.0, low=0.0, high=10.0)
+    exposure: Float[Array, ""] = param(0.15, low=0.0, high=5.0)
+    light_radius: Float[Array, ""] = param(40.0, low=0.5, high=500.0)
+    threshold: Float[Array, ""] = param(0.25, low=0.0, high=0.99)
+    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
+    num_samples: Float[Array, ""] = param(128.0, low=1.0, high=512.0)
     max_samples: int = eqx.field(static=True, default=128)
     source: Source = eqx.field(static=True, default="disc")
     use_bright_pass: bool = eqx.field(static=True, default=False)
@@ -151,13 +159,13 @@ class FlareOuts(Effect):
     then added. `num_iters` is fittable (loop length `max_iters`).
     """
 
-    scale_step: Float[Array, ""] = param(1.03)
-    intensity: Float[Array, ""] = param(0.1)
-    copy_decay: Float[Array, ""] = param(1.0)
-    light_radius: Float[Array, ""] = param(40.0)
-    blur_sigma: Float[Array, ""] = param(2.0)
-    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0))
-    num_iters: Float[Array, ""] = param(20.0)
+    scale_step: Float[Array, ""] = param(1.03, low=0.8, high=1.5)
+    intensity: Float[Array, ""] = param(0.1, low=0.0, high=10.0)
+    copy_decay: Float[Array, ""] = param(1.0, low=0.5, high=1.0)
+    light_radius: Float[Array, ""] = param(40.0, low=0.5, high=500.0)
+    blur_sigma: Float[Array, ""] = param(2.0, low=0.0, high=50.0)
+    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
+    num_iters: Float[Array, ""] = param(20.0, low=1.0, high=64.0)
     max_iters: int = eqx.field(static=True, default=20)
     blur_radius: int = eqx.field(static=True, default=6)
     source: Source = eqx.field(static=True, default="disc")
@@ -191,10 +199,10 @@ class SunOvercast(Effect):
     `passes` is fittable (relaxation of `poisson_blur`, loop length `max_passes`).
     """
 
-    blur_power: Float[Array, ""] = param(0.015)
-    glow_color: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65))
-    source_radius: Float[Array, ""] = param(30.0)
-    passes: Float[Array, ""] = param(2.0)
+    blur_power: Float[Array, ""] = param(0.015, low=0.0, high=0.2)
+    glow_color: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65), low=0.0, high=10.0)
+    source_radius: Float[Array, ""] = param(30.0, low=0.0, high=500.0)
+    passes: Float[Array, ""] = param(2.0, low=0.0, high=8.0)
     max_passes: int = eqx.field(static=True, default=2)
     blend_mode: str = eqx.field(static=True, default="add")
 

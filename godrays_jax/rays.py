@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, ArrayLike
 
-from godrays_jax._checks import check_image, check_light, check_scalar, resolve_count
+from godrays_jax._checks import checked_count, check_image, check_light, check_scalar, resolve_count
 from godrays_jax.sampling import pixel_centres, sample_bilinear
 
 
@@ -60,7 +60,7 @@ def radial_rays(
     height, width, _ = image.shape
     dtype = image.dtype
     light_xy = jnp.asarray(light_xy, dtype)
-    count = jnp.asarray(num_samples, dtype)
+    count = checked_count(num_samples, loop_length, "num_samples", "max_samples", dtype) if relaxed else jnp.asarray(num_samples, dtype)
     x, y = pixel_centres(height, width, dtype)
     step_x = (x - light_xy[0]) * (density / count)
     step_y = (y - light_xy[1]) * (density / count)
@@ -113,7 +113,7 @@ def scale_iterated_flares(
     height, width, _ = masked.shape
     dtype = masked.dtype
     light_xy = jnp.asarray(light_xy, dtype)
-    count = jnp.asarray(num_iters, dtype)
+    count = checked_count(num_iters, loop_length, "num_iters", "max_iters", dtype) if relaxed else jnp.asarray(num_iters, dtype)
     x, y = pixel_centres(height, width, dtype)
     offset_x = x - light_xy[0]
     offset_y = y - light_xy[1]

@@ -45,6 +45,7 @@ whole image was written; on any failure the temporary file is removed, so no
 partial output is ever left behind.
 """
 
+import dataclasses
 import os
 import secrets
 from collections.abc import Mapping, Sequence
@@ -139,6 +140,11 @@ def read_buffers(
     if coverage not in ("auto", "alpha", "depth"):
         raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
     pixels, spec = _read_pixels(path)
+    return _decode_buffers(path, pixels, spec, depth_channel=depth_channel, coverage=coverage)
+
+
+def _decode_buffers(path, pixels: np.ndarray, spec: oiio.ImageSpec, *, depth_channel, coverage) -> Buffers:
+    """`read_buffers` after the file was read: pick the channels, build and check the `Buffers`."""
     names = tuple(spec.channelnames)
     index = {name: i for i, name in enumerate(names)}
 
@@ -513,3 +519,81 @@ def write_image(
     for key, value in (metadata or {}).items():
         _set_attribute(spec, key, value)
     _atomic_write(path, spec, np.ascontiguousarray(pixels))
+
+
+# ----------------------------------------------------------------------------- frames kept as stored
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameFile:
+    """A frame file as it was stored: every channel of its first subimage and its header.
+
+    What `write_frame_like` needs to write a processed frame with the input's
+    channels, per-channel formats (half / float), compression, tiling and
+    metadata. `pixels` is float32 `(H, W, C)` in the file's channel order.
+    """
+
+    path: str
+    pixels: np.ndarray
+    spec: oiio.ImageSpec
+
+
+def read_frame(
+    path: str | os.PathLike,
+    *,
+    depth_channel: str | None = None,
+    coverage: Literal["auto", "alpha", "depth"] = "auto",
+) -> tuple[Buffers, FrameFile]:
+    """`read_buffers` that also returns the file as stored, reading it once.
+
+    Returns:
+        `(buffers, frame_file)`: the `Buffers` exactly as `read_buffers` gives
+        them, and the `FrameFile` to pass to `write_frame_like`.
+
+    Raises:
+        As `read_buffers`.
+    """
+    if coverage not in ("auto", "alpha", "depth"):
+        raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
+    pixels, spec = _read_pixels(path)
+    buffers = _decode_buffers(path, pixels, spec, depth_channel=depth_channel, coverage=coverage)
+    return buffers, FrameFile(path=os.fspath(path), pixels=pixels, spec=spec)
+
+
+def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], like: FrameFile) -> None:
+    """Write `color` in place of the `R, G, B` channels of `like`, keeping everything else.
+
+    Every other channel (alpha, depth, passes, anything the renderer wrote),
+    each channel's storage format (half stays half: values above 65504 become
+    `+inf` there), the compression, tiling and every metadata attribute are
+    copied from `like.spec`, so the output reads back like the input with new
+    colour. Only the first subimage (EXR part) is written. Atomic, as every
+    write in this module.
+
+    Args:
+        path: destination; its extension must be the input's (use
+            `write_image` to change format).
+        color: linear `(H, W, 3)`, the size of `like`.
+        like: the input frame, from `read_frame`.
+
+    Raises:
+        ValueError: a different extension than the input, a wrong shape, or
+            `like` without `R, G, B` channels.
+        FileNotFoundError: the destination folder does not exist.
+        OSError: OpenImageIO failed to write (nothing is left behind).
+    """
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    like_ext = os.path.splitext(like.path)[1].lower()
+    if ext != like_ext:
+        raise ValueError(
+            f"write_frame_like keeps the input's format: '{os.fspath(path)}' must end in {like_ext!r} like "
+            f"'{like.path}' (use write_image to change format)"
+        )
+    color = _host_float("color", color, (*like.pixels.shape[:2], 3))
+    names = tuple(like.spec.channelnames)
+    missing = [n for n in ("R", "G", "B") if n not in names]
+    if missing:
+        raise ValueError(f"'{like.path}' has no {', '.join(missing)} channel to replace; channels: {_channels_text(names)}")
+    pixels = like.pixels.copy()
+    pixels[..., [names.index(n) for n in ("R", "G", "B")]] = color
+    _atomic_write(path, oiio.ImageSpec(like.spec), np.ascontiguousarray(pixels))

@@ -120,7 +120,50 @@ def _run_apply(args) -> int:
     return 0
 
 
-COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply]
+def _add_batch(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "batch",
+        help="apply an effect to a sequence of frames",
+        description=(
+            "Apply an effect to every frame of a sequence, reading and writing on background threads, "
+            "compiling once, spreading frames over all JAX devices. Each output keeps its input's name, "
+            "channels, metadata and format (only R, G, B change). Bad frames are reported and skipped; "
+            "the run then exits with status 1."
+        ),
+    )
+    parser.add_argument("pattern", help="frames: shot.####.exr, shot.%%04d.exr, a glob ('renders/*.exr') or a file")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder (created if missing)")
+    lights = parser.add_mutually_exclusive_group()
+    lights.add_argument("--light", type=parse_light, metavar="X,Y", help="the same light pixel position for every frame")
+    lights.add_argument(
+        "--light-from-metadata", action="store_true", help="each frame's godrays:light_px metadata (the default)"
+    )
+    lights.add_argument(
+        "--light-track", metavar="FILE", help="per-frame lights: CSV rows 'frame,x,y[,in_front]' or JSON"
+    )
+    _add_effect_options(parser)
+    parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
+    parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
+    parser.add_argument("--ext", help="write this format instead (e.g. png): colour only, display-encoded")
+    parser.add_argument("--resume", action="store_true", help="skip frames whose output exists")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    parser.add_argument("--dry-run", action="store_true", help="list what would run, write nothing")
+    parser.add_argument("--frames", metavar="FIRST-LAST", help="only frame numbers in this inclusive range")
+    parser.add_argument("--shard", metavar="I/N", help="only the I-th (0-based) of N contiguous shares (one per host)")
+    parser.add_argument(
+        "--distributed", action="store_true", help="jax.distributed.initialize(); this process's share of the frames"
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    parser.set_defaults(handler=_run_batch)
+
+
+def _run_batch(args) -> int:
+    from godrays_jax.batch import run_command
+
+    return run_command(args)
+
+
+COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch]
 """Functions that each add one subcommand (with `set_defaults(handler=...)`)."""
 
 

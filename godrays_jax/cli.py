@@ -163,7 +163,39 @@ def _run_batch(args) -> int:
     return run_command(args)
 
 
-COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch]
+def _add_tune(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "tune",
+        help="tune an effect live in the browser",
+        description="Serve a page on 127.0.0.1 with a slider for every parameter of an effect, the light draggable "
+        "on the frame, before/after and difference views, fit to a target, and save (the JSON `apply --params` reads).",
+    )
+    parser.add_argument("buffers", help="the frame: EXR (or any OpenImageIO format) with R, G, B and a depth channel")
+    parser.add_argument("--target", help="a reference image of the frame's size, for the difference view and fitting")
+    parser.add_argument(
+        "--light",
+        type=parse_light,
+        metavar="X,Y",
+        help="the light's starting pixel position; default: the frame's godrays:light_px metadata",
+    )
+    _add_effect_options(parser)
+    parser.add_argument("--port", type=int, default=8000, help="port on 127.0.0.1 (default 8000; 0: any free port)")
+    parser.add_argument("-o", "--output", default="params.json", help="where save writes (default params.json)")
+    parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
+    parser.add_argument(
+        "--preview-pixels", type=int, default=40_000, help="pixels at most in drag previews (default 40000)"
+    )
+    parser.add_argument("--fit-steps", type=int, default=20, help="solver steps at most per fit (default 20)")
+    parser.set_defaults(handler=_run_tune)
+
+
+def _run_tune(args) -> int:
+    from godrays_jax.tune import run_tune
+
+    return run_tune(args)
+
+
+COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch, _add_tune]
 """Functions that each add one subcommand (with `set_defaults(handler=...)`)."""
 
 

@@ -1,0 +1,682 @@
+"""A live parameter tuner: a local web page with a slider for every parameter of an effect.
+
+`godrays-jax tune FRAME.exr` serves `tune_page.html` on 127.0.0.1 (never on
+other interfaces) and answers its JSON API. The page is self-contained (inline
+script and style, no network access).
+
+The JSON API (every answer is JSON; errors are `{"error": message}`):
+
+| request | body | answer |
+|---|---|---|
+| `GET /api/state` | | the frame's size, preview factor, light, effect (`effect_to_dict`), slider bounds, presets, views, tonemaps, save path, whether a target is loaded |
+| `POST /api/render` | `{"params", "light", "light_in_front", "quality", "view", "tonemap"}`, all optional | `{"image": "data:image/png;base64,...", "width", "height", "quality", "render_ms", "encode_ms"}` |
+| `POST /api/preset` | `{"name"}` | the new state (the effect becomes the preset) |
+| `POST /api/fit` | `{"params", "light", "light_in_front", "fixed"}` | `{"effect", "loss_before", "loss_after", "steps", "fitted"}` |
+| `GET /api/fit` | | the running fit's progress `{"running", "step", "loss"}` |
+| `POST /api/save` | `{"params"}` | `{"path", "effect"}`: writes what `apply --params` reads |
+
+`params` maps fittable field names to numbers (lists for vectors such as
+`tint`); fields left out keep the server's current values, static fields
+(`max_samples`, `source`, ...) come from the current effect or preset. Values
+outside a field's range (`fit.fitted_bounds`: the effect's bounds, counts
+capped by their static loop lengths), unknown fields, malformed JSON, unknown
+presets, views or tonemaps get a 400 with a message; the server keeps running.
+
+Renders are coalesced, not queued: one worker thread renders the newest
+request; a request still waiting when a newer one arrives is answered 409
+("superseded"), so a burst of slider events costs one render after the one in
+progress. `quality="preview"` renders at 1/`preview_factor` of the resolution
+(buffers box-averaged, depth min-pooled, the light and the pixel-sized fields
+in `PIXEL_FIELDS` divided by the factor); the page asks for previews while a
+slider or the light is dragged and for the full resolution on release.
+
+Frames are PNGs display-encoded with `tonemap="reinhard"` (`x / (1 + x)` per
+channel, then sRGB) or `"clip"` (clipped to [0, 1], then sRGB, as `write_image`
+writes PNG). Views: `after` (the composited frame), `before` (the input
+frame), `layer` (the effect alone), `difference` (`4 * |after - reference|`
+in display space, the reference being the target if one is loaded, else the
+input frame) and `target`.
+
+"Fit to target" runs `fit.fit` at the preview resolution (the target box-
+averaged the same way), at most `fit_steps` solver steps, and returns the
+fitted values at full resolution; fields named in `fixed` stay as they are.
+"""
+
+import base64
+import dataclasses
+import functools
+import http.server
+import json
+import math
+import os
+import threading
+import time
+import zlib
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from importlib import resources
+from typing import Any, Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
+
+from godrays_jax.blur import downsample_box
+from godrays_jax.buffers import Buffers
+from godrays_jax.effects import PRESETS, Effect, effect_from_dict, effect_to_dict, preset, save_effect
+from godrays_jax.losses import to_space
+
+HOST = "127.0.0.1"
+"""The tuner serves this address only: the page can write files, so it is never exposed to a network."""
+
+PIXEL_FIELDS: frozenset[str] = frozenset({"light_radius", "source_radius", "blur_sigma", "source_grow", "occluder_shrink"})
+"""Fittable fields measured in pixels: scaled with the resolution for previews and preview-resolution fits."""
+
+VIEWS: tuple[str, ...] = ("after", "before", "layer", "difference", "target")
+TONEMAPS: tuple[str, ...] = ("reinhard", "clip")
+QUALITIES: tuple[str, ...] = ("preview", "full")
+DIFFERENCE_GAIN = 4.0
+"""The difference view shows `DIFFERENCE_GAIN * |after - reference|` in display space, so small errors show."""
+
+_MAX_BODY_BYTES = 1 << 20
+
+
+class TuneRequestError(ValueError):
+    """A bad request from the page: answered 400 with the message."""
+
+
+class Superseded(Exception):
+    """A render request replaced by a newer one before it started: answered 409."""
+
+
+def preview_factor(height: int, width: int, *, max_pixels: int = 40_000) -> int:
+    """The smallest integer downsampling factor that brings `height x width` to at most `max_pixels` pixels."""
+    if max_pixels < 1:
+        raise ValueError(f"max_pixels must be >= 1, got {max_pixels}")
+    factor = max(1, math.ceil(math.sqrt(height * width / max_pixels)))
+    while math.ceil(height / factor) * math.ceil(width / factor) > max_pixels:
+        factor += 1
+    return factor
+
+
+def _min_pool(plane: Float[Array, "H W"], factor: int) -> Float[Array, "h w"]:
+    height, width = plane.shape
+    low_h, low_w = -(-height // factor), -(-width // factor)
+    padded = jnp.pad(plane, ((0, low_h * factor - height), (0, low_w * factor - width)), mode="edge")
+    return padded.reshape(low_h, factor, low_w, factor).min(axis=(1, 3))
+
+
+def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
+    """The frame at `1 / factor` of its resolution, `ceil(H / factor) x ceil(W / factor)` pixels.
+
+    Colour, coverage and the light and glow passes are box-averaged
+    (`blur.downsample_box`); depth takes each block's nearest surface (sky only
+    where the whole block is sky); normals and object ids take each block's
+    top-left pixel. Full-resolution pixel position `x` is position `x / factor`.
+    """
+    if factor == 1:
+        return buffers
+
+    def box(image):
+        return None if image is None else downsample_box(image, factor)
+
+    def plane(image):
+        return None if image is None else downsample_box(image[..., None], factor)[..., 0]
+
+    return Buffers(
+        color=box(buffers.color),
+        depth=_min_pool(buffers.depth, factor),
+        coverage=plane(buffers.coverage),
+        normal=None if buffers.normal is None else buffers.normal[::factor, ::factor],
+        object_id=None if buffers.object_id is None else buffers.object_id[::factor, ::factor],
+        light_pass=plane(buffers.light_pass),
+        glow_pass=box(buffers.glow_pass),
+    )
+
+
+def scale_pixel_fields(effect: Effect, scale: float) -> Effect:
+    """The effect with every field in `PIXEL_FIELDS` multiplied by `scale` (to render at another resolution)."""
+    names = [field.name for field in dataclasses.fields(effect) if field.name in PIXEL_FIELDS]
+    if not names or scale == 1:
+        return effect
+    return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [getattr(effect, n) * scale for n in names])
+
+
+def display_encode(
+    image: Float[Array, "H W C"], *, tonemap: Literal["reinhard", "clip"] = "reinhard"
+) -> UInt8[Array, "H W 3"]:
+    """Linear HDR to 8-bit sRGB RGB for the page: `x / (1 + x)` (`"reinhard"`) or a clip, then sRGB.
+
+    One channel is shown grey; a fourth (alpha) channel is dropped. Negative
+    values show black.
+    """
+    if tonemap not in TONEMAPS:
+        raise ValueError(f"tonemap must be one of {', '.join(TONEMAPS)}; got {tonemap!r}")
+    rgb = jnp.maximum(image[..., :3], 0.0)
+    return _to_srgb8(to_space(rgb, "display") if tonemap == "reinhard" else rgb)
+
+
+def _to_srgb8(display: Float[Array, "H W C"]) -> UInt8[Array, "H W 3"]:
+    # io's sRGB encoder is NumPy (host); this one runs inside the jitted render so only bytes leave the device.
+    rgb = jnp.broadcast_to(display[..., :1], (*display.shape[:2], 3)) if display.shape[-1] < 3 else display
+    x = jnp.clip(rgb, 0.0, 1.0)
+    encoded = jnp.where(x <= 0.0031308, 12.92 * x, 1.055 * jnp.power(jnp.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
+    return jnp.round(encoded * 255.0).astype(jnp.uint8)
+
+
+def encode_png(pixels: np.ndarray) -> bytes:
+    """An 8-bit RGB `(H, W, 3)` array as PNG bytes (stdlib zlib, fast compression: frames change every request)."""
+    pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
+    height, width, channels = pixels.shape
+    if channels != 3:
+        raise ValueError(f"pixels must have shape (H, W, 3), got {pixels.shape}")
+    rows = np.concatenate([np.zeros((height, 1), np.uint8), pixels.reshape(height, width * 3)], axis=1)
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+    header = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes((8, 2, 0, 0, 0))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(rows.tobytes(), 1))
+        + chunk(b"IEND", b"")
+    )
+
+
+@eqx.filter_jit
+def _render_view(
+    effect: Effect,
+    buffers: Buffers,
+    light_xy: Float[Array, "2"],
+    light_in_front: Bool[Array, ""],
+    target: Float[Array, "H W C"] | None,
+    view: str,
+    tonemap: str,
+) -> UInt8[Array, "H W 3"]:
+    if view == "before":
+        return display_encode(buffers.color, tonemap=tonemap)
+    if view == "target":
+        return display_encode(target, tonemap=tonemap)
+    if view == "layer":
+        return display_encode(effect.layer(buffers, light_xy, light_in_front=light_in_front), tonemap=tonemap)
+    after = effect(buffers, light_xy, light_in_front=light_in_front)
+    if view == "after":
+        return display_encode(after, tonemap=tonemap)
+    reference = buffers.color if target is None else target
+    channels = min(after.shape[-1], reference.shape[-1], 3)
+    difference = jnp.abs(
+        to_space(jnp.maximum(after[..., :channels], 0.0), "display")
+        - to_space(jnp.maximum(reference[..., :channels], 0.0), "display")
+    )
+    return _to_srgb8(DIFFERENCE_GAIN * difference)
+
+
+class RenderQueue:
+    """One worker thread; at most one request waits, and a newer one supersedes it (coalescing, not queueing).
+
+    `submit(job)` blocks until the worker has run `job` and returns its result,
+    or raises `Superseded` if a newer job arrived before this one started.
+    """
+
+    def __init__(self):
+        self._condition = threading.Condition()
+        self._pending: tuple[Callable[[], Any], Future] | None = None
+        self._closed = False
+        self._worker = threading.Thread(target=self._work, name="godrays-tune-render", daemon=True)
+        self._worker.start()
+
+    def submit(self, job: Callable[[], Any]) -> Any:
+        future: Future = Future()
+        with self._condition:
+            if self._closed:
+                raise RuntimeError("the render queue is closed")
+            if self._pending is not None:
+                self._pending[1].set_exception(Superseded("superseded by a newer render request"))
+            self._pending = (job, future)
+            self._condition.notify()
+        return future.result()
+
+    def close(self) -> None:
+        """Stop the worker after the job in progress; a waiting job is answered `Superseded`."""
+        with self._condition:
+            self._closed = True
+            if self._pending is not None:
+                self._pending[1].set_exception(Superseded("the tuner is shutting down"))
+                self._pending = None
+            self._condition.notify()
+        self._worker.join()
+
+    def _work(self) -> None:
+        while True:
+            with self._condition:
+                while self._pending is None and not self._closed:
+                    self._condition.wait()
+                if self._closed:
+                    return
+                job, future = self._pending
+                self._pending = None
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(job())
+            except BaseException as error:  # handed to the request's thread, which answers it
+                future.set_exception(error)
+
+
+def _number(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise TuneRequestError(f"{name} must be a finite number, got {json.dumps(value)}")
+    return float(value)
+
+
+def _choice(payload: Mapping, key: str, choices: tuple[str, ...], default: str) -> str:
+    value = payload.get(key, default)
+    if value not in choices:
+        raise TuneRequestError(f"{key} must be one of {', '.join(choices)}; got {json.dumps(value)}")
+    return value
+
+
+class Tuner:
+    """The tuner's state and actions, independent of HTTP (the server calls these; so can tests).
+
+    Args:
+        buffers: the frame.
+        light_xy: the light's starting position in pixels (x right, y down).
+        effect: the starting effect (its static fields are kept until a preset replaces it).
+        target: an optional reference image `(H, W, C)` of the frame's size for
+            the difference view and "fit to target".
+        light_in_front: whether the light starts in front of the camera.
+        save_path: where "save" writes the parameters JSON.
+        max_preview_pixels: previews have at most this many pixels (see `preview_factor`).
+        fit_steps: solver steps at most for "fit to target".
+    """
+
+    def __init__(
+        self,
+        buffers: Buffers,
+        light_xy: tuple[float, float],
+        *,
+        effect: Effect,
+        target: Float[ArrayLike, "H W C"] | None = None,
+        light_in_front: bool = True,
+        save_path: str | os.PathLike = "params.json",
+        max_preview_pixels: int = 40_000,
+        fit_steps: int = 20,
+    ):
+        if target is not None:
+            target = jnp.asarray(target, buffers.color.dtype)
+            if target.ndim != 3 or target.shape[:2] != (buffers.height, buffers.width):
+                raise ValueError(
+                    f"target must have the frame's size {buffers.width}x{buffers.height}, got shape {target.shape}"
+                )
+        self.buffers = buffers
+        self.target = target
+        self.factor = preview_factor(buffers.height, buffers.width, max_pixels=max_preview_pixels)
+        self.preview_buffers = downsample_buffers(buffers, self.factor)
+        self.preview_target = None if target is None else downsample_box(target, self.factor)
+        self.light_xy = (float(light_xy[0]), float(light_xy[1]))
+        self.light_in_front = bool(light_in_front)
+        self.effect = effect
+        self.save_path = os.path.abspath(os.fspath(save_path))
+        self.fit_steps = fit_steps
+        self.queue = RenderQueue()
+        self._lock = threading.Lock()
+        self._fit_lock = threading.Lock()
+        self._fit_progress: dict[str, Any] = {"running": False, "step": 0, "loss": None}
+
+    def close(self) -> None:
+        self.queue.close()
+
+    # --------------------------------------------------------------- state
+
+    def bounds(self, effect: Effect | None = None) -> dict[str, tuple[float, float]]:
+        """Slider ranges: the effect's bounds, counts capped by their static loop lengths."""
+        from godrays_jax.fit import fitted_bounds
+
+        return fitted_bounds(self.effect if effect is None else effect)
+
+    def state(self) -> dict:
+        from godrays_jax.fit import COUNT_FIELDS
+
+        with self._lock:
+            effect = self.effect
+        return {
+            "width": self.buffers.width,
+            "height": self.buffers.height,
+            "preview_factor": self.factor,
+            "light": list(self.light_xy),
+            "light_in_front": self.light_in_front,
+            "effect": effect_to_dict(effect),
+            "bounds": {name: list(bounds) for name, bounds in self.bounds(effect).items()},
+            "pixel_fields": sorted(PIXEL_FIELDS),
+            "count_fields": list(COUNT_FIELDS),
+            "presets": sorted(PRESETS),
+            "views": list(VIEWS) if self.target is not None else [v for v in VIEWS if v != "target"],
+            "tonemaps": list(TONEMAPS),
+            "has_target": self.target is not None,
+            "save_path": self.save_path,
+        }
+
+    def parse_effect(self, params: Any) -> Effect:
+        """The current effect with the page's values; `TuneRequestError` names any bad field."""
+        with self._lock:
+            effect = self.effect
+        if params is None:
+            return effect
+        if not isinstance(params, dict):
+            raise TuneRequestError("params must be a JSON object {field: value}")
+        bounds = self.bounds(effect)
+        fields = effect_to_dict(effect)
+        for name, value in params.items():
+            if name not in bounds:
+                raise TuneRequestError(
+                    f"unknown parameter {name!r} for {fields['effect']}; sliders: {', '.join(bounds)}"
+                )
+            low, high = bounds[name]
+            expected = np.shape(fields[name])
+            values = value if isinstance(value, list) else [value]
+            if np.shape(value) != expected:
+                raise TuneRequestError(f"{name} must have shape {list(expected)}, got {json.dumps(value)}")
+            for element in values:
+                number = _number(element, name)
+                if not low <= number <= high:
+                    raise TuneRequestError(f"{name} = {number} lies outside its range [{low}, {high}]")
+            fields[name] = value
+        return effect_from_dict(fields)
+
+    def _light(self, payload: Mapping) -> tuple[Float[Array, "2"], bool]:
+        light = payload.get("light", list(self.light_xy))
+        if not (isinstance(light, list) and len(light) == 2):
+            raise TuneRequestError(f"light must be [x, y] in pixels, got {json.dumps(light)}")
+        x, y = (_number(v, "light") for v in light)
+        in_front = payload.get("light_in_front", self.light_in_front)
+        if not isinstance(in_front, bool):
+            raise TuneRequestError(f"light_in_front must be true or false, got {json.dumps(in_front)}")
+        return jnp.asarray([x, y], self.buffers.color.dtype), in_front
+
+    # --------------------------------------------------------------- actions
+
+    def render(self, payload: Mapping) -> dict:
+        """Render one view (validated here, rendered on the worker; may raise `Superseded`)."""
+        effect = self.parse_effect(payload.get("params"))
+        light, in_front = self._light(payload)
+        quality = _choice(payload, "quality", QUALITIES, "full")
+        view = _choice(payload, "view", VIEWS, "after")
+        tonemap = _choice(payload, "tonemap", TONEMAPS, "reinhard")
+        if view == "target" and self.target is None:
+            raise TuneRequestError("view 'target' needs a target (start the tuner with --target)")
+        preview = quality == "preview"
+        buffers = self.preview_buffers if preview else self.buffers
+        target = self.preview_target if preview else self.target
+        if preview:
+            effect = scale_pixel_fields(effect, 1.0 / self.factor)
+            light = light / self.factor
+
+        def job():
+            start = time.perf_counter()
+            pixels = np.asarray(_render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap))
+            rendered = time.perf_counter()
+            png = encode_png(pixels)
+            return {
+                "image": "data:image/png;base64," + base64.b64encode(png).decode("ascii"),
+                "width": int(pixels.shape[1]),
+                "height": int(pixels.shape[0]),
+                "quality": quality,
+                "view": view,
+                "render_ms": round((rendered - start) * 1000.0, 2),
+                "encode_ms": round((time.perf_counter() - rendered) * 1000.0, 2),
+            }
+
+        return self.queue.submit(job)
+
+    def set_preset(self, payload: Mapping) -> dict:
+        name = payload.get("name")
+        if name not in PRESETS:
+            raise TuneRequestError(f"unknown preset {json.dumps(name)}; choose one of: {', '.join(sorted(PRESETS))}")
+        with self._lock:
+            self.effect = preset(name)
+        return self.state()
+
+    def save(self, payload: Mapping) -> dict:
+        effect = self.parse_effect(payload.get("params"))
+        save_effect(self.save_path, effect)
+        with self._lock:
+            self.effect = effect
+        return {"path": self.save_path, "effect": effect_to_dict(effect)}
+
+    def fit_progress(self) -> dict:
+        return dict(self._fit_progress)
+
+    def fit(self, payload: Mapping) -> dict:
+        """Fit the page's effect to the target at preview resolution; the answer holds full-resolution values."""
+        from godrays_jax.fit import fit
+
+        if self.target is None:
+            raise TuneRequestError("no target to fit to: start the tuner with --target TARGET")
+        effect = self.parse_effect(payload.get("params"))
+        light, in_front = self._light(payload)
+        fixed = payload.get("fixed", [])
+        bounds = self.bounds(effect)
+        if not (isinstance(fixed, list) and all(name in bounds for name in fixed)):
+            raise TuneRequestError(f"fixed must be a list of slider names ({', '.join(bounds)}), got {json.dumps(fixed)}")
+        if len(fixed) == len(bounds):
+            raise TuneRequestError("every parameter is locked: unlock at least one to fit")
+        if not self._fit_lock.acquire(blocking=False):
+            raise Superseded("a fit is already running")
+        try:
+            self._fit_progress = {"running": True, "step": 0, "loss": None}
+
+            def progress(step, loss):
+                self._fit_progress = {"running": True, "step": int(step), "loss": float(loss)}
+
+            start = scale_pixel_fields(effect, 1.0 / self.factor)
+            result = fit(
+                start,
+                self.preview_buffers,
+                light / self.factor,
+                self.preview_target,
+                fixed=fixed,
+                max_steps=self.fit_steps,
+                light_in_front=in_front,
+                progress=progress,
+            )
+            fitted = _clip_to_bounds(scale_pixel_fields(result.effect, float(self.factor)), bounds)
+        finally:
+            self._fit_progress = {**self._fit_progress, "running": False}
+            self._fit_lock.release()
+        with self._lock:
+            self.effect = fitted
+        return {
+            "effect": effect_to_dict(fitted),
+            "loss_before": result.loss_before,
+            "loss_after": result.loss_after,
+            "steps": result.steps,
+            "fitted": list(result.fitted),
+        }
+
+
+def _clip_to_bounds(effect: Effect, bounds: Mapping[str, tuple[float, float]]) -> Effect:
+    names = list(bounds)
+    return eqx.tree_at(
+        lambda e: [getattr(e, n) for n in names], effect, [jnp.clip(getattr(effect, n), *bounds[n]) for n in names]
+    )
+
+
+@functools.cache
+def page_html() -> bytes:
+    """The tuner page (package data `tune_page.html`)."""
+    return resources.files("godrays_jax").joinpath("tune_page.html").read_bytes()
+
+
+class _Handler(http.server.BaseHTTPRequestHandler):
+    server: "_HTTPServer"
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format, *args):  # the page polls; a line per request would flood the terminal
+        pass
+
+    def _send(self, status: int, body: bytes, content_type: str) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _json(self, status: int, value: Any) -> None:
+        self._send(status, json.dumps(value).encode(), "application/json")
+
+    def _host_allowed(self) -> bool:
+        # DNS rebinding: a foreign page that resolves its own name to 127.0.0.1 sends its own Host header.
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
+        return host in ("127.0.0.1", "localhost")
+
+    def _payload(self) -> dict:
+        length = int(self.headers.get("Content-Length") or 0)
+        if length > _MAX_BODY_BYTES:
+            raise TuneRequestError(f"request body too large ({length} bytes, at most {_MAX_BODY_BYTES})")
+        text = self.rfile.read(length) if length else b"{}"
+        try:
+            payload = json.loads(text)
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise TuneRequestError(f"malformed JSON: {error}") from None
+        if not isinstance(payload, dict):
+            raise TuneRequestError("the request body must be a JSON object")
+        return payload
+
+    def _answer(self, action: Callable[[], Any]) -> None:
+        from godrays_jax.cli import error_line
+
+        try:
+            self._json(200, action())
+        except TuneRequestError as error:
+            self._json(400, {"error": str(error)})
+        except Superseded as error:
+            self._json(409, {"error": str(error)})
+        except Exception as error:  # a failed render must not take the server down
+            self._json(500, {"error": error_line(error)})
+
+    def do_GET(self):
+        if not self._host_allowed():
+            return self._json(403, {"error": "the tuner answers requests to 127.0.0.1 or localhost only"})
+        tuner = self.server.tuner
+        path = self.path.split("?", 1)[0]
+        if path in ("/", "/index.html"):
+            return self._send(200, page_html(), "text/html; charset=utf-8")
+        if path == "/api/state":
+            return self._answer(tuner.state)
+        if path == "/api/fit":
+            return self._answer(tuner.fit_progress)
+        self._json(404, {"error": f"no such page {path}"})
+
+    def do_POST(self):
+        if not self._host_allowed():
+            return self._json(403, {"error": "the tuner answers requests to 127.0.0.1 or localhost only"})
+        tuner = self.server.tuner
+        actions = {"/api/render": tuner.render, "/api/preset": tuner.set_preset, "/api/fit": tuner.fit,
+                   "/api/save": tuner.save}  # fmt: skip
+        action = actions.get(self.path)
+        if action is None:
+            # the body is read anyway so the connection stays usable (HTTP/1.1 keep-alive)
+            self.rfile.read(int(self.headers.get("Content-Length") or 0))
+            return self._json(404, {"error": f"no such endpoint {self.path}"})
+        try:
+            payload = self._payload()
+        except TuneRequestError as error:
+            self.close_connection = True
+            return self._json(400, {"error": str(error)})
+        self._answer(lambda: action(payload))
+
+
+class _HTTPServer(http.server.ThreadingHTTPServer):
+    daemon_threads = True
+    tuner: Tuner
+
+
+class TuneServer:
+    """The tuner's HTTP server on 127.0.0.1, serving in a background thread.
+
+    `port=0` lets the OS choose a free port (see `url`). Use as a context
+    manager, or call `close()`: it stops the server, then the render worker.
+    """
+
+    def __init__(self, tuner: Tuner, *, port: int = 0):
+        if not (isinstance(port, int) and 0 <= port <= 65535):
+            raise ValueError(f"port must be an int in [0, 65535], got {port!r}")
+        self.tuner = tuner
+        self._http = _HTTPServer((HOST, port), _Handler)
+        self._http.tuner = tuner
+        self._thread = threading.Thread(target=self._http.serve_forever, name="godrays-tune-http", daemon=True)
+        self._thread.start()
+
+    @property
+    def port(self) -> int:
+        return self._http.server_address[1]
+
+    @property
+    def url(self) -> str:
+        return f"http://{HOST}:{self.port}/"
+
+    def close(self) -> None:
+        self._http.shutdown()
+        self._http.server_close()
+        self._thread.join()
+        self.tuner.close()
+
+    def __enter__(self) -> "TuneServer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def wait(self) -> None:
+        """Block until the server stops (Ctrl-C raises `KeyboardInterrupt` here)."""
+        while self._thread.is_alive():
+            self._thread.join(0.5)
+
+    def warm_up(self) -> None:
+        """Compile the starting effect's preview and full-resolution renders so the first slider move is fast."""
+        for quality in QUALITIES:
+            self.tuner.render({"quality": quality})
+
+
+def run_tune(args) -> int:
+    """The `godrays-jax tune` command: serve the tuner until Ctrl-C (see `cli._add_tune` for the options)."""
+    from godrays_jax.cli import CommandError, check_output_path, load_effect_option, resolve_light
+    from godrays_jax.io import read_buffers, read_image
+
+    check_output_path(args.output, args.buffers, *([args.target] if args.target else []))
+    if args.preview_pixels < 1:
+        raise CommandError(f"--preview-pixels must be >= 1, got {args.preview_pixels}")
+    if args.fit_steps < 1:
+        raise CommandError(f"--fit-steps must be >= 1, got {args.fit_steps}")
+    effect = load_effect_option(args.preset, args.params)
+    buffers = read_buffers(args.buffers, depth_channel=args.depth_channel)
+    light_xy, in_front = resolve_light(args.light, args.buffers)
+    target = None if args.target is None else read_image(args.target)
+    if target is not None and target.shape[:2] != (buffers.height, buffers.width):
+        raise CommandError(
+            f"--target {args.target} is {target.shape[1]}x{target.shape[0]}, "
+            f"the frame {buffers.width}x{buffers.height}: they must match"
+        )
+    tuner = Tuner(
+        buffers, light_xy, effect=effect, target=target, light_in_front=in_front, save_path=args.output,
+        max_preview_pixels=args.preview_pixels, fit_steps=args.fit_steps,
+    )  # fmt: skip
+    try:
+        server = TuneServer(tuner, port=args.port)
+    except OSError as error:
+        tuner.close()
+        raise CommandError(f"cannot listen on {HOST}:{args.port}: {error.strerror or error}") from None
+    try:
+        print(f"compiling the first renders for {buffers.width}x{buffers.height} ...", flush=True)
+        server.warm_up()
+        print(f"tuner at {server.url} (Ctrl-C stops it); save writes {tuner.save_path}", flush=True)
+        server.wait()
+    except KeyboardInterrupt:
+        print("tuner stopped", flush=True)
+    finally:
+        server.close()
+    return 0

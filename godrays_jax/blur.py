@@ -1,6 +1,6 @@
-"""Blurs: seed 000's 12-tap Poisson-disk blur and a separable Gaussian.
+"""Blurs: seed 000's 12-tap Poisson-disk blur, a separable Gaussian, seed 001's bloom pyramid.
 
-Both use clamp-to-edge addressing, so a constant image stays constant.
+All use clamp-to-edge addressing, so a constant image stays constant.
 """
 
 import math
@@ -119,3 +119,60 @@ def gaussian_blur(
         return total
 
     return blur_axis(blur_axis(image, 0), 1)
+
+
+BLOOM_LEVELS = (2, 4, 8, 16)
+"""Seed 001's bloom pyramid: blurs at 1/2, 1/4, 1/8 and 1/16 of the full resolution."""
+
+
+def downsample_box(image: Float[Array, "H W C"], factor: int) -> Float[Array, "h w C"]:
+    """Average each `factor x factor` block of pixels, `h = ceil(H / factor)`, `w = ceil(W / factor)`.
+
+    A ragged last row or column of blocks is completed with the edge pixels
+    (clamp-to-edge). Output pixel `(j, i)` covers full-resolution pixels
+    `[factor * i, factor * (i + 1))` x `[factor * j, factor * (j + 1))`.
+    """
+    check_image(image)
+    if not is_static_int(factor) or factor < 1:
+        raise ValueError(f"factor must be a Python int >= 1, got {factor!r}")
+    height, width, channels = image.shape
+    low_h, low_w = -(-height // factor), -(-width // factor)
+    padded = jnp.pad(image, ((0, low_h * factor - height), (0, low_w * factor - width), (0, 0)), mode="edge")
+    return padded.reshape(low_h, factor, low_w, factor, channels).mean(axis=(1, 3))
+
+
+def bloom(
+    image: Float[Array, "H W C"],
+    *,
+    threshold: Float[ArrayLike, ""] = 1.0,
+    weights: Float[ArrayLike, "4"] = (1.0, 1.0, 1.0, 1.0),
+    sigma: Float[ArrayLike, ""] = 2.0,
+    radius: int = 6,
+) -> Float[Array, "H W C"]:
+    """Seed 001's bright glow: a bright pass, blurred at 1/2, 1/4, 1/8, 1/16 resolution, summed.
+
+    Bright pass: `max(image - threshold, 0)` per channel, unclipped (HDR: a
+    sun at 40 keeps its energy; seed 003's clipped `bright_pass` is for LDR).
+    Level `k` (factor `2, 4, 8, 16`, `BLOOM_LEVELS`) is the bright pass
+    averaged over `factor x factor` blocks (`downsample_box`), blurred with a
+    Gaussian of `sigma` pixels *of that level* (`gaussian_blur`, `radius`
+    taps each side, static), and read back at full resolution bilinearly
+    (full-resolution pixel `x` reads level position `x / factor`,
+    clamp-to-edge). The output is `sum_k weights[k] * level_k`, no clipping;
+    seed 001 adds the four levels with equal weights. Compare with one large
+    Gaussian: `gaussian_blur(bright, sigma_px)`.
+    """
+    check_image(image)
+    check_scalar(threshold, "threshold")
+    check_scalar(sigma, "sigma")
+    if jnp.shape(weights) != (len(BLOOM_LEVELS),):
+        raise ValueError(f"weights must have shape ({len(BLOOM_LEVELS)},), one per level, got {jnp.shape(weights)}")
+    dtype = image.dtype
+    weights = jnp.asarray(weights, dtype)
+    bright = jnp.maximum(image - jnp.asarray(threshold, dtype), 0.0)
+    x, y = pixel_centres(image.shape[0], image.shape[1], dtype)
+    total = jnp.zeros_like(image)
+    for level, factor in enumerate(BLOOM_LEVELS):
+        low = gaussian_blur(downsample_box(bright, factor), sigma, radius=radius)
+        total = total + weights[level] * sample_bilinear(low, x / factor, y / factor)
+    return total

@@ -7,8 +7,12 @@ static fields (`eqx.field(static=True)`) are Python values that select the
 algorithm. Sizes are in pixels, except `blur_power`, which is in UV units as
 in seed 000. Presets are tuned for frames around 320 to 1920 pixels wide.
 
-A light behind the camera (`light_in_front` false) produces no effect layer, so
-the frame comes back unchanged.
+Off-screen and behind-camera lights, the same rule for every effect that a
+light drives: the layer is multiplied by `light_visibility(light_xy, ...,
+fade=offscreen_fade)`, 1 while the light is on screen, fading smoothly to 0
+once the light is `offscreen_fade` frame-widths beyond the edge, and 0 when
+the light is behind the camera (`light_in_front` false: the frame comes back
+unchanged). `Bloom` does not depend on the light and ignores both.
 """
 
 import dataclasses
@@ -26,7 +30,7 @@ from godrays_jax._checks import check_light
 from godrays_jax.blur import gaussian_blur, poisson_blur
 from godrays_jax.buffers import Buffers
 from godrays_jax.composite import BLEND_MODES, blend
-from godrays_jax.masks import bright_pass, coverage_mask, light_source_mask
+from godrays_jax.masks import bright_pass, coverage_mask, dilate, erode, light_source_mask
 from godrays_jax.rays import radial_rays, scale_iterated_flares
 from godrays_jax.sampling import pixel_centres
 
@@ -82,16 +86,49 @@ class Effect(eqx.Module):
         return blend(buffers.color, self.layer(buffers, light_xy, light_in_front=light_in_front), mode=self.blend_mode)
 
 
+def light_visibility(
+    light_xy: Float[ArrayLike, "2"],
+    height: int,
+    width: int,
+    *,
+    fade: Float[ArrayLike, ""],
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
+    dtype=jnp.float32,
+) -> Float[Array, ""]:
+    """How much of a light-driven effect to draw: the off-screen fade and behind-camera rule of every effect.
+
+    1 while the light is on screen (`0 <= x <= W`, `0 <= y <= H`); outside, it
+    falls smoothly (`1 - smoothstep(t)`, `t` = the light's distance to the
+    screen rectangle divided by `fade * max(W, H)`) to 0 once the light is
+    `fade` frame-widths (of the larger side) beyond the edge, so shafts and
+    glows neither vanish abruptly nor stretch across the frame from a far-away
+    light. 0 when the light is behind the camera (`light_in_front` false).
+    Differentiable in `light_xy` and `fade` (gradients finite everywhere).
+    """
+    check_light(light_xy)
+    light_xy = jnp.asarray(light_xy, dtype)
+    outside_x = jnp.maximum(jnp.maximum(-light_xy[0], light_xy[0] - width), 0.0)
+    outside_y = jnp.maximum(jnp.maximum(-light_xy[1], light_xy[1] - height), 0.0)
+    squared = outside_x**2 + outside_y**2
+    distance = jnp.where(squared > 0, jnp.sqrt(jnp.where(squared > 0, squared, 1.0)), 0.0)
+    reach = jnp.maximum(jnp.asarray(fade, dtype), 1e-6) * max(height, width)
+    t = jnp.clip(distance / reach, 0.0, 1.0)
+    return (1.0 - t * t * (3.0 - 2.0 * t)) * jnp.asarray(light_in_front, dtype)
+
+
 def _emitter(
     source: str,
     buffers: Buffers,
     light_xy,
     radius,
     light_in_front,
+    fade,
 ) -> Float[Array, "H W C"]:
     """What shines: a disc at the light seen through the sky, the sky's own colour, or the light pass."""
     dtype = buffers.color.dtype
-    visible = jnp.asarray(light_in_front, dtype)
+    visible = light_visibility(
+        light_xy, buffers.height, buffers.width, fade=fade, light_in_front=light_in_front, dtype=dtype
+    )
     open_sky = coverage_mask(buffers.coverage)[..., None]
     if source == "disc":
         disc = light_source_mask(buffers.height, buffers.width, light_xy, radius=radius, dtype=dtype)
@@ -125,6 +162,7 @@ class GodRays(Effect):
     threshold: Float[Array, ""] = param(0.25, low=0.0, high=0.99)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
     num_samples: Float[Array, ""] = param(128.0, low=1.0, high=512.0)
+    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     max_samples: int = eqx.field(static=True, default=128)
     source: Source = eqx.field(static=True, default="disc")
     use_bright_pass: bool = eqx.field(static=True, default=False)
@@ -133,7 +171,7 @@ class GodRays(Effect):
     def layer(self, buffers, light_xy, *, light_in_front=True):
         """The rays alone, `(H, W, 3)` (or 1 channel for a 1-channel `sky` source)."""
         check_light(light_xy)
-        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front)
+        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front, self.offscreen_fade)
         rays = radial_rays(
             emitter,
             light_xy,
@@ -166,6 +204,7 @@ class FlareOuts(Effect):
     blur_sigma: Float[Array, ""] = param(2.0, low=0.0, high=50.0)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
     num_iters: Float[Array, ""] = param(20.0, low=1.0, high=64.0)
+    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     max_iters: int = eqx.field(static=True, default=20)
     blur_radius: int = eqx.field(static=True, default=6)
     source: Source = eqx.field(static=True, default="disc")
@@ -174,7 +213,7 @@ class FlareOuts(Effect):
     def layer(self, buffers, light_xy, *, light_in_front=True):
         """The flare-outs alone, `(H, W, 3)`."""
         check_light(light_xy)
-        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front)
+        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front, self.offscreen_fade)
         flares = scale_iterated_flares(
             emitter,
             light_xy,
@@ -192,10 +231,15 @@ class SunOvercast(Effect):
 
     The glow pass is `buffers.glow_pass` when the rasterizer rendered it (the
     source enlarged x1.3 in `glow_color`, occluders shrunk x0.8 in transparent
-    black). For other buffers it is drawn in image space: a disc of
-    `source_radius` pixels at the light in `glow_color`, with the frame's
-    geometry (its coverage) cut out in transparent black. The blurred RGBA is
-    added as `rgb * alpha`, as XNA's additive sprite blend does.
+    black). For other buffers it is drawn in image space, seed 000's two
+    object scalings becoming a fittable number of pixels: the light source's
+    coverage (`buffers.light_pass` if present, else a disc of `source_radius`
+    pixels at the light) dilated by `source_grow` pixels, in `glow_color`, with
+    the frame's geometry (its coverage) eroded by `occluder_shrink` pixels cut
+    out in transparent black, so the glow seeps into the occluders' outlines
+    (`masks.dilate` / `masks.erode`, reach `max_morphology` pixels; the disc is
+    grown analytically). The blurred RGBA is added as `rgb * alpha`, as XNA's
+    additive sprite blend does.
     `passes` is fittable (relaxation of `poisson_blur`, loop length `max_passes`).
     """
 
@@ -203,21 +247,31 @@ class SunOvercast(Effect):
     glow_color: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65), low=0.0, high=10.0)
     source_radius: Float[Array, ""] = param(30.0, low=0.0, high=500.0)
     passes: Float[Array, ""] = param(2.0, low=0.0, high=8.0)
+    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
+    source_grow: Float[Array, ""] = param(0.0, low=0.0, high=64.0)
+    occluder_shrink: Float[Array, ""] = param(0.0, low=0.0, high=64.0)
     max_passes: int = eqx.field(static=True, default=2)
+    max_morphology: int = eqx.field(static=True, default=4)
     blend_mode: str = eqx.field(static=True, default="add")
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 4"]:
         """The unblurred glow pass (RGBA), rendered or drawn in image space."""
         check_light(light_xy)
         dtype = buffers.color.dtype
+        visible = light_visibility(
+            light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
+        )
         if buffers.glow_pass is not None:
-            return buffers.glow_pass.astype(dtype) * jnp.asarray(light_in_front, dtype)
-        x, y = pixel_centres(buffers.height, buffers.width, dtype)
-        light_xy = jnp.asarray(light_xy, dtype)
-        distance = jnp.sqrt((x - light_xy[0]) ** 2 + (y - light_xy[1]) ** 2 + 1e-12)
-        disc = jnp.clip(self.source_radius - distance + 0.5, 0.0, 1.0)
-        open_sky = coverage_mask(buffers.coverage)
-        inside = (disc * open_sky * jnp.asarray(light_in_front, dtype))[..., None]
+            return buffers.glow_pass.astype(dtype) * visible
+        if buffers.light_pass is not None:
+            source = dilate(buffers.light_pass.astype(dtype), self.source_grow, max_radius=self.max_morphology)
+        else:
+            x, y = pixel_centres(buffers.height, buffers.width, dtype)
+            light_xy = jnp.asarray(light_xy, dtype)
+            distance = jnp.sqrt((x - light_xy[0]) ** 2 + (y - light_xy[1]) ** 2 + 1e-12)
+            source = jnp.clip(self.source_radius + self.source_grow - distance + 0.5, 0.0, 1.0)
+        occluders = erode(jnp.clip(buffers.coverage, 0.0, 1.0), self.occluder_shrink, max_radius=self.max_morphology)
+        inside = (source * (1.0 - occluders) * visible)[..., None]
         return inside * self.glow_color.astype(dtype)
 
     def layer(self, buffers, light_xy, *, light_in_front=True):

@@ -1,13 +1,14 @@
-"""Masks that select what emits the rays: sky, flare, light source, depth test, coverage, bright pass.
+"""Masks that select what emits the rays: sky, flare, light source, depth test, coverage, bright pass; dilate, erode.
 
 Masks are `(H, W)` planes in [0, 1] unless said otherwise; multiply them into an
 `(H, W, C)` image with `mask[..., None]`.
 """
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax._checks import check_image, check_light, check_plane, check_scalar
+from godrays_jax._checks import check_image, check_light, check_plane, check_scalar, is_static_int
 from godrays_jax.sampling import pixel_centres, sample_bilinear
 
 
@@ -104,3 +105,47 @@ def bright_pass(image: Float[Array, "H W C"], threshold: Float[ArrayLike, ""]) -
     check_image(image)
     check_scalar(threshold, "threshold")
     return jnp.clip((image - threshold) / (1.0 - threshold), 0.0, 1.0)
+
+
+def dilate(
+    mask: Float[Array, "H W"], radius: Float[ArrayLike, ""], *, max_radius: int
+) -> Float[Array, "H W"]:
+    """Grey-scale dilation of a mask by a disc of `radius` pixels (fittable), clamp-to-edge.
+
+    `out(p) = max_o mask(p + o) * w(o)` over integer offsets `o`, where the
+    structuring element is the antialiased disc `w(o) = clip(radius + 0.5 - |o|, 0, 1)`
+    (1 at `o = 0`, so `radius = 0` returns the mask). `radius` must lie in
+    `[0, max_radius]` (a static Python int, the loop's reach); it is checked
+    with `equinox.error_if`. Pixels beyond the border repeat the edge.
+    """
+    return _morphology(mask, radius, max_radius, "mask")
+
+
+def erode(
+    mask: Float[Array, "H W"], radius: Float[ArrayLike, ""], *, max_radius: int
+) -> Float[Array, "H W"]:
+    """Grey-scale erosion, `1 - dilate(1 - mask, radius)`: shrinks the parts of a [0, 1] mask that are 1."""
+    return 1.0 - _morphology(1.0 - jnp.asarray(mask), radius, max_radius, "mask")
+
+
+def _morphology(mask, radius, max_radius, name):
+    if jnp.ndim(mask) != 2:
+        raise ValueError(f"{name} must have shape (H, W), got shape {jnp.shape(mask)}")
+    check_scalar(radius, "radius")
+    if not is_static_int(max_radius) or max_radius < 0:
+        raise ValueError(f"max_radius must be a Python int >= 0, got {max_radius!r}")
+    mask = jnp.asarray(mask)
+    dtype = jnp.result_type(mask, jnp.float32)
+    radius = jnp.asarray(radius, dtype)
+    radius = eqx.error_if(radius, (radius < 0) | (radius > max_radius), f"radius must lie in [0, max_radius={max_radius}]")
+    height, width = mask.shape
+    padded = jnp.pad(mask.astype(dtype), max_radius, mode="edge")
+    result = mask.astype(dtype)
+    for dy in range(-max_radius, max_radius + 1):
+        for dx in range(-max_radius, max_radius + 1):
+            distance = (dx * dx + dy * dy) ** 0.5
+            if distance == 0 or distance >= max_radius + 0.5:
+                continue
+            shifted = padded[max_radius + dy : max_radius + dy + height, max_radius + dx : max_radius + dx + width]
+            result = jnp.maximum(result, shifted * jnp.clip(radius + 0.5 - distance, 0.0, 1.0))
+    return result

@@ -1,0 +1,274 @@
+"""Seed 001's (VBex engine) camera and sky extras: lens dirt, a procedural dirt texture, the sky sun spot.
+
+Both formulas need directions, not just pixel positions. They are computed in
+view space (x right, y up, z forward, as `godrays_jax.camera.Camera.to_view`)
+from a horizontal field of view `fov_x_deg` (degrees) and the image size, with
+the project's pixel convention (x right, y down, centres at `i + 0.5`, focal
+length `f = (W / 2) / tan(fov_x / 2)` pixels). `view_directions` equals
+`Camera.ray_directions()` normalised, so either can be used.
+
+The light is given as its projected pixel position `light_xy` plus whether it
+is in front of the camera; a light behind the camera (`camera.project_point`
+mirrors it through the camera plane) points the other way, so its direction is
+negated. Neither kernel divides by a distance: a light on the view axis, on a
+pixel centre, off screen or behind the camera gives finite values and gradients.
+"""
+
+import functools
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from godrays_jax._checks import check_image, check_light, check_scalar, is_static_int
+from godrays_jax.sampling import pixel_centres, sample_bilinear
+
+ViewMode = Literal["pixel", "axis"]
+
+LENS_DIRT_ABERRATION = 0.002
+"""Seed 001's per-channel texture offset (UV): green reads `+0.002` in v, blue `+0.002` in u."""
+
+
+def _focal_px(width: int, fov_x_deg, dtype) -> Float[Array, ""]:
+    return 0.5 * width / jnp.tan(jnp.deg2rad(jnp.asarray(fov_x_deg, dtype)) / 2)
+
+
+def _unit(vectors):
+    return vectors / jnp.sqrt(jnp.sum(vectors**2, axis=-1, keepdims=True))
+
+
+def view_directions(
+    height: int, width: int, *, fov_x_deg: Float[ArrayLike, ""], dtype=jnp.float32
+) -> Float[Array, "H W 3"]:
+    """Unit view-space directions (x right, y up, z forward) through every pixel centre.
+
+    `fov_x_deg` is the horizontal field of view in degrees, in (0, 180).
+    """
+    check_scalar(fov_x_deg, "fov_x_deg")
+    focal = _focal_px(width, fov_x_deg, dtype)
+    x, y = pixel_centres(height, width, dtype)
+    rays = jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
+    return _unit(rays)
+
+
+def light_direction(
+    light_xy: Float[ArrayLike, "2"],
+    height: int,
+    width: int,
+    *,
+    fov_x_deg: Float[ArrayLike, ""],
+    in_front: Bool[ArrayLike, ""] | bool = True,
+    dtype=jnp.float32,
+) -> Float[Array, "3"]:
+    """Unit view-space direction from the camera toward a light projected at `light_xy` pixels.
+
+    `light_xy` may be anywhere (off screen: a direction far from the axis). A
+    light behind the camera is projected through its mirror image, so the
+    direction through `light_xy` is negated when `in_front` is false.
+    """
+    check_light(light_xy)
+    check_scalar(fov_x_deg, "fov_x_deg")
+    light_xy = jnp.asarray(light_xy, dtype)
+    focal = _focal_px(width, fov_x_deg, dtype)
+    ray = jnp.stack([(light_xy[0] - 0.5 * width) / focal, (0.5 * height - light_xy[1]) / focal, jnp.ones((), dtype)])
+    sign = jnp.where(jnp.asarray(in_front), 1.0, -1.0).astype(dtype)
+    return _unit(ray) * sign
+
+
+def safe_power(base: Float[Array, "*S"], exponent: Float[ArrayLike, ""]) -> Float[Array, "*S"]:
+    """`base ** exponent` for `base >= 0`, with 0 (and zero gradients) where `base <= 0`.
+
+    `jnp.power` has a NaN gradient in the exponent at a zero base (`0 * log 0`).
+    """
+    positive = base > 0
+    log_base = jnp.log(jnp.where(positive, base, 1.0))
+    return jnp.where(positive, jnp.exp(exponent * log_base), 0.0)
+
+
+def linear_depth(depth: Float[Array, "H W"], far: Float[ArrayLike, ""]) -> Float[Array, "H W"]:
+    """Seed 001's `LDepth`: `depth / far` clipped to [0, 1]; the sky (`+inf`) is 1."""
+    finite = jnp.isfinite(depth)
+    far = jnp.asarray(far, depth.dtype)
+    return jnp.where(finite, jnp.clip(jnp.where(finite, depth, 0.0) / far, 0.0, 1.0), 1.0)
+
+
+def lens_dirt_intensity(
+    depth: Float[Array, "H W"],
+    light_xy: Float[ArrayLike, "2"],
+    *,
+    fov_x_deg: Float[ArrayLike, ""],
+    far: Float[ArrayLike, ""],
+    power: Float[ArrayLike, ""] = 20.0,
+    scale: Float[ArrayLike, ""] = 2.0,
+    in_front: Bool[ArrayLike, ""] | bool = True,
+    view: ViewMode = "pixel",
+) -> Float[Array, "H W"]:
+    """Seed 001's `pow(saturate(dot(view, -lightdir) * max(LDepth, 0.8)), power) * scale`.
+
+    `-lightdir` is the direction toward the light (`light_direction`). `view` is
+    each pixel's own view ray (`"pixel"`, the default: the dirt lights up
+    around the sun) or the optical axis for every pixel (`"axis"`: the whole
+    texture brightens as the camera turns to the sun). `LDepth` is
+    `linear_depth(depth, far)` (scene units), so occluders nearer than
+    `0.8 * far` are dimmed by `0.8 ** power`. Seed 001: `power = 20`, `scale = 2`.
+    """
+    if view not in ("pixel", "axis"):
+        raise ValueError(f"view must be 'pixel' or 'axis', got {view!r}")
+    if jnp.ndim(depth) != 2:
+        raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
+    for name, value in (("far", far), ("power", power), ("scale", scale)):
+        check_scalar(value, name)
+    height, width = depth.shape
+    dtype = jnp.result_type(depth, jnp.float32)
+    toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=in_front, dtype=dtype)
+    if view == "pixel":
+        cosine = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype) @ toward_light
+    else:
+        cosine = jnp.broadcast_to(toward_light[2], (height, width))
+    occlusion = jnp.maximum(linear_depth(depth.astype(dtype), far), 0.8)
+    return safe_power(jnp.clip(cosine * occlusion, 0.0, 1.0), power) * scale
+
+
+def lens_dirt(
+    dirt: Float[Array, "h w 1"],
+    depth: Float[Array, "H W"],
+    light_xy: Float[ArrayLike, "2"],
+    *,
+    fov_x_deg: Float[ArrayLike, ""],
+    far: Float[ArrayLike, ""],
+    sun_color: Float[ArrayLike, "3"] = (1.0, 1.0, 1.0),
+    power: Float[ArrayLike, ""] = 20.0,
+    scale: Float[ArrayLike, ""] = 2.0,
+    aberration: Float[ArrayLike, ""] = LENS_DIRT_ABERRATION,
+    in_front: Bool[ArrayLike, ""] | bool = True,
+    view: ViewMode = "pixel",
+) -> Float[Array, "H W 3"]:
+    """Seed 001's lens dirt layer, to be added onto the frame: `dirt colour * lens_dirt_intensity`.
+
+    The one-channel `dirt` texture (any size; `dirt_texture` makes one) is
+    stretched over the frame and sampled bilinearly, clamp-to-edge: red at the
+    pixel's UV, green at `uv + (0, aberration)`, blue at `uv + (aberration, 0)`
+    (UV units; seed 001: 0.002, a chromatic-aberration fringe), each times that
+    channel of `sun_color` (linear RGB). See `lens_dirt_intensity` for the
+    other arguments.
+    """
+    check_image(dirt, "dirt")
+    if dirt.shape[-1] != 1:
+        raise ValueError(f"dirt must have one channel, shape (h, w, 1), got shape {dirt.shape}")
+    check_scalar(aberration, "aberration")
+    if jnp.shape(sun_color) != (3,):
+        raise ValueError(f"sun_color must be an RGB triple, shape (3,), got shape {jnp.shape(sun_color)}")
+    intensity = lens_dirt_intensity(
+        depth, light_xy, fov_x_deg=fov_x_deg, far=far, power=power, scale=scale, in_front=in_front, view=view
+    )
+    height, width = intensity.shape
+    dtype = intensity.dtype
+    x, y = pixel_centres(height, width, dtype)
+    u, v = x / width, y / height
+    texture = dirt.astype(dtype)
+    tex_h, tex_w = dirt.shape[0], dirt.shape[1]
+    aberration = jnp.asarray(aberration, dtype)
+    red = sample_bilinear(texture, u * tex_w, v * tex_h)
+    green = sample_bilinear(texture, u * tex_w, (v + aberration) * tex_h)
+    blue = sample_bilinear(texture, (u + aberration) * tex_w, v * tex_h)
+    colour = jnp.concatenate([red, green, blue], axis=-1) * jnp.asarray(sun_color, dtype)
+    return colour * intensity[..., None]
+
+
+def sun_spot(
+    height: int,
+    width: int,
+    light_xy: Float[ArrayLike, "2"],
+    *,
+    fov_x_deg: Float[ArrayLike, ""],
+    sun_distance: Float[ArrayLike, ""],
+    sun_sharpness: Float[ArrayLike, ""],
+    in_front: Bool[ArrayLike, ""] | bool = True,
+    dtype=jnp.float32,
+) -> Float[Array, "H W 1"]:
+    """Seed 001's sky sun spot `saturate(pow(dot(dir, L), SunDistance * 2000)) * SunSharpness * 30`.
+
+    `dir` is each pixel's unit view ray and `L` the direction toward the light;
+    a negative dot gives 0. One channel, unmasked: multiply by the sky
+    (`coverage_mask`) and the sun colour, as `effects.SunSpot` does. With
+    `sun_distance = 1` the spot falls to half its peak about 1.5 degrees from
+    the sun's centre (larger `sun_distance`: smaller spot).
+    """
+    for name, value in (("sun_distance", sun_distance), ("sun_sharpness", sun_sharpness)):
+        check_scalar(value, name)
+    toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=in_front, dtype=dtype)
+    cosine = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype) @ toward_light
+    exponent = jnp.asarray(sun_distance, dtype) * 2000.0
+    spot = jnp.clip(safe_power(jnp.clip(cosine, 0.0, 1.0), exponent), 0.0, 1.0)
+    return (spot * jnp.asarray(sun_sharpness, dtype) * 30.0)[..., None]
+
+
+def dirt_texture(
+    height: int,
+    width: int,
+    *,
+    seed: int = 0,
+    num_smudges: int = 24,
+    num_specks: int = 160,
+    num_rings: int = 12,
+    dtype=jnp.float32,
+) -> Float[Array, "H W 1"]:
+    """A procedural one-channel lens-dirt texture in [0, 1]: smudges, specks and water rings.
+
+    Smudges are faint, large, elongated Gaussian blobs (4 to 15 % of the
+    image's larger side); specks are small bright soft discs (0.2 to 1 %);
+    rings are dried-droplet outlines (2 to 6 %). Densities overlap as
+    `1 - exp(-sum)`. The same seed and size give the same texture. The shapes are drawn with NumPy's `default_rng(seed)`: counts, size and
+    seed are Python ints, and the texture is data, not a fittable parameter.
+    """
+    for name, value in (("height", height), ("width", width)):
+        if not is_static_int(value) or value < 1:
+            raise ValueError(f"{name} must be a Python int >= 1, got {value!r}")
+    for name, value in (("num_smudges", num_smudges), ("num_specks", num_specks), ("num_rings", num_rings)):
+        if not is_static_int(value) or value < 0:
+            raise ValueError(f"{name} must be a Python int >= 0, got {value!r}")
+    side = float(max(height, width))
+    generator = np.random.default_rng(seed)
+
+    def blobs(count, size_range, strength_range, elongation_max):
+        return np.stack(
+            [
+                generator.uniform(0.0, width, count),
+                generator.uniform(0.0, height, count),
+                generator.uniform(*size_range, count) * side,
+                generator.uniform(*strength_range, count),
+                generator.uniform(0.0, np.pi, count),
+                generator.uniform(1.0, elongation_max, count),
+            ],
+            axis=1,
+        ).astype(np.float32)
+
+    smudges = blobs(num_smudges, (0.04, 0.15), (0.05, 0.25), 3.0)
+    specks = blobs(num_specks, (0.002, 0.01), (0.3, 1.5), 1.5)
+    rings = blobs(num_rings, (0.02, 0.06), (0.15, 0.5), 1.3)
+    density = _dirt_density(height, width, smudges, specks, rings)
+    return (1.0 - jnp.exp(-density))[..., None].astype(dtype)
+
+
+def _blob_sum(x, y, blobs, profile):
+    def add(i, total):
+        centre_x, centre_y, size, strength, angle, elongation = (blobs[i, k] for k in range(6))
+        dx, dy = x - centre_x, y - centre_y
+        along = dx * jnp.cos(angle) + dy * jnp.sin(angle)
+        across = -dx * jnp.sin(angle) + dy * jnp.cos(angle)
+        radius = jnp.sqrt((along / elongation) ** 2 + across**2) / size
+        return total + strength * profile(radius)
+
+    return jax.lax.fori_loop(0, blobs.shape[0], add, jnp.zeros_like(x))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _dirt_density(height, width, smudges, specks, rings):
+    x, y = pixel_centres(height, width, jnp.float32)
+    return (
+        _blob_sum(x, y, smudges, lambda r: jnp.exp(-2 * r**2))
+        + _blob_sum(x, y, specks, lambda r: jnp.clip(1.5 - r, 0.0, 1.0))
+        + _blob_sum(x, y, rings, lambda r: jnp.exp(-(((r - 1.0) / 0.08) ** 2)) + 0.15 * (r < 1))
+    )

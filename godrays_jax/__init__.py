@@ -38,3 +38,19 @@ from godrays_jax.io import read_image as read_image
 from godrays_jax.io import read_light as read_light
 from godrays_jax.io import write_buffers as write_buffers
 from godrays_jax.io import write_image as write_image
+
+from godrays_jax.blur import bloom as bloom
+from godrays_jax.blur import downsample_box as downsample_box
+from godrays_jax.effects import Bloom as Bloom
+from godrays_jax.effects import LensDirt as LensDirt
+from godrays_jax.effects import SunSpot as SunSpot
+from godrays_jax.effects import light_visibility as light_visibility
+from godrays_jax.effects import parameter_bounds as parameter_bounds
+from godrays_jax.lens import dirt_texture as dirt_texture
+from godrays_jax.lens import lens_dirt as lens_dirt
+from godrays_jax.lens import lens_dirt_intensity as lens_dirt_intensity
+from godrays_jax.lens import light_direction as light_direction
+from godrays_jax.lens import sun_spot as sun_spot
+from godrays_jax.lens import view_directions as view_directions
+from godrays_jax.masks import dilate as dilate
+from godrays_jax.masks import erode as erode

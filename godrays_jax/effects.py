@@ -16,6 +16,7 @@ unchanged). `Bloom` does not depend on the light and ignores both.
 """
 
 import dataclasses
+import functools
 import json
 import os
 import tempfile
@@ -27,9 +28,10 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax._checks import check_light
-from godrays_jax.blur import gaussian_blur, poisson_blur
+from godrays_jax.blur import bloom, gaussian_blur, poisson_blur
 from godrays_jax.buffers import Buffers
 from godrays_jax.composite import BLEND_MODES, blend
+from godrays_jax.lens import LENS_DIRT_ABERRATION, ViewMode, dirt_texture, lens_dirt, sun_spot
 from godrays_jax.masks import bright_pass, coverage_mask, dilate, erode, light_source_mask
 from godrays_jax.rays import radial_rays, scale_iterated_flares
 from godrays_jax.sampling import pixel_centres
@@ -285,11 +287,137 @@ class SunOvercast(Effect):
         return glow[..., :3] * glow[..., 3:]
 
 
+class LensDirt(Effect):
+    """Seed 001's lens dirt: a dirt texture lit by the sun, `lens.lens_dirt`, added.
+
+    The texture is `lens.dirt_texture(H, W, seed=dirt_seed)`, generated at the
+    frame's size on first use and cached (pass your own texture to
+    `lens.lens_dirt`). Directions come from `fov_x_deg` (horizontal field of
+    view, degrees); `far` (scene units) normalises depth to seed 001's
+    `LDepth`; `power` and `scale` are seed 001's 20 and 2; `aberration` is the
+    per-channel UV offset (0.002); `sun_color` tints the dirt.
+    """
+
+    power: Float[Array, ""] = param(20.0, low=1.0, high=200.0)
+    scale: Float[Array, ""] = param(2.0, low=0.0, high=20.0)
+    aberration: Float[Array, ""] = param(LENS_DIRT_ABERRATION, low=-0.05, high=0.05)
+    sun_color: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
+    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
+    far: Float[Array, ""] = param(100.0, low=1e-3, high=1e6)
+    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
+    dirt_seed: int = eqx.field(static=True, default=0)
+    view: ViewMode = eqx.field(static=True, default="pixel")
+    blend_mode: str = eqx.field(static=True, default="add")
+
+    def layer(self, buffers, light_xy, *, light_in_front=True):
+        """The lit dirt alone, `(H, W, 3)`."""
+        check_light(light_xy)
+        dtype = buffers.color.dtype
+        dirt = jnp.asarray(_cached_dirt(buffers.height, buffers.width, self.dirt_seed), dtype)
+        lit = lens_dirt(
+            dirt, buffers.depth, light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
+            power=self.power, scale=self.scale, aberration=self.aberration, in_front=light_in_front, view=self.view,
+        )  # fmt: skip
+        visible = light_visibility(
+            light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
+        )
+        return lit.astype(dtype) * visible
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_dirt(height: int, width: int, seed: int) -> np.ndarray:
+    return np.asarray(dirt_texture(height, width, seed=seed))
+
+
+class SunSpot(Effect):
+    """Seed 001's sky sun spot, `lens.sun_spot` on the sky in `sun_color`, plus its glow.
+
+    As in seed 001 the spot is also written to a glow target (`glow`), which
+    the bloom pyramid (`blur.bloom`, no threshold, `glow_weights`, `glow_sigma`
+    level pixels) spreads; the layer is `spot + glow_intensity * bloom(spot)`.
+    """
+
+    sun_distance: Float[Array, ""] = param(1.0, low=0.01, high=100.0)
+    sun_sharpness: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
+    sun_color: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
+    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
+    glow_intensity: Float[Array, ""] = param(1.0, low=0.0, high=10.0)
+    glow_weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0)
+    glow_sigma: Float[Array, ""] = param(2.0, low=0.1, high=10.0)
+    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
+    glow_radius: int = eqx.field(static=True, default=6)
+    blend_mode: str = eqx.field(static=True, default="add")
+
+    def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 3"]:
+        """The glow target: the coloured spot on sky pixels (seed 001's `Out.glow`), unblurred."""
+        check_light(light_xy)
+        dtype = buffers.color.dtype
+        spot = sun_spot(
+            buffers.height, buffers.width, light_xy, fov_x_deg=self.fov_x_deg, sun_distance=self.sun_distance,
+            sun_sharpness=self.sun_sharpness, in_front=light_in_front, dtype=dtype,
+        )  # fmt: skip
+        visible = light_visibility(
+            light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
+        )
+        sky = coverage_mask(buffers.coverage.astype(dtype))[..., None]
+        return spot * sky * self.sun_color.astype(dtype) * visible
+
+    def layer(self, buffers, light_xy, *, light_in_front=True):
+        """The spot and its bloom, `(H, W, 3)`."""
+        spot = self.glow(buffers, light_xy, light_in_front=light_in_front)
+        glow = bloom(spot, threshold=0.0, weights=self.glow_weights, sigma=self.glow_sigma, radius=self.glow_radius)
+        return spot + self.glow_intensity * glow
+
+
+BloomMethod = Literal["pyramid", "gaussian"]
+
+
+class Bloom(Effect):
+    """Seed 001's bright glow (`blur.bloom`): bright pass, blurs at 1/2 .. 1/16 resolution, summed, added.
+
+    `method="gaussian"` is the single large Gaussian seed 001 compares it with:
+    the same bright pass blurred once at full resolution with `gaussian_sigma`
+    pixels (`gaussian_radius` taps each side). The layer is `intensity` times
+    either. Bloom does not depend on the light: `light_xy` and
+    `light_in_front` are accepted and ignored.
+    """
+
+    threshold: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
+    intensity: Float[Array, ""] = param(0.25, low=0.0, high=10.0)
+    weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0)
+    sigma: Float[Array, ""] = param(2.0, low=0.1, high=10.0)
+    gaussian_sigma: Float[Array, ""] = param(12.0, low=0.1, high=100.0)
+    radius: int = eqx.field(static=True, default=6)
+    gaussian_radius: int = eqx.field(static=True, default=36)
+    method: BloomMethod = eqx.field(static=True, default="pyramid")
+    blend_mode: str = eqx.field(static=True, default="add")
+
+    def __check_init__(self):
+        if self.method not in ("pyramid", "gaussian"):
+            raise ValueError(f"method must be 'pyramid' or 'gaussian'; got {self.method!r}")
+
+    def layer(self, buffers, light_xy, *, light_in_front=True):
+        """The glow alone, same channels as `buffers.color` (an alpha channel is not bloomed)."""
+        check_light(light_xy)
+        colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
+        if self.method == "pyramid":
+            glow = bloom(colour, threshold=self.threshold, weights=self.weights, sigma=self.sigma, radius=self.radius)
+        else:
+            bright = jnp.maximum(colour - self.threshold.astype(colour.dtype), 0.0)
+            glow = gaussian_blur(bright, self.gaussian_sigma, radius=self.gaussian_radius)
+        return glow * self.intensity.astype(colour.dtype)
+
+
 def _xna_crepuscular() -> GodRays:
     """Seed 003: 128 samples, density .5, decay .95, weight 1, exposure .15, bright pass, additive."""
+    # Seed 003 leaves the flare size (SunSize / z), the bright-pass threshold and
+    # the colour open: with decay .95 the shafts reach only ~8 % of the way to the
+    # light, so the disc must reach the occluders (120 px on a 320 px frame), and
+    # a warm tint below 1 keeps the saturated core from washing the silhouettes out.
     return GodRays(
         density=0.5, decay=0.95, weight=1.0, exposure=0.15, threshold=0.25, num_samples=128.0,
-        max_samples=128, source="disc", use_bright_pass=True, blend_mode="add",
+        max_samples=128, light_radius=120.0, tint=(0.8, 0.7, 0.5), source="disc", use_bright_pass=True,
+        blend_mode="add",
     )  # fmt: skip
 
 
@@ -311,11 +439,35 @@ def _sun_overcast() -> SunOvercast:
     return SunOvercast(blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2)
 
 
+def _vbex_lens_dirt() -> LensDirt:
+    """Seed 001: power 20, scale 2, chromatic offset 0.002, warm sun colour, added."""
+    return LensDirt(power=20.0, scale=2.0, aberration=LENS_DIRT_ABERRATION, sun_color=(1.0, 0.8, 0.55))
+
+
+def _vbex_sun_spot() -> SunSpot:
+    """Seed 001: `pow(dot, SunDistance * 2000) * SunSharpness * 30` on the sky, bloomed through the glow target."""
+    return SunSpot(sun_distance=1.0, sun_sharpness=1.0, sun_color=(1.0, 0.85, 0.6), glow_intensity=0.5)
+
+
+def _vbex_bloom() -> Bloom:
+    """Seed 001: bright pass, blurs at 1/2, 1/4, 1/8, 1/16 resolution added with equal weights."""
+    return Bloom(threshold=1.0, weights=(1.0, 1.0, 1.0, 1.0), intensity=0.25, method="pyramid")
+
+
+def _gaussian_bloom() -> Bloom:
+    """The single large Gaussian that seed 001's pyramid replaces, for comparison."""
+    return Bloom(threshold=1.0, gaussian_sigma=12.0, gaussian_radius=36, intensity=1.0, method="gaussian")
+
+
 PRESETS: dict[str, Any] = {
     "xna_crepuscular": _xna_crepuscular,
     "galaxy_vls": _galaxy_vls,
     "kbengine_flares": _kbengine_flares,
     "sun_overcast": _sun_overcast,
+    "vbex_lens_dirt": _vbex_lens_dirt,
+    "vbex_sun_spot": _vbex_sun_spot,
+    "vbex_bloom": _vbex_bloom,
+    "gaussian_bloom": _gaussian_bloom,
 }
 """Preset name -> a function making that effect with the source article's constants."""
 

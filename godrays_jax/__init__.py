@@ -54,3 +54,12 @@ from godrays_jax.lens import sun_spot as sun_spot
 from godrays_jax.lens import view_directions as view_directions
 from godrays_jax.masks import dilate as dilate
 from godrays_jax.masks import erode as erode
+from godrays_jax.fit import FitResult as FitResult
+from godrays_jax.fit import fit as fit
+from godrays_jax.fit import fit_report_image as fit_report_image
+from godrays_jax.losses import LOSSES as LOSSES
+from godrays_jax.losses import charbonnier_loss as charbonnier_loss
+from godrays_jax.losses import l1_loss as l1_loss
+from godrays_jax.losses import mse_loss as mse_loss
+from godrays_jax.losses import ssim as ssim
+from godrays_jax.losses import ssim_loss as ssim_loss

@@ -195,7 +195,53 @@ def _run_tune(args) -> int:
     return run_tune(args)
 
 
-COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch, _add_tune]
+def _add_fit(subparsers) -> None:
+    from godrays_jax.effects import PRESETS
+
+    parser = subparsers.add_parser(
+        "fit",
+        help="fit an effect's parameters to reference frames",
+        description="Fit an effect's parameters so it matches target frames (one parameter set for all frames), "
+        "write them as JSON for `apply --params`. Progress goes to stderr; the fitted parameters and the loss "
+        "before/after to stdout.",
+    )
+    parser.add_argument("buffers", help="the frame: EXR (or any OpenImageIO format) with R, G, B and a depth channel")
+    parser.add_argument("target", help="the reference image of the same size (linear; EXR recommended)")
+    parser.add_argument(
+        "--frames", nargs=2, action="append", metavar=("BUFFERS", "TARGET"),
+        help="one more frame and its target sharing the parameters (repeatable)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--light", type=parse_light, action="append", metavar="X,Y",
+        help="the light's pixel position, once per frame in order; default: each frame's godrays:light_px metadata",
+    )  # fmt: skip
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: GodRays on the sky)")
+    group.add_argument("--params", metavar="FILE", help="start from parameters saved as JSON")
+    parser.add_argument("-o", "--output", required=True, help="where to write the fitted parameters (JSON)")
+    parser.add_argument("--report", metavar="PNG", help="picture: target, fitted, difference heat map, loss curve")
+    parser.add_argument("--loss", choices=("mse", "l1", "charbonnier", "ssim"), default="mse", help="default mse")
+    parser.add_argument("--space", choices=("display", "linear"), default="display", help="compare in x/(1+x) (default) or linear")
+    parser.add_argument(
+        "--solver", choices=("auto", "levenberg_marquardt", "gauss_newton", "bfgs"), default="auto",
+        help="auto: Levenberg-Marquardt for mse, BFGS otherwise",
+    )  # fmt: skip
+    parser.add_argument("--fixed", metavar="A,B", help="comma-separated fields to keep as they are")
+    parser.add_argument("--max-steps", type=int, default=50, help="solver steps at most (default 50)")
+    parser.add_argument(
+        "--fractional-counts", action="store_true",
+        help="save counts (num_samples, ...) as fitted; by default they are rounded to integers",
+    )  # fmt: skip
+    parser.set_defaults(handler=_run_fit)
+
+
+def _run_fit(args) -> int:
+    from godrays_jax.fit import run_fit_command
+
+    return run_fit_command(args)
+
+
+COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch, _add_tune, _add_fit]
 """Functions that each add one subcommand (with `set_defaults(handler=...)`)."""
 
 

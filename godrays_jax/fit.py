@@ -1,0 +1,483 @@
+"""Fit an effect's parameters to reference frames with gradients (optimistix).
+
+`fit(effect, buffers, light_xy, target)` finds the parameters that make the
+cheap screen-space effect look like the target: a render with real
+participating media, a photograph, another engine's frame. Several frames (a
+sequence, several views of one scene) share one parameter set.
+
+How the parameters are fitted:
+
+- Every fittable field (`effects.parameter_bounds`) not named in `fixed` is
+  fitted; static fields never are. Integer counts (`num_samples`, `num_iters`,
+  `passes`) are fitted through the kernels' continuous relaxations and capped
+  by their static loop lengths (`max_samples`, ...); the result also carries
+  the effect with the counts rounded, re-evaluated.
+- Ranges are kept by reparameterisation: a field with bounds `[low, high]` is
+  `low + (high - low) * tri(z)`, `tri` the triangle wave of period 2 (the
+  identity on [0, 1], mirrored beyond). Unlike a sigmoid its slope never
+  vanishes, so a start on a bound (presets put `decay` at 1.0) still moves,
+  and the solver's unknowns all have the same unit scale.
+- Derivatives are forward-mode: the Jacobian of the residuals (or the
+  gradient of a scalar loss) is one vectorised JVP per fitted parameter.
+  Memory stays O(image x parameters) whatever the loop lengths, whereas
+  reverse mode through the kernels' sample loops stores every iteration
+  (measured in `benchmarks/bench_fit.py`: about 1.5 GB at 480x270 for
+  128 samples, about 23 GB at 1920x1080; forward mode 19 MB). A handful of
+  parameters, millions of pixels: forward mode is also the cheaper one here.
+"""
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from godrays_jax.buffers import Buffers
+from godrays_jax.effects import Effect, parameter_bounds
+from godrays_jax.losses import LOSSES, Space, to_space
+
+SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
+
+COUNT_FIELDS: tuple[str, ...] = ("num_samples", "num_iters", "passes")
+"""Fittable fields that are integer counts: fitted relaxed, reported rounded."""
+
+_STATIC_CAPS = {
+    "num_samples": "max_samples",
+    "num_iters": "max_iters",
+    "passes": "max_passes",
+    "source_grow": "max_morphology",
+    "occluder_shrink": "max_morphology",
+}
+"""Fittable field -> the static field that caps it (a kernel's loop length or reach)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """What `fit` returns.
+
+    Attributes:
+        effect: the fitted effect, same type and static fields as the start;
+            counts may be fractional (the relaxation).
+        rounded: `effect` with every fitted count rounded to the nearest integer.
+        loss_history: the loss at the solver's last accepted parameters after
+            each step; `loss_history[0]` is the starting loss.
+        loss_before: the loss of the starting effect.
+        loss_after: the loss of `effect`.
+        loss_rounded: the loss of `rounded`.
+        fitted: the names of the fields that were fitted.
+        steps: solver steps taken.
+        converged: whether the solver met its tolerances within `max_steps`.
+    """
+
+    effect: Effect
+    rounded: Effect
+    loss_history: np.ndarray
+    loss_before: float
+    loss_after: float
+    loss_rounded: float
+    fitted: tuple[str, ...]
+    steps: int
+    converged: bool
+
+
+def fitted_bounds(effect: Effect, *, fixed: Sequence[str] = ()) -> dict[str, tuple[float, float]]:
+    """`{field: (low, high)}` for the fields `fit` would fit: bounds capped by static loop lengths.
+
+    Raises `ValueError` naming `fixed` if it lists a field that is not fittable.
+    """
+    bounds = parameter_bounds(effect)
+    unknown = sorted(set(fixed) - set(bounds))
+    if unknown:
+        raise ValueError(
+            f"fixed names unknown or static field(s) {', '.join(unknown)}; fittable: {', '.join(bounds)}"
+        )
+    result = {}
+    for name, (low, high) in bounds.items():
+        if name in fixed:
+            continue
+        cap = getattr(effect, _STATIC_CAPS.get(name, ""), None)
+        if cap is not None:
+            high = min(high, float(cap))
+        result[name] = (float(low), float(high))
+    if not result:
+        raise ValueError("fixed leaves no parameter to fit")
+    return result
+
+
+def _to_unit(value, low, high):
+    return (value - low) / (high - low)
+
+
+def _from_unit(unit, low, high):
+    folded = jnp.mod(unit, 2.0)
+    return low + (high - low) * (1.0 - jnp.abs(1.0 - folded))
+
+
+def round_counts(effect: Effect) -> Effect:
+    """The effect with every count field (`COUNT_FIELDS`) rounded to the nearest integer."""
+    names = [name for name in COUNT_FIELDS if name in parameter_bounds(effect)]
+    if not names:
+        return effect
+    return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [jnp.round(getattr(effect, n)) for n in names])
+
+
+def _as_frames(buffers, light_xy, target, light_in_front):
+    """Normalise one frame or a sequence of frames into equal-length lists."""
+    if isinstance(buffers, Buffers):
+        buffers, light_xy, target, light_in_front = [buffers], [light_xy], [target], [light_in_front]
+    else:
+        buffers = list(buffers)
+        count = len(buffers)
+        if count == 0:
+            raise ValueError("buffers must hold at least one frame")
+        if not all(isinstance(frame, Buffers) for frame in buffers):
+            raise ValueError("buffers must be a Buffers or a sequence of Buffers")
+        light_array = np.asarray(light_xy, dtype=np.float64)
+        if light_array.shape != (count, 2):
+            raise ValueError(f"light_xy must hold one (x, y) per frame ({count}), got shape {light_array.shape}")
+        light_xy = list(light_array)
+        if isinstance(target, (list, tuple)):
+            target = list(target)
+        elif jnp.ndim(target) == 4:
+            target = [target[i] for i in range(target.shape[0])]
+        else:
+            raise ValueError(f"target must hold one image per frame ({count})")
+        if len(target) != count:
+            raise ValueError(f"target must hold one image per frame ({count}), got {len(target)}")
+        light_in_front = (
+            [light_in_front] * count if isinstance(light_in_front, bool) or jnp.ndim(light_in_front) == 0
+            else list(light_in_front)
+        )  # fmt: skip
+        if len(light_in_front) != count:
+            raise ValueError(f"light_in_front must be one bool or one per frame ({count})")
+    lights, targets = [], []
+    for index, (frame, light, image) in enumerate(zip(buffers, light_xy, target)):
+        light = jnp.asarray(light, frame.color.dtype)
+        if light.shape != (2,):
+            raise ValueError(f"light_xy[{index}] must be (x, y) in pixels, got shape {light.shape}")
+        image = jnp.asarray(image, frame.color.dtype)
+        if image.ndim != 3 or image.shape[:2] != frame.color.shape[:2]:
+            raise ValueError(
+                f"target[{index}] must be (H, W, C) with the frame's size {frame.color.shape[:2]}, got {image.shape}"
+            )
+        lights.append(light)
+        targets.append(image)
+    return buffers, lights, targets, [jnp.asarray(flag) for flag in light_in_front]
+
+
+def _match_channels(image, target):
+    channels = min(image.shape[-1], target.shape[-1], 3)
+    return image[..., :channels], target[..., :channels]
+
+
+def _solver(solver, loss, rtol, atol):
+    if not isinstance(solver, str):
+        if not isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
+            raise ValueError("solver must be a name or an optimistix least-squares solver or minimiser")
+        if isinstance(solver, optx.AbstractLeastSquaresSolver) and loss != "mse":
+            raise ValueError(f"a least-squares solver fits loss='mse' only, got loss={loss!r}: use a minimiser")
+        return solver
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {', '.join(SOLVERS)}; got {solver!r}")
+    if solver == "auto":
+        solver = "levenberg_marquardt" if loss == "mse" else "bfgs"
+    if solver in ("levenberg_marquardt", "gauss_newton") and loss != "mse":
+        raise ValueError(f"solver={solver!r} fits least squares (loss='mse') only; use solver='bfgs' for loss={loss!r}")
+    if solver == "levenberg_marquardt":
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    if solver == "gauss_newton":
+        return optx.GaussNewton(rtol=rtol, atol=atol)
+    return optx.BFGS(rtol=rtol, atol=atol)
+
+
+def _forward_mode(function):
+    """`function(y)` (flat `y`) whose JVP is a precomputed forward-mode Jacobian times the tangent.
+
+    optimistix linearises the objective; linearising the kernels' sample loops
+    directly would store every iteration. Here the Jacobian is computed with
+    one vectorised `jax.jvp` per parameter (memory O(output x parameters)) and
+    the linearisation only keeps that Jacobian.
+    """
+
+    @jax.custom_jvp
+    def wrapped(y):
+        return function(y)
+
+    @wrapped.defjvp
+    def wrapped_jvp(primals, tangents):
+        (y,), (tangent,) = primals, tangents
+        basis = jnp.eye(y.shape[0], dtype=y.dtype)
+        value, jacobian = jax.vmap(lambda direction: jax.jvp(function, (y,), (direction,)), out_axes=(None, -1))(basis)
+        return value, jacobian @ tangent
+
+    return wrapped
+
+
+def fit(
+    effect: Effect,
+    buffers: Buffers | Sequence[Buffers],
+    light_xy: Float[ArrayLike, "2"] | Sequence[Float[ArrayLike, "2"]],
+    target: Float[ArrayLike, "H W C"] | Sequence[Float[ArrayLike, "H W C"]],
+    *,
+    loss: Literal["mse", "l1", "charbonnier", "ssim"] = "mse",
+    space: Space = "display",
+    solver: str | optx.AbstractLeastSquaresSolver | optx.AbstractMinimiser = "auto",
+    fixed: Sequence[str] = (),
+    max_steps: int = 50,
+    rtol: float = 1e-4,
+    atol: float = 1e-7,
+    light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
+    progress: Callable[[int, float], None] | None = None,
+) -> FitResult:
+    """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
+
+    Args:
+        effect: the starting effect; its type and static fields are kept. Its
+            values must lie inside their bounds.
+        buffers: one frame, or a sequence of frames sharing one parameter set.
+        light_xy: the light in pixels, `(2,)`, or one per frame.
+        target: the reference image(s), linear `(H, W, C)` of each frame's
+            size; the first `min(C, 3)` channels are compared.
+        loss: `"mse"`, `"l1"`, `"charbonnier"` or `"ssim"` (`losses.LOSSES`),
+            averaged over frames weighted by pixel count.
+        space: `"display"` (`x / (1 + |x|)`, the default: the sun does not
+            drown every other difference) or `"linear"`.
+        solver: `"auto"` (Levenberg-Marquardt for `"mse"`, BFGS otherwise),
+            `"levenberg_marquardt"`, `"gauss_newton"`, `"bfgs"`, or an
+            optimistix least-squares solver (MSE only) or minimiser.
+        fixed: names of fittable fields to leave as they are.
+        max_steps: solver steps at most (each evaluates the effect and its
+            Jacobian once).
+        rtol, atol: the solver's convergence tolerances (on the unit-scaled
+            parameters and the loss).
+        light_in_front: whether each frame's light is in front of the camera.
+        progress: called as `progress(step, loss)` after every step.
+
+    Returns:
+        A `FitResult`: fitted effect, rounded-count effect, loss history and
+        the losses before, after and after rounding.
+    """
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
+    if not (isinstance(max_steps, int) and max_steps >= 0):
+        raise ValueError(f"max_steps must be an int >= 0, got {max_steps!r}")
+    to_space(jnp.zeros((1, 1, 1)), space)  # validates `space` before any tracing
+    optimiser = _solver(solver, loss, rtol, atol)
+    least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
+    frames, lights, targets, in_front = _as_frames(buffers, light_xy, target, light_in_front)
+    bounds = fitted_bounds(effect, fixed=fixed)
+    names = tuple(bounds)
+    for name, (low, high) in bounds.items():
+        value = np.asarray(getattr(effect, name))
+        if np.any(value < low) or np.any(value > high):
+            raise ValueError(f"effect.{name} = {value.tolist()} lies outside its fitting range [{low}, {high}]")
+    dtype = frames[0].color.dtype
+    unit_start = {name: _to_unit(jnp.asarray(getattr(effect, name), dtype), *bounds[name]) for name in names}
+    y0, unravel = ravel_pytree(unit_start)
+    total_pixels = sum(frame.height * frame.width for frame in frames)
+    frame_weights = [frame.height * frame.width / total_pixels for frame in frames]
+    loss_function = LOSSES[loss]
+
+    def effect_at(y):
+        units = unravel(y)
+        values = [_from_unit(units[n], *bounds[n]).astype(getattr(effect, n).dtype) for n in names]
+        return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, values)
+
+    def rendered(candidate, data):
+        frame_data, light_data, target_data, front_data = data
+        for frame, light, image, front in zip(frame_data, light_data, target_data, front_data):
+            yield _match_channels(candidate(frame, light, light_in_front=front), image)
+
+    def residuals(y, data):
+        parts = [
+            jnp.ravel(to_space(image, space) - to_space(reference, space)) * math.sqrt(weight / reference.size)
+            for (image, reference), weight in zip(rendered(effect_at(y), data), frame_weights)
+        ]
+        return jnp.concatenate(parts)
+
+    def objective(candidate, data):
+        return sum(
+            weight * loss_function(image, reference, space=space)
+            for (image, reference), weight in zip(rendered(candidate, data), frame_weights)
+        )
+
+    data = (frames, lights, targets, in_front)
+    if least_squares:
+        function = lambda y, args: (_forward_mode(lambda flat: residuals(flat, args))(y), None)  # noqa: E731
+        f_struct = jax.eval_shape(lambda: residuals(y0, data))
+    else:
+        function = lambda y, args: (_forward_mode(lambda flat: objective(effect_at(flat), args))(y), None)  # noqa: E731
+        f_struct = jax.ShapeDtypeStruct((), dtype)
+    options, tags = {}, frozenset()
+    step = eqx.filter_jit(eqx.Partial(optimiser.step, fn=function, args=data, options=options, tags=tags))
+    terminate = eqx.filter_jit(eqx.Partial(optimiser.terminate, fn=function, args=data, options=options, tags=tags))
+    evaluate = eqx.filter_jit(objective)
+
+    loss_before = float(evaluate(effect, data))
+    history = [loss_before]
+    y = y0
+    state = optimiser.init(function, y, data, options, f_struct, None, tags)
+    done, result = terminate(y=y, state=state)
+    steps = 0
+    while steps < max_steps and not bool(done):
+        y, state, _ = step(y=y, state=state)
+        done, result = terminate(y=y, state=state)
+        steps += 1
+        if steps > 1:  # after the first step the state holds the start's loss, already recorded
+            history.append(_accepted_loss(state, least_squares))
+        if progress is not None:
+            progress(steps, history[-1])
+    fitted_effect = effect_at(y)
+    if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
+        raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
+    rounded = round_counts(fitted_effect)
+    loss_after = float(evaluate(fitted_effect, data))
+    return FitResult(
+        effect=fitted_effect,
+        rounded=rounded,
+        loss_history=np.asarray(history),
+        loss_before=loss_before,
+        loss_after=loss_after,
+        loss_rounded=float(evaluate(rounded, data)),
+        fitted=names,
+        steps=steps,
+        converged=bool(done) and bool(result == optx.RESULTS.successful),
+    )
+
+
+def _accepted_loss(state, least_squares: bool) -> float:
+    """The loss at the solver's last accepted point, read from its state (no extra evaluation)."""
+    if least_squares:
+        return float(jnp.sum(state.f_info.residual**2))
+    return float(state.f_info.f)
+
+
+def default_fit_effect() -> Effect:
+    """The model `godrays-jax fit` starts from without `--preset` / `--params`.
+
+    `GodRays` on the frame's own sky (`source="sky"`), 64 samples: the model
+    that came closest to a volumetric path tracer's fog in
+    `benchmarks/bench_fit.py` (table in `benchmarks/fit_results.md`).
+    """
+    from godrays_jax.effects import GodRays
+
+    return GodRays(source="sky", density=0.5, decay=0.95, weight=1.0, exposure=0.15, num_samples=64.0, max_samples=64)
+
+
+def _display_tile(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image, np.float64)[..., :3]
+    if image.shape[-1] == 1:
+        image = np.repeat(image, 3, axis=-1)
+    return np.maximum(image, 0.0) / (1.0 + np.maximum(image, 0.0))
+
+
+def _heat(values: np.ndarray) -> np.ndarray:
+    """Black -> red -> yellow -> white for values in [0, 1]."""
+    scaled = np.clip(values, 0.0, 1.0)[..., None] * 3.0
+    return np.clip(scaled - np.array([0.0, 1.0, 2.0]), 0.0, 1.0)
+
+
+def _curve_tile(history: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The loss curve (log scale) as a dark polyline on a light tile; axes span the history."""
+    tile = np.full((height, width, 3), 0.9)
+    margin = max(2, min(height, width) // 12)
+    tile[margin:-margin, margin] = tile[height - margin - 1, margin:-margin] = 0.5  # axes
+    logs = np.log10(np.maximum(np.asarray(history, np.float64), 1e-30))
+    if logs.size < 2:
+        logs = np.repeat(logs, 2)
+    span = max(logs.max() - logs.min(), 1e-12)
+    xs = margin + (width - 2 * margin - 1) * np.arange(logs.size) / (logs.size - 1)
+    ys = margin + (height - 2 * margin - 1) * (logs.max() - logs) / span
+    dense = np.linspace(0.0, logs.size - 1, 8 * width)
+    px = np.rint(np.interp(dense, np.arange(logs.size), xs)).astype(int)
+    py = np.rint(np.interp(dense, np.arange(logs.size), ys)).astype(int)
+    for dy in (0, 1):
+        tile[np.clip(py + dy, 0, height - 1), px] = (0.1, 0.2, 0.7)
+    return tile
+
+
+def fit_report_image(
+    target: Float[ArrayLike, "H W C"], fitted: Float[ArrayLike, "H W C"], loss_history: Sequence[float]
+) -> Float[np.ndarray, "2H 2W 3"]:
+    """A 2x2 picture of a fit, in display space (`x / (1 + x)`), values in [0, 1].
+
+    Top left the target, top right the fitted frame, bottom left the absolute
+    difference as a heat map (black 0, white the largest difference), bottom
+    right the loss history on a log scale (left to right: steps).
+    """
+    target_tile = _display_tile(target)
+    fitted_tile = _display_tile(fitted)
+    difference = np.abs(fitted_tile - target_tile).mean(axis=-1)
+    difference_tile = _heat(difference / max(difference.max(), 1e-12))
+    height, width = target_tile.shape[:2]
+    curve = _curve_tile(np.asarray(loss_history), height, width)
+    return np.concatenate(
+        [np.concatenate([target_tile, fitted_tile], axis=1), np.concatenate([difference_tile, curve], axis=1)], axis=0
+    )
+
+
+def run_fit_command(args) -> int:
+    """`godrays-jax fit`: read frames and targets, fit, print progress and results, write params (and a report)."""
+    import sys
+
+    from godrays_jax.cli import CommandError, check_output_path, resolve_light
+    from godrays_jax.effects import effect_to_dict, load_effect, preset, save_effect
+    from godrays_jax.io import read_buffers, read_image, write_image
+
+    pairs = [(args.buffers, args.target), *[tuple(pair) for pair in args.frames or []]]
+    check_output_path(args.output, *[path for pair in pairs for path in pair])
+    if args.report:
+        check_output_path(args.report, *[path for pair in pairs for path in pair])
+    lights = args.light or []
+    if len(lights) not in (0, len(pairs)):
+        raise CommandError(f"give --light once per frame ({len(pairs)} frames) or not at all, got {len(lights)}")
+    if args.params:
+        effect = load_effect(args.params)
+    elif args.preset:
+        effect = preset(args.preset)
+    else:
+        effect = default_fit_effect()
+    frames, light_positions, in_front, targets = [], [], [], []
+    for index, (buffers_path, target_path) in enumerate(pairs):
+        frame = read_buffers(buffers_path)
+        (light, front) = resolve_light(lights[index] if lights else None, buffers_path)
+        target = read_image(target_path)
+        if target.shape[:2] != frame.color.shape[:2]:
+            raise CommandError(
+                f"{target_path} is {target.shape[1]}x{target.shape[0]} but {buffers_path} is {frame.width}x{frame.height}"
+            )
+        frames.append(frame)
+        light_positions.append(jnp.asarray(light, jnp.float32))
+        in_front.append(bool(front))
+        targets.append(target)
+    fixed = tuple(name for name in (args.fixed or "").split(",") if name)
+
+    def progress(step, value):
+        print(f"step {step}: loss {value:.6g}", file=sys.stderr, flush=True)
+
+    result = fit(
+        effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
+        fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, progress=progress,
+    )  # fmt: skip
+    chosen = result.effect if args.fractional_counts else result.rounded
+    save_effect(args.output, chosen)
+    values = effect_to_dict(chosen)
+    print(f"fitted {type(chosen).__name__} ({result.steps} steps, {'converged' if result.converged else 'stopped at --max-steps'}):")
+    for name in result.fitted:
+        print(f"  {name} = {values[name]}")
+    loss_name = f"{args.loss} ({args.space})"
+    after = result.loss_after if args.fractional_counts else result.loss_rounded
+    print(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
+    if args.report:
+        fitted_image = chosen(frames[0], light_positions[0], light_in_front=in_front[0])
+        write_image(args.report, fit_report_image(targets[0], fitted_image, result.loss_history))
+        print(f"wrote {args.report}")
+    print(f"wrote {args.output}")
+    return 0

@@ -1,0 +1,139 @@
+"""fit: parameter recovery on tiny frames, several frames, bounds, rounding, errors, the `fit` command."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.cli import main
+from godrays_jax.fit import _from_unit, _to_unit, fit, fitted_bounds, round_counts
+
+HEIGHT, WIDTH = 24, 32
+
+
+def _frame(seed=0):
+    """A tiny frame: open sky on top, two pillars and the ground below."""
+    rng = np.random.default_rng(seed)
+    coverage = np.zeros((HEIGHT, WIDTH), np.float32)
+    coverage[14:] = 1.0
+    coverage[4:, 9:12] = 1.0
+    coverage[6:, 22:24] = 1.0
+    color = np.where(coverage[..., None] > 0, 0.05, 0.4).astype(np.float32) + 0.02 * rng.random((HEIGHT, WIDTH, 3))
+    depth = np.where(coverage > 0, 10.0, np.inf).astype(np.float32)
+    return gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(coverage))
+
+
+LIGHT = jnp.array([16.5, 5.0])
+
+
+def _rays(**values):
+    return gr.GodRays(**{"source": "disc", "light_radius": 6.0, "max_samples": 8, "num_samples": 8.0, **values})
+
+
+FIXED_RAYS = ("weight", "light_radius", "threshold", "tint", "offscreen_fade", "num_samples")
+
+
+def test_recovers_parameters_from_another_start():
+    frame = _frame()
+    truth = _rays(density=0.8, decay=0.85, exposure=0.3)
+    target = truth(frame, LIGHT)
+    result = fit(_rays(density=0.5, decay=0.97, exposure=0.15), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30)
+    assert type(result.effect) is gr.GodRays and result.effect.max_samples == 8
+    assert result.fitted == ("density", "decay", "exposure")
+    for name in result.fitted:
+        np.testing.assert_allclose(getattr(result.effect, name), getattr(truth, name), rtol=0.02, err_msg=name)
+    assert result.loss_after < 1e-3 * result.loss_before
+    assert result.loss_history[0] == pytest.approx(result.loss_before)
+    assert len(result.loss_history) == result.steps + 1 - (result.steps > 0)
+    assert np.all(np.diff(result.loss_history) <= 1e-9)  # accepted losses never rise
+
+
+def test_several_frames_share_one_parameter_set():
+    frames = [_frame(0), _frame(1)]
+    lights = [LIGHT, jnp.array([6.0, 3.0])]
+    truth = gr.FlareOuts(scale_step=1.1, intensity=0.4, num_iters=6.0, max_iters=6, light_radius=5.0, blur_sigma=1.0, blur_radius=2)
+    targets = [truth(frame, light) for frame, light in zip(frames, lights)]
+    start = gr.FlareOuts(scale_step=1.03, intensity=0.2, num_iters=6.0, max_iters=6, light_radius=5.0, blur_sigma=1.0, blur_radius=2)
+    fixed = ("copy_decay", "light_radius", "blur_sigma", "tint", "num_iters", "offscreen_fade")
+    result = fit(start, frames, lights, targets, fixed=fixed, max_steps=30)
+    np.testing.assert_allclose(result.effect.scale_step, 1.1, rtol=0.02)
+    np.testing.assert_allclose(result.effect.intensity, 0.4, rtol=0.02)
+
+
+def test_minimiser_with_ssim_loss_improves_and_counts_round():
+    frame = _frame()
+    target = _rays(density=0.8, decay=0.9, exposure=0.3, num_samples=8.0)(frame, LIGHT)
+    start = _rays(density=0.6, decay=0.95, exposure=0.2, num_samples=6.6)
+    fixed = ("weight", "light_radius", "threshold", "tint", "offscreen_fade")
+    result = fit(start, frame, LIGHT, target, loss="ssim", solver="bfgs", fixed=fixed, max_steps=4)
+    assert result.loss_after < result.loss_before
+    assert float(result.rounded.num_samples) == round(float(result.effect.num_samples))
+    assert np.isfinite(result.loss_rounded)
+    assert float(round_counts(start).num_samples) == 7.0
+
+
+def test_reparameterisation_stays_in_bounds_with_unit_slope():
+    units = np.linspace(-3.0, 4.0, 141)
+    values = np.asarray(_from_unit(jnp.asarray(units), 0.5, 1.0))
+    assert values.min() >= 0.5 and values.max() <= 1.0
+    np.testing.assert_allclose(np.abs(np.diff(values)), 0.5 * np.diff(units), atol=1e-6)  # slope never vanishes
+    np.testing.assert_allclose(_from_unit(_to_unit(0.93, 0.5, 1.0), 0.5, 1.0), 0.93, rtol=1e-6)
+
+
+def test_bounds_are_capped_by_static_loop_lengths():
+    bounds = fitted_bounds(_rays(), fixed=("tint",))
+    assert bounds["num_samples"] == (1.0, 8.0)
+    assert "tint" not in bounds and "max_samples" not in bounds
+
+
+def test_errors_name_the_argument():
+    frame = _frame()
+    target = frame.color
+    with pytest.raises(ValueError, match="fixed"):
+        fit(_rays(), frame, LIGHT, target, fixed=("max_samples",))
+    with pytest.raises(ValueError, match="loss"):
+        fit(_rays(), frame, LIGHT, target, loss="psnr")
+    with pytest.raises(ValueError, match="bfgs"):
+        fit(_rays(), frame, LIGHT, target, loss="ssim", solver="gauss_newton")
+    with pytest.raises(ValueError, match="target"):
+        fit(_rays(), frame, LIGHT, target[:-1])
+    with pytest.raises(ValueError, match="light_xy"):
+        fit(_rays(), [frame, frame], [LIGHT], [target, target])
+    with pytest.raises(ValueError, match="num_samples"):
+        fit(gr.GodRays(num_samples=200.0, max_samples=128), frame, LIGHT, target)
+
+
+def test_fit_command_writes_params_that_apply_reproduces(tmp_path, capsys):
+    frame = _frame()
+    truth = _rays(density=0.8, decay=0.85, exposure=0.3)
+    frame_path, target_path = tmp_path / "frame.exr", tmp_path / "target.exr"
+    gr.write_buffers(frame_path, frame, light_xy=(16.5, 5.0))
+    gr.write_image(target_path, truth(frame, LIGHT))
+    start_path = tmp_path / "start.json"
+    gr.save_effect(start_path, _rays(density=0.5, decay=0.97, exposure=0.15))
+    params, report, applied = tmp_path / "fitted.json", tmp_path / "report.png", tmp_path / "applied.exr"
+    status = main([
+        "fit", str(frame_path), str(target_path), "--params", str(start_path), "-o", str(params),
+        "--report", str(report), "--fixed", ",".join(FIXED_RAYS), "--max-steps", "20",
+    ])  # fmt: skip
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    assert "loss before" in captured.out and "step" in captured.err
+    fitted = gr.load_effect(params)
+    np.testing.assert_allclose(fitted.density, 0.8, rtol=0.02)
+    assert report.exists() and gr.read_image(report).shape[2] >= 3
+    assert main(["apply", str(frame_path), "--params", str(params), "-o", str(applied)]) == 0
+    np.testing.assert_allclose(gr.read_image(applied), fitted(frame, LIGHT), rtol=1e-5, atol=1e-6)
+    assert json.loads(params.read_text())["effect"] == "GodRays"
+
+
+def test_fit_command_errors_are_one_line(tmp_path, capsys):
+    frame_path = tmp_path / "frame.exr"
+    gr.write_buffers(frame_path, _frame(), light_xy=(16.5, 5.0))
+    output = tmp_path / "out.json"
+    status = main(["fit", str(frame_path), str(tmp_path / "missing.exr"), "-o", str(output)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 1 and len(err) == 1 and "missing.exr" in err[0]
+    assert not output.exists()

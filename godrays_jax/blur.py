@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax._checks import checked_count, check_image, check_scalar, is_static_int, resolve_count
-from godrays_jax.sampling import pixel_centres, sample_bilinear
+from godrays_jax.sampling import sample_separable
 
 POISSON_OFFSETS = np.array(
     [
@@ -33,12 +33,11 @@ POISSON_OFFSETS = np.array(
 
 def _poisson_pass(image, blur_power):
     height, width, _ = image.shape
-    x, y = pixel_centres(height, width, image.dtype)
+    xs = jnp.arange(width, dtype=image.dtype) + 0.5
+    ys = jnp.arange(height, dtype=image.dtype) + 0.5
     total = image
     for offset_u, offset_v in POISSON_OFFSETS:
-        total = total + sample_bilinear(
-            image, x + offset_u * blur_power * width, y + offset_v * blur_power * height
-        )
+        total = total + sample_separable(image, xs + offset_u * blur_power * width, ys + offset_v * blur_power * height)
     return total / 13.0
 
 

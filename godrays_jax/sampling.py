@@ -43,7 +43,7 @@ def sample_bilinear(
     fv = (v - v0)[..., None]
     u0 = u0.astype(jnp.int32)
     v0 = v0.astype(jnp.int32)
-    flat = image.reshape(height * width, image.shape[2])
+    flat = jnp.asarray(image).reshape(height * width, image.shape[2])
 
     def texel(col, row):
         inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
@@ -57,6 +57,46 @@ def sample_bilinear(
     top = texel(u0, v0) * (1 - fu) + texel(u0 + 1, v0) * fu
     bottom = texel(u0, v0 + 1) * (1 - fu) + texel(u0 + 1, v0 + 1) * fu
     return top * (1 - fv) + bottom * fv
+
+
+def _resample_axis(image, positions, axis, addressing):
+    size = image.shape[axis]
+    index = positions - 0.5
+    first = jnp.floor(index)
+    fraction = index - first
+    first = first.astype(jnp.int32)
+    shape = [1, 1, 1]
+    shape[axis] = -1
+
+    def taps(indices):
+        values = jnp.take(image, jnp.clip(indices, 0, size - 1), axis=axis)
+        if addressing == "zero":
+            inside = (indices >= 0) & (indices < size)
+            values = values * inside.reshape(shape).astype(image.dtype)
+        return values
+
+    fraction = fraction.reshape(shape)
+    return taps(first) * (1 - fraction) + taps(first + 1) * fraction
+
+
+def sample_separable(
+    image: Float[Array, "H W C"],
+    xs: Float[Array, " W2"],
+    ys: Float[Array, " H2"],
+    *,
+    addressing: Addressing = "clamp",
+) -> Float[Array, "H2 W2 C"]:
+    """Bilinear samples on the grid `xs x ys`: `out[j, i] = sample_bilinear(image, xs[i], ys[j])`.
+
+    Equal to `sample_bilinear` on that grid (bilinear interpolation is a tensor
+    product), at the cost of two 1-D gathers instead of four per-pixel ones: the
+    fast path for any warp that moves x and y independently (constant shifts,
+    scaling about a point).
+    """
+    if addressing not in ("clamp", "zero"):
+        raise ValueError(f"addressing must be 'clamp' or 'zero', got {addressing!r}")
+    image = jnp.asarray(image)
+    return _resample_axis(_resample_axis(image, ys, 0, addressing), xs, 1, addressing)
 
 
 def pixel_centres(height: int, width: int, dtype=jnp.float32) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:

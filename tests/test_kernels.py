@@ -1,0 +1,269 @@
+"""Kernels against the slow NumPy loops in reference.py: eager, jit, vmap, gradients, degenerate inputs."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import godrays_jax as gr
+import reference
+
+HEIGHT, WIDTH = 9, 13
+LIGHTS = {
+    "on_screen": (5.3, 3.7),
+    "pixel_centre": (4.5, 2.5),
+    "near_edge": (0.1, 8.9),
+    "off_screen": (-6.0, 20.0),
+    "far_off_screen": (300.0, -200.0),
+}
+RAY_OPTIONS = dict(density=0.8, decay=0.93, weight=0.9, exposure=0.2)
+
+
+def assert_close(actual, expected, rtol):
+    """Agreement relative to the output's largest magnitude, as the issue states it."""
+    actual, expected = np.asarray(actual), np.asarray(expected)
+    assert actual.shape == expected.shape
+    assert np.all(np.isfinite(actual))
+    scale = max(np.max(np.abs(expected)), 1e-30)
+    assert np.max(np.abs(actual - expected)) <= rtol * scale, np.max(np.abs(actual - expected)) / scale
+
+
+def random_image(rng, channels=3, height=HEIGHT, width=WIDTH):
+    return rng.uniform(0.0, 2.0, size=(height, width, channels))
+
+
+@pytest.mark.parametrize("light", LIGHTS.values(), ids=LIGHTS.keys())
+def test_radial_rays_matches_loop_float64(x64, rng, light):
+    image = random_image(rng)
+    expected = reference.radial_rays(image, light, 12, **RAY_OPTIONS)
+    actual = gr.radial_rays(jnp.asarray(image), jnp.asarray(light), num_samples=12, **RAY_OPTIONS)
+    assert actual.dtype == jnp.float64
+    assert_close(actual, expected, 1e-6)
+
+
+@pytest.mark.parametrize("light", [LIGHTS["on_screen"], LIGHTS["off_screen"]])
+def test_radial_rays_float32_eager_jit_vmap(rng, light):
+    images = random_image(rng, channels=1)[None].repeat(2, 0) * np.array([1.0, 0.5])[:, None, None, None]
+    expected = reference.radial_rays(images[0], light, 10, **RAY_OPTIONS)
+    kernel = lambda image, light_xy: gr.radial_rays(image, light_xy, num_samples=10, **RAY_OPTIONS)
+    image32 = jnp.asarray(images[0], jnp.float32)
+    light32 = jnp.asarray(light, jnp.float32)
+    assert_close(kernel(image32, light32), expected, 1e-4)
+    assert_close(jax.jit(kernel)(image32, light32), expected, 1e-4)
+    batched = jax.vmap(kernel, in_axes=(0, None))(jnp.asarray(images, jnp.float32), light32)
+    assert_close(batched[1], 0.5 * expected, 1e-4)
+
+
+def test_radial_rays_vmap_over_lights(rng):
+    image = jnp.asarray(random_image(rng), jnp.float32)
+    lights = jnp.asarray([LIGHTS["on_screen"], LIGHTS["near_edge"]], jnp.float32)
+    batched = jax.vmap(lambda l: gr.radial_rays(image, l, num_samples=8, **RAY_OPTIONS))(lights)
+    for index in range(2):
+        assert_close(batched[index], reference.radial_rays(np.asarray(image), np.asarray(lights[index]), 8, **RAY_OPTIONS), 1e-4)
+
+
+def test_radial_rays_gradients(x64, rng):
+    image = jnp.asarray(random_image(rng, height=6, width=7))
+
+    def rays(image, light, density, decay, weight, exposure):
+        return gr.radial_rays(image, light, num_samples=6, density=density, decay=decay, weight=weight, exposure=exposure)
+
+    args = (image, jnp.asarray([2.3, 1.6]), 0.7, 0.9, 1.1, 0.3)
+    check_grads(jax.jit(rays), args, order=1, modes=("rev",), eps=1e-6)
+
+
+def test_radial_rays_relaxed_count_equals_integer_kernel(x64, rng):
+    image = jnp.asarray(random_image(rng))
+    light = jnp.asarray(LIGHTS["on_screen"])
+    exact = gr.radial_rays(image, light, num_samples=7, **RAY_OPTIONS)
+    relaxed = gr.radial_rays(image, light, num_samples=jnp.asarray(7.0), max_samples=12, **RAY_OPTIONS)
+    np.testing.assert_array_equal(np.asarray(exact), np.asarray(relaxed))
+
+
+def test_radial_rays_relaxed_count_gradient_is_informative(x64, rng):
+    image = jnp.asarray(random_image(rng))
+    light = jnp.asarray(LIGHTS["on_screen"])
+
+    def total(count):
+        return jnp.sum(gr.radial_rays(image, light, num_samples=count, max_samples=12, **RAY_OPTIONS))
+
+    gradient = jax.grad(total)(7.4)
+    assert np.isfinite(gradient) and gradient != 0.0
+    # More samples of a positive image add light: the sum grows between 7 and 8.
+    assert total(8.0) > total(7.0)
+    check_grads(jax.jit(total), (7.4,), order=1, modes=("rev", "fwd"), eps=1e-6)
+
+
+def test_radial_rays_degenerate_cases_are_finite(rng):
+    image = jnp.asarray(random_image(rng), jnp.float32)
+    light = jnp.asarray(LIGHTS["pixel_centre"], jnp.float32)
+
+    def total(light, density):
+        return jnp.sum(gr.radial_rays(image, light, num_samples=8, density=density, decay=0.9, weight=1.0, exposure=0.1))
+
+    for density in (0.8, 0.0):
+        value, grads = jax.value_and_grad(total, argnums=(0, 1))(light, jnp.float32(density))
+        assert np.isfinite(value) and all(np.all(np.isfinite(g)) for g in grads)
+    # Zero-size step: every sample reads the pixel itself.
+    zero_step = gr.radial_rays(image, light, num_samples=4, density=0.0, decay=0.5, weight=1.0, exposure=1.0)
+    np.testing.assert_allclose(zero_step, image * (1 + 1 + 0.5 + 0.25 + 0.125), rtol=1e-6)
+    # The pixel under the light samples only itself.
+    centre = gr.radial_rays(image, light, num_samples=4, density=1.0, decay=0.5, weight=1.0, exposure=1.0)
+    np.testing.assert_allclose(centre[2, 4], image[2, 4] * 2.875, rtol=1e-6)
+
+
+def test_radial_rays_rejects_bad_arguments(rng):
+    image = jnp.ones((4, 5, 3))
+    options = dict(density=0.5, decay=0.9, weight=1.0, exposure=0.1)
+    with pytest.raises(ValueError, match="image"):
+        gr.radial_rays(jnp.ones((4, 5)), jnp.zeros(2), num_samples=4, **options)
+    with pytest.raises(ValueError, match="light_xy"):
+        gr.radial_rays(image, jnp.zeros(3), num_samples=4, **options)
+    with pytest.raises(ValueError, match="num_samples"):
+        gr.radial_rays(image, jnp.zeros(2), num_samples=0, **options)
+    with pytest.raises(ValueError, match="max_samples"):
+        gr.radial_rays(image, jnp.zeros(2), num_samples=4.5, **options)
+    with pytest.raises(ValueError, match="density"):
+        gr.radial_rays(image, jnp.zeros(2), num_samples=4, **{**options, "density": jnp.ones(2)})
+    with pytest.raises(Exception, match="max_samples=8"):
+        gr.radial_rays(image, jnp.zeros(2), num_samples=jnp.asarray(9.0), max_samples=8, **options).block_until_ready()
+
+
+@pytest.mark.parametrize("light", LIGHTS.values(), ids=LIGHTS.keys())
+def test_scale_iterated_flares_matches_loop(x64, rng, light):
+    masked = random_image(rng)
+    expected = reference.scale_iterated_flares(masked, light, 6, 1.13, decay=0.9)
+    actual = gr.scale_iterated_flares(jnp.asarray(masked), jnp.asarray(light), num_iters=6, scale_step=1.13, decay=0.9)
+    assert_close(actual, expected, 1e-6)
+
+
+def test_scale_iterated_flares_jit_vmap_relaxed_and_gradients(x64, rng):
+    masked = jnp.asarray(random_image(rng, height=6, width=7))
+    light = jnp.asarray([3.2, 2.9])
+    kernel = lambda m, l, step: gr.scale_iterated_flares(m, l, num_iters=5, scale_step=step)
+    eager = kernel(masked, light, 1.1)
+    np.testing.assert_allclose(jax.jit(kernel)(masked, light, 1.1), eager, rtol=1e-12)
+    batched = jax.vmap(kernel, in_axes=(0, None, None))(jnp.stack([masked, 2 * masked]), light, 1.1)
+    np.testing.assert_allclose(batched[1], 2 * eager, rtol=1e-12)
+    relaxed = gr.scale_iterated_flares(masked, light, num_iters=jnp.asarray(5.0), max_iters=9, scale_step=1.1)
+    np.testing.assert_array_equal(relaxed, eager)
+    half = gr.scale_iterated_flares(masked, light, num_iters=jnp.asarray(5.5), max_iters=9, scale_step=1.1)
+    six = gr.scale_iterated_flares(masked, light, num_iters=6, scale_step=1.1)
+    np.testing.assert_allclose(half, 0.5 * (eager + six), rtol=1e-12)
+    check_grads(jax.jit(kernel), (masked, light, 1.1), order=1, modes=("rev",), eps=1e-6)
+    count_grad = jax.grad(
+        lambda n: jnp.sum(gr.scale_iterated_flares(masked, light, num_iters=n, max_iters=9, scale_step=1.1))
+    )(5.5)
+    assert np.isfinite(count_grad) and count_grad > 0
+
+
+def test_scale_iterated_flares_copy_zero_is_the_texture(rng):
+    masked = jnp.asarray(random_image(rng), jnp.float32)
+    np.testing.assert_allclose(
+        gr.scale_iterated_flares(masked, jnp.asarray([-40.0, 7.0]), num_iters=1, scale_step=1.5), masked, rtol=1e-6
+    )
+
+
+@pytest.mark.parametrize("passes", [1, 2])
+def test_poisson_blur_matches_loop(x64, rng, passes):
+    image = random_image(rng)
+    expected = reference.poisson_blur(image, 0.07, passes)
+    assert_close(gr.poisson_blur(jnp.asarray(image), 0.07, passes=passes), expected, 1e-6)
+    assert_close(jax.jit(lambda i: gr.poisson_blur(i, 0.07, passes=passes))(jnp.asarray(image)), expected, 1e-6)
+
+
+def test_poisson_blur_constant_vmap_relaxed_and_gradients(x64, rng):
+    constant = jnp.full((5, 6, 3), 0.7)
+    np.testing.assert_allclose(gr.poisson_blur(constant, 0.3, passes=3), constant, rtol=1e-12)
+    image = jnp.asarray(random_image(rng, height=5, width=6))
+    one = gr.poisson_blur(image, 0.05, passes=1)
+    two = gr.poisson_blur(image, 0.05, passes=2)
+    relaxed = lambda p: gr.poisson_blur(image, 0.05, passes=p, max_passes=3)
+    np.testing.assert_array_equal(relaxed(jnp.asarray(2.0)), two)
+    np.testing.assert_allclose(relaxed(jnp.asarray(1.25)), 0.75 * one + 0.25 * two, rtol=1e-12)
+    np.testing.assert_array_equal(relaxed(jnp.asarray(0.0)), image)
+    batched = jax.vmap(lambda i: gr.poisson_blur(i, 0.05))(jnp.stack([image, image * 3]))
+    np.testing.assert_allclose(batched[1], 3 * one, rtol=1e-12)
+    check_grads(jax.jit(lambda i, b: gr.poisson_blur(i, b, passes=2)), (image, 0.05), order=1, modes=("rev",), eps=1e-6)
+    check_grads(jax.jit(lambda p: jnp.sum(relaxed(p) ** 2)), (1.3,), order=1, modes=("rev",), eps=1e-6)
+
+
+def test_gaussian_blur_matches_loop_and_keeps_constants(x64, rng):
+    image = random_image(rng)
+    assert_close(gr.gaussian_blur(jnp.asarray(image), 1.3, radius=3), reference.gaussian_blur(image, 1.3, 3), 1e-6)
+    constant = jnp.full((4, 3, 1), 2.5)
+    np.testing.assert_allclose(gr.gaussian_blur(constant, 2.0), constant, rtol=1e-12)
+    check_grads(jax.jit(lambda i, s: gr.gaussian_blur(i, s, radius=2)), (jnp.asarray(image[:5, :6]), 0.9), order=1, modes=("rev",))
+    with pytest.raises(ValueError, match="radius"):
+        jax.jit(lambda s: gr.gaussian_blur(jnp.asarray(image), s))(1.0)
+
+
+def test_sky_flare_coverage_and_depth_masks():
+    depth = jnp.asarray([[1.0, jnp.inf], [5.0, 1e9]])
+    np.testing.assert_array_equal(gr.sky_mask(depth), [[0, 1], [0, 0]])
+    np.testing.assert_array_equal(gr.sky_mask(depth, far=1e9), [[0, 1], [0, 1]])
+    np.testing.assert_allclose(gr.coverage_mask(jnp.asarray([[0.0, 0.25], [1.0, 1.5]])), [[1, 0.75], [0, 0]])
+    flare = jnp.arange(12.0).reshape(2, 2, 3)
+    np.testing.assert_array_equal(gr.flare_mask(flare, gr.sky_mask(depth)), flare * np.array([[0, 1], [0, 0]])[..., None])
+    np.testing.assert_array_equal(gr.depth_test_mask(depth, 4.0, bias=0.5), [[0, 1], [1, 1]])
+    with pytest.raises(ValueError, match="sky"):
+        gr.flare_mask(flare, jnp.ones((3, 2)))
+    with pytest.raises(ValueError, match="depth"):
+        gr.sky_mask(jnp.ones((2, 2, 1)))
+
+
+def test_light_source_mask_matches_loop_and_is_off_when_behind():
+    light = (6.2, 3.1)
+    mask = gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0)
+    for row in range(8):
+        for col in range(11):
+            distance = np.hypot(col + 0.5 - light[0], row + 0.5 - light[1])
+            expected = 2 * max(0.0, 1 - distance / 4.0) ** 2
+            assert abs(float(mask[row, col, 0]) - expected) < 1e-5
+    assert float(jnp.max(gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0, in_front=False))) == 0.0
+    # A texture covers the square light +- radius.
+    texture = jnp.ones((4, 4, 3)) * 0.5
+    textured = gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0, texture=texture)
+    np.testing.assert_allclose(textured[3, 6], [0.5, 0.5, 0.5])
+    off = gr.light_source_mask(8, 11, jnp.asarray([-50.0, 3.0]), radius=4.0)
+    assert float(jnp.max(off)) == 0.0
+    grad = jax.grad(lambda l, r: jnp.sum(gr.light_source_mask(8, 11, l, radius=r)), argnums=(0, 1))(
+        jnp.asarray([6.5, 3.5]), 4.0
+    )
+    assert all(np.all(np.isfinite(g)) for g in grad)
+
+
+def test_bright_pass():
+    image = jnp.asarray([[[0.1, 0.5, 2.0]]])
+    np.testing.assert_allclose(gr.bright_pass(image, 0.25), [[[0.0, (0.5 - 0.25) / 0.75, 1.0]]], rtol=1e-6)
+
+
+def test_blend_modes():
+    scene = jnp.asarray([[[0.2, 0.4, 0.6, 0.5]]])
+    layer = jnp.asarray([[[0.5, 0.5, 0.5]]])
+    np.testing.assert_allclose(gr.add(scene, layer), [[[0.7, 0.9, 1.1, 0.5]]], rtol=1e-6)
+    np.testing.assert_allclose(gr.multiply(scene, layer), [[[0.1, 0.2, 0.3, 0.5]]], rtol=1e-6)
+    np.testing.assert_allclose(gr.screen(scene, layer), [[[0.6, 0.7, 0.8, 0.5]]], rtol=1e-6)
+    rgba = jnp.asarray([[[1.0, 0.0, 0.0, 0.25]]])
+    np.testing.assert_allclose(
+        gr.alpha_over(scene, rgba), [[[0.25 + 0.15, 0.3, 0.45, 0.25 + 0.5 * 0.75]]], rtol=1e-6
+    )
+    grey = gr.add(scene[..., :3], jnp.asarray([[[1.0]]]))
+    np.testing.assert_allclose(grey, [[[1.2, 1.4, 1.6]]], rtol=1e-6)
+    np.testing.assert_allclose(gr.blend(scene, layer, mode="multiply"), gr.multiply(scene, layer))
+    with pytest.raises(ValueError, match="mode"):
+        gr.blend(scene, layer, mode="overlay")
+    with pytest.raises(ValueError, match="layer"):
+        gr.add(scene, jnp.ones((2, 1, 3)))
+
+
+def test_sample_bilinear_pixel_centres_and_addressing():
+    image = jnp.arange(6.0).reshape(2, 3, 1)
+    x = jnp.asarray([0.5, 2.5, 1.0, -5.0, 3.0])
+    y = jnp.asarray([0.5, 1.5, 0.5, 0.5, 0.5])
+    np.testing.assert_allclose(gr.sample_bilinear(image, x, y)[:, 0], [0.0, 5.0, 0.5, 0.0, 2.0])
+    np.testing.assert_allclose(gr.sample_bilinear(image, x, y, addressing="zero")[:, 0], [0.0, 5.0, 0.5, 0.0, 1.0])
+    with pytest.raises(ValueError, match="addressing"):
+        gr.sample_bilinear(image, x, y, addressing="wrap")

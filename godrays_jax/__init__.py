@@ -63,3 +63,5 @@ from godrays_jax.losses import l1_loss as l1_loss
 from godrays_jax.losses import mse_loss as mse_loss
 from godrays_jax.losses import ssim as ssim
 from godrays_jax.losses import ssim_loss as ssim_loss
+from godrays_jax.tune import Tuner as Tuner
+from godrays_jax.tune import TuneServer as TuneServer

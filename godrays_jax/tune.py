@@ -70,8 +70,12 @@ from godrays_jax.losses import to_space
 HOST = "127.0.0.1"
 """The tuner serves this address only: the page can write files, so it is never exposed to a network."""
 
-PIXEL_FIELDS: frozenset[str] = frozenset({"light_radius", "source_radius", "blur_sigma", "source_grow", "occluder_shrink"})
-"""Fittable fields measured in pixels: scaled with the resolution for previews and preview-resolution fits."""
+PIXEL_FIELDS: frozenset[str] = frozenset(
+    {"light_radius", "source_radius", "blur_sigma", "source_grow", "occluder_shrink", "gaussian_sigma", "sigma",
+     "glow_sigma"}
+)  # fmt: skip
+"""Fittable fields measured in pixels (bloom's `sigma`, `glow_sigma`: pixels of its pyramid levels, which
+shrink with the frame too): scaled with the resolution for previews and preview-resolution fits."""
 
 VIEWS: tuple[str, ...] = ("after", "before", "layer", "difference", "target")
 TONEMAPS: tuple[str, ...] = ("reinhard", "clip")
@@ -318,6 +322,7 @@ class Tuner:
         self.preview_target = None if target is None else downsample_box(target, self.factor)
         self.light_xy = (float(light_xy[0]), float(light_xy[1]))
         self.light_in_front = bool(light_in_front)
+        self._check_renders(effect)
         self.effect = effect
         self.save_path = os.path.abspath(os.fspath(save_path))
         self.fit_steps = fit_steps
@@ -328,6 +333,11 @@ class Tuner:
 
     def close(self) -> None:
         self.queue.close()
+
+    def _check_renders(self, effect: Effect) -> None:
+        """Trace (without running) the effect on this frame: a missing pass or a bad static field raises `ValueError` now."""
+        light = jnp.asarray(self.light_xy, self.buffers.color.dtype)
+        eqx.filter_eval_shape(lambda e, b, l: e(b, l), effect, self.preview_buffers, light)
 
     # --------------------------------------------------------------- state
 
@@ -435,8 +445,13 @@ class Tuner:
         name = payload.get("name")
         if name not in PRESETS:
             raise TuneRequestError(f"unknown preset {json.dumps(name)}; choose one of: {', '.join(sorted(PRESETS))}")
+        effect = preset(name)
+        try:
+            self._check_renders(effect)
+        except ValueError as error:
+            raise TuneRequestError(f"preset {name} cannot render this frame: {error}") from None
         with self._lock:
-            self.effect = preset(name)
+            self.effect = effect
         return self.state()
 
     def save(self, payload: Mapping) -> dict:

@@ -320,6 +320,7 @@ def test_bad_render_requests_get_400_and_the_server_keeps_running(server, body, 
         ("/api/render", b"[1, 2]", 400, "must be a JSON object"),
         ("/api/render", b"\xff\xfe", 400, "malformed JSON"),
         ("/api/preset", b'{"name": "unreal_engine"}', 400, "unknown preset"),
+        ("/api/preset", b'{"name": "galaxy_vls"}', 400, "cannot render this frame"),  # needs a light pass
         ("/api/nowhere", b"{}", 404, "no such endpoint"),
     ],
 )

@@ -169,9 +169,10 @@ def bloom(
     dtype = image.dtype
     weights = jnp.asarray(weights, dtype)
     bright = jnp.maximum(image - jnp.asarray(threshold, dtype), 0.0)
-    x, y = pixel_centres(image.shape[0], image.shape[1], dtype)
+    xs = jnp.arange(image.shape[1], dtype=dtype) + 0.5
+    ys = jnp.arange(image.shape[0], dtype=dtype) + 0.5
     total = jnp.zeros_like(image)
     for level, factor in enumerate(BLOOM_LEVELS):
         low = gaussian_blur(downsample_box(bright, factor), sigma, radius=radius)
-        total = total + weights[level] * sample_bilinear(low, x / factor, y / factor)
+        total = total + weights[level] * sample_separable(low, xs / factor, ys / factor)
     return total

@@ -29,10 +29,8 @@ from godrays_jax._checks import check_image, check_light, check_scalar, checked_
 from godrays_jax.sampling import Addressing
 
 
-def _axis_taps(size: int, centre, scale, addressing: Addressing, dtype):
-    """Lower/upper texel indices and their weights along one axis for every output pixel."""
-    coords = jnp.arange(size, dtype=dtype) + 0.5
-    u = centre + (coords - centre) * scale - 0.5
+def _axis_taps(size: int, u, addressing: Addressing):
+    """Lower/upper texel indices and weights for linear interpolation at texel coordinates `u` (centre of texel `i` at `u = i`)."""
     if addressing == "clamp":
         # Clamp-to-edge bilinear equals sampling the clamped coordinate.
         u = jnp.clip(u, 0.0, size - 1.0)
@@ -51,13 +49,23 @@ def _axis_taps(size: int, centre, scale, addressing: Addressing, dtype):
     return jnp.clip(low, 0, size - 1), jnp.clip(high, 0, size - 1), low_weight, high_weight
 
 
+def separable_lerp(image, row_u, col_u, addressing: Addressing):
+    """Bilinear samples on the grid `row_u x col_u` (texel coordinates): 1-D interpolation of whole rows, then columns."""
+    height, width, _ = image.shape
+    row_low, row_high, row_low_weight, row_high_weight = _axis_taps(height, row_u, addressing)
+    col_low, col_high, col_low_weight, col_high_weight = _axis_taps(width, col_u, addressing)
+    rows = image[row_low] * row_low_weight[:, None, None] + image[row_high] * row_high_weight[:, None, None]
+    return rows[:, col_low] * col_low_weight[None, :, None] + rows[:, col_high] * col_high_weight[None, :, None]
+
+
 def _scaled_copy(image, light_xy, scale, addressing: Addressing):
     """`image` sampled bilinearly at `light + (p - light) * scale` for every pixel centre `p`."""
     height, width, _ = image.shape
-    row_low, row_high, row_low_weight, row_high_weight = _axis_taps(height, light_xy[1], scale, addressing, image.dtype)
-    col_low, col_high, col_low_weight, col_high_weight = _axis_taps(width, light_xy[0], scale, addressing, image.dtype)
-    rows = image[row_low] * row_low_weight[:, None, None] + image[row_high] * row_high_weight[:, None, None]
-    return rows[:, col_low] * col_low_weight[None, :, None] + rows[:, col_high] * col_high_weight[None, :, None]
+    rows = jnp.arange(height, dtype=image.dtype) + 0.5
+    cols = jnp.arange(width, dtype=image.dtype) + 0.5
+    row_u = light_xy[1] + (rows - light_xy[1]) * scale - 0.5
+    col_u = light_xy[0] + (cols - light_xy[0]) * scale - 0.5
+    return separable_lerp(image, row_u, col_u, addressing)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))

@@ -9,8 +9,8 @@ length `f = (W / 2) / tan(fov_x / 2)` pixels). `view_directions` equals
 
 The light is given as its projected pixel position `light_xy` plus whether it
 is in front of the camera; a light behind the camera (`camera.project_point`
-mirrors it through the camera plane) points the other way, so its direction is
-negated. Neither kernel divides by a distance: a light on the view axis, on a
+mirrors it through the camera plane) has its forward component negated.
+Neither kernel divides by a distance: a light on the view axis, on a
 pixel centre, off screen or behind the camera gives finite values and gradients.
 """
 
@@ -65,16 +65,17 @@ def light_direction(
     """Unit view-space direction from the camera toward a light projected at `light_xy` pixels.
 
     `light_xy` may be anywhere (off screen: a direction far from the axis). A
-    light behind the camera is projected through its mirror image, so the
-    direction through `light_xy` is negated when `in_front` is false.
+    light behind the camera is projected through its mirror image in the
+    camera plane (`camera.project_point`), so when `in_front` is false the
+    forward (z) component of the direction through `light_xy` is negated.
     """
     check_light(light_xy)
     check_scalar(fov_x_deg, "fov_x_deg")
     light_xy = jnp.asarray(light_xy, dtype)
     focal = _focal_px(width, fov_x_deg, dtype)
-    ray = jnp.stack([(light_xy[0] - 0.5 * width) / focal, (0.5 * height - light_xy[1]) / focal, jnp.ones((), dtype)])
-    sign = jnp.where(jnp.asarray(in_front), 1.0, -1.0).astype(dtype)
-    return _unit(ray) * sign
+    forward = jnp.where(jnp.asarray(in_front), 1.0, -1.0).astype(dtype)
+    ray = jnp.stack([(light_xy[0] - 0.5 * width) / focal, (0.5 * height - light_xy[1]) / focal, forward])
+    return _unit(ray)
 
 
 def safe_power(base: Float[Array, "*S"], exponent: Float[ArrayLike, ""]) -> Float[Array, "*S"]:
@@ -158,8 +159,8 @@ def lens_dirt(
     if dirt.shape[-1] != 1:
         raise ValueError(f"dirt must have one channel, shape (h, w, 1), got shape {dirt.shape}")
     check_scalar(aberration, "aberration")
-    if jnp.shape(sun_color) != (3,):
-        raise ValueError(f"sun_color must be an RGB triple, shape (3,), got shape {jnp.shape(sun_color)}")
+    if np.shape(sun_color) != (3,):
+        raise ValueError(f"sun_color must be an RGB triple, shape (3,), got shape {np.shape(sun_color)}")
     intensity = lens_dirt_intensity(
         depth, light_xy, fov_x_deg=fov_x_deg, far=far, power=power, scale=scale, in_front=in_front, view=view
     )
@@ -261,6 +262,8 @@ def _blob_sum(x, y, blobs, profile):
         radius = jnp.sqrt((along / elongation) ** 2 + across**2) / size
         return total + strength * profile(radius)
 
+    if blobs.shape[0] == 0:
+        return jnp.zeros_like(x)
     return jax.lax.fori_loop(0, blobs.shape[0], add, jnp.zeros_like(x))
 
 

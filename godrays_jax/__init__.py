@@ -65,3 +65,21 @@ from godrays_jax.losses import ssim as ssim
 from godrays_jax.losses import ssim_loss as ssim_loss
 from godrays_jax.tune import Tuner as Tuner
 from godrays_jax.tune import TuneServer as TuneServer
+
+from godrays_jax.camera import Camera as Camera, project_point as project_point
+from godrays_jax.raster import (
+    DirectionalLight as DirectionalLight,
+    Material as Material,
+    Mesh as Mesh,
+    PointLight as PointLight,
+    Scene as Scene,
+    Sky as Sky,
+    Sphere as Sphere,
+    light_pixel as light_pixel,
+    load_obj as load_obj,
+    load_scene as load_scene,
+    plan_tile_capacity as plan_tile_capacity,
+    render as render,
+    scene_from_dict as scene_from_dict,
+    uv_sphere as uv_sphere,
+)

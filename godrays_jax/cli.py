@@ -241,7 +241,38 @@ def _run_fit(args) -> int:
     return run_fit_command(args)
 
 
-COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch, _add_tune, _add_fit]
+def _add_render(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "render",
+        help="render a scene file to a frame",
+        description="Render a scene (JSON or TOML) with the built-in rasterizer to an EXR frame: R, G, B, A (coverage), "
+        "Z (distance along the camera ray), N.X/N.Y/N.Z, object_id, light.Y (seed 004's pass), glow.R/G/B/A (seed 000's pass). "
+        "The light's pixel position is stored as godrays:light_px for apply/fit.",
+    )
+    parser.add_argument("scene", help="scene file (.json or .toml)")
+    parser.add_argument("-o", "--output", required=True, help="output frame (.exr)")
+    parser.add_argument("--light", action="store_true", help="also print the light's pixel position")
+    parser.add_argument("--no-glow", action="store_true", help="skip the glow pass (one rasterization instead of two)")
+    parser.set_defaults(handler=_run_render)
+
+
+def _run_render(args) -> int:
+    from godrays_jax.io import write_buffers
+    from godrays_jax.raster import light_pixel, load_scene, render
+
+    check_output_path(args.output, args.scene)
+    scene, camera = load_scene(args.scene)
+    buffers = render(scene, camera, with_glow_pass=not args.no_glow)
+    xy, _, in_front = light_pixel(scene, camera)
+    light_xy = (float(xy[0]), float(xy[1]))
+    write_buffers(args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front))
+    if args.light:
+        print(f"light {light_xy[0]:.4f},{light_xy[1]:.4f} {'in front' if in_front else 'behind the camera'}")
+    print(f"wrote {args.output}")
+    return 0
+
+
+COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch, _add_tune, _add_fit, _add_render]
 """Functions that each add one subcommand (with `set_defaults(handler=...)`)."""
 
 

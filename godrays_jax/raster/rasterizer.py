@@ -1,0 +1,645 @@
+"""The jitted rasterizer: `render(scene, camera) -> Buffers`.
+
+How it works (all inside one `jit`):
+
+1. Triangles are set up in view space as 2D-homogeneous edge functions
+   (Olano & Greer 1997): each edge, and the reciprocal depth, is an affine
+   function of the pixel position, which stays exact for triangles crossing the
+   camera plane, so nothing is clipped. Back faces of single-sided meshes,
+   degenerate and out-of-view triangles are culled.
+2. Binning: triangles, sorted front to back, are listed per 64 px tile and
+   then per 16 px tile (`tile_size`), keeping at most `tile_capacity` per tile;
+   when a tile holds more, the farthest are dropped (they are the likeliest to
+   be hidden). Spheres are few and are tested in every tile.
+3. Per pixel, every candidate gives a hard inside test at the pixel centre and
+   an antialiased coverage: an analytic edge term, `clip(0.5 + s, 0, 1)` with
+   `s` the signed distance in pixels from the pixel centre to the primitive's
+   outline (a triangle's nearest edge, or a sphere's projected silhouette
+   from its exact implicit cone), capped by the primitive's projected area.
+   This is the exact box-filtered coverage of a straight edge through the pixel
+   and is a smooth function of the geometry, so coverage and colour have
+   non-zero gradients at silhouettes (no supersampling).
+4. Two layers are composited per pixel: the nearest object touching the pixel
+   and the nearest other object behind it, each with its coverage (the sum of
+   its primitives' coverage, clipped to 1, which is exact across a mesh's shared
+   edges), over the sky. Depth, normal and object id are the hard values at the
+   pixel centre.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from godrays_jax.buffers import Buffers
+from godrays_jax.camera import Camera
+from godrays_jax.raster.scene import DirectionalLight, Mesh, Scene, Sphere
+
+GLOW_SOURCE_SCALE = 1.3
+GLOW_OCCLUDER_SCALE = 0.8
+GLOW_COLOR = (0.8, 0.5, 0.0, 0.65)
+DEFAULT_TILE_CAPACITY = (128, 32)
+
+_COARSE_TILES_PER_SIDE = 4
+_TILES_PER_BATCH = 32
+_BUSY_TILE_FRACTION = 8
+# Columns of the per-triangle setup table.
+_EDGE_X, _EDGE_Y, _EDGE_C = slice(0, 3), slice(3, 6), slice(6, 9)
+_INV_DEPTH = slice(9, 12)
+_AREA = 12
+
+
+class _Geometry(eqx.Module):
+    """Everything flattened: triangles (N) then spheres (S), in view space."""
+
+    corners: Float[Array, "N 3 3"]
+    corner_normals: Float[Array, "N 3 3"]
+    triangle_object: Int[Array, "N"]
+    triangle_drawn: Array
+    centers: Float[Array, "S 3"]
+    radii: Float[Array, "S"]
+    sphere_object: Int[Array, "S"]
+
+
+def _flatten(scene: Scene, camera: Camera, object_scales: tuple[float | None, ...] | None) -> _Geometry:
+    corners, normals, triangle_object, triangle_drawn = [], [], [], []
+    centers, radii, sphere_object = [], [], []
+    right, up, forward = camera.basis()
+    to_view = jnp.stack([right, up, forward], axis=1)
+    for index, obj in enumerate(scene.objects):
+        scale = 1.0 if object_scales is None else object_scales[index]
+        if isinstance(obj, Sphere):
+            centers.append(camera.to_view(obj.center))
+            radii.append(obj.radius * scale)
+            sphere_object.append(index)
+        else:
+            world, world_normals = obj.world_triangles(local_scale=scale)
+            face_normal = jnp.cross(world[:, 1] - world[:, 0], world[:, 2] - world[:, 0])
+            facing_camera = jnp.einsum("fi,fi->f", world[:, 0] - camera.position, face_normal) < 0
+            corners.append(camera.to_view(world))
+            normals.append(world_normals @ to_view)
+            triangle_object.append(jnp.full(world.shape[0], index, jnp.int32))
+            triangle_drawn.append(facing_camera | obj.double_sided)
+    if not corners:
+        # Scenes of spheres alone get one culled placeholder triangle, so that
+        # the binning's shapes are never empty.
+        corners, normals = [jnp.eye(3)[None]], [jnp.eye(3)[None]]
+        triangle_object, triangle_drawn = [jnp.array([-1], jnp.int32)], [jnp.array([False])]
+    return _Geometry(
+        corners=jnp.concatenate(corners),
+        corner_normals=jnp.concatenate(normals),
+        triangle_object=jnp.concatenate(triangle_object),
+        triangle_drawn=jnp.concatenate(triangle_drawn),
+        centers=jnp.stack(centers) if centers else jnp.zeros((0, 3)),
+        radii=jnp.stack(radii) if radii else jnp.zeros((0,)),
+        sphere_object=jnp.asarray(sphere_object, jnp.int32),
+    )
+
+
+def _pixel_affine(vectors: Float[Array, "*N 3"], camera: Camera) -> Float[Array, "*N 3"]:
+    """Coefficients (a, b, c) with `v . d(px, py) = a px + b py + c`, where
+    `d = ((px - W/2) / f, (H/2 - py) / f, 1)` is the view ray through pixel
+    position (px, py)."""
+    f = camera.focal_px
+    a = vectors[..., 0] / f
+    b = -vectors[..., 1] / f
+    c = vectors[..., 2] - a * (0.5 * camera.width) - b * (0.5 * camera.height)
+    return jnp.stack([a, b, c], axis=-1)
+
+
+def _triangle_setup(geometry: _Geometry, camera: Camera) -> tuple[Float[Array, "N 13"], Array]:
+    """Per-triangle edge, reciprocal-depth and area terms; and which are drawn."""
+    v0, v1, v2 = geometry.corners[:, 0], geometry.corners[:, 1], geometry.corners[:, 2]
+    edge_normals = jnp.stack([jnp.cross(v1, v2), jnp.cross(v2, v0), jnp.cross(v0, v1)], axis=1)
+    plane = edge_normals.sum(axis=1)
+    plane_offset = jnp.einsum("ni,ni->n", v0, plane)
+    orientation = jnp.where(plane_offset < 0, -1.0, 1.0)
+    edges = _pixel_affine(edge_normals, camera)
+    edge_gradient = jnp.sqrt(jnp.sum(edges[..., :2] ** 2, axis=-1, keepdims=True) + 1e-30)
+    edges = edges * (orientation[:, None, None] / edge_gradient)
+    safe_offset = jnp.where(plane_offset == 0, 1.0, plane_offset)
+    inverse_depth = _pixel_affine(plane / safe_offset[:, None], camera)
+
+    depth = geometry.corners[..., 2]
+    all_in_front = depth.min(axis=1) > camera.near
+    focal = camera.focal_px
+    projected = geometry.corners[..., :2] * (focal / jnp.where(all_in_front[:, None], depth, 1.0))[..., None]
+    area_px = 0.5 * jnp.abs(
+        (projected[:, 1, 0] - projected[:, 0, 0]) * (projected[:, 2, 1] - projected[:, 0, 1])
+        - (projected[:, 2, 0] - projected[:, 0, 0]) * (projected[:, 1, 1] - projected[:, 0, 1])
+    )
+    area_px = jnp.where(all_in_front, area_px, jnp.inf)
+    drawn = (
+        geometry.triangle_drawn
+        & (plane_offset != 0)
+        & (depth.max(axis=1) > camera.near)
+        & (depth.min(axis=1) < camera.far)
+    )
+    setup = jnp.concatenate(
+        [edges[..., 0], edges[..., 1], edges[..., 2], inverse_depth, area_px[:, None]], axis=1
+    )
+    return setup, drawn
+
+
+def _triangle_bounds(geometry: _Geometry, camera: Camera, drawn: Array) -> Float[Array, "N 4"]:
+    """Conservative pixel bounding boxes (x0, y0, x1, y1), one pixel of margin
+    for the antialiased edge; the whole screen for triangles crossing the near
+    plane; empty for culled ones."""
+    depth = geometry.corners[..., 2]
+    all_in_front = depth.min(axis=1) > camera.near
+    safe_depth = jnp.where(all_in_front[:, None], depth, 1.0)
+    x = 0.5 * camera.width + camera.focal_px * geometry.corners[..., 0] / safe_depth
+    y = 0.5 * camera.height - camera.focal_px * geometry.corners[..., 1] / safe_depth
+    boxes = jnp.stack([x.min(1) - 1, y.min(1) - 1, x.max(1) + 1, y.max(1) + 1], axis=1)
+    screen = jnp.array([0.0, 0.0, camera.width, camera.height])
+    boxes = jnp.where(all_in_front[:, None], boxes, screen)
+    return jnp.where(drawn[:, None], boxes, jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9)
+
+
+def _first_overlapping(overlap: Array, capacity: int) -> Int[Array, "... K"]:
+    """Indices of the first `capacity` True entries along the last axis, -1 past the end."""
+    running = jnp.cumsum(overlap, axis=-1, dtype=jnp.int32)
+    wanted = jnp.arange(1, capacity + 1, dtype=jnp.int32)
+    flat = running.reshape(-1, running.shape[-1])
+    found = jax.vmap(lambda row: jnp.searchsorted(row, wanted, side="left"))(flat)
+    found = jnp.where(found < running.shape[-1], found, -1)
+    return found.reshape(*running.shape[:-1], capacity)
+
+
+def _bin_triangles(
+    boxes: Float[Array, "N 4"], order_key: Float[Array, "N"], *, tile_size: int, tiles_y: int, tiles_x: int, capacity: int
+) -> Int[Array, "TY TX K"]:
+    """Per fine tile, up to `capacity` triangle indices, nearest first, -1 for none.
+
+    Two levels (coarse tiles of `_COARSE_TILES_PER_SIDE` fine tiles a side,
+    then fine tiles) keep the tile x triangle overlap table small."""
+    coarse = tile_size * _COARSE_TILES_PER_SIDE
+    order = jnp.argsort(order_key)
+    boxes = boxes[order]
+    coarse_y, coarse_x = tiles_y // _COARSE_TILES_PER_SIDE, tiles_x // _COARSE_TILES_PER_SIDE
+
+    def spans(lo, hi, size, n):
+        starts = jnp.arange(n, dtype=jnp.float32) * size
+        return (lo[None, :] < starts[:, None] + size) & (hi[None, :] >= starts[:, None])
+
+    overlap_x = spans(boxes[:, 0], boxes[:, 2], coarse, coarse_x)
+    overlap_y = spans(boxes[:, 1], boxes[:, 3], coarse, coarse_y)
+    coarse_capacity = min(capacity * _COARSE_TILES_PER_SIDE**2, boxes.shape[0])
+    coarse_lists = _first_overlapping(overlap_y[:, None, :] & overlap_x[None, :, :], coarse_capacity)
+
+    empty_box = jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9
+    fine_boxes = jnp.where((coarse_lists >= 0)[..., None], boxes[jnp.maximum(coarse_lists, 0)], empty_box)
+    offsets = jnp.arange(_COARSE_TILES_PER_SIDE, dtype=jnp.float32) * tile_size
+    starts_y = jnp.arange(coarse_y, dtype=jnp.float32)[:, None] * coarse + offsets[None, :]
+    starts_x = jnp.arange(coarse_x, dtype=jnp.float32)[:, None] * coarse + offsets[None, :]
+    # Axes: (coarse y, coarse x, fine y within, fine x within, coarse list slot).
+    in_y = (fine_boxes[:, :, None, None, :, 1] < starts_y[:, None, :, None, None] + tile_size) & (
+        fine_boxes[:, :, None, None, :, 3] >= starts_y[:, None, :, None, None]
+    )
+    in_x = (fine_boxes[:, :, None, None, :, 0] < starts_x[None, :, None, :, None] + tile_size) & (
+        fine_boxes[:, :, None, None, :, 2] >= starts_x[None, :, None, :, None]
+    )
+    local = _first_overlapping(in_y & in_x, capacity)
+    coarse_slots = jnp.broadcast_to(coarse_lists[:, :, None, None, :], local.shape[:-1] + coarse_lists.shape[-1:])
+    fine = jnp.where(local >= 0, jnp.take_along_axis(coarse_slots, jnp.maximum(local, 0), axis=-1), -1)
+    fine = jnp.where(fine >= 0, order[jnp.maximum(fine, 0)], -1)
+    return fine.transpose(0, 2, 1, 3, 4).reshape(tiles_y, tiles_x, capacity)
+
+
+class _Layer(eqx.Module):
+    """What one compositing layer sees in each pixel (view space)."""
+
+    object_id: Int[Array, "H W"]  # -1 where the layer is empty
+    coverage: Float[Array, "H W"]
+    position: Float[Array, "H W 3"]
+    normal: Float[Array, "H W 3"]
+
+
+class _Layers(eqx.Module):
+    front: _Layer  # the nearest object touching the pixel
+    behind: _Layer  # the nearest other object touching it
+    hit: _Layer  # what the pixel centre hits (coverage unused)
+
+
+def _triangle_table(geometry: _Geometry, camera: Camera) -> Float[Array, "N 27"]:
+    """Per triangle: barycentric numerators as affine functions of the pixel
+    position (9), corners (9) and shading normals turned to face the camera (9)."""
+    v0, v1, v2 = geometry.corners[:, 0], geometry.corners[:, 1], geometry.corners[:, 2]
+    edge_normals = jnp.stack([jnp.cross(v1, v2), jnp.cross(v2, v0), jnp.cross(v0, v1)], axis=1)
+    # View space is left-handed, so a positive plane offset means the front face is seen.
+    back_facing = jnp.einsum("ni,ni->n", v0, edge_normals.sum(axis=1)) < 0
+    normals = jnp.where(back_facing[:, None, None], -geometry.corner_normals, geometry.corner_normals)
+    count = geometry.corners.shape[0]
+    return jnp.concatenate(
+        [_pixel_affine(edge_normals, camera).reshape(count, 9), geometry.corners.reshape(count, 9), normals.reshape(count, 9)],
+        axis=1,
+    )
+
+
+def _sphere_terms(centers, radii, camera: Camera, px, py):
+    """Signed silhouette distance (px), reciprocal view depth and area cap per (pixel, sphere)."""
+    f = camera.focal_px
+    d = jnp.stack([(px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f, jnp.ones_like(px)], axis=-1)
+    dd = jnp.sum(d * d, axis=-1)[:, None]
+    dc = jnp.sum(d[:, None, :] * centers[None], axis=-1)
+    inner = jnp.sum(centers * centers, axis=-1) - radii**2
+    cone = dc**2 - dd * inner
+    gradient_x = 2 * dc * centers[:, 0] - 2 * d[:, 0:1] * inner
+    gradient_y = 2 * dc * centers[:, 1] - 2 * d[:, 1:2] * inner
+    gradient_px = jnp.sqrt(gradient_x**2 + gradient_y**2 + 1e-30) / f
+    camera_inside = inner < 0
+    distance = jnp.where(camera_inside, jnp.inf, jnp.where(dc > 0, cone / gradient_px, -jnp.inf))
+    positive_cone = jnp.where(cone > 0, cone, 1.0)
+    root = jnp.where(cone > 0, jnp.sqrt(positive_cone), 0.0)
+    depth = jnp.where(camera_inside, dc + root, dc - root) / dd
+    center_depth = jnp.maximum(centers[:, 2], camera.near)
+    area = jnp.where(camera_inside, jnp.inf, jnp.pi * (f * radii / center_depth) ** 2)
+    return distance, 1.0 / jnp.maximum(depth, 1e-30), area
+
+
+def _triangle_surface(row: Float[Array, "P 27"], px, py, rays):
+    numerators = row[:, 0:9].reshape(-1, 3, 3)
+    weights = numerators[..., 0] * px[:, None] + numerators[..., 1] * py[:, None] + numerators[..., 2]
+    total = weights.sum(-1, keepdims=True)
+    weights = jnp.maximum(weights / jnp.where(total == 0, 1.0, total), 0.0)
+    weights = weights / jnp.maximum(weights.sum(-1, keepdims=True), 1e-12)
+    position = jnp.sum(weights[..., None] * row[:, 9:18].reshape(-1, 3, 3), axis=1)
+    normal = jnp.sum(weights[..., None] * row[:, 18:27].reshape(-1, 3, 3), axis=1)
+    return position, normal
+
+
+def _sphere_surface(center: Float[Array, "P 3"], radius: Float[Array, "P"], rays):
+    """The ray's hit, or its closest approach to the sphere at silhouettes."""
+    unit = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
+    along = jnp.sum(unit * center, axis=-1)
+    center_squared = jnp.sum(center * center, axis=-1)
+    chord_squared = radius**2 - (center_squared - along**2)
+    positive = jnp.where(chord_squared > 0, chord_squared, 1.0)
+    half_chord = jnp.where(chord_squared > 0, jnp.sqrt(positive), 0.0)
+    camera_inside = center_squared < radius**2
+    position = unit * jnp.where(camera_inside, along + half_chord, along - half_chord)[:, None]
+    normal = (position - center) / radius[:, None]
+    return position, jnp.where(camera_inside[:, None], -normal, normal)
+
+
+def _evaluate_tiles(geometry, camera, setup, table, objects, tile_y, tile_x, candidates, *, tile_size: int) -> tuple:
+    """Layers of one tile, `(P, ...)` each, P = tile_size ** 2."""
+    triangle_count = geometry.corners.shape[0]
+    sphere_count = geometry.radii.shape[0]
+    local = jnp.arange(tile_size, dtype=jnp.float32) + 0.5
+    py, px = jnp.meshgrid(tile_y * tile_size + local, tile_x * tile_size + local, indexing="ij")
+    px, py = px.reshape(-1), py.reshape(-1)
+    f = camera.focal_px
+    rays = jnp.stack([(px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f, jnp.ones_like(px)], axis=-1)
+
+    rows = setup[candidates]
+    edge = lambda i: px[:, None] * rows[None, :, i] + py[:, None] * rows[None, :, 3 + i] + rows[None, :, 6 + i]
+    triangle_distance = jnp.minimum(jnp.minimum(edge(0), edge(1)), edge(2))
+    triangle_inverse_depth = px[:, None] * rows[None, :, 9] + py[:, None] * rows[None, :, 10] + rows[None, :, 11]
+    triangle_area = rows[None, :, _AREA]
+    sphere_distance, sphere_inverse_depth, sphere_area = _sphere_terms(geometry.centers, geometry.radii, camera, px, py)
+    distance = jnp.concatenate([triangle_distance, sphere_distance], axis=1)
+    inverse_depth = jnp.concatenate([triangle_inverse_depth, sphere_inverse_depth], axis=1)
+    area = jnp.concatenate([jnp.broadcast_to(triangle_area, triangle_distance.shape), jnp.broadcast_to(sphere_area, sphere_distance.shape)], axis=1)
+    in_depth_range = (inverse_depth <= 1.0 / camera.near) & (inverse_depth >= 1.0 / camera.far)
+    coverage = jnp.where(in_depth_range, jnp.clip(0.5 + distance, 0.0, jnp.minimum(area, 1.0)), 0.0)
+    candidate_object = jnp.concatenate([objects[candidates], geometry.sphere_object])
+
+    # Nearest-candidate search as one integer max: the reciprocal depth's bits
+    # (monotonic for positive floats) with the slot number in the low bits.
+    slot_bits = (candidates.shape[0] + sphere_count).bit_length()
+    slots = jnp.arange(candidates.shape[0] + sphere_count, dtype=jnp.int32)
+    depth_bits = jax.lax.bitcast_convert_type(jax.lax.stop_gradient(jnp.maximum(inverse_depth, 0.0)), jnp.int32)
+    keys = ((depth_bits >> slot_bits) << slot_bits) | slots
+    triangle_rows = table[candidates]
+
+    slot_mask = (1 << slot_bits) - 1
+
+    def surface(key):
+        found = key >= 0
+        slot = key & slot_mask
+        obj = jnp.where(found, candidate_object[slot], -1)
+        triangle_position, triangle_normal = _triangle_surface(triangle_rows[jnp.minimum(slot, candidates.shape[0] - 1)], px, py, rays)
+        if sphere_count:
+            sphere = jnp.clip(slot - candidates.shape[0], 0, sphere_count - 1)
+            sphere_position, sphere_normal = _sphere_surface(geometry.centers[sphere], geometry.radii[sphere], rays)
+            is_sphere = (slot >= candidates.shape[0])[:, None]
+            position = jnp.where(is_sphere, sphere_position, triangle_position)
+            normal = jnp.where(is_sphere, sphere_normal, triangle_normal)
+        else:
+            position, normal = triangle_position, triangle_normal
+        return obj, position, normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+
+    touching = coverage > 0
+    front_key = jnp.max(jnp.where(touching, keys, -1), axis=1)
+    front_object = jnp.where(front_key >= 0, candidate_object[front_key & slot_mask], -1)
+    behind_key = jnp.max(jnp.where(touching & (candidate_object != front_object[:, None]), keys, -1), axis=1)
+    hit_key = jnp.max(jnp.where(in_depth_range & (distance >= 0), keys, -1), axis=1)
+    # One copy of the surface code for the three layers keeps compilation short.
+    objects_, positions, normals = jax.vmap(surface)(jnp.stack([front_key, behind_key, hit_key]))
+    front_coverage, behind_coverage = (
+        jnp.minimum(jnp.sum(jnp.where(candidate_object == obj[:, None], coverage, 0.0), axis=1), 1.0)
+        for obj in (objects_[0], objects_[1])
+    )
+    hit_coverage = (hit_key >= 0).astype(jnp.float32)
+    return tuple(
+        (objects_[i], layer_coverage, positions[i], normals[i])
+        for i, layer_coverage in enumerate((front_coverage, behind_coverage, hit_coverage))
+    )
+
+
+def _tile_grid(camera: Camera, tile_size: int) -> tuple[int, int]:
+    coarse = tile_size * _COARSE_TILES_PER_SIDE
+    return -(-camera.height // coarse) * _COARSE_TILES_PER_SIDE, -(-camera.width // coarse) * _COARSE_TILES_PER_SIDE
+
+
+def _tile_loads(geometry: _Geometry, camera: Camera, tile_size: int) -> Int[Array, "T"]:
+    """How many triangles overlap each fine tile, busiest first."""
+    tiles_y, tiles_x = _tile_grid(camera, tile_size)
+    _, drawn = _triangle_setup(geometry, camera)
+    boxes = _triangle_bounds(geometry, camera, drawn)
+    starts_y = jnp.arange(tiles_y, dtype=jnp.float32) * tile_size
+    starts_x = jnp.arange(tiles_x, dtype=jnp.float32) * tile_size
+    in_y = (boxes[None, :, 1] < starts_y[:, None] + tile_size) & (boxes[None, :, 3] >= starts_y[:, None])
+    in_x = (boxes[None, :, 0] < starts_x[:, None] + tile_size) & (boxes[None, :, 2] >= starts_x[:, None])
+    loads = in_y.astype(jnp.float32) @ in_x.astype(jnp.float32).T
+    return -jnp.sort(-loads.reshape(-1)).astype(jnp.int32)
+
+
+def _rasterize(geometry: _Geometry, camera: Camera, *, tile_size: int, capacities: tuple[int, int]) -> _Layers:
+    tiles_y, tiles_x = _tile_grid(camera, tile_size)
+    tile_count = tiles_y * tiles_x
+    tile_capacity, quiet_capacity = capacities
+    triangle_count = geometry.corners.shape[0]
+    setup, drawn = _triangle_setup(geometry, camera)
+    table = _triangle_table(geometry, camera)
+    boxes = jax.lax.stop_gradient(_triangle_bounds(geometry, camera, drawn))
+    lists = _bin_triangles(
+        boxes,
+        jax.lax.stop_gradient(geometry.corners[..., 2].min(axis=1)),
+        tile_size=tile_size,
+        tiles_y=tiles_y,
+        tiles_x=tiles_x,
+        capacity=tile_capacity,
+    ).reshape(tile_count, tile_capacity)
+    # Row `triangle_count` is a sentinel that never covers anything.
+    setup = jnp.concatenate([setup, jnp.zeros((1, setup.shape[1])).at[0, _EDGE_C].set(-1e9)])
+    table = jnp.concatenate([table, jnp.zeros((1, table.shape[1]))])
+    objects = jnp.concatenate([geometry.triangle_object, jnp.array([-1], jnp.int32)])
+    lists = jnp.where(lists >= 0, lists, triangle_count)
+
+    # Most tiles hold few triangles: the busiest eighth get the full capacity,
+    # the others the smaller one (their farthest triangles dropped beyond it).
+    busy_count = -(-tile_count // _BUSY_TILE_FRACTION)
+    by_load = jnp.argsort(-jnp.sum(lists < triangle_count, axis=1))
+    grid_y, grid_x = jnp.divmod(jnp.arange(tile_count, dtype=jnp.int32), tiles_x)
+
+    def run(selected, capacity):
+        evaluate = lambda args: _evaluate_tiles(geometry, camera, setup, table, objects, *args, tile_size=tile_size)
+        return jax.lax.map(evaluate, (grid_y[selected], grid_x[selected], lists[selected, :capacity]), batch_size=_TILES_PER_BATCH)
+
+    busy = run(by_load[:busy_count], tile_capacity)
+    quiet = run(by_load[busy_count:], quiet_capacity)
+    tile_position = jnp.argsort(by_load)
+
+    def to_image(busy_values, quiet_values):
+        values = jnp.concatenate([busy_values, quiet_values])[tile_position]
+        trailing = values.shape[2:]
+        image = values.reshape(tiles_y, tiles_x, tile_size, tile_size, *trailing).swapaxes(1, 2)
+        return image.reshape(tiles_y * tile_size, tiles_x * tile_size, *trailing)[: camera.height, : camera.width]
+
+    layers = jax.tree_util.tree_map(to_image, busy, quiet)
+    return _Layers(*(_Layer(*values) for values in layers))
+
+
+def _city_pattern(normal: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """Procedural stand-in for an emissive night-light map: scattered bright cells."""
+    x, y, z = normal[..., 0], normal[..., 1], normal[..., 2]
+    waves = jnp.sin(37.0 * x + 3.0 * jnp.sin(11.0 * y)) * jnp.sin(41.0 * y + 2.0 * jnp.sin(13.0 * z)) * jnp.sin(43.0 * z + 2.5 * jnp.sin(7.0 * x))
+    return jnp.clip(4.0 * (waves - 0.15), 0.0, 1.0)
+
+
+def _stack_materials(scene: Scene):
+    materials = [obj.material for obj in scene.objects]
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *materials)
+
+
+def _light_direction(scene: Scene, world_position: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    if isinstance(scene.light, DirectionalLight):
+        direction = jnp.broadcast_to(scene.light.direction, world_position.shape)
+    else:
+        direction = scene.light.position - world_position
+    return direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
+
+
+def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "H W 3"]) -> Float[Array, "H W 3"]:
+    materials = _stack_materials(scene)
+    obj = jnp.maximum(surface.object_id, 0)
+    right, up, forward = camera.basis()
+    to_world = jnp.stack([right, up, forward])
+    normal = surface.normal @ to_world
+    world_position = camera.position + surface.position @ to_world
+    to_light = _light_direction(scene, world_position)
+    n_dot_l = jnp.einsum("hwi,hwi->hw", normal, to_light)
+    lit = jnp.clip(n_dot_l, 0.0, 1.0)[..., None]
+    view = -world_rays / jnp.linalg.norm(world_rays, axis=-1, keepdims=True)
+    # Kept off 0 so that rim ** p has finite gradients for any p > 0.
+    rim = 1.0 - jnp.clip(jnp.einsum("hwi,hwi->hw", view, normal), 0.0, 1.0 - 1e-6)
+    sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
+    dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
+    return (
+        materials.albedo[obj] * (scene.ambient + scene.light.color * lit)
+        + materials.emission[obj]
+        + materials.atmosphere_color[obj] * (sharpened_rim[..., None] * lit)
+        + materials.night_color[obj] * (_city_pattern(normal) * dark_side)[..., None]
+    )
+
+
+def _sun_direction(scene: Scene, camera: Camera) -> Float[Array, "3"]:
+    if isinstance(scene.light, DirectionalLight):
+        direction = scene.light.direction
+    else:
+        direction = scene.light.position - camera.position
+    return direction / jnp.linalg.norm(direction)
+
+
+def _sky(scene: Scene, camera: Camera, world_rays: Float[Array, "H W 3"]) -> tuple[Float[Array, "H W 3"], Float[Array, "H W"]]:
+    """Sky colour and the sun spot's intensity (seed 001)."""
+    unit = world_rays / jnp.linalg.norm(world_rays, axis=-1, keepdims=True)
+    up = camera.up / jnp.linalg.norm(camera.up)
+    height = jnp.clip(unit @ up, 0.0, 1.0)[..., None]
+    sky = scene.sky
+    cosine = jnp.clip(unit @ _sun_direction(scene, camera), 1e-30, 1.0)
+    spot = jnp.clip(cosine ** (sky.sun_distance * 2000.0), 0.0, 1.0) * sky.sun_sharpness * 30.0
+    color = sky.horizon_color + (sky.zenith_color - sky.horizon_color) * height + sky.sun_color * spot[..., None]
+    return color, spot
+
+
+def _object_weight(layers: _Layers, target: int) -> Float[Array, "H W"]:
+    """Coverage of object `target` seen through the two layers."""
+    front, behind = layers.front, layers.behind
+    return front.coverage * (front.object_id == target) + (1.0 - front.coverage) * behind.coverage * (behind.object_id == target)
+
+
+def _total_coverage(layers: _Layers) -> Float[Array, "H W"]:
+    return layers.front.coverage + (1.0 - layers.front.coverage) * layers.behind.coverage
+
+
+def render(
+    scene: Scene,
+    camera: Camera,
+    *,
+    glow_source_scale: float | Float[ArrayLike, ""] = GLOW_SOURCE_SCALE,
+    glow_occluder_scale: float | Float[ArrayLike, ""] = GLOW_OCCLUDER_SCALE,
+    glow_color: Float[ArrayLike, "4"] = GLOW_COLOR,
+    with_glow_pass: bool = True,
+    tile_size: int = 16,
+    tile_capacity: tuple[int, int] | None = None,
+) -> Buffers:
+    """Render every buffer the effects read.
+
+    Args:
+        scene: the `Scene`.
+        camera: the `Camera` (image size, clipping planes).
+        glow_source_scale: seed 000's enlargement of the sun object (about its
+            origin) in the glow pass.
+        glow_occluder_scale: seed 000's shrinking of every other object.
+        glow_color: the glow pass colour, premultiplied RGBA in [0, 1] (seed 000:
+            `(0.8, 0.5, 0, 0.65)`).
+        with_glow_pass: render the glow pass (a second rasterization); if False
+            `glow_pass` is None.
+        tile_size: fine tile side in pixels (static).
+        tile_capacity: `(busy, quiet)` static caps on the triangles kept per fine
+            tile: the busiest eighth of the tiles keep up to `busy`, the others
+            up to `quiet`; beyond a cap the farthest triangles are dropped.
+            `None`: planned from the scene so that nothing is dropped (powers of
+            two, to limit recompilation), or `DEFAULT_TILE_CAPACITY` when
+            `render` runs under a JAX transformation (grad, jit, vmap); pass
+            `plan_tile_capacity(scene, camera)` there for dense scenes.
+
+    Returns:
+        `Buffers` with `color` (H, W, 3) linear HDR (sky included), `depth`
+        (distance along the camera ray, `+inf` on sky), `coverage` in [0, 1]
+        (antialiased), `normal` (world space, zero on sky), `object_id` (-1 on
+        sky), `light_pass` (the sun object white, everything else black, plus
+        the sky's saturated sun spot where nothing covers it), and `glow_pass`
+        (H, W, 4). Geometry off-screen or outside [near, far] is not drawn.
+    """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"render: scene must be a Scene, got {type(scene).__name__}")
+    if not isinstance(camera, Camera):
+        raise ValueError(f"render: camera must be a Camera, got {type(camera).__name__}")
+    if not scene.objects:
+        raise ValueError("render: scene.objects is empty")
+    if isinstance(tile_size, bool) or not isinstance(tile_size, int) or tile_size < 1:
+        raise ValueError(f"render: tile_size must be a positive int, got {tile_size!r}")
+    glow_color = jnp.asarray(glow_color, jnp.float32)
+    if glow_color.shape != (4,):
+        raise ValueError(f"render: glow_color must have shape (4,), got {glow_color.shape}")
+    if tile_capacity is None:
+        traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((scene, camera)))
+        tile_capacity = DEFAULT_TILE_CAPACITY if traced else plan_tile_capacity(
+            scene, camera, tile_size=tile_size, glow_source_scale=glow_source_scale, glow_occluder_scale=glow_occluder_scale
+        )
+    if not (isinstance(tile_capacity, tuple) and len(tile_capacity) == 2 and all(isinstance(c, int) and c >= 1 for c in tile_capacity)):
+        raise ValueError(f"render: tile_capacity must be None or a pair of positive ints, got {tile_capacity!r}")
+    return _render(
+        scene, camera, glow_source_scale, glow_occluder_scale, glow_color,
+        with_glow_pass=with_glow_pass, tile_size=tile_size, capacities=tile_capacity,
+    )
+
+
+def plan_tile_capacity(
+    scene: Scene,
+    camera: Camera,
+    *,
+    tile_size: int = 16,
+    glow_source_scale: float = GLOW_SOURCE_SCALE,
+    glow_occluder_scale: float = GLOW_OCCLUDER_SCALE,
+) -> tuple[int, int]:
+    """The smallest `(busy, quiet)` tile capacities (powers of two) that drop no
+    triangle of `scene` seen by `camera`, in either pass. Needs concrete values."""
+    scales = tuple(glow_source_scale if i == scene.sun else glow_occluder_scale for i in range(len(scene.objects)))
+    loads = np.maximum(
+        np.asarray(_planned_loads(scene, camera, None, tile_size)),
+        np.asarray(_planned_loads(scene, camera, scales, tile_size)),
+    )
+    busy_count = -(-loads.size // _BUSY_TILE_FRACTION)
+    loads = -np.sort(-loads)
+    power_of_two = lambda n: 1 << max(int(n) - 1, 0).bit_length()
+    return power_of_two(loads[0]), power_of_two(loads[busy_count] if busy_count < loads.size else 1)
+
+
+@eqx.filter_jit
+def _planned_loads(scene: Scene, camera: Camera, scales, tile_size: int) -> Int[Array, "T"]:
+    return _tile_loads(_flatten(scene, camera, scales), camera, tile_size)
+
+
+@eqx.filter_jit
+def _render(scene: Scene, camera: Camera, glow_source_scale, glow_occluder_scale, glow_color, *, with_glow_pass: bool, tile_size: int, capacities: tuple[int, int]) -> Buffers:
+    geometry = _flatten(scene, camera, None)
+    if with_glow_pass:
+        # Both passes share one compiled rasterizer, mapped over the two geometries.
+        scales = tuple(glow_source_scale if i == scene.sun else glow_occluder_scale for i in range(len(scene.objects)))
+        both = jax.tree_util.tree_map(lambda *a: jnp.stack(a), geometry, _flatten(scene, camera, scales))
+        both_layers = jax.vmap(lambda g: _rasterize(g, camera, tile_size=tile_size, capacities=capacities))(both)
+        layers, glow_layers = (jax.tree_util.tree_map(lambda a: a[i], both_layers) for i in range(2))
+    else:
+        layers = _rasterize(geometry, camera, tile_size=tile_size, capacities=capacities)
+
+    right, up, forward = camera.basis()
+    view_rays = camera.ray_directions()
+    world_rays = view_rays @ jnp.stack([right, up, forward])
+    sky_color, sun_spot = _sky(scene, camera, world_rays)
+
+    front_color, behind_color = (_shade(scene, camera, layer, world_rays) for layer in (layers.front, layers.behind))
+    cf, cb = layers.front.coverage[..., None], layers.behind.coverage[..., None]
+    color = cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color)
+    coverage = _total_coverage(layers)
+
+    hit = layers.hit
+    has_hit = hit.object_id >= 0
+    depth = jnp.where(has_hit, jnp.linalg.norm(hit.position, axis=-1), jnp.inf)
+    normal = jnp.where(has_hit[..., None], hit.normal @ jnp.stack([right, up, forward]), 0.0)
+
+    sky_light = jnp.clip(sun_spot, 0.0, 1.0)
+    if scene.sun is None:
+        light_pass = (1.0 - coverage) * sky_light
+    else:
+        light_pass = _object_weight(layers, scene.sun)
+
+    glow_pass = None
+    if with_glow_pass:
+        if scene.sun is None:
+            glow_weight = (1.0 - _total_coverage(glow_layers)) * sky_light
+        else:
+            glow_weight = _object_weight(glow_layers, scene.sun)
+        glow_pass = glow_weight[..., None] * glow_color
+
+    return Buffers(
+        color=color,
+        depth=depth,
+        coverage=coverage,
+        normal=normal,
+        object_id=hit.object_id,
+        light_pass=light_pass,
+        glow_pass=glow_pass,
+    )
+
+
+def light_pixel(scene: Scene, camera: Camera) -> tuple[Float[Array, "2"], Float[Array, ""], Array]:
+    """Where the light is on screen: `project_point` of the sun object's centre
+    (a mesh's translation), else of a point light, else of the camera position
+    plus a directional light's direction (a light at infinity). Returns
+    `(xy, view_depth, in_front)` as `project_point` does."""
+    from godrays_jax.camera import project_point
+
+    if scene.sun is not None:
+        sun = scene.objects[scene.sun]
+        point = sun.center if isinstance(sun, Sphere) else sun.translation
+    elif isinstance(scene.light, DirectionalLight):
+        point = camera.position + scene.light.direction / jnp.linalg.norm(scene.light.direction)
+    else:
+        point = scene.light.position
+    return project_point(camera, point)

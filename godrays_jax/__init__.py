@@ -83,3 +83,8 @@ from godrays_jax.raster import (
     scene_from_dict as scene_from_dict,
     uv_sphere as uv_sphere,
 )
+from godrays_jax.effects import ScatteringFog as ScatteringFog
+from godrays_jax.media import apply_fog as apply_fog
+from godrays_jax.media import henyey_greenstein as henyey_greenstein
+from godrays_jax.media import in_scattering as in_scattering
+from godrays_jax.media import transmittance as transmittance

@@ -41,11 +41,11 @@ import re
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import TextIO
 
+import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 import OpenImageIO as oiio
 from jaxtyping import Array, Bool, Float
@@ -80,7 +80,7 @@ def frame_number(path: str) -> int | None:
 
 
 def _natural_key(path: str):
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path)]
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path)], path
 
 
 def expand_frames(pattern: str) -> list[str]:
@@ -305,7 +305,12 @@ def remove_stale_temporaries(jobs: Sequence[Job]) -> list[str]:
 
 @dataclasses.dataclass
 class BatchReport:
-    """What a run did. Times are seconds; thread times are summed over threads."""
+    """What a run did. Times are seconds; thread times are summed over threads.
+
+    `compilations` counts how often the effect was compiled during the run:
+    1 for a fresh effect (every frame shares it), 0 when an earlier run in
+    the same process already compiled the same effect structure and size.
+    """
 
     written: list[str] = dataclasses.field(default_factory=list)
     skipped: list[str] = dataclasses.field(default_factory=list)
@@ -385,6 +390,7 @@ def _load(job: Job, light: LightSource, depth_channel: str | None) -> _Loaded:
 def _header_size(path: str) -> tuple[int, int] | None:
     inp = oiio.ImageInput.open(path)
     if inp is None:
+        oiio.geterror()  # clear it: reading the frame reports the error
         return None
     try:
         return inp.spec().height, inp.spec().width
@@ -402,23 +408,22 @@ def _structure_text(buffers: Buffers) -> str:
     return ", ".join(f.name for f in dataclasses.fields(buffers) if getattr(buffers, f.name) is not None)
 
 
-def make_frame_function(effect: Effect, *, layer_only: bool, on_trace: Callable[[], None] | None = None):
-    """The jitted group computation: stacked `Buffers`, lights `(G, 2)` and flags `(G,)` -> images `(G, H, W, C)`.
+_traces = collections.Counter()
+"""How many times `_apply_to_frames` was traced (compiled): `BatchReport.compilations` reads it."""
 
-    `on_trace` is called each time JAX traces (compiles) it.
-    """
 
-    def one_frame(buffers: Buffers, light_xy: Float[Array, "2"], in_front: Bool[Array, ""]):
+@eqx.filter_jit
+def _apply_to_frames(
+    effect: Effect, buffers: Buffers, lights: Float[Array, "G 2"], in_front: Bool[Array, " G"], layer_only: bool
+) -> Float[Array, "G H W C"]:
+    """The effect on a group of stacked frames; jitted once per effect structure and frame shape, across runs."""
+    _traces["frames"] += 1
+
+    def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
         call = effect.layer if layer_only else effect
-        return call(buffers, light_xy, light_in_front=in_front)
+        return call(frame, light_xy, light_in_front=visible)
 
-    @jax.jit
-    def frames(buffers: Buffers, lights: Float[Array, "G 2"], in_front: Bool[Array, " G"]):
-        if on_trace is not None:
-            on_trace()
-        return jax.vmap(one_frame)(buffers, lights, in_front)
-
-    return frames
+    return jax.vmap(one_frame)(buffers, lights, in_front)
 
 
 def run_batch(
@@ -435,7 +440,8 @@ def run_batch(
     """Run the effect over the jobs that are not done; never raises for a bad frame.
 
     Args:
-        jobs: from `plan_batch`; done jobs are skipped.
+        jobs: from `plan_batch`; done jobs are skipped. Output folders are
+            created if missing.
         effect: the effect, applied with the same parameters to every frame.
         light: each frame's light (`LightSource`).
         layer_only: write the effect alone instead of the composited frame.
@@ -452,13 +458,12 @@ def run_batch(
     report = BatchReport(devices=len(devices))
     report.skipped = [job.input for job in jobs if job.done]
     todo = [job for job in jobs if not job.done]
+    for folder in {os.path.dirname(os.path.abspath(job.output)) for job in todo}:
+        os.makedirs(folder, exist_ok=True)
     remove_stale_temporaries(todo)
     bar = Progress(len(todo), progress)
 
-    def counted_trace():
-        report.compilations += 1
-
-    compute = make_frame_function(effect, layer_only=layer_only, on_trace=counted_trace)
+    traces_before = _traces["frames"]
     mesh = jax.sharding.Mesh(np.array(devices), ("frames",))
     frame_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("frames"))
     group_size = len(devices)
@@ -511,7 +516,7 @@ def run_batch(
         lights = np.array([item.light[0] for item in padded], np.float32)
         in_front = np.array([item.light[1] for item in padded], bool)
         args = jax.device_put((stacked, lights, in_front), frame_sharding)
-        images = np.asarray(compute(*args))
+        images = np.asarray(_apply_to_frames(effect, *args, layer_only))
         report.compute_s += time.perf_counter() - began
         for item, image in zip(group, images):
             if not np.all(np.isfinite(image)):
@@ -563,6 +568,7 @@ def run_batch(
         finally:
             bar.close()
     report.wall_s = time.perf_counter() - start
+    report.compilations = _traces["frames"] - traces_before
     return report
 
 
@@ -638,7 +644,6 @@ def run_command(args) -> int:
         todo = sum(not job.done for job in jobs)
         print(f"{todo} frame(s) to run, {len(jobs) - todo} done, on {len(jax.local_devices())} device(s); nothing written")
         return 0
-    os.makedirs(args.output, exist_ok=True)
     report = run_batch(
         jobs,
         effect,

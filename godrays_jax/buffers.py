@@ -29,6 +29,35 @@ class Buffers(eqx.Module):
     light_pass: Float[Array, "H W"] | None = None
     glow_pass: Float[Array, "H W 4"] | None = None
 
+    def __check_init__(self):
+        """Shapes and dtypes at construction, each error naming the field.
+
+        Leading batch axes are allowed (stacked frames for `jax.vmap`) as long
+        as every field has the same ones. Values are not checked here (they may
+        be traced); `io.check_buffers` checks them on the host.
+        """
+        color_shape = _shape_of(self.color)
+        if color_shape is None:
+            return  # a filter spec or other non-array pytree (e.g. for eqx.partition)
+        if len(color_shape) < 3 or color_shape[-1] not in (1, 2, 3, 4):
+            raise ValueError(f"buffers.color must have shape (H, W, C) with C in 1..4, got {color_shape}")
+        if min(color_shape[-3:-1]) < 1:
+            raise ValueError(f"buffers.color must be at least 1x1, got shape {color_shape}")
+        if not jnp.issubdtype(self.color.dtype, jnp.floating):
+            raise ValueError(f"buffers.color must have a floating-point dtype, got {self.color.dtype}")
+        plane = color_shape[:-1]
+        expected = {"depth": plane, "coverage": plane, "normal": (*plane, 3), "object_id": plane,
+                    "light_pass": plane, "glow_pass": (*plane, 4)}  # fmt: skip
+        for name, shape in expected.items():
+            value = getattr(self, name)
+            actual = _shape_of(value)
+            if actual is not None and actual != shape:
+                raise ValueError(f"buffers.{name} must have shape {shape} to match color {color_shape}, got {actual}")
+            kind = jnp.integer if name == "object_id" else jnp.floating
+            if actual is not None and not jnp.issubdtype(value.dtype, kind):
+                kind_text = "an integer" if kind is jnp.integer else "a floating-point"
+                raise ValueError(f"buffers.{name} must have {kind_text} dtype, got {value.dtype}")
+
     @property
     def height(self) -> int:
         return self.color.shape[-3]
@@ -36,6 +65,12 @@ class Buffers(eqx.Module):
     @property
     def width(self) -> int:
         return self.color.shape[-2]
+
+
+def _shape_of(value) -> tuple[int, ...] | None:
+    """The shape of an array-like field (NumPy, JAX, tracer, ShapeDtypeStruct); None for anything else."""
+    shape = getattr(value, "shape", None)
+    return tuple(shape) if shape is not None and hasattr(value, "dtype") else None
 
 
 def coverage_from_depth(depth: Float[Array, "H W"]) -> Float[Array, "H W"]:

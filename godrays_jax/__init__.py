@@ -88,3 +88,9 @@ from godrays_jax.media import apply_fog as apply_fog
 from godrays_jax.media import henyey_greenstein as henyey_greenstein
 from godrays_jax.media import in_scattering as in_scattering
 from godrays_jax.media import transmittance as transmittance
+from godrays_jax.batch import expand_frames as expand_frames
+from godrays_jax.batch import plan_batch as plan_batch
+from godrays_jax.batch import read_light_track as read_light_track
+from godrays_jax.batch import run_batch as run_batch
+from godrays_jax.io import read_frame as read_frame
+from godrays_jax.io import write_frame_like as write_frame_like

@@ -5,6 +5,7 @@ All use clamp-to-edge addressing, so a constant image stays constant.
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -68,17 +69,17 @@ def poisson_blur(
     check_scalar(blur_power, "blur_power")
     blur_power = jnp.asarray(blur_power, image.dtype)
     loop_length, relaxed = resolve_count(passes, max_passes, "passes", "max_passes", minimum=0)
-    if not relaxed:
-        for _ in range(loop_length):
-            image = _poisson_pass(image, blur_power)
-        return image
-    count = checked_count(passes, loop_length, "passes", "max_passes", image.dtype)
+    # The barrier makes XLA materialise each pass: fused into the next pass's
+    # gathers it would be recomputed for every tap (measured 7x slower at 960x540).
+    # A Python loop, not fori_loop: XLA's CPU while loop ran these gathers 7x slower.
+    count = checked_count(passes, loop_length, "passes", "max_passes", image.dtype) if relaxed else None
     blurred = image
-    total = jnp.clip(1.0 - jnp.abs(count), 0.0, 1.0) * image
+    total = jnp.clip(1.0 - jnp.abs(count), 0.0, 1.0) * image if relaxed else None
     for k in range(1, loop_length + 1):
-        blurred = _poisson_pass(blurred, blur_power)
-        total = total + jnp.clip(1.0 - jnp.abs(count - k), 0.0, 1.0) * blurred
-    return total
+        blurred = jax.lax.optimization_barrier(_poisson_pass(blurred, blur_power))
+        if relaxed:
+            total = total + jnp.clip(1.0 - jnp.abs(count - k), 0.0, 1.0) * blurred
+    return total if relaxed else blurred
 
 
 def gaussian_blur(
@@ -164,8 +165,8 @@ def bloom(
     check_image(image)
     check_scalar(threshold, "threshold")
     check_scalar(sigma, "sigma")
-    if jnp.shape(weights) != (len(BLOOM_LEVELS),):
-        raise ValueError(f"weights must have shape ({len(BLOOM_LEVELS)},), one per level, got {jnp.shape(weights)}")
+    if np.shape(weights) != (len(BLOOM_LEVELS),):
+        raise ValueError(f"weights must have shape ({len(BLOOM_LEVELS)},), one per level, got {np.shape(weights)}")
     dtype = image.dtype
     weights = jnp.asarray(weights, dtype)
     bright = jnp.maximum(image - jnp.asarray(threshold, dtype), 0.0)

@@ -23,6 +23,7 @@ import tempfile
 from typing import Any, ClassVar, Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
@@ -76,6 +77,13 @@ class Effect(eqx.Module):
         source = getattr(self, "source", "disc")
         if source not in SOURCES:
             raise ValueError(f"source must be one of {', '.join(SOURCES)}; got {source!r}")
+        for name, (low, high) in parameter_bounds(self).items():
+            value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):
+                continue  # built inside a traced function: the kernels check what they must at run time
+            values = np.asarray(value)
+            if not (np.all(np.isfinite(values)) and np.all(values >= low) and np.all(values <= high)):
+                raise ValueError(f"{type(self).__name__}.{name} must lie in [{low:g}, {high:g}], got {values.tolist()}")
 
     def layer(
         self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True

@@ -216,7 +216,7 @@ def _add_fit(subparsers) -> None:
         help="the light's pixel position, once per frame in order; default: each frame's godrays:light_px metadata",
     )  # fmt: skip
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: GodRays on the sky)")
+    group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: participating_media, ScatteringFog)")
     group.add_argument("--params", metavar="FILE", help="start from parameters saved as JSON")
     parser.add_argument("-o", "--output", required=True, help="where to write the fitted parameters (JSON)")
     parser.add_argument("--report", metavar="PNG", help="picture: target, fitted, difference heat map, loss curve")

@@ -36,7 +36,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.buffers import Buffers
@@ -152,7 +151,7 @@ def _as_frames(buffers, light_xy, target, light_in_front):
         if len(target) != count:
             raise ValueError(f"target must hold one image per frame ({count}), got {len(target)}")
         light_in_front = (
-            [light_in_front] * count if isinstance(light_in_front, bool) or jnp.ndim(light_in_front) == 0
+            [light_in_front] * count if isinstance(light_in_front, bool) or np.ndim(light_in_front) == 0
             else list(light_in_front)
         )  # fmt: skip
         if len(light_in_front) != count:
@@ -220,6 +219,84 @@ def _forward_mode(function):
     return wrapped
 
 
+class _Problem(eqx.Module):
+    """What a fit's objective needs besides the unknowns; static fields make compilations reusable.
+
+    Every field but `effect` is static and hashable, and the objective
+    functions below are module-level, so two fits of the same effect type,
+    fitted names, frame sizes and options reuse one compiled solver step.
+    """
+
+    effect: Effect
+    names: tuple[str, ...] = eqx.field(static=True)
+    bounds: tuple[tuple[float, float], ...] = eqx.field(static=True)
+    shapes: tuple[tuple[int, ...], ...] = eqx.field(static=True)
+    frame_weights: tuple[float, ...] = eqx.field(static=True)
+    loss: str = eqx.field(static=True)
+    space: str = eqx.field(static=True)
+
+    def effect_at(self, y):
+        """The effect with the fitted fields set from the flat unit-scaled unknowns `y`."""
+        values, offset = [], 0
+        for name, (low, high), shape in zip(self.names, self.bounds, self.shapes):
+            size = math.prod(shape)
+            unit = jnp.reshape(y[offset : offset + size], shape)
+            values.append(_from_unit(unit, low, high).astype(getattr(self.effect, name).dtype))
+            offset += size
+        return eqx.tree_at(lambda e: [getattr(e, n) for n in self.names], self.effect, values)
+
+    def rendered(self, candidate, frame_data):
+        for frame, light, image, front in zip(*frame_data):
+            yield _match_channels(candidate(frame, light, light_in_front=front), image)
+
+    def residuals(self, y, frame_data):
+        parts = [
+            jnp.ravel(to_space(image, self.space) - to_space(reference, self.space)) * math.sqrt(weight / reference.size)
+            for (image, reference), weight in zip(self.rendered(self.effect_at(y), frame_data), self.frame_weights)
+        ]
+        return jnp.concatenate(parts)
+
+    def objective(self, candidate, frame_data):
+        return sum(
+            weight * LOSSES[self.loss](image, reference, space=self.space)
+            for (image, reference), weight in zip(self.rendered(candidate, frame_data), self.frame_weights)
+        )
+
+
+def _residual_function(y, data):
+    problem, frame_data = data
+    return _forward_mode(lambda flat: problem.residuals(flat, frame_data))(y), None
+
+
+def _objective_function(y, data):
+    problem, frame_data = data
+    return _forward_mode(lambda flat: problem.objective(problem.effect_at(flat), frame_data))(y), None
+
+
+@eqx.filter_jit
+def _evaluate(candidate, data):
+    problem, frame_data = data
+    return problem.objective(candidate, frame_data)
+
+
+@eqx.filter_jit
+def _init(optimiser, function, y, data, f_struct):
+    # Under jit the state's static parts (a linearised operator's jaxpr, compared by
+    # identity) come from the compilation cache, so a later fit reuses `_step` too.
+    return optimiser.init(function, y, data, {}, f_struct, None, frozenset())
+
+
+@eqx.filter_jit
+def _step(optimiser, function, y, state, data):
+    y, state, _ = optimiser.step(function, y, data, {}, state, frozenset())
+    return y, state
+
+
+@eqx.filter_jit
+def _terminate(optimiser, function, y, state, data):
+    return optimiser.terminate(function, y, data, {}, state, frozenset())
+
+
 def fit(
     effect: Effect,
     buffers: Buffers | Sequence[Buffers],
@@ -279,73 +356,47 @@ def fit(
         if np.any(value < low) or np.any(value > high):
             raise ValueError(f"effect.{name} = {value.tolist()} lies outside its fitting range [{low}, {high}]")
     dtype = frames[0].color.dtype
-    unit_start = {name: _to_unit(jnp.asarray(getattr(effect, name), dtype), *bounds[name]) for name in names}
-    y0, unravel = ravel_pytree(unit_start)
     total_pixels = sum(frame.height * frame.width for frame in frames)
-    frame_weights = [frame.height * frame.width / total_pixels for frame in frames]
-    loss_function = LOSSES[loss]
+    problem = _Problem(
+        effect=effect,
+        names=names,
+        bounds=tuple(bounds[name] for name in names),
+        shapes=tuple(tuple(np.shape(getattr(effect, name))) for name in names),
+        frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
+        loss=loss,
+        space=space,
+    )
+    y0 = jnp.concatenate([jnp.ravel(_to_unit(jnp.asarray(getattr(effect, n), dtype), *bounds[n])) for n in names])
+    data = (problem, (frames, lights, targets, in_front))
+    function = _residual_function if least_squares else _objective_function
+    f_struct = jax.eval_shape(lambda: function(y0, data)[0])
 
-    def effect_at(y):
-        units = unravel(y)
-        values = [_from_unit(units[n], *bounds[n]).astype(getattr(effect, n).dtype) for n in names]
-        return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, values)
-
-    def rendered(candidate, data):
-        frame_data, light_data, target_data, front_data = data
-        for frame, light, image, front in zip(frame_data, light_data, target_data, front_data):
-            yield _match_channels(candidate(frame, light, light_in_front=front), image)
-
-    def residuals(y, data):
-        parts = [
-            jnp.ravel(to_space(image, space) - to_space(reference, space)) * math.sqrt(weight / reference.size)
-            for (image, reference), weight in zip(rendered(effect_at(y), data), frame_weights)
-        ]
-        return jnp.concatenate(parts)
-
-    def objective(candidate, data):
-        return sum(
-            weight * loss_function(image, reference, space=space)
-            for (image, reference), weight in zip(rendered(candidate, data), frame_weights)
-        )
-
-    data = (frames, lights, targets, in_front)
-    if least_squares:
-        function = lambda y, args: (_forward_mode(lambda flat: residuals(flat, args))(y), None)  # noqa: E731
-        f_struct = jax.eval_shape(lambda: residuals(y0, data))
-    else:
-        function = lambda y, args: (_forward_mode(lambda flat: objective(effect_at(flat), args))(y), None)  # noqa: E731
-        f_struct = jax.ShapeDtypeStruct((), dtype)
-    options, tags = {}, frozenset()
-    step = eqx.filter_jit(eqx.Partial(optimiser.step, fn=function, args=data, options=options, tags=tags))
-    terminate = eqx.filter_jit(eqx.Partial(optimiser.terminate, fn=function, args=data, options=options, tags=tags))
-    evaluate = eqx.filter_jit(objective)
-
-    loss_before = float(evaluate(effect, data))
+    loss_before = float(_evaluate(effect, data))
     history = [loss_before]
     y = y0
-    state = optimiser.init(function, y, data, options, f_struct, None, tags)
-    done, result = terminate(y=y, state=state)
+    state = _init(optimiser, function, y, data, f_struct)
+    done, result = _terminate(optimiser, function, y, state, data)
     steps = 0
     while steps < max_steps and not bool(done):
-        y, state, _ = step(y=y, state=state)
-        done, result = terminate(y=y, state=state)
+        y, state = _step(optimiser, function, y, state, data)
+        done, result = _terminate(optimiser, function, y, state, data)
         steps += 1
         if steps > 1:  # after the first step the state holds the start's loss, already recorded
             history.append(_accepted_loss(state, least_squares))
         if progress is not None:
             progress(steps, history[-1])
-    fitted_effect = effect_at(y)
+    fitted_effect = problem.effect_at(y)
     if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
         raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
     rounded = round_counts(fitted_effect)
-    loss_after = float(evaluate(fitted_effect, data))
+    loss_after = float(_evaluate(fitted_effect, data))
     return FitResult(
         effect=fitted_effect,
         rounded=rounded,
         loss_history=np.asarray(history),
         loss_before=loss_before,
         loss_after=loss_after,
-        loss_rounded=float(evaluate(rounded, data)),
+        loss_rounded=float(_evaluate(rounded, data)),
         fitted=names,
         steps=steps,
         converged=bool(done) and bool(result == optx.RESULTS.successful),
@@ -360,15 +411,20 @@ def _accepted_loss(state, least_squares: bool) -> float:
 
 
 def default_fit_effect() -> Effect:
-    """The model `godrays-jax fit` starts from without `--preset` / `--params`.
+    """The model `godrays-jax fit` starts from without `--preset` / `--params`: `preset("participating_media")`.
 
-    `GodRays` on the frame's own sky (`source="sky"`), 64 samples: the model
-    that came closest to a volumetric path tracer's fog in
-    `benchmarks/bench_fit.py` (table in `benchmarks/fit_results.md`).
+    Chosen from the physically based comparison in `benchmarks/bench_fit.py`
+    (table in `benchmarks/fit_results.md`): against a volumetric path tracer's
+    fog, every additive effect (god rays, flare-outs, overcast glow, bloom, lens
+    dirt) can only add light onto the clean frame, while real fog also removes
+    it (the fog frame is about half as bright); `ScatteringFog` models both
+    extinction and in-scattering and fits that frame best by a wide margin.
+    When the camera's field of view is known, set it and keep it fixed
+    (`fixed=("fov_x_deg", ...)`).
     """
-    from godrays_jax.effects import GodRays
+    from godrays_jax.effects import preset
 
-    return GodRays(source="sky", density=0.5, decay=0.95, weight=1.0, exposure=0.15, num_samples=64.0, max_samples=64)
+    return preset("participating_media")
 
 
 def _display_tile(image: np.ndarray) -> np.ndarray:

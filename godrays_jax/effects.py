@@ -335,7 +335,9 @@ class LensDirt(Effect):
 
 @functools.lru_cache(maxsize=8)
 def _cached_dirt(height: int, width: int, seed: int) -> np.ndarray:
-    return np.asarray(dirt_texture(height, width, seed=seed))
+    # Made once per size and seed, also when first asked for inside a jit trace.
+    with jax.ensure_compile_time_eval():
+        return np.asarray(dirt_texture(height, width, seed=seed))
 
 
 class SunSpot(Effect):

@@ -1,0 +1,76 @@
+"""The off-screen fade and behind-camera rule, for every effect a light drives."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+
+H, W = 16, 24
+
+
+def _reference_visibility(light, fade, in_front):
+    outside_x = max(-light[0], light[0] - W, 0.0)
+    outside_y = max(-light[1], light[1] - H, 0.0)
+    t = min((outside_x**2 + outside_y**2) ** 0.5 / (fade * max(W, H)), 1.0)
+    return (1 - t * t * (3 - 2 * t)) * in_front
+
+
+@pytest.mark.parametrize(
+    "light", [(12.0, 8.0), (0.0, 0.0), (24.0, 16.0), (-3.0, 8.0), (30.0, -4.0), (-50.0, 40.0), (1e6, -1e6)]
+)
+def test_visibility_matches_formula(light):
+    for in_front in (True, False):
+        got = gr.light_visibility(jnp.asarray(light), H, W, fade=0.5, light_in_front=in_front)
+        np.testing.assert_allclose(float(got), _reference_visibility(light, 0.5, in_front), atol=1e-6)
+
+
+def test_visibility_is_continuous_monotone_with_finite_gradients():
+    xs = jnp.linspace(-40.0, 60.0, 201)
+    values = jax.vmap(lambda x: gr.light_visibility(jnp.stack([x, 8.0]), H, W, fade=0.5))(xs)
+    assert float(jnp.abs(jnp.diff(values)).max()) < 0.07  # steps of 0.5 px: no jump at the edge
+    assert float(values[0]) == 0.0 and float(values[100]) == 1.0
+    grads = jax.vmap(jax.grad(lambda x: gr.light_visibility(jnp.stack([x, 8.0]), H, W, fade=0.5)))(xs)
+    assert bool(jnp.all(jnp.isfinite(grads))) and float(grads[70]) > 0  # x = -5: fading in from the left
+
+
+def _buffers():
+    depth = jnp.full((H, W), jnp.inf).at[10:, :].set(20.0).at[:, 11:13].set(15.0)
+    coverage = jnp.isfinite(depth).astype(jnp.float32)
+    light_pass = jnp.zeros((H, W)).at[3:6, 5:8].set(1.0) * (1 - coverage)
+    return gr.Buffers(color=jnp.full((H, W, 3), 0.3), depth=depth, coverage=coverage, light_pass=light_pass)
+
+
+LIGHT_DRIVEN = [name for name in gr.PRESETS if not isinstance(gr.preset(name), gr.Bloom)]
+
+
+@pytest.mark.parametrize("name", LIGHT_DRIVEN)
+def test_every_light_driven_effect_fades_off_screen_and_vanishes_behind(name):
+    effect = gr.preset(name)
+    buffers = _buffers()
+    layer = jax.jit(lambda light, front: effect.layer(buffers, light, light_in_front=front))
+    on_screen = layer(jnp.array([6.5, 4.5]), True)
+    assert float(jnp.abs(on_screen).max()) > 0
+    assert float(jnp.abs(layer(jnp.array([6.5, 4.5]), False)).max()) == 0.0
+    far_away = layer(jnp.array([-W * 2.0, 4.5]), True)  # beyond the default fade (half the larger side)
+    assert float(jnp.abs(far_away).max()) == 0.0
+    on_axis = layer(jnp.array([W / 2, H / 2]), True)
+    assert bool(jnp.all(jnp.isfinite(on_axis)))
+
+
+def test_fade_distance_is_fittable_for_god_rays():
+    buffers = _buffers()
+    light = jnp.array([-6.0, 4.5])  # just off the left edge
+    effect = gr.preset("kbengine_flares")
+    grad = jax.grad(lambda e: e.layer(buffers, light).sum())(effect).offscreen_fade
+    assert np.isfinite(float(grad)) and float(grad) > 0  # a longer fade keeps more of the flare
+
+
+def test_bloom_ignores_the_light():
+    buffers = _buffers()
+    bloom = gr.preset("vbex_bloom")
+    buffers = gr.Buffers(color=buffers.color.at[2:4, 2:4].set(9.0), depth=buffers.depth, coverage=buffers.coverage)
+    np.testing.assert_array_equal(
+        bloom.layer(buffers, jnp.array([5.0, 5.0])), bloom.layer(buffers, jnp.array([-1e4, 0.0]), light_in_front=False)
+    )

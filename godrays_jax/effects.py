@@ -521,7 +521,12 @@ def _kbengine_flares() -> FlareOuts:
 
 def _sun_overcast() -> SunOvercast:
     """Seed 000: orange (0.8, 0.5, 0, 0.65) glow, two Poisson-blur passes, additive."""
-    return SunOvercast(blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2)
+    # The halo size and the occluders' shrink (x1.3 / x0.8 of objects in the seed) are
+    # open in image space: a 45 px halo and 2 px of seeping read as the seed's picture.
+    return SunOvercast(
+        blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2, source_radius=45.0,
+        occluder_shrink=2.0,
+    )  # fmt: skip
 
 
 def _vbex_lens_dirt() -> LensDirt:

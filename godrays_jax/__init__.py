@@ -94,3 +94,11 @@ from godrays_jax.batch import read_light_track as read_light_track
 from godrays_jax.batch import run_batch as run_batch
 from godrays_jax.io import read_frame as read_frame
 from godrays_jax.io import write_frame_like as write_frame_like
+
+from godrays_jax.fast import at_reduced_resolution as at_reduced_resolution
+from godrays_jax.fast import fast_radial_rays as fast_radial_rays
+from godrays_jax.fast import interleaved_gradient_noise as interleaved_gradient_noise
+from godrays_jax.fast import radial_rays_jittered as radial_rays_jittered
+from godrays_jax.fast import radial_rays_multipass as radial_rays_multipass
+from godrays_jax.fast import upsample_bilinear as upsample_bilinear
+from godrays_jax.rays import scaled_copies as scaled_copies

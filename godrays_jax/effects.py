@@ -35,6 +35,7 @@ from godrays_jax.composite import BLEND_MODES, blend
 from godrays_jax.lens import LENS_DIRT_ABERRATION, ViewMode, dirt_texture, lens_dirt, sun_spot
 from godrays_jax.media import apply_fog, in_scattering
 from godrays_jax.masks import bright_pass, coverage_mask, dilate, erode, light_source_mask
+from godrays_jax.fast import fast_radial_rays, radial_rays_multipass
 from godrays_jax.rays import radial_rays, scale_iterated_flares
 from godrays_jax.sampling import pixel_centres
 
@@ -152,6 +153,15 @@ def _emitter(
     return buffers.light_pass[..., None].astype(dtype) * visible
 
 
+RayMethod = Literal["exact", "multipass", "fast"]
+RAY_METHODS: dict[str, Any] = {
+    "exact": lambda effect: functools.partial(radial_rays, max_samples=effect.max_samples),
+    "multipass": lambda effect: radial_rays_multipass,
+    "fast": lambda effect: functools.partial(fast_radial_rays, factor=effect.resolution_factor),
+}
+"""`GodRays.method` -> the rays kernel: the exact loop, or the fast variants of `godrays_jax.fast` (errors in benchmarks/README.md)."""
+
+
 class GodRays(Effect):
     """Radial light shafts, seeds 003 and 004 (GPU Gems 3 ch. 13).
 
@@ -163,6 +173,9 @@ class GodRays(Effect):
 
     `num_samples` is fittable through `radial_rays`'s relaxation (loop length
     `max_samples`); at an integer value it is the exact loop.
+    `method` picks the rays kernel: `"exact"` (`radial_rays`), `"multipass"`
+    (`fast.radial_rays_multipass`, 3 passes x 8 taps) or `"fast"`
+    (`fast.fast_radial_rays`: multi-pass at `1 / resolution_factor` resolution).
     """
 
     density: Float[Array, ""] = param(0.5, low=0.0, high=2.0)
@@ -178,16 +191,21 @@ class GodRays(Effect):
     source: Source = eqx.field(static=True, default="disc")
     use_bright_pass: bool = eqx.field(static=True, default=False)
     blend_mode: str = eqx.field(static=True, default="add")
+    method: RayMethod = eqx.field(static=True, default="exact")
+    resolution_factor: int = eqx.field(static=True, default=2)
+
+    def __check_init__(self):
+        if self.method not in RAY_METHODS:
+            raise ValueError(f"method must be one of {', '.join(RAY_METHODS)}; got {self.method!r}")
 
     def layer(self, buffers, light_xy, *, light_in_front=True):
         """The rays alone, `(H, W, 3)` (or 1 channel for a 1-channel `sky` source)."""
         check_light(light_xy)
         emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front, self.offscreen_fade)
-        rays = radial_rays(
+        rays = RAY_METHODS[self.method](self)(
             emitter,
             light_xy,
             num_samples=self.num_samples,
-            max_samples=self.max_samples,
             density=self.density,
             decay=self.decay,
             weight=self.weight,

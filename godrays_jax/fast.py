@@ -31,10 +31,12 @@ from godrays_jax.sampling import pixel_centres, sample_bilinear
 
 
 def _check_ray_options(image, light_xy, density, decay, weight, exposure):
+    """Trace-time checks; returns the image as a JAX array."""
     check_image(image)
     check_light(light_xy)
     for name, value in (("density", density), ("decay", decay), ("weight", weight), ("exposure", exposure)):
         check_scalar(value, name)
+    return jnp.asarray(image)
 
 
 def _check_positive_int(value, name: str, minimum: int = 1) -> None:
@@ -70,8 +72,9 @@ def radial_rays_multipass(
     `M = taps**passes` samples at `u = (m + 1/2) * h + u_start` weighted
     `A * a**m`. The exact loop's samples (`scale_i = 1 - i * density / n`,
     weight `weight * decay**(i-1)`, i = 1..n) are a density in `u`; the comb
-    spans the same range of `u` and `(A, a)` is the weighted log-linear fit of
-    that density's mass per comb cell, rescaled so the total weight is exact.
+    spans the same range of `u` and `a` is the weighted log-linear fit of
+    that density's mass per comb cell; `A` makes the total weight exactly
+    `weight * sum_i decay**(i-1)`.
     The pixel's own term `image(p)` is added exactly. A relaxed (float or
     traced) `num_samples` needs no upper bound here: it only moves the comb.
 
@@ -91,7 +94,7 @@ def radial_rays_multipass(
     Returns:
         The rays image, same shape and dtype as `image`.
     """
-    _check_ray_options(image, light_xy, density, decay, weight, exposure)
+    image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
     _check_positive_int(passes, "passes")
     _check_positive_int(taps, "taps")
     dtype = image.dtype
@@ -120,29 +123,32 @@ def radial_rays_multipass(
     cell_mass = jnp.exp((index[:-1] - 1.0) * log_decay) * jnp.where(
         flat_decay, width, jnp.expm1(width * log_decay) / safe_log_decay
     )
-    total_mass = jnp.asarray(weight, dtype) * jnp.sum(cell_mass)
+    # sum_{i=1..n} decay**(i-1), exact at integer n and smooth in between.
+    total_mass = jnp.asarray(weight, dtype) * jnp.where(
+        flat_decay, count, jnp.expm1(count * log_decay) / jnp.expm1(safe_log_decay)
+    )
     # Weighted least squares of log(mass) against the comb index, weights = mass.
     m = jnp.arange(comb_length, dtype=dtype)
-    fit_weights = cell_mass / jnp.maximum(jnp.sum(cell_mass), 1e-30)
+    # Guarded divisions (not maximum(x, eps)) so that an empty comb (n = 0) keeps finite gradients.
+    mass_sum = jnp.sum(cell_mass)
+    fit_weights = jnp.where(mass_sum > 0, cell_mass, 1.0) / jnp.where(mass_sum > 0, mass_sum, comb_length)
     log_mass = jnp.log(jnp.maximum(cell_mass, 1e-30))
     m_mean = jnp.sum(fit_weights * m)
-    slope = jnp.sum(fit_weights * (m - m_mean) * (log_mass - jnp.sum(fit_weights * log_mass))) / jnp.maximum(
-        jnp.sum(fit_weights * (m - m_mean) ** 2), 1e-30
-    )
+    spread = jnp.sum(fit_weights * (m - m_mean) ** 2)
+    covariance = jnp.sum(fit_weights * (m - m_mean) * (log_mass - jnp.sum(fit_weights * log_mass)))
+    slope = jnp.where(spread > 1e-12, covariance, 0.0) / jnp.where(spread > 1e-12, spread, 1.0)
     slope = jnp.clip(slope, -30.0, 30.0 / comb_length)
-    ratio = jnp.exp(slope)
-    scale_unit = jnp.exp(-cell)
 
     light_xy = jnp.asarray(light_xy, dtype)
     rays = image
     digits = jnp.arange(taps, dtype=dtype)
     for level in range(passes):
         stride = taps**level
-        scales = scale_unit ** (digits * stride)
+        scales = jnp.exp(-cell * digits * stride)
         if level == 0:
             scales = scales * jnp.exp(-(u_start + 0.5 * cell))
-        rays = scaled_copies(rays, light_xy, scales, ratio ** (digits * stride))
-    comb_mass = jnp.sum(ratio**m)
+        rays = scaled_copies(rays, light_xy, scales, jnp.exp(slope * digits * stride))
+    comb_mass = jnp.sum(jnp.exp(slope * m))
     return (image + rays * (total_mass / comb_mass)) * jnp.asarray(exposure, dtype)
 
 
@@ -180,6 +186,7 @@ def at_reduced_resolution(
     check_image(image)
     check_light(light_xy)
     _check_positive_int(factor, "factor")
+    image = jnp.asarray(image)
     if factor == 1:
         return kernel(image, light_xy, **options)
     height, width, _ = image.shape
@@ -226,7 +233,7 @@ def radial_rays_jittered(
     Relaxed counts and gradients work as in `radial_rays`; memory grows with
     the number of samples in reverse mode (plain `fori_loop`).
     """
-    _check_ray_options(image, light_xy, density, decay, weight, exposure)
+    image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
     height, width, _ = image.shape
     dtype = image.dtype
     loop_length, count = _count(num_samples, max_samples, dtype)
@@ -270,7 +277,7 @@ def fast_radial_rays(
     reads 24 quarter-size images instead of 128 full ones. Same parameters
     and units as `radial_rays`; see `radial_rays_multipass` for accuracy.
     """
-    _check_ray_options(image, light_xy, density, decay, weight, exposure)
+    image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
     _check_positive_int(factor, "factor")
 
     def shafts(small, small_light):

@@ -127,6 +127,7 @@ def scaled_copies(
     check_light(light_xy)
     if addressing not in ("clamp", "zero"):
         raise ValueError(f"addressing must be 'clamp' or 'zero', got {addressing!r}")
+    image = jnp.asarray(image)
     dtype = image.dtype
     scales = jnp.asarray(scales, dtype)
     weights = jnp.asarray(weights, dtype)
@@ -185,6 +186,7 @@ def radial_rays(
     for name, value in (("density", density), ("decay", decay), ("weight", weight), ("exposure", exposure)):
         check_scalar(value, name)
     loop_length, relaxed = resolve_count(num_samples, max_samples, "num_samples", "max_samples")
+    image = jnp.asarray(image)
     dtype = image.dtype
     steps = jnp.arange(1, loop_length + 1, dtype=dtype)
     if relaxed:

@@ -10,8 +10,8 @@ compiled ahead of time, compilation excluded; peers warmed up by their memory
 run; a case stops repeating once it has used `--budget` seconds). PSNR is against the exact JAX loop (peak = its maximum).
 Memory: XLA's buffers for the compiled JAX function (arguments + outputs +
 temporaries, `memory_analysis()`), Python's tracemalloc peak for the NumPy and
-OpenCV peers (their arrays), the CUDA pool peak for CuPy; the PyTorch peer's
-allocations are not tracked (n/a). Peers (NumPy, OpenCV, PyTorch CPU, CuPy on
+OpenCV peers (their arrays); PyTorch's and CuPy's allocations are not tracked
+(n/a). Peers (NumPy, OpenCV, PyTorch CPU, CuPy on
 a GPU) are optional: a missing one is skipped with a note.
 """
 
@@ -31,6 +31,7 @@ import numpy as np
 import godrays_jax as gr
 from godrays_jax import fast
 
+TRACED_PEERS = ("numpy", "opencv")  # their arrays are NumPy's, which tracemalloc sees
 RAYS = dict(num_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.15)
 FLARES = dict(num_iters=20, scale_step=1.03)
 
@@ -322,8 +323,8 @@ def main(argv=None):
         print(f"note: CUDA peer skipped (no GPU / CuPy: {type(error).__name__}); GPU figures not measured")
     for name, (rays, _, version) in peers.items():
         print(f"peer {name}: {version}")
-        runner, peak = host_case(rays, image, light, *RAYS.values()) if name != "cupy" else (lambda: rays(image, light, *RAYS.values()), None)
-        add("rays", f"peer {name}", runner, peak, exact)
+        runner, peak = host_case(rays, image, light, *RAYS.values())
+        add("rays", f"peer {name}", runner, peak if name in TRACED_PEERS else None, exact)
 
     flare_kernel = lambda m, l: gr.scale_iterated_flares(m, l, **FLARES)
     runner, peak = jax_case(flare_kernel, image_jax, light_jax)
@@ -334,7 +335,8 @@ def main(argv=None):
     ), exact_flares)  # fmt: skip
     for name, (_, flares, _) in peers.items():
         if flares is not None:
-            add("flares", f"peer {name}", *host_case(flares, image, light, *FLARES.values()), exact_flares)
+            runner, peak = host_case(flares, image, light, *FLARES.values())
+            add("flares", f"peer {name}", runner, peak if name in TRACED_PEERS else None, exact_flares)
 
     print()
     print(f"| case | resolution | median time | peak memory | PSNR vs exact | " + " | ".join(f"x vs {p}" for p in peers) + " |")

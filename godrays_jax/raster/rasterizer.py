@@ -48,6 +48,7 @@ _BUSY_TILE_FRACTION = 8
 _EDGE_X, _EDGE_Y, _EDGE_C = slice(0, 3), slice(3, 6), slice(6, 9)
 _INV_DEPTH = slice(9, 12)
 _AREA = 12
+_BOX = slice(13, 17)
 
 
 class _Geometry(eqx.Module):
@@ -137,22 +138,23 @@ def _triangle_setup(geometry: _Geometry, camera: Camera) -> tuple[Float[Array, "
         & (depth.min(axis=1) < camera.far)
     )
     setup = jnp.concatenate(
-        [edges[..., 0], edges[..., 1], edges[..., 2], inverse_depth, area_px[:, None]], axis=1
+        [edges[..., 0], edges[..., 1], edges[..., 2], inverse_depth, area_px[:, None], _triangle_bounds(geometry, camera, drawn, margin=0.0)],
+        axis=1,
     )
     return setup, drawn
 
 
-def _triangle_bounds(geometry: _Geometry, camera: Camera, drawn: Array) -> Float[Array, "N 4"]:
-    """Conservative pixel bounding boxes (x0, y0, x1, y1), one pixel of margin
-    for the antialiased edge; the whole screen for triangles crossing the near
-    plane; empty for culled ones."""
+def _triangle_bounds(geometry: _Geometry, camera: Camera, drawn: Array, *, margin: float = 1.0) -> Float[Array, "N 4"]:
+    """Conservative pixel bounding boxes (x0, y0, x1, y1) grown by `margin`
+    (room for the antialiased edge); the whole screen for triangles crossing the
+    near plane; empty for culled ones."""
     depth = geometry.corners[..., 2]
     all_in_front = depth.min(axis=1) > camera.near
     safe_depth = jnp.where(all_in_front[:, None], depth, 1.0)
     x = 0.5 * camera.width + camera.focal_px * geometry.corners[..., 0] / safe_depth
     y = 0.5 * camera.height - camera.focal_px * geometry.corners[..., 1] / safe_depth
-    boxes = jnp.stack([x.min(1) - 1, y.min(1) - 1, x.max(1) + 1, y.max(1) + 1], axis=1)
-    screen = jnp.array([0.0, 0.0, camera.width, camera.height])
+    boxes = jnp.stack([x.min(1) - margin, y.min(1) - margin, x.max(1) + margin, y.max(1) + margin], axis=1)
+    screen = jnp.array([-jnp.inf, -jnp.inf, jnp.inf, jnp.inf]) if margin == 0 else jnp.array([0.0, 0.0, camera.width, camera.height])
     boxes = jnp.where(all_in_front[:, None], boxes, screen)
     return jnp.where(drawn[:, None], boxes, jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9)
 
@@ -295,7 +297,11 @@ def _evaluate_tiles(geometry, camera, setup, table, objects, tile_y, tile_x, can
 
     rows = setup[candidates]
     edge = lambda i: px[:, None] * rows[None, :, i] + py[:, None] * rows[None, :, 3 + i] + rows[None, :, 6 + i]
-    triangle_distance = jnp.minimum(jnp.minimum(edge(0), edge(1)), edge(2))
+    # The bounding box's sides join the three edges: past a sliver's sharp
+    # corner the edges alone would leave coverage leaking along its extension.
+    box = rows[None, :, _BOX]
+    box_distance = jnp.minimum(jnp.minimum(px[:, None] - box[..., 0], box[..., 2] - px[:, None]), jnp.minimum(py[:, None] - box[..., 1], box[..., 3] - py[:, None]))
+    triangle_distance = jnp.minimum(jnp.minimum(jnp.minimum(edge(0), edge(1)), edge(2)), box_distance)
     triangle_inverse_depth = px[:, None] * rows[None, :, 9] + py[:, None] * rows[None, :, 10] + rows[None, :, 11]
     triangle_area = rows[None, :, _AREA]
     sphere_distance, sphere_inverse_depth, sphere_area = _sphere_terms(geometry.centers, geometry.radii, camera, px, py)
@@ -416,8 +422,8 @@ def _rasterize(geometry: _Geometry, camera: Camera, *, tile_size: int, capacitie
 def _city_pattern(normal: Float[Array, "... 3"]) -> Float[Array, "..."]:
     """Procedural stand-in for an emissive night-light map: scattered bright cells."""
     x, y, z = normal[..., 0], normal[..., 1], normal[..., 2]
-    waves = jnp.sin(37.0 * x + 3.0 * jnp.sin(11.0 * y)) * jnp.sin(41.0 * y + 2.0 * jnp.sin(13.0 * z)) * jnp.sin(43.0 * z + 2.5 * jnp.sin(7.0 * x))
-    return jnp.clip(4.0 * (waves - 0.15), 0.0, 1.0)
+    waves = jnp.sin(83.0 * x + 3.0 * jnp.sin(11.0 * y)) * jnp.sin(89.0 * y + 2.0 * jnp.sin(13.0 * z)) * jnp.sin(97.0 * z + 2.5 * jnp.sin(7.0 * x))
+    return jnp.clip(8.0 * (waves - 0.45), 0.0, 1.0)
 
 
 def _stack_materials(scene: Scene):

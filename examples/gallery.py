@@ -3,9 +3,10 @@
     python examples/gallery.py [--frame examples/data/sample_frame.exr] [--out out/gallery]
                                [--sheet docs/images/gallery.png]
 
-The frame carries colour, depth and coverage but no light pass, so seed 004's
-pass (the light white, everything else black) is drawn here as the sun's disc
-(`SUN_RADIUS_PX`, the radius `make_sample_frame.py` draws) where the sky shows.
+The frame carries colour, depth and coverage but no light pass, so for the
+presets that read seed 004's pass (the light white, everything else black) it
+is drawn here around the sun's disc (`SUN_RADIUS_PX`, the radius
+`make_sample_frame.py` draws) where the sky shows.
 Labels are drawn with OpenImageIO's built-in font (`ImageBufAlgo.render_text`).
 """
 
@@ -54,14 +55,16 @@ def main() -> None:
     buffers = gr.read_buffers(args.frame)
     light_xy, in_front = gr.read_light(args.frame)
     light = jnp.asarray(light_xy, jnp.float32)
-    buffers = with_light_pass(buffers, light)
+    # Only effects that read seed 004's pass get it: SunOvercast would take it as its glow source.
+    light_buffers = with_light_pass(buffers, light)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     Path(args.sheet).parent.mkdir(parents=True, exist_ok=True)
 
     tiles = [labelled(display(buffers.color), "input frame")]
     for name in sorted(gr.PRESETS):
         effect = gr.preset(name)
-        image = eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=in_front))(effect, buffers, light)
+        frame = light_buffers if getattr(effect, "source", None) == "light_pass" else buffers
+        image = eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=in_front))(effect, frame, light)
         gr.write_image(Path(args.out) / f"{name}.png", image)
         tiles.append(labelled(display(image), f"{name} ({type(effect).__name__})"))
         print(f"wrote {Path(args.out) / (name + '.png')}")

@@ -1,0 +1,111 @@
+"""`godrays-jax apply` end to end, and its bad-input contract: one line on stderr, non-zero exit, no output file."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.cli import main
+
+SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
+
+
+def run_cli(*args):
+    """The installed entry point in a subprocess, as a user runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "godrays_jax.cli", *map(str, args)], capture_output=True, text=True, timeout=600
+    )
+
+
+def small_frame(path, *, depth=True, nan=False):
+    color = np.full((6, 8, 3), 0.2, np.float32)
+    color[1:3, 2:5] = 5.0
+    if nan:
+        color[0, 0, 1] = np.nan
+    zs = np.full((6, 8), np.inf, np.float32)
+    zs[4:, :] = 3.0
+    if depth:
+        gr.write_buffers(path, gr.Buffers(color=color, depth=zs, coverage=np.isfinite(zs).astype(np.float32)))
+    else:
+        gr.write_image(path, color)
+    return path
+
+
+def test_apply_writes_the_composited_frame(tmp_path):
+    output = tmp_path / "out.exr"
+    assert main(["apply", str(SAMPLE), "--preset", "kbengine_flares", "-o", str(output)]) == 0
+    frame = gr.read_buffers(SAMPLE)
+    (light, _) = gr.read_light(SAMPLE)
+    expected = gr.preset("kbengine_flares")(frame, np.asarray(light, np.float32))
+    np.testing.assert_allclose(gr.read_image(output), expected, rtol=1e-5, atol=1e-6)
+    assert sorted(os.listdir(tmp_path)) == ["out.exr"]
+
+
+def test_apply_with_params_file_and_layer_only(tmp_path):
+    params = tmp_path / "params.json"
+    effect = gr.GodRays(num_samples=16.0, max_samples=16, density=0.9, exposure=0.3, light_radius=12.0)
+    gr.save_effect(params, effect)
+    assert json.loads(params.read_text())["effect"] == "GodRays"
+    output = tmp_path / "layer.png"
+    assert main(["apply", str(SAMPLE), "--params", str(params), "--light", "200.5,60.25", "--layer-only", "-o", str(output)]) == 0
+    written = gr.read_image(output)
+    assert written.shape == (180, 320, 3) and float(written.max()) > 0.1
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["missing_file", "not_an_image", "no_depth", "bad_light", "nan_colour", "bad_params", "overwrite_input", "no_light"],
+)
+def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
+    frame = small_frame(tmp_path / "frame.exr")
+    output = tmp_path / "out.png"
+    args = ["apply", frame, "--light", "3,2", "-o", output]
+    expected = None
+    if case == "missing_file":
+        args[1], expected = tmp_path / "missing.exr", "does not exist"
+    elif case == "not_an_image":
+        bogus = tmp_path / "notes.exr"
+        bogus.write_text("not an image")
+        args[1], expected = bogus, "cannot read image"
+    elif case == "no_depth":
+        args[1], expected = small_frame(tmp_path / "flat.exr", depth=False), "channels found: R, G, B"
+    elif case == "bad_light":
+        args[3], expected = "3;2", "--light must be X,Y"
+    elif case == "nan_colour":
+        args[1], expected = small_frame(tmp_path / "nan.exr", nan=True), "NaN"
+    elif case == "bad_params":
+        params = tmp_path / "params.json"
+        params.write_text('{"effect": "GodRays", "densty": 1}')
+        args += ["--params", params]
+        expected = "unknown parameter"
+    elif case == "overwrite_input":
+        shutil.copy(frame, output.with_suffix(".exr"))
+        args[1] = args[5] = output.with_suffix(".exr")
+        expected = "refusing to overwrite"
+    elif case == "no_light":
+        del args[2:4]
+        expected = "--light"
+    before = sorted(os.listdir(tmp_path))
+    result = run_cli(*args)
+    assert result.returncode != 0
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert expected in lines[0] and "Traceback" not in result.stderr
+    assert sorted(os.listdir(tmp_path)) == before, "a failed run must not leave files behind"
+
+
+def test_every_command_has_help():
+    from godrays_jax.cli import build_parser
+
+    commands = build_parser()._subparsers._group_actions[0].choices
+    assert "apply" in commands
+    for name in commands:
+        with pytest.raises(SystemExit) as exit_info:
+            main([name, "--help"])
+        assert exit_info.value.code == 0

@@ -1,0 +1,149 @@
+"""Whole effects: every preset runs eagerly, jitted and vmapped; parameters round-trip through JSON;
+gradients are finite; degenerate frames (all sky, no sky, light behind the camera) stay finite."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.effects import parameter_bounds
+
+HEIGHT, WIDTH = 18, 24
+
+
+def make_frame(sky_rows=10, occluder_cols=(11, 13)):
+    depth = np.full((HEIGHT, WIDTH), np.inf, np.float32)
+    depth[sky_rows:, :] = 8.0
+    depth[:, occluder_cols[0] : occluder_cols[1]] = 4.0
+    coverage = np.isfinite(depth).astype(np.float32)
+    color = np.where(coverage[..., None] > 0, 0.05, 0.3).astype(np.float32) * np.ones(3, np.float32)
+    color[3:7, 8:16] = 20.0  # a sun on the sky behind the occluder
+    light_pass = np.zeros((HEIGHT, WIDTH), np.float32)
+    light_pass[3:7, 8:16] = 1.0
+    light_pass[:, occluder_cols[0] : occluder_cols[1]] = 0.0
+    return gr.Buffers(
+        color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(coverage),
+        light_pass=jnp.asarray(light_pass),
+    )  # fmt: skip
+
+
+LIGHT = jnp.asarray([12.3, 5.1], jnp.float32)
+
+
+def small(effect):
+    """The preset with its loops shortened, so the tests compile quickly."""
+    replacements = {"max_samples": 8, "num_samples": 8.0, "max_iters": 5, "num_iters": 5.0}
+    fields = {f.name: getattr(effect, f.name) for f in dataclasses.fields(effect)}
+    return type(effect)(**{**fields, **{k: v for k, v in replacements.items() if k in fields}})
+
+
+@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+def test_preset_runs_jit_vmap_and_adds_light(name):
+    # Eager execution of every kernel is covered in test_kernels.py; here one
+    # compilation per preset keeps the suite fast.
+    effect = small(gr.preset(name))
+    frame = make_frame()
+
+    @eqx.filter_jit
+    def both(effect, lights):
+        single = effect(frame, lights[0])
+        batched = jax.vmap(lambda light: effect(frame, light))(lights)
+        return single, batched, effect.layer(frame, lights[0])
+
+    single, batched, layer = both(effect, jnp.stack([LIGHT, LIGHT + 1.0]))
+    assert single.shape == frame.color.shape and bool(jnp.all(jnp.isfinite(single)))
+    np.testing.assert_allclose(batched[0], single, rtol=1e-5, atol=1e-6)
+    assert float(jnp.max(layer)) > 0.0, "the effect must add something to a frame with a visible sun"
+    if type(effect).__call__ is gr.Effect.__call__:  # effects that blend a layer (ScatteringFog attenuates)
+        np.testing.assert_allclose(single, gr.blend(frame.color, layer, mode=effect.blend_mode), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+def test_preset_parameters_round_trip_through_json(tmp_path, name):
+    effect = gr.preset(name)
+    path = tmp_path / "params.json"
+    gr.save_effect(path, effect)
+    loaded = gr.load_effect(path)
+    assert type(loaded) is type(effect)
+    for field in dataclasses.fields(effect):
+        np.testing.assert_array_equal(np.asarray(getattr(loaded, field.name)), np.asarray(getattr(effect, field.name)))
+
+
+@pytest.mark.parametrize("name", ["xna_crepuscular", "galaxy_vls", "kbengine_flares", "sun_overcast"])
+def test_seed_effect_gradients_are_finite_and_nonzero(name):
+    effect = small(gr.preset(name))
+    frame = make_frame()
+    params, static = eqx.partition(effect, eqx.is_inexact_array)
+
+    def total(params):
+        return jnp.sum(eqx.combine(params, static)(frame, LIGHT))
+
+    grads = jax.jit(jax.grad(total))(params)
+    leaves = jax.tree_util.tree_leaves(grads)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in leaves)
+    assert any(float(jnp.max(jnp.abs(leaf))) > 0 for leaf in leaves)
+
+
+@pytest.mark.parametrize("sky_rows", [0, HEIGHT], ids=["no_sky", "all_sky"])
+def test_degenerate_frames_give_finite_values_and_gradients(sky_rows):
+    frame = make_frame(sky_rows=sky_rows, occluder_cols=(0, 0))
+    if sky_rows == 0:
+        frame = eqx.tree_at(lambda b: b.depth, frame, jnp.full((HEIGHT, WIDTH), 3.0))
+        frame = eqx.tree_at(lambda b: b.coverage, frame, jnp.ones((HEIGHT, WIDTH)))
+    effect = small(gr.preset("xna_crepuscular"))
+    value, grad = eqx.filter_jit(eqx.filter_value_and_grad(lambda e, light: jnp.sum(e(frame, light))))(
+        effect, jnp.asarray([12.5, 5.5])  # the light exactly on a pixel centre
+    )
+    assert np.isfinite(float(value))
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(grad))
+
+
+def test_light_behind_the_camera_leaves_the_frame_unchanged():
+    frame = make_frame()
+    for name in ("xna_crepuscular", "kbengine_flares", "sun_overcast"):
+        effect = small(gr.preset(name))
+        behind = eqx.filter_jit(lambda e: e(frame, LIGHT, light_in_front=False))(effect)
+        np.testing.assert_array_equal(behind, frame.color)
+
+
+def test_relaxed_sample_count_equals_integer_count_in_the_effect():
+    frame = make_frame()
+    effect = gr.GodRays(num_samples=6.0, max_samples=10, source="disc", light_radius=5.0)
+    exact = gr.radial_rays(
+        gr.light_source_mask(HEIGHT, WIDTH, LIGHT, radius=5.0) * gr.coverage_mask(frame.coverage)[..., None],
+        LIGHT, num_samples=6, density=0.5, decay=0.95, weight=1.0, exposure=0.15,
+    )  # fmt: skip
+    np.testing.assert_allclose(effect.layer(frame, LIGHT)[..., :1], exact, rtol=1e-5, atol=1e-7)
+
+
+def test_bounds_cover_every_fittable_field_and_contain_the_presets():
+    for name in gr.PRESETS:
+        effect = gr.preset(name)
+        bounds = parameter_bounds(effect)
+        params = {f.name for f in dataclasses.fields(effect) if isinstance(getattr(effect, f.name), jax.Array)}
+        params -= {"dirt"}  # a texture, not a bounded scalar
+        assert params <= set(bounds), params - set(bounds)
+        for field_name, (low, high) in bounds.items():
+            value = np.asarray(getattr(effect, field_name))
+            assert np.all(value >= low) and np.all(value <= high), (name, field_name, value)
+
+
+def test_bad_options_raise_value_errors_naming_them():
+    with pytest.raises(ValueError, match="blend_mode"):
+        gr.GodRays(blend_mode="overlay")
+    with pytest.raises(ValueError, match="source"):
+        gr.GodRays(source="moon")
+    with pytest.raises(ValueError, match="unknown preset"):
+        gr.preset("unreal")
+    with pytest.raises(ValueError, match="light_pass"):
+        gr.GodRays(source="light_pass", num_samples=4.0, max_samples=4)(
+            eqx.tree_at(lambda b: b.light_pass, make_frame(), None, is_leaf=lambda x: x is None), LIGHT
+        )
+    with pytest.raises(ValueError, match="unknown parameter"):
+        gr.effect_from_dict({"effect": "GodRays", "densty": 0.5})
+    with pytest.raises(ValueError, match="unknown effect"):
+        gr.effect_from_dict({"effect": "Nope"})

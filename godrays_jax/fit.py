@@ -116,7 +116,8 @@ def _to_unit(value, low, high):
 
 def _from_unit(unit, low, high):
     folded = jnp.mod(unit, 2.0)
-    return low + (high - low) * (1.0 - jnp.abs(1.0 - folded))
+    # Not `1 - |1 - folded|`: the derivative of |x| at 0 is 0, which would pin a start on the upper bound.
+    return low + (high - low) * jnp.where(folded <= 1.0, folded, 2.0 - folded)
 
 
 def round_counts(effect: Effect) -> Effect:

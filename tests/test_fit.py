@@ -3,6 +3,7 @@
 import json
 import time
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -100,6 +101,9 @@ def test_reparameterisation_stays_in_bounds_with_unit_slope():
     assert values.min() >= 0.5 and values.max() <= 1.0
     np.testing.assert_allclose(np.abs(np.diff(values)), 0.5 * np.diff(units), atol=1e-6)  # slope never vanishes
     np.testing.assert_allclose(_from_unit(_to_unit(0.93, 0.5, 1.0), 0.5, 1.0), 0.93, rtol=1e-6)
+    # A start on either bound still has unit slope (presets put decay on its upper bound, counts on their caps).
+    for unit in (0.0, 1.0):
+        assert float(jax.grad(lambda u: _from_unit(u, 0.5, 1.0))(unit)) == pytest.approx(0.5)
 
 
 def test_bounds_are_capped_by_static_loop_lengths():

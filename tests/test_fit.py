@@ -88,7 +88,8 @@ def test_minimiser_with_ssim_loss_improves_and_counts_round():
     target = _rays(density=0.8, decay=0.9, exposure=0.3, num_samples=8.0)(frame, LIGHT)
     start = _rays(density=0.6, decay=0.95, exposure=0.2, num_samples=6.6)
     fixed = ("weight", "light_radius", "threshold", "tint", "offscreen_fade")
-    result = fit(start, frame, LIGHT, target, loss="ssim", solver="bfgs", fixed=fixed, max_steps=4)
+    # BFGS backtracks its first, identity-Hessian step a few times before it accepts one.
+    result = fit(start, frame, LIGHT, target, loss="ssim", solver="bfgs", fixed=fixed, max_steps=10)
     assert result.loss_after < result.loss_before
     assert float(result.rounded.num_samples) == round(float(result.effect.num_samples))
     assert np.isfinite(result.loss_rounded)

@@ -26,8 +26,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, is_static_int, resolve_count
 from godrays_jax.blur import downsample_box
-from godrays_jax.rays import scaled_copies, separable_lerp
-from godrays_jax.sampling import pixel_centres, sample_bilinear
+from godrays_jax.rays import scaled_copies
+from godrays_jax.sampling import pixel_centres, sample_bilinear, sample_separable
 
 
 def _check_ray_options(image, light_xy, density, decay, weight, exposure):
@@ -161,9 +161,9 @@ def upsample_bilinear(image: Float[Array, "h w C"], factor: int, height: int, wi
     check_image(image)
     _check_positive_int(factor, "factor")
     dtype = image.dtype
-    row_u = (jnp.arange(height, dtype=dtype) + 0.5) / factor - 0.5
-    col_u = (jnp.arange(width, dtype=dtype) + 0.5) / factor - 0.5
-    return separable_lerp(image, row_u, col_u, "clamp")
+    ys = (jnp.arange(height, dtype=dtype) + 0.5) / factor
+    xs = (jnp.arange(width, dtype=dtype) + 0.5) / factor
+    return sample_separable(image, xs, ys)
 
 
 def at_reduced_resolution(

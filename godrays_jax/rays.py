@@ -26,36 +26,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, resolve_count
-from godrays_jax.sampling import Addressing
-
-
-def _axis_taps(size: int, u, addressing: Addressing):
-    """Lower/upper texel indices and weights for linear interpolation at texel coordinates `u` (centre of texel `i` at `u = i`)."""
-    if addressing == "clamp":
-        # Clamp-to-edge bilinear equals sampling the clamped coordinate.
-        u = jnp.clip(u, 0.0, size - 1.0)
-        low = jnp.clip(jnp.floor(u), 0.0, size - 1.0)
-        frac = u - low
-        low = low.astype(jnp.int32)
-        return low, jnp.minimum(low + 1, size - 1), 1.0 - frac, frac
-    # Past one texel outside the image every tap is 0, so clipping there changes nothing.
-    u = jnp.clip(u, -1.0, float(size))
-    low = jnp.floor(u)
-    frac = u - low
-    low = low.astype(jnp.int32)
-    high = low + 1
-    low_weight = jnp.where((low >= 0) & (low < size), 1.0 - frac, 0.0)
-    high_weight = jnp.where((high >= 0) & (high < size), frac, 0.0)
-    return jnp.clip(low, 0, size - 1), jnp.clip(high, 0, size - 1), low_weight, high_weight
-
-
-def separable_lerp(image, row_u, col_u, addressing: Addressing):
-    """Bilinear samples on the grid `row_u x col_u` (texel coordinates): 1-D interpolation of whole rows, then columns."""
-    height, width, _ = image.shape
-    row_low, row_high, row_low_weight, row_high_weight = _axis_taps(height, row_u, addressing)
-    col_low, col_high, col_low_weight, col_high_weight = _axis_taps(width, col_u, addressing)
-    rows = image[row_low] * row_low_weight[:, None, None] + image[row_high] * row_high_weight[:, None, None]
-    return rows[:, col_low] * col_low_weight[None, :, None] + rows[:, col_high] * col_high_weight[None, :, None]
+from godrays_jax.sampling import Addressing, sample_separable
 
 
 def _scaled_copy(image, light_xy, scale, addressing: Addressing):
@@ -63,9 +34,9 @@ def _scaled_copy(image, light_xy, scale, addressing: Addressing):
     height, width, _ = image.shape
     rows = jnp.arange(height, dtype=image.dtype) + 0.5
     cols = jnp.arange(width, dtype=image.dtype) + 0.5
-    row_u = light_xy[1] + (rows - light_xy[1]) * scale - 0.5
-    col_u = light_xy[0] + (cols - light_xy[0]) * scale - 0.5
-    return separable_lerp(image, row_u, col_u, addressing)
+    ys = light_xy[1] + (rows - light_xy[1]) * scale
+    xs = light_xy[0] + (cols - light_xy[0]) * scale
+    return sample_separable(image, xs, ys, addressing=addressing)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))

@@ -59,24 +59,24 @@ def sample_bilinear(
     return top * (1 - fv) + bottom * fv
 
 
-def _resample_axis(image, positions, axis, addressing):
-    size = image.shape[axis]
-    index = positions - 0.5
-    first = jnp.floor(index)
-    fraction = index - first
-    first = first.astype(jnp.int32)
-    shape = [1, 1, 1]
-    shape[axis] = -1
-
-    def taps(indices):
-        values = jnp.take(image, jnp.clip(indices, 0, size - 1), axis=axis)
-        if addressing == "zero":
-            inside = (indices >= 0) & (indices < size)
-            values = values * inside.reshape(shape).astype(image.dtype)
-        return values
-
-    fraction = fraction.reshape(shape)
-    return taps(first) * (1 - fraction) + taps(first + 1) * fraction
+def _axis_taps(size: int, u, addressing: Addressing):
+    """Lower/upper texel indices and weights for linear interpolation at texel coordinates `u` (texel `i` at `u = i`)."""
+    if addressing == "clamp":
+        # Clamp-to-edge bilinear equals sampling the clamped coordinate.
+        u = jnp.clip(u, 0.0, size - 1.0)
+        low = jnp.clip(jnp.floor(u), 0.0, size - 1.0)
+        fraction = u - low
+        low = low.astype(jnp.int32)
+        return low, jnp.minimum(low + 1, size - 1), 1.0 - fraction, fraction
+    # Past one texel outside the image every tap is 0, so clipping there changes nothing.
+    u = jnp.clip(u, -1.0, float(size))
+    low = jnp.floor(u)
+    fraction = u - low
+    low = low.astype(jnp.int32)
+    high = low + 1
+    low_weight = jnp.where((low >= 0) & (low < size), 1.0 - fraction, 0.0)
+    high_weight = jnp.where((high >= 0) & (high < size), fraction, 0.0)
+    return jnp.clip(low, 0, size - 1), jnp.clip(high, 0, size - 1), low_weight, high_weight
 
 
 def sample_separable(
@@ -96,7 +96,11 @@ def sample_separable(
     if addressing not in ("clamp", "zero"):
         raise ValueError(f"addressing must be 'clamp' or 'zero', got {addressing!r}")
     image = jnp.asarray(image)
-    return _resample_axis(_resample_axis(image, ys, 0, addressing), xs, 1, addressing)
+    height, width, _ = image.shape
+    row_low, row_high, row_low_weight, row_high_weight = _axis_taps(height, ys - 0.5, addressing)
+    col_low, col_high, col_low_weight, col_high_weight = _axis_taps(width, xs - 0.5, addressing)
+    rows = image[row_low] * row_low_weight[:, None, None] + image[row_high] * row_high_weight[:, None, None]
+    return rows[:, col_low] * col_low_weight[None, :, None] + rows[:, col_high] * col_high_weight[None, :, None]
 
 
 def pixel_centres(height: int, width: int, dtype=jnp.float32) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:

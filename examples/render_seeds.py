@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jax.numpy as jnp
 
+from godrays_jax.effects import preset
 from godrays_jax.io import write_image
 from godrays_jax.raster import light_pixel, load_scene, render
 
@@ -28,10 +29,6 @@ PRESET_OF_SCENE = {
 
 def main(output: Path) -> None:
     output.mkdir(parents=True, exist_ok=True)
-    try:
-        from godrays_jax.effects import preset
-    except ImportError:  # effects not in this tree: raw renders only
-        preset = None
     for name, preset_name in PRESET_OF_SCENE.items():
         scene, camera = load_scene(SCENES / f"{name}.json")
         buffers = render(scene, camera)
@@ -39,10 +36,8 @@ def main(output: Path) -> None:
         write_image(output / f"{name}_render.png", buffers.color)
         if name.endswith("000"):
             write_image(output / f"{name}_glow_pass.png", buffers.glow_pass)
-        if preset is not None:
-            effect = preset(preset_name)
-            composed = effect(buffers, jnp.asarray(light_xy), light_in_front=bool(in_front))
-            write_image(output / f"{name}_{preset_name}.png", composed)
+        composed = preset(preset_name)(buffers, jnp.asarray(light_xy), light_in_front=bool(in_front))
+        write_image(output / f"{name}_{preset_name}.png", composed)
         print(f"{name}: light at ({float(light_xy[0]):.1f}, {float(light_xy[1]):.1f}) px, wrote {output}/{name}_*.png", flush=True)
 
 

@@ -36,10 +36,14 @@ def _poisson_pass(image, blur_power):
     height, width, _ = image.shape
     xs = jnp.arange(width, dtype=image.dtype) + 0.5
     ys = jnp.arange(height, dtype=image.dtype) + 0.5
-    total = image
-    for offset_u, offset_v in POISSON_OFFSETS:
-        total = total + sample_separable(image, xs + offset_u * blur_power * width, ys + offset_v * blur_power * height)
-    return total / 13.0
+    offsets = jnp.asarray(POISSON_OFFSETS, image.dtype) * blur_power * jnp.asarray([width, height], image.dtype)
+
+    # A loop, not 12 unrolled taps: as fast to run, and its gradient compiles
+    # about 5x faster (XLA's CPU compile time grows steeply with unrolled scatters).
+    def add_tap(k, total):
+        return total + sample_separable(image, xs + offsets[k, 0], ys + offsets[k, 1])
+
+    return jax.lax.fori_loop(0, len(POISSON_OFFSETS), add_tap, image) / 13.0
 
 
 def poisson_blur(
@@ -108,15 +112,20 @@ def gaussian_blur(
     kernel = jnp.exp(-0.5 * (taps / sigma) ** 2)
     kernel = kernel / jnp.sum(kernel)
 
+    channels = image.shape[2]
+
+    # One depthwise convolution per axis: its gradient compiles in a fraction of
+    # the time an unrolled sum of shifted slices takes on XLA's CPU backend.
     def blur_axis(values, axis):
         pad = [(0, 0)] * 3
         pad[axis] = (radius, radius)
-        padded = jnp.pad(values, pad, mode="edge")
-        length = values.shape[axis]
-        total = jnp.zeros_like(values)
-        for tap in range(2 * radius + 1):
-            total = total + kernel[tap] * jnp.take(padded, jnp.arange(tap, tap + length), axis=axis)
-        return total
+        padded = jnp.pad(values, pad, mode="edge")[None]
+        shape = [1, 1, 1, channels]
+        shape[axis] = 2 * radius + 1
+        weights = jnp.broadcast_to(kernel.reshape([-1 if i == axis else 1 for i in range(4)]), shape)
+        return jax.lax.conv_general_dilated(
+            padded, weights, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), feature_group_count=channels
+        )[0]
 
     return blur_axis(blur_axis(image, 0), 1)
 

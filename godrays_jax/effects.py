@@ -185,7 +185,7 @@ class GodRays(Effect):
     light_radius: Float[Array, ""] = param(40.0, low=0.5, high=500.0)
     threshold: Float[Array, ""] = param(0.25, low=0.0, high=0.99)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
-    num_samples: Float[Array, ""] = param(128.0, low=1.0, high=512.0)
+    num_samples: Float[Array, ""] = param(128.0, low=1.0, high=4096.0)
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     max_samples: int = eqx.field(static=True, default=128)
     source: Source = eqx.field(static=True, default="disc")

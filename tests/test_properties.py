@@ -8,6 +8,7 @@ answers to bad input: shapes, ranks, dtypes, out-of-range parameters, NaN and
 infinite values, lights behind the camera.
 """
 
+import dataclasses
 import functools
 
 import equinox as eqx
@@ -263,10 +264,11 @@ def frames(draw):
 def _small(name: str) -> gr.Effect:
     """The preset with few samples, so that tests stay fast; the algorithm is the preset's."""
     effect = gr.preset(name)
+    fields = {field.name: getattr(effect, field.name) for field in dataclasses.fields(effect)}
     if isinstance(effect, gr.GodRays):
-        return eqx.tree_at(lambda e: (e.num_samples, e.max_samples), effect, (jnp.float32(5.0), 5))
+        return type(effect)(**{**fields, "num_samples": 5.0, "max_samples": 5})
     if isinstance(effect, gr.FlareOuts):
-        return eqx.tree_at(lambda e: (e.num_iters, e.max_iters), effect, (jnp.float32(4.0), 4))
+        return type(effect)(**{**fields, "num_iters": 4.0, "max_iters": 4})
     return effect
 
 
@@ -278,7 +280,9 @@ def test_effects_finite_values_and_gradients_anywhere(buffers, name, in_front, d
     out = _apply_effect(effect, buffers, light, jnp.asarray(in_front))
     assert out.shape == buffers.color.shape and _finite(out)
     assert _finite(_effect_grad((effect, light), buffers, jnp.asarray(in_front)))
-    if not in_front:  # documented: a light behind the camera gives no effect, the frame comes back unchanged
+    # Documented: a light behind the camera gives no screen-space effect. Bloom does not
+    # depend on the light and ScatteringFog keeps its backward-scattering lobe.
+    if not in_front and not isinstance(effect, (gr.Bloom, gr.ScatteringFog)):
         _close(out, buffers.color, rtol=0, atol=0)
 
 

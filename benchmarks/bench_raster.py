@@ -1,6 +1,6 @@
 """Rasterizer timing: a 10,000-triangle mesh plus 10 spheres, every buffer.
 
-    /work/venv/bin/python benchmarks/bench_raster.py [--sizes 480x270 1920x1080] [--repeats 3]
+    python benchmarks/bench_raster.py [--sizes 480x270 1920x1080] [--repeats 3]
 
 Prints compile time (first call) and the best of `--repeats` runs after it,
 with and without the glow pass (a second rasterization), per image size.

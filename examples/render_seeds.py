@@ -1,6 +1,6 @@
 """Render each source article's example scene and compose it with that article's preset.
 
-    /work/venv/bin/python examples/render_seeds.py [OUTPUT_FOLDER]   (default examples/output/)
+    python examples/render_seeds.py [OUTPUT_FOLDER]   (default examples/output/)
 
 For every scene in examples/scenes/ it writes `<name>_render.png` (the raw
 render), `<name>_<preset>.png` (the render with the seed's effect) and, for

@@ -10,7 +10,7 @@ import pytest
 
 from godrays_jax.camera import Camera, project_point
 
-SCENES_JSON = Path("/work/shared/data/scenes.json")
+SCENES_JSON = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes.json"  # shared/ beside the checkout
 
 
 def _camera(**overrides):

@@ -10,7 +10,7 @@ import pytest
 from godrays_jax import Buffers, check_buffers, read_buffers, read_image, read_light, write_buffers, write_image
 from godrays_jax import io as gio
 
-COLONNADE = Path("/work/shared/data/colonnade_buffers.exr")
+COLONNADE = Path(__file__).resolve().parents[2] / "shared" / "data" / "colonnade_buffers.exr"  # shared/ beside the checkout
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
 
 

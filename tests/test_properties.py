@@ -359,7 +359,7 @@ def test_bad_shapes_ranks_dtypes_and_counts_name_the_argument(call, message):
     "make, message",
     [
         (lambda: gr.GodRays(decay=-0.5), r"GodRays.decay must lie in \[0.5, 1\], got -0.5"),
-        (lambda: gr.GodRays(num_samples=0.0), r"GodRays.num_samples must lie in \[1, 512\]"),
+        (lambda: gr.GodRays(num_samples=0.0), r"GodRays.num_samples must lie in \[1, 4096\]"),
         (lambda: gr.FlareOuts(intensity=float("nan")), "FlareOuts.intensity must lie in"),
         (lambda: gr.SunOvercast(glow_color=(0.8, 0.5, -1.0, 0.65)), "SunOvercast.glow_color must lie in"),
         (lambda: gr.effect_from_dict({"effect": "GodRays", "exposure": float("inf")}), "GodRays.exposure"),

@@ -9,6 +9,7 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
+import reference
 
 
 def _box(image, factor):
@@ -39,22 +40,6 @@ def _gauss(image, sigma, radius):
     return out
 
 
-def _bilinear(image, x, y):
-    u, v = x - 0.5, y - 0.5
-    col, row = math.floor(u), math.floor(v)
-    fu, fv = u - col, v - row
-
-    def texel(c, r):
-        return image[min(max(r, 0), image.shape[0] - 1), min(max(c, 0), image.shape[1] - 1)]
-
-    return (
-        texel(col, row) * (1 - fu) * (1 - fv)
-        + texel(col + 1, row) * fu * (1 - fv)
-        + texel(col, row + 1) * (1 - fu) * fv
-        + texel(col + 1, row + 1) * fu * fv
-    )
-
-
 def _reference_bloom(image, threshold, weights, sigma, radius):
     bright = np.maximum(image - threshold, 0.0)
     out = np.zeros_like(image)
@@ -62,7 +47,7 @@ def _reference_bloom(image, threshold, weights, sigma, radius):
         low = _gauss(_box(bright, factor), sigma, radius)
         for row in range(image.shape[0]):
             for col in range(image.shape[1]):
-                out[row, col] += weights[level] * _bilinear(low, (col + 0.5) / factor, (row + 0.5) / factor)
+                out[row, col] += weights[level] * reference.bilinear(low, (col + 0.5) / factor, (row + 0.5) / factor)
     return out
 
 

@@ -11,26 +11,10 @@ from jax.test_util import check_grads
 import godrays_jax as gr
 from godrays_jax import lens
 from godrays_jax.camera import Camera, project_point
+import reference
 
 H, W = 9, 12
 FOV = 60.0
-
-
-def _bilinear(image, x, y):
-    """Clamp-to-edge bilinear read at pixel position (x, y), centres at i + 0.5."""
-    u, v = x - 0.5, y - 0.5
-    col, row = math.floor(u), math.floor(v)
-    fu, fv = u - col, v - row
-
-    def texel(c, r):
-        return image[min(max(r, 0), image.shape[0] - 1), min(max(c, 0), image.shape[1] - 1)]
-
-    return (
-        texel(col, row) * (1 - fu) * (1 - fv)
-        + texel(col + 1, row) * fu * (1 - fv)
-        + texel(col, row + 1) * (1 - fu) * fv
-        + texel(col + 1, row + 1) * fu * fv
-    )
 
 
 def _direction(px, py, height, width, fov, forward=1.0):
@@ -51,9 +35,9 @@ def _reference_lens_dirt(dirt, depth, light, fov, far, colour, power, scale, abe
             u, v = (col + 0.5) / width, (row + 0.5) / height
             th, tw = dirt.shape[:2]
             texels = [
-                _bilinear(dirt, u * tw, v * th)[0],
-                _bilinear(dirt, u * tw, (v + aberration) * th)[0],
-                _bilinear(dirt, (u + aberration) * tw, v * th)[0],
+                reference.bilinear(dirt, u * tw, v * th)[0],
+                reference.bilinear(dirt, u * tw, (v + aberration) * th)[0],
+                reference.bilinear(dirt, (u + aberration) * tw, v * th)[0],
             ]
             out[row, col] = np.array(texels) * colour * intensity
     return out

@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 
 from godrays_jax.camera import Camera, project_point
-from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sphere, load_obj, load_scene, render
+from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sky, Sphere, load_obj, load_scene, render
+from godrays_jax.raster import rasterizer as R
 
 WIDTH, HEIGHT, FOV = 32, 24, 60.0
-CAPACITY = (4, 4)
+CAPACITY = 4
 FAR_AWAY = (0.0, 0.0, 500.0)  # behind the camera: not drawn
 TRIANGLE = np.array([[-1.5, -1.0, -6.0], [1.0, -1.2, -6.0], [-0.2, 1.3, -6.0]], np.float32)
 
@@ -189,6 +190,79 @@ def test_glow_pass_enlarges_source_and_shrinks_occluders():
     assert glow[HEIGHT // 2, WIDTH // 2, 3] == 0.0
 
 
+def test_gradients_with_respect_to_mesh_translation_match_finite_differences():
+    right_half = jnp.asarray(np.arange(WIDTH) >= WIDTH // 2, jnp.float32)[None, :]
+
+    def coverage_right(offset):
+        return (_render(_scene(sun_center=FAR_AWAY, triangle_offset=offset)).coverage * right_half).sum()
+
+    offset = jnp.asarray([0.1, 0.0, 0.0])
+    gradient = jax.grad(coverage_right)(offset)
+    assert np.all(np.isfinite(np.asarray(gradient))) and float(gradient[0]) > 0
+    step = jnp.asarray([0.02, 0.0, 0.0])
+    finite_difference = (coverage_right(offset + step) - coverage_right(offset - step)) / 0.04
+    assert float(gradient[0]) == pytest.approx(float(finite_difference), rel=0.1)
+
+
+def _layers(scene, camera, *, tile_mask=None, scales=None):
+    """Every layer of every pixel, straight from the tile loop."""
+
+    def finish(layers, px, py):
+        if layers is None:
+            return R._Layers(*(R._Layer(jnp.full(px.shape, -1, jnp.int32), jnp.zeros(px.shape), jnp.zeros((*px.shape, 3)), jnp.zeros((*px.shape, 3))),) * 3)
+        return layers
+
+    rasterize = lambda scene, camera, mask: R._rasterize(R._flatten(scene, camera, scales), camera, finish, tile_size=16, capacity=CAPACITY, tile_mask=mask)
+    return eqx.filter_jit(rasterize)(scene, camera, tile_mask)
+
+
+def test_every_bucket_size_gives_the_same_layers(monkeypatch):
+    # Tiles of 0, 1 and 2 spheres and 0 or 1 triangle, each evaluated with the
+    # smallest bucket that holds it, against every tile padded to the capacity.
+    scene = _scene(other_center=(-1.0, -0.3, -5.0), triangle_offset=(-1.2, 0.9, -2.0))
+    bucketed = _layers(scene, _camera())
+    monkeypatch.setattr(R, "_bucket_sizes", lambda limit: (0, limit))
+    padded = _layers(scene, _camera())
+    for got, want in zip(jax.tree_util.tree_leaves(bucketed), jax.tree_util.tree_leaves(padded)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    assert set(np.unique(np.asarray(bucketed.front.object_id))) == {-1, 0, 1, 2}
+
+
+def _glow_scales(scene):
+    return tuple(R.GLOW_SOURCE_SCALE if i == scene.sun else R.GLOW_OCCLUDER_SCALE for i in range(len(scene.objects)))
+
+
+def _sky_light(scene, camera):
+    rows, columns = np.mgrid[0:HEIGHT, 0:WIDTH] + 0.5
+    rays = R._world_rays(camera, jnp.asarray(columns.reshape(-1), jnp.float32), jnp.asarray(rows.reshape(-1), jnp.float32))
+    return jnp.clip(R._sky(scene, camera, rays)[1], 0.0, 1.0).reshape(HEIGHT, WIDTH)
+
+
+def _full_glow_pass(scene, camera):
+    """The glow pass rasterized in every tile (no restriction to the source's tiles)."""
+    layers = _layers(scene, camera, scales=_glow_scales(scene))
+    if scene.sun is not None:
+        weight = R._object_weight(layers, scene.sun)
+    else:
+        weight = (1.0 - R._total_coverage(layers)) * _sky_light(scene, camera)
+    return np.asarray(weight[..., None] * jnp.asarray(R.GLOW_COLOR))
+
+
+@pytest.mark.parametrize("sun", [0, None])
+def test_glow_pass_near_the_source_equals_the_full_glow_pass(sun):
+    # A small source in the top-left tile; the occluder and the triangle, and
+    # the tiles they fill, elsewhere.
+    objects = _scene(sun_center=(-0.9, 0.5, -4.0), sun_radius=0.3, other_center=(1.0, -0.4, -5.0), triangle_offset=(0.8, 0.0, 0.0)).objects
+    # Without a sun object the sky's sun spot, beside the sphere, is the source.
+    scene = Scene(objects=objects, light=DirectionalLight(direction=(-1.4, 0.7, -4.0)), sky=Sky(sun_distance=5.0, sun_sharpness=1.0), sun=sun)
+    glow = np.asarray(render(scene, _camera(), tile_capacity=CAPACITY).glow_pass)
+    # rtol: the sun spot, cos ** 10000, magnifies float rounding of the ray directions.
+    np.testing.assert_allclose(glow, _full_glow_pass(scene, _camera()), rtol=2e-3, atol=1e-6)
+    assert glow[..., 3].max() > 0.1 and glow[:16, :16, 3].sum() == pytest.approx(glow[..., 3].sum())
+    # Only the top-left of the visible tiles is rasterized again.
+    tiles = R._glow_tiles(scene, _camera(), R._flatten(scene, _camera(), _glow_scales(scene)), _sky_light(scene, _camera()), 16)
+    assert np.flatnonzero(np.asarray(tiles)).tolist() == [0]
+
 def _scene_file(tmp_path, **changes):
     table = {
         "camera": {"position": [0, 0, 0], "target": [0, 0, -1], "up": [0, 1, 0], "fov_x_deg": FOV, "width": WIDTH, "height": HEIGHT},
@@ -244,6 +318,6 @@ def test_unparsable_obj_names_file_and_line(tmp_path):
 
 def test_bad_render_arguments():
     with pytest.raises(ValueError, match="tile_capacity"):
-        render(_scene(), _camera(), tile_capacity=(0, 1))
+        render(_scene(), _camera(), tile_capacity=(4, 4))
     with pytest.raises(ValueError, match="glow_color"):
         render(_scene(), _camera(), glow_color=(1.0, 0.0, 0.0))

@@ -39,11 +39,11 @@ from godrays_jax.raster.scene import DirectionalLight, Mesh, Scene, Sphere
 GLOW_SOURCE_SCALE = 1.3
 GLOW_OCCLUDER_SCALE = 0.8
 GLOW_COLOR = (0.8, 0.5, 0.0, 0.65)
-DEFAULT_TILE_CAPACITY = (128, 32)
+DEFAULT_TILE_CAPACITY = 128
 
 _COARSE_TILES_PER_SIDE = 4
-_TILES_PER_BATCH = 32
-_BUSY_TILE_FRACTION = 8
+# Fine tiles evaluated together; tile grids are multiples of 4 x 4 tiles.
+_TILES_PER_BATCH = 16
 # Columns of the per-triangle setup table.
 _EDGE_X, _EDGE_Y, _EDGE_C = slice(0, 3), slice(3, 6), slice(6, 9)
 _INV_DEPTH = slice(9, 12)
@@ -212,10 +212,10 @@ def _bin_triangles(
 class _Layer(eqx.Module):
     """What one compositing layer sees in each pixel (view space)."""
 
-    object_id: Int[Array, "H W"]  # -1 where the layer is empty
-    coverage: Float[Array, "H W"]
-    position: Float[Array, "H W 3"]
-    normal: Float[Array, "H W 3"]
+    object_id: Int[Array, "*P"]  # -1 where the layer is empty
+    coverage: Float[Array, "*P"]
+    position: Float[Array, "*P 3"]
+    normal: Float[Array, "*P 3"]
 
 
 class _Layers(eqx.Module):
@@ -239,25 +239,132 @@ def _triangle_table(geometry: _Geometry, camera: Camera) -> Float[Array, "N 27"]
     )
 
 
-def _sphere_terms(centers, radii, camera: Camera, px, py):
+def _sphere_bounds(geometry: _Geometry, camera: Camera, *, margin: float = 2.0) -> Float[Array, "S 4"]:
+    """Conservative pixel boxes (x0, y0, x1, y1) of the spheres' silhouettes:
+    the projected corners of each sphere's view-space bounding cube, grown by
+    `margin` (the antialiased edge, measured by a first-order distance); the
+    whole screen for spheres reaching the near plane; empty for spheres wholly
+    before the near plane or past the far plane."""
+    signs = jnp.array(np.stack(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij"), axis=-1).reshape(8, 3), jnp.float32)
+    corners = geometry.centers[:, None, :] + geometry.radii[:, None, None] * signs
+    all_in_front = corners[..., 2].min(axis=1) > camera.near
+    safe_depth = jnp.where(all_in_front[:, None], corners[..., 2], 1.0)
+    x = 0.5 * camera.width + camera.focal_px * corners[..., 0] / safe_depth
+    y = 0.5 * camera.height - camera.focal_px * corners[..., 1] / safe_depth
+    boxes = jnp.stack([x.min(1) - margin, y.min(1) - margin, x.max(1) + margin, y.max(1) + margin], axis=1)
+    boxes = jnp.where(all_in_front[:, None], boxes, jnp.array([0.0, 0.0, camera.width, camera.height]))
+    depth = geometry.centers[:, 2]
+    visible = (depth + geometry.radii > camera.near) & (depth - geometry.radii < camera.far)
+    return jnp.where(visible[:, None], boxes, jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9)
+
+
+def _sphere_terms(centers: Float[Array, "*B K 3"], radii: Float[Array, "*B K"], camera: Camera, px: Float[Array, "*B P 1"], py: Float[Array, "*B P 1"]):
     """Signed silhouette distance (px), reciprocal view depth and area cap per (pixel, sphere)."""
     f = camera.focal_px
-    d = jnp.stack([(px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f, jnp.ones_like(px)], axis=-1)
-    dd = jnp.sum(d * d, axis=-1)[:, None]
-    dc = jnp.sum(d[:, None, :] * centers[None], axis=-1)
-    inner = jnp.sum(centers * centers, axis=-1) - radii**2
+    dx, dy = (px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f
+    cx, cy, cz = (centers[..., None, :, i] for i in range(3))
+    radii = radii[..., None, :]
+    dd = dx * dx + dy * dy + 1.0
+    dc = dx * cx + dy * cy + cz
+    inner = cx * cx + cy * cy + cz * cz - radii**2
     cone = dc**2 - dd * inner
-    gradient_x = 2 * dc * centers[:, 0] - 2 * d[:, 0:1] * inner
-    gradient_y = 2 * dc * centers[:, 1] - 2 * d[:, 1:2] * inner
+    gradient_x = 2 * dc * cx - 2 * dx * inner
+    gradient_y = 2 * dc * cy - 2 * dy * inner
     gradient_px = jnp.sqrt(gradient_x**2 + gradient_y**2 + 1e-30) / f
     camera_inside = inner < 0
     distance = jnp.where(camera_inside, jnp.inf, jnp.where(dc > 0, cone / gradient_px, -jnp.inf))
     positive_cone = jnp.where(cone > 0, cone, 1.0)
     root = jnp.where(cone > 0, jnp.sqrt(positive_cone), 0.0)
     depth = jnp.where(camera_inside, dc + root, dc - root) / dd
-    center_depth = jnp.maximum(centers[:, 2], camera.near)
+    center_depth = jnp.maximum(cz, camera.near)
     area = jnp.where(camera_inside, jnp.inf, jnp.pi * (f * radii / center_depth) ** 2)
     return distance, 1.0 / jnp.maximum(depth, 1e-30), area
+
+
+class _Picks(eqx.Module):
+    """Per pixel, from one set of candidates (a tile's triangles, or its
+    spheres): the front, behind and hit layers' keys, primitive indices and
+    objects (-1 for none), and the front and behind objects' coverage."""
+
+    key: Int[Array, "3 *B P"]
+    index: Int[Array, "3 *B P"]
+    object: Int[Array, "3 *B P"]
+    coverage: Float[Array, "2 *B P"]
+
+
+def _no_picks(pixels: tuple[int, ...]) -> _Picks:
+    none = jnp.full((3, *pixels), -1, jnp.int32)
+    return _Picks(key=none, index=none, object=none, coverage=jnp.zeros((2, *pixels)))
+
+
+def _picks(distance, inverse_depth, area, candidate_object, candidate_index, camera: Camera, slot_bits: int) -> _Picks:
+    """The three layers among `(B, P, K)` candidate terms.
+
+    Nearest-candidate search is one integer max: the reciprocal depth's bits
+    (monotonic for positive floats) with the slot number in the low bits;
+    `slot_bits` is the same for every set, so keys of different sets compare."""
+    in_depth_range = (inverse_depth <= 1.0 / camera.near) & (inverse_depth >= 1.0 / camera.far)
+    coverage = jnp.where(in_depth_range, jnp.clip(0.5 + distance, 0.0, jnp.minimum(area, 1.0)), 0.0)
+    depth_bits = jax.lax.bitcast_convert_type(jax.lax.stop_gradient(jnp.maximum(inverse_depth, 0.0)), jnp.int32)
+    keys = ((depth_bits >> slot_bits) << slot_bits) | jnp.arange(distance.shape[-1], dtype=jnp.int32)
+    nearest = lambda where: jnp.max(jnp.where(where, keys, -1), axis=-1)
+    # Keys are unique within a set and never -1, so matching a key selects one
+    # candidate (none for -1) without a gather.
+    of = lambda key, values: jnp.max(jnp.where(keys == key[..., None], values, -1), axis=-1)
+    touching = coverage > 0
+    front_key = nearest(touching)
+    front_object = of(front_key, candidate_object)
+    behind_key = nearest(touching & (candidate_object != front_object[..., None]))
+    hit_key = nearest(in_depth_range & (distance >= 0))
+    key = jnp.stack([front_key, behind_key, hit_key])
+    return _Picks(
+        key=key,
+        index=jnp.stack([of(k, candidate_index) for k in key]),
+        object=jnp.stack([front_object, of(behind_key, candidate_object), of(hit_key, candidate_object)]),
+        coverage=jnp.stack([
+            # Padding candidates (object -1) never cover anything.
+            jnp.minimum(jnp.sum(jnp.where(candidate_object == obj[..., None], coverage, 0.0), axis=-1), 1.0)
+            for obj in (front_object, of(behind_key, candidate_object))
+        ]),
+    )
+
+
+def _triangle_picks(setup, objects, candidates: Int[Array, "B K"], px, py, camera: Camera, slot_bits: int) -> _Picks:
+    rows = setup[candidates][:, None]
+    x, y = px[..., None], py[..., None]
+    edge = lambda i: x * rows[..., i] + y * rows[..., 3 + i] + rows[..., 6 + i]
+    # The bounding box's sides join the three edges: past a sliver's sharp
+    # corner the edges alone would leave coverage leaking along its extension.
+    box = rows[..., _BOX]
+    box_distance = jnp.minimum(jnp.minimum(x - box[..., 0], box[..., 2] - x), jnp.minimum(y - box[..., 1], box[..., 3] - y))
+    distance = jnp.minimum(jnp.minimum(jnp.minimum(edge(0), edge(1)), edge(2)), box_distance)
+    inverse_depth = x * rows[..., 9] + y * rows[..., 10] + rows[..., 11]
+    return _picks(distance, inverse_depth, rows[..., _AREA], objects[candidates][:, None], candidates[:, None], camera, slot_bits)
+
+
+def _sphere_picks(centers, radii, objects, candidates: Int[Array, "B K"], px, py, camera: Camera, slot_bits: int) -> _Picks:
+    distance, inverse_depth, area = _sphere_terms(centers[candidates], radii[candidates], camera, px[..., None], py[..., None])
+    return _picks(distance, inverse_depth, area, objects[candidates][:, None], candidates[:, None], camera, slot_bits)
+
+
+def _merge(triangles: _Picks, spheres: _Picks) -> tuple[tuple[Array, ...], ...]:
+    """The front, behind and hit layers of the union of both sets, each as
+    `(from_triangles, key, index, object, coverage)`. An object is a mesh or a
+    sphere, never both, so its coverage lies in one set, and the nearest other
+    object is the other set's front or the winning set's behind."""
+
+    def layer(picks: _Picks, i: int) -> tuple[Array, ...]:
+        coverage = picks.coverage[i] if i < 2 else (picks.key[i] >= 0).astype(jnp.float32)
+        return picks.key[i], picks.index[i], picks.object[i], coverage
+
+    def nearer(triangle, sphere):
+        from_triangles = triangle[0] >= sphere[0]
+        return (from_triangles, *(jnp.where(from_triangles, a, b) for a, b in zip(triangle, sphere)))
+
+    front = nearer(layer(triangles, 0), layer(spheres, 0))
+    either = lambda a, b: tuple(jnp.where(front[0], x, y) for x, y in zip(a, b))
+    behind = nearer(either(layer(triangles, 1), layer(triangles, 0)), either(layer(spheres, 0), layer(spheres, 1)))
+    return front, behind, nearer(layer(triangles, 2), layer(spheres, 2))
 
 
 def _triangle_surface(row: Float[Array, "P 27"], px, py, rays):
@@ -285,76 +392,6 @@ def _sphere_surface(center: Float[Array, "P 3"], radius: Float[Array, "P"], rays
     return position, jnp.where(camera_inside[:, None], -normal, normal)
 
 
-def _evaluate_tiles(geometry, camera, setup, table, objects, tile_y, tile_x, candidates, *, tile_size: int) -> tuple:
-    """Layers of one tile, `(P, ...)` each, P = tile_size ** 2."""
-    triangle_count = geometry.corners.shape[0]
-    sphere_count = geometry.radii.shape[0]
-    local = jnp.arange(tile_size, dtype=jnp.float32) + 0.5
-    py, px = jnp.meshgrid(tile_y * tile_size + local, tile_x * tile_size + local, indexing="ij")
-    px, py = px.reshape(-1), py.reshape(-1)
-    f = camera.focal_px
-    rays = jnp.stack([(px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f, jnp.ones_like(px)], axis=-1)
-
-    rows = setup[candidates]
-    edge = lambda i: px[:, None] * rows[None, :, i] + py[:, None] * rows[None, :, 3 + i] + rows[None, :, 6 + i]
-    # The bounding box's sides join the three edges: past a sliver's sharp
-    # corner the edges alone would leave coverage leaking along its extension.
-    box = rows[None, :, _BOX]
-    box_distance = jnp.minimum(jnp.minimum(px[:, None] - box[..., 0], box[..., 2] - px[:, None]), jnp.minimum(py[:, None] - box[..., 1], box[..., 3] - py[:, None]))
-    triangle_distance = jnp.minimum(jnp.minimum(jnp.minimum(edge(0), edge(1)), edge(2)), box_distance)
-    triangle_inverse_depth = px[:, None] * rows[None, :, 9] + py[:, None] * rows[None, :, 10] + rows[None, :, 11]
-    triangle_area = rows[None, :, _AREA]
-    sphere_distance, sphere_inverse_depth, sphere_area = _sphere_terms(geometry.centers, geometry.radii, camera, px, py)
-    distance = jnp.concatenate([triangle_distance, sphere_distance], axis=1)
-    inverse_depth = jnp.concatenate([triangle_inverse_depth, sphere_inverse_depth], axis=1)
-    area = jnp.concatenate([jnp.broadcast_to(triangle_area, triangle_distance.shape), jnp.broadcast_to(sphere_area, sphere_distance.shape)], axis=1)
-    in_depth_range = (inverse_depth <= 1.0 / camera.near) & (inverse_depth >= 1.0 / camera.far)
-    coverage = jnp.where(in_depth_range, jnp.clip(0.5 + distance, 0.0, jnp.minimum(area, 1.0)), 0.0)
-    candidate_object = jnp.concatenate([objects[candidates], geometry.sphere_object])
-
-    # Nearest-candidate search as one integer max: the reciprocal depth's bits
-    # (monotonic for positive floats) with the slot number in the low bits.
-    slot_bits = (candidates.shape[0] + sphere_count).bit_length()
-    slots = jnp.arange(candidates.shape[0] + sphere_count, dtype=jnp.int32)
-    depth_bits = jax.lax.bitcast_convert_type(jax.lax.stop_gradient(jnp.maximum(inverse_depth, 0.0)), jnp.int32)
-    keys = ((depth_bits >> slot_bits) << slot_bits) | slots
-    triangle_rows = table[candidates]
-
-    slot_mask = (1 << slot_bits) - 1
-
-    def surface(key):
-        found = key >= 0
-        slot = key & slot_mask
-        obj = jnp.where(found, candidate_object[slot], -1)
-        triangle_position, triangle_normal = _triangle_surface(triangle_rows[jnp.minimum(slot, candidates.shape[0] - 1)], px, py, rays)
-        if sphere_count:
-            sphere = jnp.clip(slot - candidates.shape[0], 0, sphere_count - 1)
-            sphere_position, sphere_normal = _sphere_surface(geometry.centers[sphere], geometry.radii[sphere], rays)
-            is_sphere = (slot >= candidates.shape[0])[:, None]
-            position = jnp.where(is_sphere, sphere_position, triangle_position)
-            normal = jnp.where(is_sphere, sphere_normal, triangle_normal)
-        else:
-            position, normal = triangle_position, triangle_normal
-        return obj, position, normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
-
-    touching = coverage > 0
-    front_key = jnp.max(jnp.where(touching, keys, -1), axis=1)
-    front_object = jnp.where(front_key >= 0, candidate_object[front_key & slot_mask], -1)
-    behind_key = jnp.max(jnp.where(touching & (candidate_object != front_object[:, None]), keys, -1), axis=1)
-    hit_key = jnp.max(jnp.where(in_depth_range & (distance >= 0), keys, -1), axis=1)
-    # One copy of the surface code for the three layers keeps compilation short.
-    objects_, positions, normals = jax.vmap(surface)(jnp.stack([front_key, behind_key, hit_key]))
-    front_coverage, behind_coverage = (
-        jnp.minimum(jnp.sum(jnp.where(candidate_object == obj[:, None], coverage, 0.0), axis=1), 1.0)
-        for obj in (objects_[0], objects_[1])
-    )
-    hit_coverage = (hit_key >= 0).astype(jnp.float32)
-    return tuple(
-        (objects_[i], layer_coverage, positions[i], normals[i])
-        for i, layer_coverage in enumerate((front_coverage, behind_coverage, hit_coverage))
-    )
-
-
 def _tile_grid(camera: Camera, tile_size: int) -> tuple[int, int]:
     coarse = tile_size * _COARSE_TILES_PER_SIDE
     return -(-camera.height // coarse) * _COARSE_TILES_PER_SIDE, -(-camera.width // coarse) * _COARSE_TILES_PER_SIDE
@@ -373,50 +410,130 @@ def _tile_loads(geometry: _Geometry, camera: Camera, tile_size: int) -> Int[Arra
     return -jnp.sort(-loads.reshape(-1)).astype(jnp.int32)
 
 
-def _rasterize(geometry: _Geometry, camera: Camera, *, tile_size: int, capacities: tuple[int, int]) -> _Layers:
+def _tiles_overlapping(boxes: Float[Array, "M 4"], tile_size: int, tiles_y: int, tiles_x: int) -> Array:
+    """(T, M) booleans: which pixel boxes overlap which tile (row-major tiles)."""
+    starts_y = jnp.arange(tiles_y, dtype=jnp.float32) * tile_size
+    starts_x = jnp.arange(tiles_x, dtype=jnp.float32) * tile_size
+    in_y = (boxes[None, :, 1] < starts_y[:, None] + tile_size) & (boxes[None, :, 3] >= starts_y[:, None])
+    in_x = (boxes[None, :, 0] < starts_x[:, None] + tile_size) & (boxes[None, :, 2] >= starts_x[:, None])
+    return (in_y[:, None, :] & in_x[None, :, :]).reshape(tiles_y * tiles_x, -1)
+
+
+def _bucket_sizes(limit: int) -> tuple[int, ...]:
+    """The candidate counts a batch of tiles is evaluated with: 0 (nothing to
+    test), then doubling up to `limit`; a batch takes the smallest that holds
+    its busiest tile."""
+    sizes = [0]
+    while sizes[-1] < limit:
+        sizes.append(min(max(1, 2 * sizes[-1]), limit))
+    return tuple(sizes)
+
+
+def _rasterize(geometry: _Geometry, camera: Camera, finish, *, tile_size: int, capacity: int, tile_mask: Array | None = None):
+    """`finish(layers, px, py)` of every pixel, as (H, W, ...) images.
+
+    `finish` turns the three layers of `P` pixels (a `_Layers` of (P,) and
+    (P, 3) arrays, or None where no geometry can touch them) at pixel
+    positions `px`, `py` (P,) into a pytree of (P, ...) arrays. Tiles are sorted
+    by how many triangles and spheres overlap them and evaluated
+    `_TILES_PER_BATCH` at a time, each batch with the smallest bucket of
+    candidates that holds its busiest tile (a `lax.switch`, so empty sky costs
+    only `finish(None, ...)` and a few busy tiles do not pad the others). Tiles
+    where `tile_mask` is False are treated as empty."""
     tiles_y, tiles_x = _tile_grid(camera, tile_size)
     tile_count = tiles_y * tiles_x
-    tile_capacity, quiet_capacity = capacities
-    triangle_count = geometry.corners.shape[0]
+    triangle_count, sphere_count = geometry.corners.shape[0], geometry.radii.shape[0]
     setup, drawn = _triangle_setup(geometry, camera)
-    table = _triangle_table(geometry, camera)
-    boxes = jax.lax.stop_gradient(_triangle_bounds(geometry, camera, drawn))
-    lists = _bin_triangles(
-        boxes,
+    triangle_lists = _bin_triangles(
+        jax.lax.stop_gradient(_triangle_bounds(geometry, camera, drawn)),
         jax.lax.stop_gradient(geometry.corners[..., 2].min(axis=1)),
         tile_size=tile_size,
         tiles_y=tiles_y,
         tiles_x=tiles_x,
-        capacity=tile_capacity,
-    ).reshape(tile_count, tile_capacity)
-    # Row `triangle_count` is a sentinel that never covers anything.
+        capacity=capacity,
+    ).reshape(tile_count, capacity)
+    triangle_loads = jnp.sum(triangle_lists >= 0, axis=1)
+    sphere_overlap = _tiles_overlapping(jax.lax.stop_gradient(_sphere_bounds(geometry, camera)), tile_size, tiles_y, tiles_x)
+    sphere_loads = jnp.sum(sphere_overlap, axis=1)
+    # Overlapping spheres first (a stable sort keeps them in scene order).
+    sphere_lists = jnp.argsort(~sphere_overlap, axis=1, stable=True).astype(jnp.int32)
+    if tile_mask is not None:
+        triangle_loads, sphere_loads = (jnp.where(tile_mask.reshape(-1), loads, 0) for loads in (triangle_loads, sphere_loads))
+
+    # Row / entry `count` of each table is a sentinel that never covers anything.
     setup = jnp.concatenate([setup, jnp.zeros((1, setup.shape[1])).at[0, _EDGE_C].set(-1e9)])
-    table = jnp.concatenate([table, jnp.zeros((1, table.shape[1]))])
-    objects = jnp.concatenate([geometry.triangle_object, jnp.array([-1], jnp.int32)])
-    lists = jnp.where(lists >= 0, lists, triangle_count)
+    table = jnp.concatenate([_triangle_table(geometry, camera), jnp.zeros((1, 27))])
+    triangle_objects = jnp.concatenate([geometry.triangle_object, jnp.array([-1], jnp.int32)])
+    triangle_lists = jnp.where(triangle_lists >= 0, triangle_lists, triangle_count)
+    centers = jnp.concatenate([geometry.centers, jnp.array([[0.0, 0.0, -1e6]])])
+    radii = jnp.concatenate([geometry.radii, jnp.ones(1)])
+    sphere_objects = jnp.concatenate([geometry.sphere_object, jnp.array([-1], jnp.int32)])
+    sphere_lists = jnp.where(jnp.arange(sphere_count) < sphere_loads[:, None], sphere_lists, sphere_count)
 
-    # Most tiles hold few triangles: the busiest eighth get the full capacity,
-    # the others the smaller one (their farthest triangles dropped beyond it).
-    busy_count = -(-tile_count // _BUSY_TILE_FRACTION)
-    by_load = jnp.argsort(-jnp.sum(lists < triangle_count, axis=1))
+    triangle_sizes, sphere_sizes = _bucket_sizes(capacity), _bucket_sizes(sphere_count)
+    triangle_bucket = jnp.searchsorted(jnp.asarray(triangle_sizes), triangle_loads)
+    sphere_bucket = jnp.searchsorted(jnp.asarray(sphere_sizes), sphere_loads)
+    order = jnp.argsort(-(triangle_bucket * len(sphere_sizes) + sphere_bucket))
+    batch_count = tile_count // _TILES_PER_BATCH
+    batched = lambda values: values[order].reshape(batch_count, _TILES_PER_BATCH, *values.shape[1:])
     grid_y, grid_x = jnp.divmod(jnp.arange(tile_count, dtype=jnp.int32), tiles_x)
+    slot_bits = max(capacity, sphere_count).bit_length()
 
-    def run(selected, capacity):
-        evaluate = lambda args: _evaluate_tiles(geometry, camera, setup, table, objects, *args, tile_size=tile_size)
-        return jax.lax.map(evaluate, (grid_y[selected], grid_x[selected], lists[selected, :capacity]), batch_size=_TILES_PER_BATCH)
+    def pixels(tile_y, tile_x):
+        local = jnp.arange(tile_size, dtype=jnp.float32) + 0.5
+        py = (tile_y[:, None, None] * tile_size + local[None, :, None]) + jnp.zeros(tile_size)
+        px = (tile_x[:, None, None] * tile_size + local[None, None, :]) + jnp.zeros((tile_size, 1))
+        return px.reshape(_TILES_PER_BATCH, -1), py.reshape(_TILES_PER_BATCH, -1)
 
-    busy = run(by_load[:busy_count], tile_capacity)
-    quiet = run(by_load[busy_count:], quiet_capacity)
-    tile_position = jnp.argsort(by_load)
+    def evaluate_batch(tile_y, tile_x, triangle_candidates, sphere_candidates, triangle_size, sphere_size):
+        px, py = pixels(tile_y, tile_x)
+        triangle_branch = lambda size: lambda candidates: (
+            _triangle_picks(setup, triangle_objects, candidates[:, :size], px, py, camera, slot_bits) if size else _no_picks(px.shape)
+        )
+        sphere_branch = lambda size: lambda candidates: (
+            _sphere_picks(centers, radii, sphere_objects, candidates[:, :size], px, py, camera, slot_bits) if size else _no_picks(px.shape)
+        )
+        triangles = jax.lax.switch(triangle_size, [triangle_branch(size) for size in triangle_sizes], triangle_candidates)
+        spheres = jax.lax.switch(sphere_size, [sphere_branch(size) for size in sphere_sizes], sphere_candidates)
+        layers = _merge(triangles, spheres)
 
-    def to_image(busy_values, quiet_values):
-        values = jnp.concatenate([busy_values, quiet_values])[tile_position]
-        trailing = values.shape[2:]
-        image = values.reshape(tiles_y, tiles_x, tile_size, tile_size, *trailing).swapaxes(1, 2)
-        return image.reshape(tiles_y * tile_size, tiles_x * tile_size, *trailing)[: camera.height, : camera.width]
+        px, py = px.reshape(-1), py.reshape(-1)
+        f = camera.focal_px
+        rays = jnp.stack([(px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f, jnp.ones_like(px)], axis=-1)
 
-    layers = jax.tree_util.tree_map(to_image, busy, quiet)
-    return _Layers(*(_Layer(*values) for values in layers))
+        def surface(from_triangles, index):
+            from_triangles, index = from_triangles.reshape(-1), index.reshape(-1)
+            found = index >= 0
+            position, normal = _triangle_surface(table[jnp.where(from_triangles & found, index, triangle_count)], px, py, rays)
+            if sphere_count:
+                sphere = jnp.where(~from_triangles & found, index, sphere_count)
+                sphere_position, sphere_normal = _sphere_surface(centers[sphere], radii[sphere], rays)
+                position = jnp.where(from_triangles[:, None], position, sphere_position)
+                normal = jnp.where(from_triangles[:, None], normal, sphere_normal)
+            return position, normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+
+        # One copy of the surface code for the three layers keeps compilation short.
+        positions, normals = jax.vmap(surface)(*(jnp.stack([layer[i] for layer in layers]) for i in (0, 2)))
+        found = _Layers(*(_Layer(layer[3].reshape(-1), layer[4].reshape(-1), positions[i], normals[i]) for i, layer in enumerate(layers)))
+        return finish(found, px, py)
+
+    def empty_batch(tile_y, tile_x, *_):
+        return finish(None, *(a.reshape(-1) for a in pixels(tile_y, tile_x)))
+
+    def run(args):
+        triangle_size, sphere_size = args[4], args[5]
+        return jax.lax.cond((triangle_size == 0) & (sphere_size == 0), empty_batch, evaluate_batch, *args)
+
+    sizes = (batched(triangle_bucket).max(axis=1), batched(sphere_bucket).max(axis=1))
+    values = jax.lax.map(run, (batched(grid_y), batched(grid_x), batched(triangle_lists), batched(sphere_lists), *sizes))
+    tile_position = jnp.argsort(order)
+
+    def to_image(values):
+        values = values.reshape(tile_count, tile_size, tile_size, *values.shape[2:])[tile_position]
+        image = values.reshape(tiles_y, tiles_x, tile_size, tile_size, *values.shape[3:]).swapaxes(1, 2)
+        return image.reshape(tiles_y * tile_size, tiles_x * tile_size, *values.shape[3:])[: camera.height, : camera.width]
+
+    return jax.tree_util.tree_map(to_image, values)
 
 
 def _city_pattern(normal: Float[Array, "... 3"]) -> Float[Array, "..."]:
@@ -431,27 +548,36 @@ def _stack_materials(scene: Scene):
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *materials)
 
 
+def _dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _times(vectors: Float[Array, "... 3"], matrix: Float[Array, "3 3"]) -> Float[Array, "... 3"]:
+    """`vectors @ matrix` written out, so that XLA fuses it with its neighbours."""
+    return vectors[..., 0:1] * matrix[0] + vectors[..., 1:2] * matrix[1] + vectors[..., 2:3] * matrix[2]
+
+
+def _unit(vectors: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    return vectors * jax.lax.rsqrt(jnp.maximum(_dot(vectors, vectors), 1e-24))[..., None]
+
+
 def _light_direction(scene: Scene, world_position: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
     if isinstance(scene.light, DirectionalLight):
-        direction = jnp.broadcast_to(scene.light.direction, world_position.shape)
-    else:
-        direction = scene.light.position - world_position
-    return direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
+        return jnp.broadcast_to(_unit(scene.light.direction), world_position.shape)
+    return _unit(scene.light.position - world_position)
 
 
-def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "H W 3"]) -> Float[Array, "H W 3"]:
+def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "P 3"]) -> Float[Array, "P 3"]:
     materials = _stack_materials(scene)
     obj = jnp.maximum(surface.object_id, 0)
     right, up, forward = camera.basis()
     to_world = jnp.stack([right, up, forward])
-    normal = surface.normal @ to_world
-    world_position = camera.position + surface.position @ to_world
-    to_light = _light_direction(scene, world_position)
-    n_dot_l = jnp.einsum("hwi,hwi->hw", normal, to_light)
+    normal = _times(surface.normal, to_world)
+    to_light = _light_direction(scene, camera.position + _times(surface.position, to_world))
+    n_dot_l = _dot(normal, to_light)
     lit = jnp.clip(n_dot_l, 0.0, 1.0)[..., None]
-    view = -world_rays / jnp.linalg.norm(world_rays, axis=-1, keepdims=True)
     # Kept off 0 so that rim ** p has finite gradients for any p > 0.
-    rim = 1.0 - jnp.clip(jnp.einsum("hwi,hwi->hw", view, normal), 0.0, 1.0 - 1e-6)
+    rim = 1.0 - jnp.clip(-_dot(_unit(world_rays), normal), 0.0, 1.0 - 1e-6)
     sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
     dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
     return (
@@ -470,13 +596,12 @@ def _sun_direction(scene: Scene, camera: Camera) -> Float[Array, "3"]:
     return direction / jnp.linalg.norm(direction)
 
 
-def _sky(scene: Scene, camera: Camera, world_rays: Float[Array, "H W 3"]) -> tuple[Float[Array, "H W 3"], Float[Array, "H W"]]:
+def _sky(scene: Scene, camera: Camera, world_rays: Float[Array, "P 3"]) -> tuple[Float[Array, "P 3"], Float[Array, "P"]]:
     """Sky colour and the sun spot's intensity (seed 001)."""
-    unit = world_rays / jnp.linalg.norm(world_rays, axis=-1, keepdims=True)
-    up = camera.up / jnp.linalg.norm(camera.up)
-    height = jnp.clip(unit @ up, 0.0, 1.0)[..., None]
+    unit = _unit(world_rays)
+    height = jnp.clip(_dot(unit, camera.up / jnp.linalg.norm(camera.up)), 0.0, 1.0)[..., None]
     sky = scene.sky
-    cosine = jnp.clip(unit @ _sun_direction(scene, camera), 1e-30, 1.0)
+    cosine = jnp.clip(_dot(unit, _sun_direction(scene, camera)), 1e-30, 1.0)
     spot = jnp.clip(cosine ** (sky.sun_distance * 2000.0), 0.0, 1.0) * sky.sun_sharpness * 30.0
     color = sky.horizon_color + (sky.zenith_color - sky.horizon_color) * height + sky.sun_color * spot[..., None]
     return color, spot
@@ -501,7 +626,7 @@ def render(
     glow_color: Float[ArrayLike, "4"] = GLOW_COLOR,
     with_glow_pass: bool = True,
     tile_size: int = 16,
-    tile_capacity: tuple[int, int] | None = None,
+    tile_capacity: int | None = None,
 ) -> Buffers:
     """Render every buffer the effects read.
 
@@ -513,15 +638,17 @@ def render(
         glow_occluder_scale: seed 000's shrinking of every other object.
         glow_color: the glow pass colour, premultiplied RGBA in [0, 1] (seed 000:
             `(0.8, 0.5, 0, 0.65)`).
-        with_glow_pass: render the glow pass (a second rasterization); if False
+        with_glow_pass: render the glow pass (a second rasterization, of the
+            tiles near the sun object only: elsewhere it is zero); if False
             `glow_pass` is None.
         tile_size: fine tile side in pixels (static).
-        tile_capacity: `(busy, quiet)` static caps on the triangles kept per fine
-            tile: the busiest eighth of the tiles keep up to `busy`, the others
-            up to `quiet`; beyond a cap the farthest triangles are dropped.
-            `None`: planned from the scene so that nothing is dropped (powers of
-            two, to limit recompilation), or `DEFAULT_TILE_CAPACITY` when
-            `render` runs under a JAX transformation (grad, jit, vmap); pass
+        tile_capacity: static cap on the triangles kept per fine tile; beyond
+            it the farthest are dropped. Tiles are evaluated in buckets of
+            0, 1, 2, 4, ... candidates, so a large cap costs only where tiles
+            are that busy. `None`: planned from the scene so that nothing is
+            dropped (a power of two, to limit recompilation), or
+            `DEFAULT_TILE_CAPACITY` when `render` runs under a JAX
+            transformation (grad, jit, vmap); pass
             `plan_tile_capacity(scene, camera)` there for dense scenes.
 
     Returns:
@@ -548,11 +675,11 @@ def render(
         tile_capacity = DEFAULT_TILE_CAPACITY if traced else plan_tile_capacity(
             scene, camera, tile_size=tile_size, glow_source_scale=glow_source_scale, glow_occluder_scale=glow_occluder_scale
         )
-    if not (isinstance(tile_capacity, tuple) and len(tile_capacity) == 2 and all(isinstance(c, int) and c >= 1 for c in tile_capacity)):
-        raise ValueError(f"render: tile_capacity must be None or a pair of positive ints, got {tile_capacity!r}")
+    if isinstance(tile_capacity, bool) or not isinstance(tile_capacity, int) or tile_capacity < 1:
+        raise ValueError(f"render: tile_capacity must be None or a positive int, got {tile_capacity!r}")
     return _render(
         scene, camera, glow_source_scale, glow_occluder_scale, glow_color,
-        with_glow_pass=with_glow_pass, tile_size=tile_size, capacities=tile_capacity,
+        with_glow_pass=with_glow_pass, tile_size=tile_size, capacity=tile_capacity,
     )
 
 
@@ -563,18 +690,12 @@ def plan_tile_capacity(
     tile_size: int = 16,
     glow_source_scale: float = GLOW_SOURCE_SCALE,
     glow_occluder_scale: float = GLOW_OCCLUDER_SCALE,
-) -> tuple[int, int]:
-    """The smallest `(busy, quiet)` tile capacities (powers of two) that drop no
-    triangle of `scene` seen by `camera`, in either pass. Needs concrete values."""
+) -> int:
+    """The smallest tile capacity (a power of two) that drops no triangle of
+    `scene` seen by `camera`, in either pass. Needs concrete values."""
     scales = tuple(glow_source_scale if i == scene.sun else glow_occluder_scale for i in range(len(scene.objects)))
-    loads = np.maximum(
-        np.asarray(_planned_loads(scene, camera, None, tile_size)),
-        np.asarray(_planned_loads(scene, camera, scales, tile_size)),
-    )
-    busy_count = -(-loads.size // _BUSY_TILE_FRACTION)
-    loads = -np.sort(-loads)
-    power_of_two = lambda n: 1 << max(int(n) - 1, 0).bit_length()
-    return power_of_two(loads[0]), power_of_two(loads[busy_count] if busy_count < loads.size else 1)
+    busiest = max(int(_planned_loads(scene, camera, scales, tile_size)[0]) for scales in (None, scales))
+    return 1 << max(busiest - 1, 0).bit_length()
 
 
 @eqx.filter_jit
@@ -582,56 +703,85 @@ def _planned_loads(scene: Scene, camera: Camera, scales, tile_size: int) -> Int[
     return _tile_loads(_flatten(scene, camera, scales), camera, tile_size)
 
 
-@eqx.filter_jit
-def _render(scene: Scene, camera: Camera, glow_source_scale, glow_occluder_scale, glow_color, *, with_glow_pass: bool, tile_size: int, capacities: tuple[int, int]) -> Buffers:
-    geometry = _flatten(scene, camera, None)
-    if with_glow_pass:
-        # Both passes share one compiled rasterizer, mapped over the two geometries.
-        scales = tuple(glow_source_scale if i == scene.sun else glow_occluder_scale for i in range(len(scene.objects)))
-        both = jax.tree_util.tree_map(lambda *a: jnp.stack(a), geometry, _flatten(scene, camera, scales))
-        both_layers = jax.vmap(lambda g: _rasterize(g, camera, tile_size=tile_size, capacities=capacities))(both)
-        layers, glow_layers = (jax.tree_util.tree_map(lambda a: a[i], both_layers) for i in range(2))
-    else:
-        layers = _rasterize(geometry, camera, tile_size=tile_size, capacities=capacities)
-
-    right, up, forward = camera.basis()
-    view_rays = camera.ray_directions()
-    world_rays = view_rays @ jnp.stack([right, up, forward])
-    sky_color, sun_spot = _sky(scene, camera, world_rays)
-
-    front_color, behind_color = (_shade(scene, camera, layer, world_rays) for layer in (layers.front, layers.behind))
-    cf, cb = layers.front.coverage[..., None], layers.behind.coverage[..., None]
-    color = cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color)
-    coverage = _total_coverage(layers)
-
-    hit = layers.hit
-    has_hit = hit.object_id >= 0
-    depth = jnp.where(has_hit, jnp.linalg.norm(hit.position, axis=-1), jnp.inf)
-    normal = jnp.where(has_hit[..., None], hit.normal @ jnp.stack([right, up, forward]), 0.0)
-
-    sky_light = jnp.clip(sun_spot, 0.0, 1.0)
+def _glow_tiles(scene: Scene, camera: Camera, glow: _Geometry, sky_light: Float[Array, "H W"] | None, tile_size: int) -> Array:
+    """(T,) booleans: the tiles where the glow pass can be non-zero. With a sun
+    object, those its enlarged outline's bounds overlap (every other object is
+    transparent black there); without one, those the sky's sun spot reaches."""
+    tiles_y, tiles_x = _tile_grid(camera, tile_size)
     if scene.sun is None:
-        light_pass = (1.0 - coverage) * sky_light
-    else:
-        light_pass = _object_weight(layers, scene.sun)
+        padded = jnp.pad(sky_light, ((0, tiles_y * tile_size - camera.height), (0, tiles_x * tile_size - camera.width)))
+        return padded.reshape(tiles_y, tile_size, tiles_x, tile_size).max(axis=(1, 3)).reshape(-1) > 0
+    _, drawn = _triangle_setup(glow, camera)
+    empty = jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9
+    boxes = jnp.concatenate([
+        jnp.where((glow.triangle_object == scene.sun)[:, None], _triangle_bounds(glow, camera, drawn), empty),
+        jnp.where((glow.sphere_object == scene.sun)[:, None], _sphere_bounds(glow, camera), empty),
+    ])
+    union = jnp.concatenate([boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)])
+    return _tiles_overlapping(jax.lax.stop_gradient(union)[None], tile_size, tiles_y, tiles_x)[:, 0]
 
+
+def _world_rays(camera: Camera, px: Float[Array, "P"], py: Float[Array, "P"]) -> Float[Array, "P 3"]:
+    """World directions through pixel positions, scaled to unit view depth."""
+    right, up, forward = camera.basis()
+    f = camera.focal_px
+    return ((px - 0.5 * camera.width) / f)[:, None] * right + ((0.5 * camera.height - py) / f)[:, None] * up + forward
+
+
+@eqx.filter_jit
+def _render(scene: Scene, camera: Camera, glow_source_scale, glow_occluder_scale, glow_color, *, with_glow_pass: bool, tile_size: int, capacity: int) -> Buffers:
+    to_world = jnp.stack(camera.basis())
+
+    def sky_light(world_rays):
+        return jnp.clip(_sky(scene, camera, world_rays)[1], 0.0, 1.0)
+
+    def finish(layers: _Layers | None, px, py) -> dict:
+        """Every buffer but the glow pass, for P pixels."""
+        world_rays = _world_rays(camera, px, py)
+        sky_color, sun_spot = _sky(scene, camera, world_rays)
+        light = jnp.clip(sun_spot, 0.0, 1.0)
+        if layers is None:
+            return dict(
+                color=sky_color, depth=jnp.full(px.shape, jnp.inf), coverage=jnp.zeros(px.shape), normal=jnp.zeros((*px.shape, 3)),
+                object_id=jnp.full(px.shape, -1, jnp.int32), light_pass=light if scene.sun is None else jnp.zeros(px.shape),
+            )
+        front_color, behind_color = (_shade(scene, camera, layer, world_rays) for layer in (layers.front, layers.behind))
+        cf, cb = layers.front.coverage[..., None], layers.behind.coverage[..., None]
+        coverage = _total_coverage(layers)
+        hit = layers.hit
+        has_hit = hit.object_id >= 0
+        # Sky pixels' positions are placeholders: keep the norm's gradient finite there.
+        depth = jnp.where(has_hit, jnp.linalg.norm(jnp.where(has_hit[..., None], hit.position, 1.0), axis=-1), jnp.inf)
+        return dict(
+            color=cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color),
+            depth=depth,
+            coverage=coverage,
+            normal=jnp.where(has_hit[..., None], _times(hit.normal, to_world), 0.0),
+            object_id=hit.object_id,
+            light_pass=(1.0 - coverage) * light if scene.sun is None else _object_weight(layers, scene.sun),
+        )
+
+    def finish_glow(layers: _Layers | None, px, py) -> Float[Array, "P"]:
+        """How much of the glow colour each of P pixels gets."""
+        if scene.sun is not None:
+            return jnp.zeros(px.shape) if layers is None else _object_weight(layers, scene.sun)
+        light = sky_light(_world_rays(camera, px, py))
+        return light if layers is None else (1.0 - _total_coverage(layers)) * light
+
+    buffers = _rasterize(_flatten(scene, camera, None), camera, finish, tile_size=tile_size, capacity=capacity)
     glow_pass = None
     if with_glow_pass:
+        scales = tuple(glow_source_scale if i == scene.sun else glow_occluder_scale for i in range(len(scene.objects)))
+        glow = _flatten(scene, camera, scales)
         if scene.sun is None:
-            glow_weight = (1.0 - _total_coverage(glow_layers)) * sky_light
+            rows, columns = jnp.meshgrid(jnp.arange(camera.height) + 0.5, jnp.arange(camera.width) + 0.5, indexing="ij")
+            light = sky_light(_world_rays(camera, columns.reshape(-1), rows.reshape(-1))).reshape(camera.height, camera.width)
         else:
-            glow_weight = _object_weight(glow_layers, scene.sun)
+            light = None
+        tiles = _glow_tiles(scene, camera, glow, light, tile_size)
+        glow_weight = _rasterize(glow, camera, finish_glow, tile_size=tile_size, capacity=capacity, tile_mask=tiles)
         glow_pass = glow_weight[..., None] * glow_color
-
-    return Buffers(
-        color=color,
-        depth=depth,
-        coverage=coverage,
-        normal=normal,
-        object_id=hit.object_id,
-        light_pass=light_pass,
-        glow_pass=glow_pass,
-    )
+    return Buffers(**buffers, glow_pass=glow_pass)
 
 
 def light_pixel(scene: Scene, camera: Camera) -> tuple[Float[Array, "2"], Float[Array, ""], Array]:

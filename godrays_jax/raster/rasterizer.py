@@ -42,6 +42,9 @@ GLOW_COLOR = (0.8, 0.5, 0.0, 0.65)
 DEFAULT_TILE_CAPACITY = 128
 
 _COARSE_TILES_PER_SIDE = 4
+# A coarse tile keeps up to this many times a fine tile's capacity: triangles
+# span several fine tiles, so a coarse tile holds 3-4x its busiest fine tile's load.
+_COARSE_CAPACITY_FACTOR = 4
 # Fine tiles evaluated together; tile grids are multiples of 4 x 4 tiles.
 _TILES_PER_BATCH = 16
 # Columns of the per-triangle setup table.
@@ -175,7 +178,8 @@ def _bin_triangles(
     """Per fine tile, up to `capacity` triangle indices, nearest first, -1 for none.
 
     Two levels (coarse tiles of `_COARSE_TILES_PER_SIDE` fine tiles a side,
-    then fine tiles) keep the tile x triangle overlap table small."""
+    keeping up to `_COARSE_CAPACITY_FACTOR * capacity` each, then fine tiles)
+    keep the tile x triangle overlap table small."""
     coarse = tile_size * _COARSE_TILES_PER_SIDE
     order = jnp.argsort(order_key)
     boxes = boxes[order]
@@ -187,7 +191,7 @@ def _bin_triangles(
 
     overlap_x = spans(boxes[:, 0], boxes[:, 2], coarse, coarse_x)
     overlap_y = spans(boxes[:, 1], boxes[:, 3], coarse, coarse_y)
-    coarse_capacity = min(capacity * _COARSE_TILES_PER_SIDE**2, boxes.shape[0])
+    coarse_capacity = min(capacity * _COARSE_CAPACITY_FACTOR, boxes.shape[0])
     coarse_lists = _first_overlapping(overlap_y[:, None, :] & overlap_x[None, :, :], coarse_capacity)
 
     empty_box = jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9
@@ -645,7 +649,8 @@ def render(
         tile_capacity: static cap on the triangles kept per fine tile; beyond
             it the farthest are dropped. Tiles are evaluated in buckets of
             0, 1, 2, 4, ... candidates, so a large cap costs only where tiles
-            are that busy. `None`: planned from the scene so that nothing is
+            are that busy; each 4 x 4 block of tiles keeps up to 4 times as
+            many. `None`: planned from the scene so that nothing is
             dropped (a power of two, to limit recompilation), or
             `DEFAULT_TILE_CAPACITY` when `render` runs under a JAX
             transformation (grad, jit, vmap); pass
@@ -692,9 +697,15 @@ def plan_tile_capacity(
     glow_occluder_scale: float = GLOW_OCCLUDER_SCALE,
 ) -> int:
     """The smallest tile capacity (a power of two) that drops no triangle of
-    `scene` seen by `camera`, in either pass. Needs concrete values."""
-    scales = tuple(glow_source_scale if i == scene.sun else glow_occluder_scale for i in range(len(scene.objects)))
-    busiest = max(int(_planned_loads(scene, camera, scales, tile_size)[0]) for scales in (None, scales))
+    `scene` seen by `camera`, in either pass, from a fine tile or from a
+    coarse tile (which keeps `_COARSE_CAPACITY_FACTOR` times as many). Needs
+    concrete values."""
+    glow = tuple(glow_source_scale if i == scene.sun else glow_occluder_scale for i in range(len(scene.objects)))
+    busiest = max(
+        -(-int(_planned_loads(scene, camera, scales, size)[0]) // factor)
+        for scales in (None, glow)
+        for size, factor in ((tile_size, 1), (tile_size * _COARSE_TILES_PER_SIDE, _COARSE_CAPACITY_FACTOR))
+    )
     return 1 << max(busiest - 1, 0).bit_length()
 
 

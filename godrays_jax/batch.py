@@ -29,6 +29,7 @@ count)`, CLI `--shard I/N`, or `--distributed`, which calls
 local devices and writes its own frames into the shared output folder.
 """
 
+import bisect
 import collections
 import concurrent.futures
 import csv
@@ -118,6 +119,9 @@ def read_light_track(path: str | os.PathLike) -> dict[int, Light]:
     `{"1001": [x, y], ...}`, `{"1001": {"x": .., "y": .., "in_front": ..}}`,
     or a list of `{"frame": .., "x": .., "y": .., "in_front": ..}` objects.
     Positions are pixels (x right, y down, pixel centres at `i + 0.5`), finite.
+    Keys may be sparse: `light_for` interpolates linearly between the keyed
+    frames around a frame (not across a change of `in_front`) and does not
+    extrapolate past the first or last key.
 
     Raises:
         ValueError: the file cannot be parsed, naming the file and the entry.
@@ -198,11 +202,31 @@ def light_for(path: str, light: LightSource) -> Light:
         number = frame_number(path)
         if number is None:
             raise ValueError("no frame number in its name to look up in the light track")
-        if number not in light:
-            raise ValueError(f"frame {number} is not in the light track")
-        return light[number]
+        return _track_light(light, number)
     x, y = light
     return (float(x), float(y)), True
+
+
+def _track_light(track: Mapping[int, Light], number: int) -> Light:
+    """The track's light at frame `number`: its own entry, else linear between the keyed frames around it.
+
+    Positions are interpolated only between two keys on the same side of the
+    camera; across a change of `in_front` (the projected position jumps there)
+    the nearer key is held, the earlier one on a tie. Frames before the first
+    or after the last key have no light: the track does not extrapolate.
+    """
+    if number in track:
+        return track[number]
+    keys = sorted(track)
+    after = bisect.bisect_left(keys, number)
+    if after == 0 or after == len(keys):
+        raise ValueError(f"frame {number} is outside the light track (frames {keys[0]}-{keys[-1]})")
+    first, last = keys[after - 1], keys[after]
+    (start, start_in_front), (end, end_in_front) = track[first], track[last]
+    if start_in_front != end_in_front:
+        return track[first] if number - first <= last - number else track[last]
+    t = (number - first) / (last - first)
+    return (start[0] + t * (end[0] - start[0]), start[1] + t * (end[1] - start[1])), start_in_front
 
 
 # ----------------------------------------------------------------------------- planning

@@ -139,7 +139,7 @@ def _add_batch(subparsers) -> None:
         "--light-from-metadata", action="store_true", help="each frame's godrays:light_px metadata (the default)"
     )
     lights.add_argument(
-        "--light-track", metavar="FILE", help="per-frame lights: CSV rows 'frame,x,y[,in_front]' or JSON"
+        "--light-track", metavar="FILE", help="per-frame lights: CSV rows 'frame,x,y[,in_front]' or JSON; frames between keys are interpolated linearly"
     )
     _add_effect_options(parser)
     parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")

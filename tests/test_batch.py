@@ -113,12 +113,29 @@ def test_light_for_each_source(tmp_path):
     assert batch.light_for(str(path), (1, 2)) == ((1.0, 2.0), True)
     assert batch.light_for(str(path), batch.METADATA) == (_light(7), True)
     assert batch.light_for(str(path), {7: ((3.0, 4.0), False)}) == ((3.0, 4.0), False)
-    with pytest.raises(ValueError, match="frame 7 is not in the light track"):
-        batch.light_for(str(path), {8: ((3.0, 4.0), False)})
+    with pytest.raises(ValueError, match=r"frame 7 is outside the light track \(frames 8-9\)"):
+        batch.light_for(str(path), {8: ((3.0, 4.0), False), 9: ((3.0, 4.0), False)})
     bare = tmp_path / "bare.exr"
     gr.write_buffers(bare, _frame(0))
     with pytest.raises(ValueError, match="no light position"):
         batch.light_for(str(bare), batch.METADATA)
+
+
+def test_sparse_light_track_interpolates_between_keys():
+    track = {1: ((10.0, 20.0), True), 5: ((30.0, 0.0), True), 7: ((0.0, 0.0), False), 10: ((6.0, 3.0), False)}
+
+    def at(number):
+        return batch.light_for(f"shot.{number:04d}.exr", track)
+
+    assert at(1) == ((10.0, 20.0), True)
+    assert at(2) == ((15.0, 15.0), True)
+    assert at(4) == ((25.0, 5.0), True)
+    # Across the change of side the nearer key is held (the earlier on a tie).
+    assert at(6) == ((30.0, 0.0), True)
+    assert at(8) == ((2.0, 1.0), False)
+    for outside in (0, 11):
+        with pytest.raises(ValueError, match=r"outside the light track \(frames 1-10\)"):
+            at(outside)
 
 
 # ------------------------------------------------------------------------------ io: writing like the input

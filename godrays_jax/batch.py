@@ -24,9 +24,12 @@ which are already done) and then executed (`run_batch`):
 
 Several machines: give each host a share of the frames (`shard=(index,
 count)`, CLI `--shard I/N`, or `--distributed`, which calls
-`jax.distributed.initialize()` and takes the share from
+`jax.distributed.initialize()` (cluster auto-detection, or `--coordinator`,
+`--num-processes`, `--process-id`) and takes the share from
 `jax.process_index()` / `jax.process_count()`); each host computes on its own
 local devices and writes its own frames into the shared output folder.
+Importing `godrays_jax` creates no JAX array, so the backend is still
+uninitialised when the CLI calls `jax.distributed.initialize()`.
 """
 
 import bisect
@@ -647,10 +650,19 @@ def run_command(args) -> int:
     elif args.light_track is not None:
         light = read_light_track(args.light_track)
     shard = parse_shard(args.shard) if args.shard else None
+    explicit = (args.coordinator, args.num_processes, args.process_id)
+    if any(value is not None for value in explicit) and not args.distributed:
+        raise BatchError("--coordinator, --num-processes and --process-id need --distributed")
     if args.distributed:
         if shard is not None:
             raise BatchError("give --shard or --distributed, not both")
-        jax.distributed.initialize()
+        if any(value is not None for value in explicit) and None in explicit:
+            raise BatchError("give all of --coordinator, --num-processes and --process-id, or none (auto-detection)")
+        if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
+            raise BatchError(f"--process-id must be in 0..{args.num_processes - 1}, got {args.process_id}")
+        jax.distributed.initialize(
+            coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
+        )
         shard = (jax.process_index(), jax.process_count())
     effect = load_effect_option(args.preset, args.params)
     inputs = expand_frames(args.pattern)

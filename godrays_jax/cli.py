@@ -153,6 +153,11 @@ def _add_batch(subparsers) -> None:
     parser.add_argument(
         "--distributed", action="store_true", help="jax.distributed.initialize(); this process's share of the frames"
     )
+    parser.add_argument(
+        "--coordinator", metavar="HOST:PORT", help="with --distributed, where cluster auto-detection finds none"
+    )
+    parser.add_argument("--num-processes", type=int, metavar="N", help="with --distributed and --coordinator")
+    parser.add_argument("--process-id", type=int, metavar="I", help="with --distributed and --coordinator: 0..N-1")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     parser.set_defaults(handler=_run_batch)
 

@@ -2,7 +2,9 @@
 
 import json
 import os
+import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -356,3 +358,34 @@ def test_frames_spread_over_two_devices(tmp_path):
         np.testing.assert_array_equal(
             gr.read_buffers(tmp_path / "two" / path.name).color, gr.read_buffers(tmp_path / "one" / path.name).color
         )
+
+
+def test_distributed_processes_share_the_frames(tmp_path, capsys):
+    inputs = _sequence(tmp_path / "in", 5)
+    pattern = str(tmp_path / "in" / "shot.####.exr")
+    with socket.socket() as probe:  # a free port for the coordinator
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    processes = [
+        _cli(pattern, "-o", str(tmp_path / "two"), "-q", "--distributed", "--coordinator", f"127.0.0.1:{port}",
+             "--num-processes", "2", "--process-id", str(index), env=env)  # fmt: skip
+        for index in range(2)
+    ]
+    outputs = [process.communicate(timeout=300) for process in processes]
+    for process, (out, err) in zip(processes, outputs):
+        assert process.returncode == 0, err
+    # Contiguous shares: frames 1-3 on process 0, 4-5 on process 1.
+    assert "3 written" in outputs[0][0] and "2 written" in outputs[1][0]
+    assert main(["batch", pattern, "-o", str(tmp_path / "one"), "-q"]) == 0
+    for path in inputs:
+        assert (tmp_path / "two" / path.name).read_bytes() == (tmp_path / "one" / path.name).read_bytes()
+
+    capsys.readouterr()
+    for extra, message in [(["--process-id", "0"], "need --distributed"),
+                           (["--distributed", "--coordinator", "127.0.0.1:1"], "give all of"),
+                           (["--distributed", "--shard", "0/2"], "not both"),
+                           (["--distributed", "--coordinator", "127.0.0.1:1", "--num-processes", "2",
+                             "--process-id", "2"], r"--process-id must be in 0\.\.1")]:  # fmt: skip
+        assert main(["batch", pattern, "-o", str(tmp_path / "bad"), *extra]) != 0
+        assert re.search(message, capsys.readouterr().err)

@@ -73,7 +73,7 @@ class Sphere(eqx.Module):
 
     center: Float[Array, "3"] = eqx.field(converter=_float)
     radius: Float[Array, ""] = eqx.field(converter=_float)
-    material: Material = Material()
+    material: Material = eqx.field(default_factory=Material)
 
     def __check_init__(self):
         _check_shape("Sphere", "center", self.center, (3,))
@@ -112,7 +112,7 @@ class Mesh(eqx.Module):
 
     vertices: Float[Array, "V 3"] = eqx.field(converter=_float)
     faces: Int[Array, "F 3"] = eqx.field(converter=lambda f: jnp.asarray(f, dtype=jnp.int32))
-    material: Material = Material()
+    material: Material = eqx.field(default_factory=Material)
     normals: Float[Array, "V 3"] | None = eqx.field(converter=lambda n: None if n is None else _float(n), default=None)
     translation: Float[Array, "3"] = eqx.field(converter=_float, default=(0.0, 0.0, 0.0))
     rotation_deg: Float[Array, "3"] = eqx.field(converter=_float, default=(0.0, 0.0, 0.0))
@@ -226,8 +226,8 @@ class Scene(eqx.Module):
     """
 
     objects: tuple[Sphere | Mesh, ...]
-    light: DirectionalLight | PointLight = DirectionalLight(direction=(0.0, 0.0, 1.0))
-    sky: Sky = Sky()
+    light: DirectionalLight | PointLight = eqx.field(default_factory=lambda: DirectionalLight(direction=(0.0, 0.0, 1.0)))
+    sky: Sky = eqx.field(default_factory=Sky)
     ambient: Float[Array, "3"] = eqx.field(converter=_float, default=(0.0, 0.0, 0.0))
     sun: int | None = eqx.field(static=True, default=None)
 

@@ -18,12 +18,15 @@ How the parameters are fitted:
   vanishes, so a start on a bound (presets put `decay` at 1.0) still moves,
   and the solver's unknowns all have the same unit scale.
 - Derivatives are forward-mode: the Jacobian of the residuals (or the
-  gradient of a scalar loss) is one vectorised JVP per fitted parameter.
-  Memory stays O(image x parameters) whatever the loop lengths, whereas
-  reverse mode through the kernels' sample loops stores every iteration
-  (measured in `benchmarks/bench_fit.py`: about 1.5 GB at 480x270 for
-  128 samples, about 23 GB at 1920x1080; forward mode 19 MB). A handful of
-  parameters, millions of pixels: forward mode is also the cheaper one here.
+  gradient of a scalar loss) is one vectorised JVP per fitted parameter,
+  memory O(image x parameters) whatever the loop lengths. Levenberg-Marquardt
+  and Gauss-Newton need that Jacobian (millions of residuals, a handful of
+  parameters), which reverse mode would build one residual at a time.
+  Reverse mode also fits in memory (the kernels' sample loops have custom
+  JVPs that recompute each copy instead of storing it: O(image) for any
+  loop length, where a plain differentiated loop would store every
+  iteration, about 1.5 GB at 480x270 for 128 samples and 23 GB at
+  1920x1080); `benchmarks/bench_fit.py` compares the two for one gradient.
 """
 
 import dataclasses

@@ -23,20 +23,33 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, resolve_count
-from godrays_jax.sampling import Addressing, sample_separable
+from godrays_jax.sampling import Addressing, _axis_taps, _lerp, sample_separable
+
+
+def _copy_positions(shape, light_xy, scale, dtype):
+    """Sample positions `light + (p - light) * scale` of the pixel centres: xs (W,) and ys (H,)."""
+    height, width = shape
+    rows = jnp.arange(height, dtype=dtype) + 0.5
+    cols = jnp.arange(width, dtype=dtype) + 0.5
+    return light_xy[0] + (cols - light_xy[0]) * scale, light_xy[1] + (rows - light_xy[1]) * scale
 
 
 def _scaled_copy(image, light_xy, scale, addressing: Addressing):
     """`image` sampled bilinearly at `light + (p - light) * scale` for every pixel centre `p`."""
-    height, width, _ = image.shape
-    rows = jnp.arange(height, dtype=image.dtype) + 0.5
-    cols = jnp.arange(width, dtype=image.dtype) + 0.5
-    ys = light_xy[1] + (rows - light_xy[1]) * scale
-    xs = light_xy[0] + (cols - light_xy[0]) * scale
+    xs, ys = _copy_positions(image.shape[:2], light_xy, scale, image.dtype)
     return sample_separable(image, xs, ys, addressing=addressing)
+
+
+def _taps_and_slopes(size: int, u, addressing: Addressing):
+    """`_axis_taps` at texel coordinates `u`, plus the taps' weights' derivatives with respect to `u`."""
+    taps, (_, _, low_slope, high_slope) = jax.jvp(
+        lambda u: _axis_taps(size, u, addressing), (u,), (jnp.ones_like(u),)
+    )
+    return taps, (taps[0], taps[1], low_slope, high_slope)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
@@ -47,25 +60,54 @@ def _scaled_copies(image, light_xy, scales, weights, addressing):
     return jax.lax.fori_loop(0, scales.shape[0], add_copy, jnp.zeros_like(image))
 
 
-@_scaled_copies.defjvp
+@functools.partial(_scaled_copies.defjvp, symbolic_zeros=True)
 def _scaled_copies_jvp(addressing, primals, tangents):
     image, light_xy, scales, weights = primals
     image_dot, light_dot, scales_dot, weights_dot = tangents
     total = _scaled_copies(image, light_xy, scales, weights, addressing)
+    varies = [type(t) is not SymbolicZero for t in tangents]
+    if not any(varies):
+        return total, jnp.zeros_like(image)
+    moves = varies[1] or varies[2]
+    light_dot = light_dot if varies[1] else jnp.zeros_like(light_xy)
+    scales_dot = scales_dot if varies[2] else jnp.zeros_like(scales)
+    height, width, _ = image.shape
+    dtype = image.dtype
+    col_centres = jnp.arange(width, dtype=dtype) + 0.5
+    row_centres = jnp.arange(height, dtype=dtype) + 0.5
+    # Copy k is `columns_k(rows_k(image))`: 1-D interpolations along y, then x.
+    # The scalar arguments' tangents multiply known images (the copy and its
+    # x and y derivatives, which share the copy's gathers), so reverse mode
+    # reduces them against the cotangent. The image's tangent is sampled
+    # through the transposed image, x first, so that both interpolations
+    # gather whole slices along axis 0 and reverse mode turns them into
+    # whole-slice scatter-adds (several times faster on a CPU than scattering
+    # single texels along axis 1). The body is rematerialised: reverse mode
+    # recomputes each copy instead of storing one image per copy.
+    tangent_by_column = jnp.swapaxes(image_dot, 0, 1) if varies[0] else None
 
-    # Rematerialised body: reverse mode recomputes each copy instead of stacking
-    # one image-sized residual per copy (the sum is linear in the image).
     @jax.checkpoint
     def add_tangent(k, total_dot):
-        copy, copy_dot = jax.jvp(
-            lambda im, light, scale: _scaled_copy(im, light, scale, addressing),
-            (image, light_xy, scales[k]),
-            (image_dot, light_dot, scales_dot[k]),
-        )
-        return total_dot + weights_dot[k] * copy + weights[k] * copy_dot
+        xs, ys = _copy_positions((height, width), light_xy, scales[k], dtype)
+        col_taps, col_slopes = _taps_and_slopes(width, xs - 0.5, addressing)
+        row_taps, row_slopes = _taps_and_slopes(height, ys - 0.5, addressing)
+        copy_dot = jnp.zeros_like(image)
+        if varies[0]:
+            columns_dot = jnp.swapaxes(_lerp(tangent_by_column, 0, *col_taps), 0, 1)
+            copy_dot += weights[k] * _lerp(columns_dot, 0, *row_taps)
+        rows = _lerp(image, 0, *row_taps)
+        if varies[3]:
+            copy_dot += weights_dot[k] * _lerp(rows, 1, *col_taps)
+        if moves:
+            # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale, d/d(scale) = p - light.
+            xs_dot = light_dot[0] * (1.0 - scales[k]) + (col_centres - light_xy[0]) * scales_dot[k]
+            ys_dot = light_dot[1] * (1.0 - scales[k]) + (row_centres - light_xy[1]) * scales_dot[k]
+            x_derivative = _lerp(rows, 1, *col_slopes)
+            y_derivative = _lerp(_lerp(image, 0, *row_slopes), 1, *col_taps)
+            copy_dot += weights[k] * (x_derivative * xs_dot[None, :, None] + y_derivative * ys_dot[:, None, None])
+        return total_dot + copy_dot
 
-    total_dot = jax.lax.fori_loop(0, scales.shape[0], add_tangent, jnp.zeros_like(image))
-    return total, total_dot
+    return total, jax.lax.fori_loop(0, scales.shape[0], add_tangent, jnp.zeros_like(image))
 
 
 def scaled_copies(

@@ -79,6 +79,16 @@ def _axis_taps(size: int, u, addressing: Addressing):
     return jnp.clip(low, 0, size - 1), jnp.clip(high, 0, size - 1), low_weight, high_weight
 
 
+def _lerp(values, axis: int, low, high, low_weight, high_weight):
+    """`values[low] * low_weight + values[high] * high_weight` along `axis`; the indices are already in range."""
+    index = (slice(None),) * axis
+    shape = [1] * values.ndim
+    shape[axis] = -1
+    lower = values.at[index + (low,)].get(mode="promise_in_bounds")
+    upper = values.at[index + (high,)].get(mode="promise_in_bounds")
+    return lower * low_weight.reshape(shape) + upper * high_weight.reshape(shape)
+
+
 def sample_separable(
     image: Float[Array, "H W C"],
     xs: Float[Array, " W2"],
@@ -97,10 +107,8 @@ def sample_separable(
         raise ValueError(f"addressing must be 'clamp' or 'zero', got {addressing!r}")
     image = jnp.asarray(image)
     height, width, _ = image.shape
-    row_low, row_high, row_low_weight, row_high_weight = _axis_taps(height, ys - 0.5, addressing)
-    col_low, col_high, col_low_weight, col_high_weight = _axis_taps(width, xs - 0.5, addressing)
-    rows = image[row_low] * row_low_weight[:, None, None] + image[row_high] * row_high_weight[:, None, None]
-    return rows[:, col_low] * col_low_weight[None, :, None] + rows[:, col_high] * col_high_weight[None, :, None]
+    rows = _lerp(image, 0, *_axis_taps(height, ys - 0.5, addressing))
+    return _lerp(rows, 1, *_axis_taps(width, xs - 0.5, addressing))
 
 
 def pixel_centres(height: int, width: int, dtype=jnp.float32) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:

@@ -210,7 +210,8 @@ def _layers(scene, camera, *, tile_mask=None, scales=None):
     def finish(layers, px, py):
         if layers is None:
             return R._Layers(*(R._Layer(jnp.full(px.shape, -1, jnp.int32), jnp.zeros(px.shape), jnp.zeros((*px.shape, 3)), jnp.zeros((*px.shape, 3))),) * 3)
-        return layers
+        # Images want the pixel axis first.
+        return jax.tree_util.tree_map(lambda a: a.T if a.ndim == 2 else a, layers)
 
     rasterize = lambda scene, camera, mask: R._rasterize(R._flatten(scene, camera, scales), camera, finish, tile_size=16, capacity=CAPACITY, tile_mask=mask)
     return eqx.filter_jit(rasterize)(scene, camera, tile_mask)

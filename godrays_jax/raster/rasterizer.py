@@ -218,8 +218,8 @@ class _Layer(eqx.Module):
 
     object_id: Int[Array, "*P"]  # -1 where the layer is empty
     coverage: Float[Array, "*P"]
-    position: Float[Array, "*P 3"]
-    normal: Float[Array, "*P 3"]
+    position: Float[Array, "3 *P"]  # component first
+    normal: Float[Array, "3 *P"]
 
 
 class _Layers(eqx.Module):
@@ -371,29 +371,47 @@ def _merge(triangles: _Picks, spheres: _Picks) -> tuple[tuple[Array, ...], ...]:
     return front, behind, nearer(layer(triangles, 2), layer(spheres, 2))
 
 
-def _triangle_surface(row: Float[Array, "P 27"], px, py, rays):
-    numerators = row[:, 0:9].reshape(-1, 3, 3)
-    weights = numerators[..., 0] * px[:, None] + numerators[..., 1] * py[:, None] + numerators[..., 2]
-    total = weights.sum(-1, keepdims=True)
-    weights = jnp.maximum(weights / jnp.where(total == 0, 1.0, total), 0.0)
-    weights = weights / jnp.maximum(weights.sum(-1, keepdims=True), 1e-12)
-    position = jnp.sum(weights[..., None] * row[:, 9:18].reshape(-1, 3, 3), axis=1)
-    normal = jnp.sum(weights[..., None] * row[:, 18:27].reshape(-1, 3, 3), axis=1)
-    return position, normal
+def _dot(a: Float[Array, "3 *P"], b: Float[Array, "3 *P"]) -> Float[Array, "*P"]:
+    """Dot products of component-first vectors (inside the tile loop vectors
+    are `(3, P)`: XLA on CPU reduces a minor axis of 3 slowly)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _sphere_surface(center: Float[Array, "P 3"], radius: Float[Array, "P"], rays):
+def _times(vectors: Float[Array, "3 *P"], matrix: Float[Array, "3 3"]) -> Float[Array, "3 *P"]:
+    """`vectors @ matrix`, component-first."""
+    column = lambda i: matrix[i].reshape((3,) + (1,) * (vectors.ndim - 1))
+    return vectors[0] * column(0) + vectors[1] * column(1) + vectors[2] * column(2)
+
+
+def _unit(vectors: Float[Array, "3 *P"]) -> Float[Array, "3 *P"]:
+    return vectors * jax.lax.rsqrt(jnp.maximum(_dot(vectors, vectors), 1e-24))
+
+
+def _triangle_surface(columns: Float[Array, "27 P"], px: Float[Array, "P"], py: Float[Array, "P"]) -> tuple[Float[Array, "3 P"], Float[Array, "3 P"]]:
+    """View-space position and unnormalised shading normal from `_triangle_table`
+    columns; barycentric weights are clamped to the triangle, so a silhouette
+    pixel whose centre lies outside takes the triangle's nearest point."""
+    weights = [columns[3 * i] * px + columns[3 * i + 1] * py + columns[3 * i + 2] for i in range(3)]
+    total = weights[0] + weights[1] + weights[2]
+    weights = [jnp.maximum(w / jnp.where(total == 0, 1.0, total), 0.0) for w in weights]
+    total = jnp.maximum(weights[0] + weights[1] + weights[2], 1e-12)
+    weights = [w / total for w in weights]
+    blend = lambda start: jnp.stack([sum(weights[i] * columns[start + 3 * i + c] for i in range(3)) for c in range(3)])
+    return blend(9), blend(18)
+
+
+def _sphere_surface(center: Float[Array, "3 P"], radius: Float[Array, "P"], rays: Float[Array, "3 P"]) -> tuple[Float[Array, "3 P"], Float[Array, "3 P"]]:
     """The ray's hit, or its closest approach to the sphere at silhouettes."""
-    unit = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
-    along = jnp.sum(unit * center, axis=-1)
-    center_squared = jnp.sum(center * center, axis=-1)
+    unit = _unit(rays)
+    along = _dot(unit, center)
+    center_squared = _dot(center, center)
     chord_squared = radius**2 - (center_squared - along**2)
     positive = jnp.where(chord_squared > 0, chord_squared, 1.0)
     half_chord = jnp.where(chord_squared > 0, jnp.sqrt(positive), 0.0)
     camera_inside = center_squared < radius**2
-    position = unit * jnp.where(camera_inside, along + half_chord, along - half_chord)[:, None]
-    normal = (position - center) / radius[:, None]
-    return position, jnp.where(camera_inside[:, None], -normal, normal)
+    position = unit * jnp.where(camera_inside, along + half_chord, along - half_chord)
+    normal = (position - center) / radius
+    return position, jnp.where(camera_inside, -normal, normal)
 
 
 def _tile_grid(camera: Camera, tile_size: int) -> tuple[int, int]:
@@ -437,7 +455,7 @@ def _rasterize(geometry: _Geometry, camera: Camera, finish, *, tile_size: int, c
     """`finish(layers, px, py)` of every pixel, as (H, W, ...) images.
 
     `finish` turns the three layers of `P` pixels (a `_Layers` of (P,) and
-    (P, 3) arrays, or None where no geometry can touch them) at pixel
+    component-first (3, P) arrays, or None where no geometry can touch them) at pixel
     positions `px`, `py` (P,) into a pytree of (P, ...) arrays. Tiles are sorted
     by how many triangles and spheres overlap them and evaluated
     `_TILES_PER_BATCH` at a time, each batch with the smallest bucket of
@@ -466,7 +484,7 @@ def _rasterize(geometry: _Geometry, camera: Camera, finish, *, tile_size: int, c
 
     # Row / entry `count` of each table is a sentinel that never covers anything.
     setup = jnp.concatenate([setup, jnp.zeros((1, setup.shape[1])).at[0, _EDGE_C].set(-1e9)])
-    table = jnp.concatenate([_triangle_table(geometry, camera), jnp.zeros((1, 27))])
+    columns = jnp.concatenate([_triangle_table(geometry, camera), jnp.zeros((1, 27))]).T
     triangle_objects = jnp.concatenate([geometry.triangle_object, jnp.array([-1], jnp.int32)])
     triangle_lists = jnp.where(triangle_lists >= 0, triangle_lists, triangle_count)
     centers = jnp.concatenate([geometry.centers, jnp.array([[0.0, 0.0, -1e6]])])
@@ -503,18 +521,18 @@ def _rasterize(geometry: _Geometry, camera: Camera, finish, *, tile_size: int, c
 
         px, py = px.reshape(-1), py.reshape(-1)
         f = camera.focal_px
-        rays = jnp.stack([(px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f, jnp.ones_like(px)], axis=-1)
+        rays = jnp.stack([(px - 0.5 * camera.width) / f, (0.5 * camera.height - py) / f, jnp.ones_like(px)])
 
         def surface(from_triangles, index):
             from_triangles, index = from_triangles.reshape(-1), index.reshape(-1)
             found = index >= 0
-            position, normal = _triangle_surface(table[jnp.where(from_triangles & found, index, triangle_count)], px, py, rays)
+            position, normal = _triangle_surface(columns[:, jnp.where(from_triangles & found, index, triangle_count)], px, py)
             if sphere_count:
                 sphere = jnp.where(~from_triangles & found, index, sphere_count)
-                sphere_position, sphere_normal = _sphere_surface(centers[sphere], radii[sphere], rays)
-                position = jnp.where(from_triangles[:, None], position, sphere_position)
-                normal = jnp.where(from_triangles[:, None], normal, sphere_normal)
-            return position, normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+                sphere_position, sphere_normal = _sphere_surface(centers.T[:, sphere], radii[sphere], rays)
+                position = jnp.where(from_triangles, position, sphere_position)
+                normal = jnp.where(from_triangles, normal, sphere_normal)
+            return position, _unit(normal)
 
         # One copy of the surface code for the three layers keeps compilation short.
         positions, normals = jax.vmap(surface)(*(jnp.stack([layer[i] for layer in layers]) for i in (0, 2)))
@@ -540,55 +558,42 @@ def _rasterize(geometry: _Geometry, camera: Camera, finish, *, tile_size: int, c
     return jax.tree_util.tree_map(to_image, values)
 
 
-def _city_pattern(normal: Float[Array, "... 3"]) -> Float[Array, "..."]:
+def _city_pattern(normal: Float[Array, "3 *P"]) -> Float[Array, "*P"]:
     """Procedural stand-in for an emissive night-light map: scattered bright cells."""
-    x, y, z = normal[..., 0], normal[..., 1], normal[..., 2]
+    x, y, z = normal[0], normal[1], normal[2]
     waves = jnp.sin(83.0 * x + 3.0 * jnp.sin(11.0 * y)) * jnp.sin(89.0 * y + 2.0 * jnp.sin(13.0 * z)) * jnp.sin(97.0 * z + 2.5 * jnp.sin(7.0 * x))
     return jnp.clip(8.0 * (waves - 0.45), 0.0, 1.0)
 
 
 def _stack_materials(scene: Scene):
+    """Every material field stacked over objects, colours component-first `(3, objects)`."""
     materials = [obj.material for obj in scene.objects]
-    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *materials)
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves, axis=-1), *materials)
 
 
-def _dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "..."]:
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
-def _times(vectors: Float[Array, "... 3"], matrix: Float[Array, "3 3"]) -> Float[Array, "... 3"]:
-    """`vectors @ matrix` written out, so that XLA fuses it with its neighbours."""
-    return vectors[..., 0:1] * matrix[0] + vectors[..., 1:2] * matrix[1] + vectors[..., 2:3] * matrix[2]
-
-
-def _unit(vectors: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
-    return vectors * jax.lax.rsqrt(jnp.maximum(_dot(vectors, vectors), 1e-24))[..., None]
-
-
-def _light_direction(scene: Scene, world_position: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+def _light_direction(scene: Scene, world_position: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
     if isinstance(scene.light, DirectionalLight):
-        return jnp.broadcast_to(_unit(scene.light.direction), world_position.shape)
-    return _unit(scene.light.position - world_position)
+        return jnp.broadcast_to(_unit(scene.light.direction)[:, None], world_position.shape)
+    return _unit(scene.light.position[:, None] - world_position)
 
 
-def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "P 3"]) -> Float[Array, "P 3"]:
+def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
     materials = _stack_materials(scene)
     obj = jnp.maximum(surface.object_id, 0)
-    right, up, forward = camera.basis()
-    to_world = jnp.stack([right, up, forward])
+    to_world = jnp.stack(camera.basis())
     normal = _times(surface.normal, to_world)
-    to_light = _light_direction(scene, camera.position + _times(surface.position, to_world))
+    to_light = _light_direction(scene, camera.position[:, None] + _times(surface.position, to_world))
     n_dot_l = _dot(normal, to_light)
-    lit = jnp.clip(n_dot_l, 0.0, 1.0)[..., None]
+    lit = jnp.clip(n_dot_l, 0.0, 1.0)
     # Kept off 0 so that rim ** p has finite gradients for any p > 0.
     rim = 1.0 - jnp.clip(-_dot(_unit(world_rays), normal), 0.0, 1.0 - 1e-6)
     sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
     dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
     return (
-        materials.albedo[obj] * (scene.ambient + scene.light.color * lit)
-        + materials.emission[obj]
-        + materials.atmosphere_color[obj] * (sharpened_rim[..., None] * lit)
-        + materials.night_color[obj] * (_city_pattern(normal) * dark_side)[..., None]
+        materials.albedo[:, obj] * (scene.ambient[:, None] + scene.light.color[:, None] * lit)
+        + materials.emission[:, obj]
+        + materials.atmosphere_color[:, obj] * (sharpened_rim * lit)
+        + materials.night_color[:, obj] * (_city_pattern(normal) * dark_side)
     )
 
 
@@ -600,14 +605,14 @@ def _sun_direction(scene: Scene, camera: Camera) -> Float[Array, "3"]:
     return direction / jnp.linalg.norm(direction)
 
 
-def _sky(scene: Scene, camera: Camera, world_rays: Float[Array, "P 3"]) -> tuple[Float[Array, "P 3"], Float[Array, "P"]]:
+def _sky(scene: Scene, camera: Camera, world_rays: Float[Array, "3 P"]) -> tuple[Float[Array, "3 P"], Float[Array, "P"]]:
     """Sky colour and the sun spot's intensity (seed 001)."""
     unit = _unit(world_rays)
-    height = jnp.clip(_dot(unit, camera.up / jnp.linalg.norm(camera.up)), 0.0, 1.0)[..., None]
+    height = jnp.clip(_dot(unit, (camera.up / jnp.linalg.norm(camera.up))[:, None]), 0.0, 1.0)
     sky = scene.sky
-    cosine = jnp.clip(_dot(unit, _sun_direction(scene, camera)), 1e-30, 1.0)
+    cosine = jnp.clip(_dot(unit, _sun_direction(scene, camera)[:, None]), 1e-30, 1.0)
     spot = jnp.clip(cosine ** (sky.sun_distance * 2000.0), 0.0, 1.0) * sky.sun_sharpness * 30.0
-    color = sky.horizon_color + (sky.zenith_color - sky.horizon_color) * height + sky.sun_color * spot[..., None]
+    color = sky.horizon_color[:, None] + (sky.zenith_color - sky.horizon_color)[:, None] * height + sky.sun_color[:, None] * spot
     return color, spot
 
 
@@ -732,11 +737,11 @@ def _glow_tiles(scene: Scene, camera: Camera, glow: _Geometry, sky_light: Float[
     return _tiles_overlapping(jax.lax.stop_gradient(union)[None], tile_size, tiles_y, tiles_x)[:, 0]
 
 
-def _world_rays(camera: Camera, px: Float[Array, "P"], py: Float[Array, "P"]) -> Float[Array, "P 3"]:
-    """World directions through pixel positions, scaled to unit view depth."""
-    right, up, forward = camera.basis()
+def _world_rays(camera: Camera, px: Float[Array, "P"], py: Float[Array, "P"]) -> Float[Array, "3 P"]:
+    """World directions through pixel positions, scaled to unit view depth, component first."""
+    right, up, forward = (v[:, None] for v in camera.basis())
     f = camera.focal_px
-    return ((px - 0.5 * camera.width) / f)[:, None] * right + ((0.5 * camera.height - py) / f)[:, None] * up + forward
+    return ((px - 0.5 * camera.width) / f) * right + ((0.5 * camera.height - py) / f) * up + forward
 
 
 @eqx.filter_jit
@@ -753,21 +758,22 @@ def _render(scene: Scene, camera: Camera, glow_source_scale, glow_occluder_scale
         light = jnp.clip(sun_spot, 0.0, 1.0)
         if layers is None:
             return dict(
-                color=sky_color, depth=jnp.full(px.shape, jnp.inf), coverage=jnp.zeros(px.shape), normal=jnp.zeros((*px.shape, 3)),
+                color=sky_color.T, depth=jnp.full(px.shape, jnp.inf), coverage=jnp.zeros(px.shape), normal=jnp.zeros((*px.shape, 3)),
                 object_id=jnp.full(px.shape, -1, jnp.int32), light_pass=light if scene.sun is None else jnp.zeros(px.shape),
             )
         front_color, behind_color = (_shade(scene, camera, layer, world_rays) for layer in (layers.front, layers.behind))
-        cf, cb = layers.front.coverage[..., None], layers.behind.coverage[..., None]
+        cf, cb = layers.front.coverage, layers.behind.coverage
         coverage = _total_coverage(layers)
         hit = layers.hit
         has_hit = hit.object_id >= 0
         # Sky pixels' positions are placeholders: keep the norm's gradient finite there.
-        depth = jnp.where(has_hit, jnp.linalg.norm(jnp.where(has_hit[..., None], hit.position, 1.0), axis=-1), jnp.inf)
+        position = jnp.where(has_hit, hit.position, 1.0)
+        depth = jnp.where(has_hit, jnp.sqrt(_dot(position, position)), jnp.inf)
         return dict(
-            color=cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color),
+            color=(cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color)).T,
             depth=depth,
             coverage=coverage,
-            normal=jnp.where(has_hit[..., None], _times(hit.normal, to_world), 0.0),
+            normal=jnp.where(has_hit, _times(hit.normal, to_world), 0.0).T,
             object_id=hit.object_id,
             light_pass=(1.0 - coverage) * light if scene.sun is None else _object_weight(layers, scene.sun),
         )

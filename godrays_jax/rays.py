@@ -69,8 +69,6 @@ def _scaled_copies_jvp(addressing, primals, tangents):
     if not any(varies):
         return total, jnp.zeros_like(image)
     moves = varies[1] or varies[2]
-    light_dot = light_dot if varies[1] else jnp.zeros_like(light_xy)
-    scales_dot = scales_dot if varies[2] else jnp.zeros_like(scales)
     height, width, _ = image.shape
     dtype = image.dtype
     col_centres = jnp.arange(width, dtype=dtype) + 0.5
@@ -100,11 +98,21 @@ def _scaled_copies_jvp(addressing, primals, tangents):
             copy_dot += weights_dot[k] * _lerp(rows, 1, *col_taps)
         if moves:
             # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale, d/d(scale) = p - light.
-            xs_dot = light_dot[0] * (1.0 - scales[k]) + (col_centres - light_xy[0]) * scales_dot[k]
-            ys_dot = light_dot[1] * (1.0 - scales[k]) + (row_centres - light_xy[1]) * scales_dot[k]
+            # Each scalar tangent multiplies a whole known image, so reverse
+            # mode reduces the cotangent against it in one pass (no per-row
+            # or per-column partial sums, which XLA's CPU backend transposes).
             x_derivative = _lerp(rows, 1, *col_slopes)
             y_derivative = _lerp(_lerp(image, 0, *row_slopes), 1, *col_taps)
-            copy_dot += weights[k] * (x_derivative * xs_dot[None, :, None] + y_derivative * ys_dot[:, None, None])
+            if varies[1]:
+                copy_dot += (weights[k] * (1.0 - scales[k])) * (
+                    light_dot[0] * x_derivative + light_dot[1] * y_derivative
+                )
+            if varies[2]:
+                radial_derivative = (
+                    x_derivative * (col_centres - light_xy[0])[None, :, None]
+                    + y_derivative * (row_centres - light_xy[1])[:, None, None]
+                )
+                copy_dot += (weights[k] * scales_dot[k]) * radial_derivative
         return total_dot + copy_dot
 
     return total, jax.lax.fori_loop(0, scales.shape[0], add_tangent, jnp.zeros_like(image))

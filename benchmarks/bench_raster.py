@@ -1,12 +1,15 @@
 """Rasterizer timing: a 10,000-triangle mesh plus 10 spheres, every buffer.
 
-    python benchmarks/bench_raster.py [--sizes 480x270 1920x1080] [--repeats 3]
+    python benchmarks/bench_raster.py [--sizes 480x270 1920x1080] [--repeats 5]
 
-Prints compile time (first call) and the best of `--repeats` runs after it,
-with and without the glow pass (a second rasterization), per image size.
+Prints the first call (compilation and one run) and the median and best of
+`--repeats` runs after it, with and without the glow pass (a second
+rasterization, of the tiles near the sun only), per image size, and the
+machine's load average (the CPU may be shared) before and after each size.
 """
 
 import argparse
+import os
 import time
 
 import jax
@@ -32,7 +35,7 @@ def benchmark_scene() -> Scene:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["480x270", "1920x1080"])
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     scene = benchmark_scene()
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {len(scene.objects) - 1} spheres + 10,000 triangles")
@@ -40,6 +43,7 @@ def main() -> None:
         width, height = (int(v) for v in size.split("x"))
         camera = Camera(position=(0.0, 0.0, 8.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_x_deg=60.0, width=width, height=height)
         capacity = plan_tile_capacity(scene, camera)
+        print(f"{size:>10} load average {_load()}", flush=True)
         for glow in (True, False):
             start = time.perf_counter()
             jax.block_until_ready(render(scene, camera, with_glow_pass=glow, tile_capacity=capacity))
@@ -51,9 +55,14 @@ def main() -> None:
                 runs.append(time.perf_counter() - start)
             print(
                 f"{size:>10} glow pass {'on ' if glow else 'off'}  tile capacity {capacity}:  "
-                f"first call {compile_and_run:6.1f} s, then best {min(runs):6.3f} s (median {np.median(runs):.3f} s)",
+                f"first call {compile_and_run:6.1f} s, then median {np.median(runs):6.3f} s (best {min(runs):.3f} s)",
                 flush=True,
             )
+        print(f"{size:>10} load average {_load()}", flush=True)
+
+
+def _load() -> str:
+    return " ".join(f"{load:.2f}" for load in os.getloadavg()) + f" (1, 5, 15 min) on {os.cpu_count()} CPUs"
 
 
 if __name__ == "__main__":

@@ -10,7 +10,12 @@ How it works (all inside one `jit`):
 2. Binning: triangles, sorted front to back, are listed per 64 px tile and
    then per 16 px tile (`tile_size`), keeping at most `tile_capacity` per tile;
    when a tile holds more, the farthest are dropped (they are the likeliest to
-   be hidden). Spheres are few and are tested in every tile.
+   be hidden). Spheres are listed per tile from their projected bounding cubes.
+   Tiles are sorted by load and evaluated 16 at a time, each batch with the
+   smallest bucket (0, 1, 2, 4, ... candidates) that holds its busiest tile,
+   chosen by `lax.switch`: sky costs only its colour, and busy tiles do not
+   pad quiet ones. Shading happens in the same loop, so only tiles with
+   geometry are shaded.
 3. Per pixel, every candidate gives a hard inside test at the pixel centre and
    an antialiased coverage: an analytic edge term, `clip(0.5 + s, 0, 1)` with
    `s` the signed distance in pixels from the pixel centre to the primitive's
@@ -24,6 +29,9 @@ How it works (all inside one `jit`):
    its primitives' coverage, clipped to 1, which is exact across a mesh's shared
    edges), over the sky. Depth, normal and object id are the hard values at the
    pixel centre.
+5. The glow pass (seed 000) rasterizes the scaled geometry again, but only in
+   the tiles that the enlarged sun object (or, without one, the sky's sun spot)
+   overlaps: everything else is transparent black, so the pass is zero there.
 """
 
 import equinox as eqx

@@ -154,8 +154,18 @@ def _emitter(
 
 
 RayMethod = Literal["exact", "multipass", "fast"]
+def _disc_radius(effect) -> float | None:
+    """The disc emitter's radius in pixels when it is known at trace time (the exact loop then runs near the light)."""
+    radius = effect.light_radius
+    if effect.source != "disc" or isinstance(radius, jax.core.Tracer):
+        return None
+    return float(radius)
+
+
 RAY_METHODS: dict[str, Any] = {
-    "exact": lambda effect: functools.partial(radial_rays, max_samples=effect.max_samples),
+    "exact": lambda effect: functools.partial(
+        radial_rays, max_samples=effect.max_samples, source_radius=_disc_radius(effect)
+    ),
     "multipass": lambda effect: radial_rays_multipass,
     "fast": lambda effect: functools.partial(fast_radial_rays, factor=effect.resolution_factor),
 }

@@ -20,10 +20,12 @@ of samples.
 """
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, resolve_count
@@ -173,6 +175,7 @@ def radial_rays(
     weight: Float[ArrayLike, ""],
     exposure: Float[ArrayLike, ""],
     max_samples: int | None = None,
+    source_radius: float | None = None,
 ) -> Float[Array, "H W C"]:
     """The GPU Gems 3 (ch. 13) radial-blur loop, exactly as seed 003 writes it.
 
@@ -198,12 +201,24 @@ def radial_rays(
         weight: per-sample weight.
         exposure: overall scale.
         max_samples: static loop length for a relaxed `num_samples`.
+        source_radius: optional promise, in pixels, that `image` is 0 farther
+            than this from the light (a light-source disc). When the sample
+            scales are known at trace time (concrete `density` and
+            `num_samples`) and all lie in (0, 1], every sample of a pixel lies
+            between it and the light and clamping only moves samples away from
+            the light, so the rays are 0 farther than
+            `(source_radius + 2) / min(scale)` from the light: the loop then
+            runs on that window around the light (same result, fewer pixels;
+            e.g. 8x fewer at 1920x1080 with seed 003's radius 120 px and
+            density 0.5). An image that breaks the promise gives wrong rays.
 
     Returns:
         The rays image, same shape and dtype as `image`.
     """
     check_image(image)
     check_light(light_xy)
+    if source_radius is not None and not (isinstance(source_radius, (int, float)) and source_radius >= 0):
+        raise ValueError(f"source_radius must be a Python number >= 0 (pixels) or None, got {source_radius!r}")
     for name, value in (("density", density), ("decay", decay), ("weight", weight), ("exposure", exposure)):
         check_scalar(value, name)
     loop_length, relaxed = resolve_count(num_samples, max_samples, "num_samples", "max_samples")
@@ -220,7 +235,49 @@ def radial_rays(
     weights = jnp.asarray(weight, dtype) * _powers(jnp.asarray(decay, dtype), loop_length, dtype)
     if relaxed:
         weights = weights * jnp.clip(count - steps + 1.0, 0.0, 1.0)
-    return (image + scaled_copies(image, light_xy, scales, weights)) * jnp.asarray(exposure, dtype)
+    exposure = jnp.asarray(exposure, dtype)
+    window = None
+    if source_radius is not None:
+        window = _rays_window(image.shape, source_radius, density, num_samples, loop_length, relaxed)
+    if window is None:
+        return (image + scaled_copies(image, light_xy, scales, weights)) * exposure
+    # Every non-zero output pixel lies in the window, and so does every sample
+    # it reads (or the window's edge is the image's): the windowed loop is exact.
+    light_xy = jnp.asarray(light_xy, dtype)
+    height, width, channels = image.shape
+    window_height, window_width, reach = window
+    corner = [
+        jnp.clip(jnp.floor(light_xy[axis]) - reach, 0, size - extent).astype(jnp.int32)
+        for axis, size, extent in ((1, height, window_height), (0, width, window_width))
+    ]
+    origin = (corner[0], corner[1], jnp.int32(0))
+    part = jax.lax.dynamic_slice(image, origin, (window_height, window_width, channels))
+    local_light = light_xy - jnp.stack([corner[1], corner[0]]).astype(dtype)
+    rays = (part + scaled_copies(part, local_light, scales, weights)) * exposure
+    return jax.lax.dynamic_update_slice(jnp.zeros_like(image), rays, origin)
+
+
+def _rays_window(shape, source_radius: float, density, num_samples, loop_length: int, relaxed: bool):
+    """`(height, width, reach)` of the window that holds all rays of a source within `source_radius` px of the light.
+
+    None when it cannot be known at trace time (a traced `density` or
+    `num_samples`), is unbounded (a sample scale outside (0, 1]) or saves little.
+    """
+    if isinstance(density, jax.core.Tracer) or isinstance(num_samples, jax.core.Tracer):
+        return None
+    density, count = float(np.asarray(density)), float(np.asarray(num_samples))
+    # Sample i (1-based) sits at scale 1 - i * density / count; the relaxation
+    # weights it clip(count - i + 1, 0, 1), so the last live one is below count + 1.
+    last = min(loop_length, math.ceil(count)) if relaxed else loop_length
+    smallest_scale = 1.0 - last * density / count if count > 0 else 1.0
+    if not (density >= 0 and smallest_scale > 0):
+        return None
+    # Bilinear samples reach one texel past the source; one more for rounding.
+    reach = math.ceil((source_radius + 2.0) / smallest_scale)
+    height, width = min(shape[0], 2 * reach + 2), min(shape[1], 2 * reach + 2)
+    if height * width > shape[0] * shape[1] // 2:
+        return None
+    return height, width, reach
 
 
 def scale_iterated_flares(

@@ -147,3 +147,17 @@ def test_bad_options_raise_value_errors_naming_them():
         gr.effect_from_dict({"effect": "GodRays", "densty": 0.5})
     with pytest.raises(ValueError, match="unknown effect"):
         gr.effect_from_dict({"effect": "Nope"})
+
+
+def test_godrays_disc_runs_near_the_light_with_the_same_result():
+    rng = np.random.default_rng(3)
+    height, width = 120, 200
+    buffers = gr.Buffers(color=jnp.asarray(rng.random((height, width, 3)), jnp.float32),
+                         depth=jnp.where(jnp.asarray(rng.random((height, width))) < 0.7, jnp.inf, 5.0),
+                         coverage=jnp.asarray(rng.random((height, width)) < 0.3, jnp.float32))  # fmt: skip
+    effect = eqx.tree_at(lambda e: e.light_radius, gr.preset("xna_crepuscular"), jnp.float32(8.0))
+    for light in ([120.3, 40.6], [-3.0, 60.0]):
+        light = jnp.asarray(light, jnp.float32)
+        near_light = jax.jit(lambda b, xy: effect(b, xy))(buffers, light)  # fields concrete: the windowed loop
+        whole = jax.jit(lambda e, b, xy: e(b, xy))(effect, buffers, light)  # fields traced: the whole frame
+        np.testing.assert_allclose(near_light, whole, rtol=1e-5, atol=1e-6)

@@ -114,6 +114,71 @@ def test_radial_rays_degenerate_cases_are_finite(rng):
     np.testing.assert_allclose(centre[2, 4], image[2, 4] * 2.875, rtol=1e-6)
 
 
+WINDOW_LIGHTS = {
+    "centre": (151.3, 80.6),
+    "pixel_centre": (100.5, 40.5),
+    "near_corner": (3.2, 156.9),
+    "off_left_disc_visible": (-4.0, 80.0),
+    "off_top_disc_visible": (150.0, -6.5),
+    "far_off": (4000.0, -900.0),
+}
+
+
+@pytest.mark.parametrize("light", WINDOW_LIGHTS.values(), ids=WINDOW_LIGHTS.keys())
+def test_radial_rays_on_a_window_around_a_compact_source_equal_the_full_loop(light):
+    height, width, radius = 160, 300, 10.0
+    light = jnp.asarray(light, jnp.float32)
+    occluders = (np.indices((height, width)).sum(0) % 7 > 1).astype(np.float32)[..., None]
+    image = gr.light_source_mask(height, width, light, radius=radius) * jnp.asarray(occluders) * jnp.ones(3)
+    for density, num_samples, max_samples in [(0.5, 32, None), (0.7, 20.5, 24)]:
+        options = dict(num_samples=num_samples, density=density, decay=0.95, weight=1.0, exposure=0.2,
+                       max_samples=max_samples)  # fmt: skip
+        full = gr.radial_rays(image, light, **options)
+        windowed = jax.jit(lambda im, xy: gr.radial_rays(im, xy, source_radius=radius, **options))(image, light)
+        np.testing.assert_allclose(windowed, full, rtol=1e-5, atol=1e-5 * float(jnp.max(full) + 1))
+    # The window really is smaller than the frame here, also under jit with
+    # the parameters closed over; traced or unbounded scales use the whole frame.
+    window = gr.rays._rays_window
+    assert window((height, width, 3), radius, 0.5, 32, 32, False) == (50, 50, 24)
+    assert window((height, width, 3), radius, jnp.float32(0.5), jnp.float32(20.5), 24, True) == (52, 52, 25)
+    assert window((height, width, 3), radius, 1.0, 32, 32, False) is None
+    assert window((height, width, 3), radius, -0.5, 32, 32, False) is None
+    assert jax.jit(lambda d: jnp.asarray(window((height, width, 3), radius, d, 32, 32, False) is None))(0.5)
+    calls = []
+    original = gr.rays._rays_window
+    try:
+        gr.rays._rays_window = lambda *args: calls.append(original(*args)) or calls[-1]
+        density = jnp.float32(0.5)  # closed over, as an effect's fields are: concrete at trace time
+        jax.jit(lambda im, xy: gr.radial_rays(im, xy, source_radius=radius, num_samples=32, density=density,
+                                              decay=0.95, weight=1.0, exposure=0.2))(image, light)  # fmt: skip
+    finally:
+        gr.rays._rays_window = original
+    assert calls == [(50, 50, 24)]
+
+
+def test_radial_rays_window_gradients(x64):
+    height, width = 60, 90
+    light = jnp.asarray([40.3, 22.6])
+    image = gr.light_source_mask(height, width, light, radius=4.0, dtype=jnp.float64) * jnp.ones(2)
+    options = dict(num_samples=8, density=0.5, decay=0.9, weight=1.0, exposure=0.3)
+
+    def windowed(im, xy):
+        return gr.radial_rays(im, xy, source_radius=4.0, **options)
+
+    check_grads(lambda im: windowed(im, light), (image,), order=1, modes=["fwd", "rev"])
+    # The light's derivative (bilinear sampling is only piecewise smooth in
+    # the positions, so compare with the whole-frame loop, both modes).
+    def loss(xy, **window):
+        return jnp.sum(gr.radial_rays(image, xy, **window, **options) ** 2)
+
+    full = jax.grad(loss)(light)
+    assert np.all(np.abs(full) > 1e-3)
+    np.testing.assert_allclose(jax.grad(lambda xy: loss(xy, source_radius=4.0))(light), full, rtol=1e-9)
+    np.testing.assert_allclose(jax.jacfwd(lambda xy: loss(xy, source_radius=4.0))(light), full, rtol=1e-9)
+    with pytest.raises(ValueError, match="source_radius"):
+        gr.radial_rays(image, light, source_radius=-1.0, **options)
+
+
 def test_radial_rays_rejects_bad_arguments(rng):
     image = jnp.ones((4, 5, 3))
     options = dict(density=0.5, decay=0.9, weight=1.0, exposure=0.1)

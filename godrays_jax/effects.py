@@ -154,6 +154,8 @@ def _emitter(
 
 
 RayMethod = Literal["exact", "multipass", "fast"]
+
+
 def _disc_radius(effect) -> float | None:
     """The disc emitter's radius in pixels when it is known at trace time (the exact loop then runs near the light)."""
     radius = effect.light_radius
@@ -186,6 +188,10 @@ class GodRays(Effect):
     `method` picks the rays kernel: `"exact"` (`radial_rays`), `"multipass"`
     (`fast.radial_rays_multipass`, 3 passes x 8 taps) or `"fast"`
     (`fast.fast_radial_rays`: multi-pass at `1 / resolution_factor` resolution).
+    With the disc source and the fields known at trace time (the effect closed
+    over by `jax.jit`, as `batch` does) the exact loop runs only on the window
+    around the light that can hold rays (`radial_rays(source_radius=...)`):
+    the same image, several times faster at high resolution.
     """
 
     density: Float[Array, ""] = param(0.5, low=0.0, high=2.0)

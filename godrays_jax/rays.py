@@ -24,8 +24,8 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import SymbolicZero
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, resolve_count

@@ -29,7 +29,7 @@ from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, resolve_count
-from godrays_jax.sampling import Addressing, _axis_taps, _lerp, sample_separable
+from godrays_jax.sampling import Addressing, _axis_taps
 
 
 def _copy_positions(shape, light_xy, scale, dtype):
@@ -40,12 +40,6 @@ def _copy_positions(shape, light_xy, scale, dtype):
     return light_xy[0] + (cols - light_xy[0]) * scale, light_xy[1] + (rows - light_xy[1]) * scale
 
 
-def _scaled_copy(image, light_xy, scale, addressing: Addressing):
-    """`image` sampled bilinearly at `light + (p - light) * scale` for every pixel centre `p`."""
-    xs, ys = _copy_positions(image.shape[:2], light_xy, scale, image.dtype)
-    return sample_separable(image, xs, ys, addressing=addressing)
-
-
 def _taps_and_slopes(size: int, u, addressing: Addressing):
     """`_axis_taps` at texel coordinates `u`, plus the taps' weights' derivatives with respect to `u`."""
     taps, (_, _, low_slope, high_slope) = jax.jvp(
@@ -54,70 +48,119 @@ def _taps_and_slopes(size: int, u, addressing: Addressing):
     return taps, (taps[0], taps[1], low_slope, high_slope)
 
 
+def _apart(step, compute, *operands):
+    """`compute(*operands)`, kept out of its consumers' fusions.
+
+    XLA fuses a gather with the computation of its operand and then evaluates
+    that operand once per gathered element, through strided transposed reads:
+    30x slower on a CPU than gathering from a stored array. A conditional is
+    not fused with its surroundings, and its predicate (a loop counter
+    `step >= 0`, always true) cannot be folded at compile time.
+    """
+    return jax.lax.cond(
+        step >= 0, compute, lambda *values: jax.tree.map(jnp.zeros_like, compute(*values)), *operands
+    )
+
+
+class _Planes:
+    """An `(H, W, C)` image held as 2-D arrays for the sample loop: `(H, W*C)` by rows or `(W, H*C)` by columns.
+
+    Both interpolations of a copy then gather whole rows (contiguous slices)
+    of a stored 2-D array, the columns' from the transposed rows, and every
+    reduction reverse mode makes is over a 2-D array (XLA's CPU library
+    reduction is ~40x slower over three dimensions).
+    """
+
+    def __init__(self, shape):
+        self.height, self.width, self.channels = shape
+
+    def by_rows(self, image):
+        return jnp.asarray(image).reshape(self.height, self.width * self.channels)
+
+    def rows_to_columns(self, step, rows):
+        def transpose(rows):
+            return jnp.swapaxes(rows.reshape(self.height, self.width, self.channels), 0, 1).reshape(
+                self.width, self.height * self.channels
+            )
+
+        return _apart(step, transpose, rows)
+
+    def image_from_columns(self, columns):
+        return jnp.swapaxes(columns.reshape(self.width, self.height, self.channels), 0, 1)
+
+
+def _lerp_rows(values, taps):
+    """Linear interpolation between whole rows of a 2-D array: `values[low] * low_weight + values[high] * high_weight`."""
+    low, high, low_weight, high_weight = taps
+    lower = values.at[low].get(mode="promise_in_bounds")
+    upper = values.at[high].get(mode="promise_in_bounds")
+    return lower * low_weight[:, None] + upper * high_weight[:, None]
+
+
+def _copy_taps(planes: _Planes, light_xy, scale, addressing: Addressing, dtype):
+    """Row and column taps (with the weights' slopes) of the copy sampled at `light + (p - light) * scale`."""
+    xs, ys = _copy_positions((planes.height, planes.width), light_xy, scale, dtype)
+    return _taps_and_slopes(planes.width, xs - 0.5, addressing), _taps_and_slopes(planes.height, ys - 0.5, addressing)
+
+
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
 def _scaled_copies(image, light_xy, scales, weights, addressing):
-    def add_copy(k, total):
-        return total + weights[k] * _scaled_copy(image, light_xy, scales[k], addressing)
+    planes = _Planes(image.shape)
+    by_rows = planes.by_rows(image)
 
-    return jax.lax.fori_loop(0, scales.shape[0], add_copy, jnp.zeros_like(image))
+    def add_copy(k, total):
+        (col_taps, _), (row_taps, _) = _copy_taps(planes, light_xy, scales[k], addressing, image.dtype)
+        columns = planes.rows_to_columns(k, _lerp_rows(by_rows, row_taps))
+        return total + weights[k] * _lerp_rows(columns, col_taps)
+
+    total = jax.lax.fori_loop(0, scales.shape[0], add_copy, jnp.zeros((planes.width, by_rows.size // planes.width), image.dtype))
+    return planes.image_from_columns(total)
 
 
 @functools.partial(_scaled_copies.defjvp, symbolic_zeros=True)
 def _scaled_copies_jvp(addressing, primals, tangents):
     image, light_xy, scales, weights = primals
-    image_dot, light_dot, scales_dot, weights_dot = tangents
     total = _scaled_copies(image, light_xy, scales, weights, addressing)
     varies = [type(t) is not SymbolicZero for t in tangents]
     if not any(varies):
         return total, jnp.zeros_like(image)
+    image_dot, light_dot, scales_dot, weights_dot = (jnp.asarray(t) if v else None for t, v in zip(tangents, varies))
     moves = varies[1] or varies[2]
-    height, width, _ = image.shape
+    planes = _Planes(image.shape)
     dtype = image.dtype
-    col_centres = jnp.arange(width, dtype=dtype) + 0.5
-    row_centres = jnp.arange(height, dtype=dtype) + 0.5
-    # Copy k is `columns_k(rows_k(image))`: 1-D interpolations along y, then x.
-    # The scalar arguments' tangents multiply known images (the copy and its
-    # x and y derivatives, which share the copy's gathers), so reverse mode
-    # reduces them against the cotangent. The image's tangent is sampled
-    # through the transposed image, x first, so that both interpolations
-    # gather whole slices along axis 0 and reverse mode turns them into
-    # whole-slice scatter-adds (several times faster on a CPU than scattering
-    # single texels along axis 1). The body is rematerialised: reverse mode
-    # recomputes each copy instead of storing one image per copy.
-    tangent_by_column = jnp.swapaxes(image_dot, 0, 1) if varies[0] else None
+    by_rows = planes.by_rows(image)
+    tangent_by_rows = planes.by_rows(image_dot) if varies[0] else None
+    # In the column layout `(W, H*C)` a pixel's x is its row, its y its column (repeated per channel).
+    col_offsets = (jnp.arange(planes.width, dtype=dtype) + 0.5 - light_xy[0])[:, None]
+    row_offsets = jnp.repeat(jnp.arange(planes.height, dtype=dtype) + 0.5 - light_xy[1], planes.channels)[None, :]
 
+    # Each scalar tangent multiplies a whole known image (the copy, its x and
+    # y derivatives, its radial derivative), so reverse mode reduces the
+    # cotangent against it in one pass. The body is rematerialised: reverse
+    # mode recomputes each copy instead of storing one image per copy.
     @jax.checkpoint
     def add_tangent(k, total_dot):
-        xs, ys = _copy_positions((height, width), light_xy, scales[k], dtype)
-        col_taps, col_slopes = _taps_and_slopes(width, xs - 0.5, addressing)
-        row_taps, row_slopes = _taps_and_slopes(height, ys - 0.5, addressing)
-        copy_dot = jnp.zeros_like(image)
+        (col_taps, col_slopes), (row_taps, row_slopes) = _copy_taps(planes, light_xy, scales[k], addressing, dtype)
+        columns = planes.rows_to_columns(k, _lerp_rows(by_rows, row_taps))
         if varies[0]:
-            columns_dot = jnp.swapaxes(_lerp(tangent_by_column, 0, *col_taps), 0, 1)
-            copy_dot += weights[k] * _lerp(columns_dot, 0, *row_taps)
-        rows = _lerp(image, 0, *row_taps)
+            columns_dot = planes.rows_to_columns(k, _lerp_rows(tangent_by_rows, row_taps))
+            total_dot += weights[k] * _lerp_rows(columns_dot, col_taps)
         if varies[3]:
-            copy_dot += weights_dot[k] * _lerp(rows, 1, *col_taps)
+            total_dot += weights_dot[k] * _lerp_rows(columns, col_taps)
         if moves:
             # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale, d/d(scale) = p - light.
-            # Each scalar tangent multiplies a whole known image, so reverse
-            # mode reduces the cotangent against it in one pass (no per-row
-            # or per-column partial sums, which XLA's CPU backend transposes).
-            x_derivative = _lerp(rows, 1, *col_slopes)
-            y_derivative = _lerp(_lerp(image, 0, *row_slopes), 1, *col_taps)
+            x_derivative = _lerp_rows(columns, col_slopes)
+            y_derivative = _lerp_rows(planes.rows_to_columns(k, _lerp_rows(by_rows, row_slopes)), col_taps)
             if varies[1]:
-                copy_dot += (weights[k] * (1.0 - scales[k])) * (
-                    light_dot[0] * x_derivative + light_dot[1] * y_derivative
-                )
+                step = weights[k] * (1.0 - scales[k])
+                total_dot += (step * light_dot[0]) * x_derivative + (step * light_dot[1]) * y_derivative
             if varies[2]:
-                radial_derivative = (
-                    x_derivative * (col_centres - light_xy[0])[None, :, None]
-                    + y_derivative * (row_centres - light_xy[1])[:, None, None]
-                )
-                copy_dot += (weights[k] * scales_dot[k]) * radial_derivative
-        return total_dot + copy_dot
+                radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
+                total_dot += (weights[k] * scales_dot[k]) * radial_derivative
+        return total_dot
 
-    return total, jax.lax.fori_loop(0, scales.shape[0], add_tangent, jnp.zeros_like(image))
+    zeros = jnp.zeros((planes.width, by_rows.size // planes.width), dtype)
+    return total, planes.image_from_columns(jax.lax.fori_loop(0, scales.shape[0], add_tangent, zeros))
 
 
 def scaled_copies(

@@ -36,7 +36,7 @@ from godrays_jax.lens import LENS_DIRT_ABERRATION, ViewMode, dirt_texture, lens_
 from godrays_jax.media import apply_fog, in_scattering
 from godrays_jax.masks import bright_pass, coverage_mask, dilate, erode, light_source_mask
 from godrays_jax.fast import fast_radial_rays, radial_rays_multipass
-from godrays_jax.rays import radial_rays, scale_iterated_flares
+from godrays_jax.rays import _radial_rays, _scale_iterated_flares, radial_rays
 from godrays_jax.sampling import pixel_centres
 
 Source = Literal["disc", "sky", "light_pass"]
@@ -153,6 +153,17 @@ def _emitter(
     return buffers.light_pass[..., None].astype(dtype) * visible
 
 
+def _emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front):
+    """`(function, arguments)` drawing the effect's emitter; the arguments hold only what that source depends on.
+
+    The loops differentiate an emitter's few-number arguments in forward mode,
+    one sampled derivative image each, so an unused one (a sky's disc radius)
+    would cost a derivative image of zeros.
+    """
+    radius = effect.light_radius if effect.source == "disc" else None
+    return functools.partial(_emitter, effect.source), (buffers, light_xy, radius, light_in_front, effect.offscreen_fade)
+
+
 RayMethod = Literal["exact", "multipass", "fast"]
 
 
@@ -164,14 +175,8 @@ def _disc_radius(effect) -> float | None:
     return float(radius)
 
 
-RAY_METHODS: dict[str, Any] = {
-    "exact": lambda effect: functools.partial(
-        radial_rays, max_samples=effect.max_samples, source_radius=_disc_radius(effect)
-    ),
-    "multipass": lambda effect: radial_rays_multipass,
-    "fast": lambda effect: functools.partial(fast_radial_rays, factor=effect.resolution_factor),
-}
-"""`GodRays.method` -> the rays kernel: the exact loop, or the fast variants of `godrays_jax.fast` (errors in benchmarks/README.md)."""
+RAY_METHODS: tuple[str, ...] = ("exact", "multipass", "fast")
+"""`GodRays.method`: the exact loop, or the fast variants of `godrays_jax.fast` (errors in benchmarks/README.md)."""
 
 
 class GodRays(Effect):
@@ -217,16 +222,26 @@ class GodRays(Effect):
     def layer(self, buffers, light_xy, *, light_in_front=True):
         """The rays alone, `(H, W, 3)` (or 1 channel for a 1-channel `sky` source)."""
         check_light(light_xy)
-        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front, self.offscreen_fade)
-        rays = RAY_METHODS[self.method](self)(
-            emitter,
-            light_xy,
+        # The exact loop takes the emitter as a function of its inputs, so that
+        # it differentiates the few numbers it is drawn from (light_radius) in
+        # forward mode: their reverse-mode gradient then needs no image adjoint.
+        emitter_fn, emitter_args = _emitter_inputs(self, buffers, light_xy, light_in_front)
+        fields = dict(
             num_samples=self.num_samples,
             density=self.density,
             decay=self.decay,
             weight=self.weight,
             exposure=self.exposure,
         )
+        if self.method == "exact":
+            rays = _radial_rays(
+                emitter_fn, emitter_args, light_xy, max_samples=self.max_samples, source_radius=_disc_radius(self),
+                **fields,
+            )  # fmt: skip
+        elif self.method == "multipass":
+            rays = radial_rays_multipass(emitter_fn(*emitter_args), light_xy, **fields)
+        else:
+            rays = fast_radial_rays(emitter_fn(*emitter_args), light_xy, factor=self.resolution_factor, **fields)
         if self.use_bright_pass:
             rays = bright_pass(rays, self.threshold)
         return rays * self.tint.astype(rays.dtype)
@@ -258,9 +273,10 @@ class FlareOuts(Effect):
     def layer(self, buffers, light_xy, *, light_in_front=True):
         """The flare-outs alone, `(H, W, 3)`."""
         check_light(light_xy)
-        emitter = _emitter(self.source, buffers, light_xy, self.light_radius, light_in_front, self.offscreen_fade)
-        flares = scale_iterated_flares(
-            emitter,
+        emitter_fn, emitter_args = _emitter_inputs(self, buffers, light_xy, light_in_front)
+        flares = _scale_iterated_flares(
+            emitter_fn,
+            emitter_args,
             light_xy,
             num_iters=self.num_iters,
             max_iters=self.max_iters,

@@ -23,6 +23,7 @@ import functools
 import math
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
@@ -63,30 +64,51 @@ def _apart(step, compute, *operands):
 
 
 class _Planes:
-    """An `(H, W, C)` image held as 2-D arrays for the sample loop: `(H, W*C)` by rows or `(W, H*C)` by columns.
+    """An `(H, W, C)` image held as 2-D arrays for the sample loop: its channel planes stacked, `(C*H, W)` by rows or `(W, C*H)` by columns.
 
     Both interpolations of a copy then gather whole rows (contiguous slices)
-    of a stored 2-D array, the columns' from the transposed rows, and every
-    reduction reverse mode makes is over a 2-D array (XLA's CPU library
-    reduction is ~40x slower over three dimensions).
+    of a stored 2-D array, the columns' from the transposed rows; transposes
+    are plain 2-D ones (XLA's CPU transposes of interleaved channels are
+    several times slower), and every reduction reverse mode makes is over a
+    2-D array (XLA's CPU library reduction is ~40x slower over three
+    dimensions).
     """
 
     def __init__(self, shape):
         self.height, self.width, self.channels = shape
 
     def by_rows(self, image):
-        return jnp.asarray(image).reshape(self.height, self.width * self.channels)
+        return jnp.moveaxis(jnp.asarray(image), 2, 0).reshape(self.channels * self.height, self.width)
+
+    def sample_rows(self, by_rows, taps):
+        """Every plane interpolated between the rows given by `taps` (for one plane)."""
+        plane_starts = (jnp.arange(self.channels) * self.height)[:, None]
+        low, high, low_weight, high_weight = taps
+        return _lerp_rows(
+            by_rows,
+            (
+                (plane_starts + low).reshape(-1),
+                (plane_starts + high).reshape(-1),
+                jnp.tile(low_weight, self.channels),
+                jnp.tile(high_weight, self.channels),
+            ),
+        )
 
     def rows_to_columns(self, step, rows):
         def transpose(rows):
-            return jnp.swapaxes(rows.reshape(self.height, self.width, self.channels), 0, 1).reshape(
-                self.width, self.height * self.channels
-            )
+            return jnp.swapaxes(rows[..., None], 0, 1)[..., 0]
 
         return _apart(step, transpose, rows)
 
+    def along_columns(self, values):
+        """A per-row quantity (H,) laid along the column layout's columns."""
+        return jnp.tile(values, self.channels)[None, :]
+
+    def zeros(self, dtype):
+        return jnp.zeros((self.width, self.channels * self.height), dtype)
+
     def image_from_columns(self, columns):
-        return jnp.swapaxes(columns.reshape(self.width, self.height, self.channels), 0, 1)
+        return columns.reshape(self.width, self.channels, self.height).transpose(2, 0, 1)
 
 
 def _lerp_rows(values, taps):
@@ -103,64 +125,200 @@ def _copy_taps(planes: _Planes, light_xy, scale, addressing: Addressing, dtype):
     return _taps_and_slopes(planes.width, xs - 0.5, addressing), _taps_and_slopes(planes.height, ys - 0.5, addressing)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
-def _scaled_copies(image, light_xy, scales, weights, addressing):
+FEW_NUMBERS = 8
+"""Differentiated inputs with at most this many numbers in all are differentiated in forward mode inside the loop.
+
+Their derivative images (of the copies' weights and scales, the light, or
+the few numbers an image is computed from) are accumulated alongside the
+copies, so reverse mode needs one reduction per number after the loop, and
+no scatter of the image's adjoint. Larger inputs (a whole image, a vector of
+weights per copy) get a tangent loop that reverse mode transposes.
+"""
+
+
+def _split_varying(args, tangents):
+    """The flattened `args` and tangents, and the indices of differentiated leaves: few numbers (see FEW_NUMBERS), many."""
+    leaves, tree = jax.tree.flatten(args)
+    tangent_leaves = tree.flatten_up_to(tangents)
+    few, many, budget = [], [], FEW_NUMBERS
+    for index, (leaf, tangent) in enumerate(zip(leaves, tangent_leaves)):
+        if type(tangent) is SymbolicZero:
+            continue
+        if np.size(leaf) <= budget:
+            few.append(index)
+            budget -= np.size(leaf)
+        else:
+            many.append(index)
+    return leaves, tree, tangent_leaves, few, many
+
+
+def _replaced(leaves, tree, indices, values):
+    """The arguments rebuilt from `leaves`, with the leaves at `indices` replaced by `values`."""
+    leaves = list(leaves)
+    for index, value in zip(indices, values):
+        leaves[index] = value
+    return tree.unflatten(leaves)
+
+
+def _forward_derivatives(function, leaves, tree, tangent_leaves, indices):
+    """`(value, jacobian, direction)`: `function(*args)`, its Jacobian in the leaves at `indices` (last axis), their tangents flattened."""
+    flat, unflatten = jax.flatten_util.ravel_pytree([leaves[i] for i in indices])
+    direction, _ = jax.flatten_util.ravel_pytree([jnp.asarray(tangent_leaves[i], flat.dtype) for i in indices])
+
+    def of_flat(flat):
+        return function(*_replaced(leaves, tree, indices, unflatten(flat)))
+
+    value, jacobian = jax.vmap(lambda basis: jax.jvp(of_flat, (flat,), (basis,)), out_axes=(None, -1))(
+        jnp.eye(flat.size, dtype=flat.dtype)
+    )
+    return value, jacobian, direction
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def _scaled_copies(image_fn, schedule, addressing, image_args, light_xy, schedule_args):
+    """`scaled_copies(image_fn(*image_args), light_xy, *schedule(*schedule_args))`, differentiable in every argument."""
+    image = image_fn(*image_args)
+    scales, weights = schedule(*schedule_args)
     planes = _Planes(image.shape)
     by_rows = planes.by_rows(image)
 
     def add_copy(k, total):
         (col_taps, _), (row_taps, _) = _copy_taps(planes, light_xy, scales[k], addressing, image.dtype)
-        columns = planes.rows_to_columns(k, _lerp_rows(by_rows, row_taps))
+        columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
         return total + weights[k] * _lerp_rows(columns, col_taps)
 
-    total = jax.lax.fori_loop(0, scales.shape[0], add_copy, jnp.zeros((planes.width, by_rows.size // planes.width), image.dtype))
-    return planes.image_from_columns(total)
+    return planes.image_from_columns(jax.lax.fori_loop(0, scales.shape[0], add_copy, planes.zeros(image.dtype)))
 
 
 @functools.partial(_scaled_copies.defjvp, symbolic_zeros=True)
-def _scaled_copies_jvp(addressing, primals, tangents):
-    image, light_xy, scales, weights = primals
-    total = _scaled_copies(image, light_xy, scales, weights, addressing)
-    varies = [type(t) is not SymbolicZero for t in tangents]
-    if not any(varies):
-        return total, jnp.zeros_like(image)
-    image_dot, light_dot, scales_dot, weights_dot = (jnp.asarray(t) if v else None for t, v in zip(tangents, varies))
-    moves = varies[1] or varies[2]
-    planes = _Planes(image.shape)
+def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
+    image_args, light_xy, schedule_args = primals
+    image_tangents, light_dot, schedule_tangents = tangents
+    leaves, tree, image_dots, few_image, many_image = _split_varying(image_args, image_tangents)
+    schedule_leaves, schedule_tree, schedule_dots, few_schedule, many_schedule = _split_varying(
+        schedule_args, schedule_tangents
+    )
+    light_varies = type(light_dot) is not SymbolicZero
+    if few_image:
+        image, image_jacobian, image_direction = _forward_derivatives(image_fn, leaves, tree, image_dots, few_image)
+    else:
+        image = image_fn(*image_args)
+    if few_schedule:
+        (scales, weights), (scale_jacobian, weight_jacobian), schedule_direction = _forward_derivatives(
+            schedule, schedule_leaves, schedule_tree, schedule_dots, few_schedule
+        )
+    else:
+        scales, weights = schedule(*schedule_args)
     dtype = image.dtype
+    planes = _Planes(image.shape)
     by_rows = planes.by_rows(image)
-    tangent_by_rows = planes.by_rows(image_dot) if varies[0] else None
-    # In the column layout `(W, H*C)` a pixel's x is its row, its y its column (repeated per channel).
+    # In the column layout `(W, C*H)` a pixel's x is its row, its y its column (in every channel's plane).
     col_offsets = (jnp.arange(planes.width, dtype=dtype) + 0.5 - light_xy[0])[:, None]
-    row_offsets = jnp.repeat(jnp.arange(planes.height, dtype=dtype) + 0.5 - light_xy[1], planes.channels)[None, :]
+    row_offsets = planes.along_columns(jnp.arange(planes.height, dtype=dtype) + 0.5 - light_xy[1])
 
-    # Each scalar tangent multiplies a whole known image (the copy, its x and
-    # y derivatives, its radial derivative), so reverse mode reduces the
-    # cotangent against it in one pass. The body is rematerialised: reverse
-    # mode recomputes each copy instead of storing one image per copy.
+    def derivatives(k, columns, col_taps, col_slopes, row_slopes):
+        """The copy's x and y derivatives (at its sample positions) in the column layout."""
+        x_derivative = _lerp_rows(columns, col_slopes)
+        y_derivative = _lerp_rows(planes.rows_to_columns(k, planes.sample_rows(by_rows, row_slopes)), col_taps)
+        return x_derivative, y_derivative
+
+    # One loop computes the copies' sum and, for every differentiated input
+    # of few numbers, the image its tangent multiplies: the sum over copies of
+    # the copy's derivative in that input. The copies' weights and scales act
+    # through the copy and its radial derivative `(p - light) . grad`, the
+    # light's sampling through its x and y derivatives times `1 - scale`, and
+    # the image's few inputs through their derivative images sampled like it.
+    derivative_planes = None
+    if few_image:
+        derivative_planes = _Planes((planes.height, planes.width, planes.channels * image_jacobian.shape[-1]))
+        derivative_by_rows = derivative_planes.by_rows(image_jacobian.reshape(planes.height, planes.width, -1))
+    moves = few_schedule or light_varies
+
+    def add_copy(k, sums):
+        total, derivative_total, schedule_sums, light_sums = sums
+        (col_taps, col_slopes), (row_taps, row_slopes) = _copy_taps(planes, light_xy, scales[k], addressing, dtype)
+        columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
+        copy = _lerp_rows(columns, col_taps)
+        total = total + weights[k] * copy
+        if few_image:
+            derivative_columns = derivative_planes.rows_to_columns(k, derivative_planes.sample_rows(derivative_by_rows, row_taps))
+            derivative_total = derivative_total + weights[k] * _lerp_rows(derivative_columns, col_taps)
+        if moves:
+            x_derivative, y_derivative = derivatives(k, columns, col_taps, col_slopes, row_slopes)
+        if few_schedule:
+            radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
+            schedule_sums = (
+                schedule_sums
+                + weight_jacobian[k][:, None, None] * copy
+                + (weights[k] * scale_jacobian[k])[:, None, None] * radial_derivative
+            )
+        if light_varies:
+            # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale.
+            light_sums = light_sums + (weights[k] * (1.0 - scales[k])) * jnp.stack([x_derivative, y_derivative])
+        return total, derivative_total, schedule_sums, light_sums
+
+    zeros = planes.zeros(dtype)
+    sums = (
+        zeros,
+        derivative_planes.zeros(dtype) if few_image else None,
+        jnp.zeros((len(schedule_direction),) + zeros.shape, dtype) if few_schedule else None,
+        jnp.zeros((2,) + zeros.shape, dtype) if light_varies else None,
+    )
+    total, derivative_total, schedule_sums, light_sums = jax.lax.fori_loop(0, scales.shape[0], add_copy, sums)
+
+    tangent = jnp.zeros_like(total)
+    if few_image:
+        by_number = derivative_total.reshape(planes.width, planes.channels, image_direction.size, planes.height)
+        tangent += jnp.einsum("wcqh,q->wch", by_number, image_direction).reshape(total.shape)
+    if few_schedule:
+        tangent += jnp.tensordot(schedule_direction, schedule_sums, 1)
+    if light_varies:
+        tangent += jnp.tensordot(jnp.asarray(light_dot, dtype), light_sums, 1)
+
+    # Inputs of many numbers: a tangent loop, rematerialised so that reverse
+    # mode recomputes each copy instead of storing one image per copy. The
+    # image's tangent is sampled like the image (reverse mode scatters whole
+    # rows); per-copy weight and scale tangents multiply the copy and its
+    # radial derivative (reverse mode reduces the cotangent against them).
+    image_dot = None
+    if many_image:
+        _, image_dot = jax.jvp(
+            lambda *values: image_fn(*_replaced(leaves, tree, many_image, values)),
+            [leaves[i] for i in many_image],
+            [jnp.asarray(image_dots[i]) for i in many_image],
+        )
+        image_dot_by_rows = planes.by_rows(image_dot)
+    if many_schedule:
+        _, (scales_dot, weights_dot) = jax.jvp(
+            lambda *values: schedule(*_replaced(schedule_leaves, schedule_tree, many_schedule, values)),
+            [schedule_leaves[i] for i in many_schedule],
+            [jnp.asarray(schedule_dots[i]) for i in many_schedule],
+        )
+
     @jax.checkpoint
     def add_tangent(k, total_dot):
         (col_taps, col_slopes), (row_taps, row_slopes) = _copy_taps(planes, light_xy, scales[k], addressing, dtype)
-        columns = planes.rows_to_columns(k, _lerp_rows(by_rows, row_taps))
-        if varies[0]:
-            columns_dot = planes.rows_to_columns(k, _lerp_rows(tangent_by_rows, row_taps))
+        if image_dot is not None:
+            columns_dot = planes.rows_to_columns(k, planes.sample_rows(image_dot_by_rows, row_taps))
             total_dot += weights[k] * _lerp_rows(columns_dot, col_taps)
-        if varies[3]:
-            total_dot += weights_dot[k] * _lerp_rows(columns, col_taps)
-        if moves:
-            # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale, d/d(scale) = p - light.
-            x_derivative = _lerp_rows(columns, col_slopes)
-            y_derivative = _lerp_rows(planes.rows_to_columns(k, _lerp_rows(by_rows, row_slopes)), col_taps)
-            if varies[1]:
-                step = weights[k] * (1.0 - scales[k])
-                total_dot += (step * light_dot[0]) * x_derivative + (step * light_dot[1]) * y_derivative
-            if varies[2]:
-                radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
-                total_dot += (weights[k] * scales_dot[k]) * radial_derivative
+        if many_schedule:
+            columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
+            x_derivative, y_derivative = derivatives(k, columns, col_taps, col_slopes, row_slopes)
+            radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
+            total_dot += weights_dot[k] * _lerp_rows(columns, col_taps) + (weights[k] * scales_dot[k]) * radial_derivative
         return total_dot
 
-    zeros = jnp.zeros((planes.width, by_rows.size // planes.width), dtype)
-    return total, planes.image_from_columns(jax.lax.fori_loop(0, scales.shape[0], add_tangent, zeros))
+    if many_image or many_schedule:
+        tangent += jax.lax.fori_loop(0, scales.shape[0], add_tangent, zeros)
+    return planes.image_from_columns(total), planes.image_from_columns(tangent)
+
+
+def _vector_schedule(scales, weights):
+    return scales, weights
+
+
+def _the_image(image):
+    return image
 
 
 def scaled_copies(
@@ -199,7 +357,7 @@ def scaled_copies(
     weights = jnp.asarray(weights, dtype)
     if scales.ndim != 1 or scales.shape != weights.shape:
         raise ValueError(f"scales and weights must be vectors of one length, got {scales.shape} and {weights.shape}")
-    return _scaled_copies(image, jnp.asarray(light_xy, dtype), scales, weights, addressing)
+    return _scaled_copies(_the_image, _vector_schedule, addressing, (image,), jnp.asarray(light_xy, dtype), (scales, weights))
 
 
 def _powers(base, length: int, dtype):
@@ -259,45 +417,87 @@ def radial_rays(
         The rays image, same shape and dtype as `image`.
     """
     check_image(image)
+    return _radial_rays(
+        _the_image,
+        (jnp.asarray(image),),
+        light_xy,
+        num_samples=num_samples,
+        density=density,
+        decay=decay,
+        weight=weight,
+        exposure=exposure,
+        max_samples=max_samples,
+        source_radius=source_radius,
+    )
+
+
+def _radial_schedule(loop_length: int, relaxed: bool, density, decay, count):
+    """Seed 003's sample scales `1 - i * density / n` and weights `decay**(i-1)` (relaxed: times the fade-in)."""
+    dtype = density.dtype
+    steps = jnp.arange(1, loop_length + 1, dtype=dtype)
+    # At n = 0 every weight is 0; a unit divisor keeps the (unused) positions finite.
+    divisor = jnp.where(count > 0, count, 1.0) if relaxed else count
+    scales = 1.0 - steps * (density / divisor)
+    weights = _powers(decay, loop_length, dtype)
+    if relaxed:
+        weights = weights * jnp.clip(count - steps + 1.0, 0.0, 1.0)
+    return scales, weights
+
+
+def _window_of(image_fn, size, origin, *image_args):
+    return jax.lax.dynamic_slice(image_fn(*image_args), (origin[0], origin[1], jnp.int32(0)), size)
+
+
+def _radial_rays(image_fn, image_args, light_xy, *, num_samples, density, decay, weight, exposure, max_samples=None,
+                 source_radius=None):  # fmt: skip
+    """`radial_rays(image_fn(*image_args), ...)`.
+
+    Differentiated inputs of `image_fn` with few numbers (a light-source
+    disc's radius) are differentiated in forward mode inside the sample loop,
+    so their reverse-mode gradient costs no adjoint of the image.
+    """
     check_light(light_xy)
     if source_radius is not None and not (isinstance(source_radius, (int, float)) and source_radius >= 0):
         raise ValueError(f"source_radius must be a Python number >= 0 (pixels) or None, got {source_radius!r}")
     for name, value in (("density", density), ("decay", decay), ("weight", weight), ("exposure", exposure)):
         check_scalar(value, name)
     loop_length, relaxed = resolve_count(num_samples, max_samples, "num_samples", "max_samples")
-    image = jnp.asarray(image)
-    dtype = image.dtype
-    steps = jnp.arange(1, loop_length + 1, dtype=dtype)
+    shape = jax.eval_shape(image_fn, *image_args)
+    dtype = shape.dtype
     if relaxed:
         count = checked_count(num_samples, loop_length, "num_samples", "max_samples", dtype)
-        # At n = 0 every weight is 0; a unit divisor keeps the (unused) positions finite.
-        divisor = jnp.where(count > 0, count, 1.0)
     else:
-        divisor = count = jnp.asarray(num_samples, dtype)
-    scales = 1.0 - steps * (jnp.asarray(density, dtype) / divisor)
-    weights = jnp.asarray(weight, dtype) * _powers(jnp.asarray(decay, dtype), loop_length, dtype)
-    if relaxed:
-        weights = weights * jnp.clip(count - steps + 1.0, 0.0, 1.0)
+        count = jnp.asarray(num_samples, dtype)
+    schedule = functools.partial(_radial_schedule, loop_length, relaxed)
+    # `weight` scales every sample alike, so it multiplies their sum: one derivative image fewer in the loop.
+    schedule_args = (jnp.asarray(density, dtype), jnp.asarray(decay, dtype), count)
+    weight = jnp.asarray(weight, dtype)
     exposure = jnp.asarray(exposure, dtype)
+    light_xy = jnp.asarray(light_xy, dtype)
     window = None
     if source_radius is not None:
-        window = _rays_window(image.shape, source_radius, density, num_samples, loop_length, relaxed)
+        window = _rays_window(shape.shape, source_radius, density, num_samples, loop_length, relaxed)
     if window is None:
-        return (image + scaled_copies(image, light_xy, scales, weights)) * exposure
+        image = image_fn(*image_args)
+        copies = _scaled_copies(image_fn, schedule, "clamp", image_args, light_xy, schedule_args)
+        return (image + weight * copies) * exposure
     # Every non-zero output pixel lies in the window, and so does every sample
     # it reads (or the window's edge is the image's): the windowed loop is exact.
-    light_xy = jnp.asarray(light_xy, dtype)
-    height, width, channels = image.shape
+    height, width, channels = shape.shape
     window_height, window_width, reach = window
-    corner = [
-        jnp.clip(jnp.floor(light_xy[axis]) - reach, 0, size - extent).astype(jnp.int32)
-        for axis, size, extent in ((1, height, window_height), (0, width, window_width))
-    ]
-    origin = (corner[0], corner[1], jnp.int32(0))
-    part = jax.lax.dynamic_slice(image, origin, (window_height, window_width, channels))
-    local_light = light_xy - jnp.stack([corner[1], corner[0]]).astype(dtype)
-    rays = (part + scaled_copies(part, local_light, scales, weights)) * exposure
-    return jax.lax.dynamic_update_slice(jnp.zeros_like(image), rays, origin)
+    origin = jnp.stack(
+        [
+            jnp.clip(jnp.floor(light_xy[axis]) - reach, 0, size - extent).astype(jnp.int32)
+            for axis, size, extent in ((1, height, window_height), (0, width, window_width))
+        ]
+    )
+    part_fn = functools.partial(_window_of, image_fn, (window_height, window_width, channels))
+    part_args = (origin, *image_args)
+    local_light = light_xy - origin[::-1].astype(dtype)
+    part = part_fn(*part_args)
+    copies = _scaled_copies(part_fn, schedule, "clamp", part_args, local_light, schedule_args)
+    rays = (part + weight * copies) * exposure
+    return jax.lax.dynamic_update_slice(jnp.zeros(shape.shape, dtype), rays, (origin[0], origin[1], jnp.int32(0)))
 
 
 def _rays_window(shape, source_radius: float, density, num_samples, loop_length: int, relaxed: bool):
@@ -353,14 +553,33 @@ def scale_iterated_flares(
         max_iters: static loop length for a relaxed `num_iters`.
     """
     check_image(masked, "masked")
+    return _scale_iterated_flares(
+        _the_image, (jnp.asarray(masked),), light_xy, num_iters=num_iters, scale_step=scale_step, decay=decay,
+        max_iters=max_iters,
+    )  # fmt: skip
+
+
+def _flare_schedule(loop_length: int, relaxed: bool, scale_step, decay, count):
+    """kbEngine's copy scales `scale_step**-k` and weights `decay**k` (relaxed: times the fade-in)."""
+    dtype = scale_step.dtype
+    scales = _powers(1.0 / scale_step, loop_length, dtype)
+    weights = _powers(decay, loop_length, dtype)
+    if relaxed:
+        weights = weights * jnp.clip(count - jnp.arange(loop_length, dtype=dtype), 0.0, 1.0)
+    return scales, weights
+
+
+def _scale_iterated_flares(image_fn, image_args, light_xy, *, num_iters, scale_step, decay=1.0, max_iters=None):
+    """`scale_iterated_flares(image_fn(*image_args), ...)`, differentiated like `_radial_rays`."""
     check_light(light_xy)
     check_scalar(scale_step, "scale_step")
     check_scalar(decay, "decay")
     loop_length, relaxed = resolve_count(num_iters, max_iters, "num_iters", "max_iters")
-    dtype = masked.dtype
-    scales = _powers(1.0 / jnp.asarray(scale_step, dtype), loop_length, dtype)
-    weights = _powers(jnp.asarray(decay, dtype), loop_length, dtype)
+    dtype = jax.eval_shape(image_fn, *image_args).dtype
     if relaxed:
         count = checked_count(num_iters, loop_length, "num_iters", "max_iters", dtype)
-        weights = weights * jnp.clip(count - jnp.arange(loop_length, dtype=dtype), 0.0, 1.0)
-    return scaled_copies(masked, light_xy, scales, weights, addressing="zero")
+    else:
+        count = jnp.asarray(num_iters, dtype)
+    schedule = functools.partial(_flare_schedule, loop_length, relaxed)
+    schedule_args = (jnp.asarray(scale_step, dtype), jnp.asarray(decay, dtype), count)
+    return _scaled_copies(image_fn, schedule, "zero", image_args, jnp.asarray(light_xy, dtype), schedule_args)

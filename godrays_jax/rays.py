@@ -228,25 +228,21 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
     # through the copy and its radial derivative `(p - light) . grad`, the
     # light's sampling through its x and y derivatives times `1 - scale`, and
     # the image's few inputs through their derivative images sampled like it.
-    extended_planes, extended_by_rows = planes, by_rows
+    derivative_planes = None
     if few_image:
-        # The derivative images ride along as extra channel planes: one gather and transpose serve all.
-        derivative_channels = jnp.moveaxis(image_jacobian, -1, 2).reshape(planes.height, planes.width, -1)
-        extended_planes = _Planes(derivative_channels.shape[:2] + (planes.channels + derivative_channels.shape[-1],))
-        extended_by_rows = extended_planes.by_rows(jnp.concatenate([image, derivative_channels], axis=-1))
-    plane_size = planes.channels * planes.height
+        derivative_planes = _Planes((planes.height, planes.width, planes.channels * image_jacobian.shape[-1]))
+        derivative_by_rows = derivative_planes.by_rows(image_jacobian.reshape(planes.height, planes.width, -1))
     moves = few_schedule or light_varies
 
     def add_copy(k, sums):
         total, derivative_total, schedule_sums, light_sums = sums
         (col_taps, col_slopes), (row_taps, row_slopes) = _copy_taps(planes, light_xy, scales[k], addressing, dtype)
-        extended_columns = extended_planes.rows_to_columns(k, extended_planes.sample_rows(extended_by_rows, row_taps))
-        columns = extended_columns[:, :plane_size]
+        columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
         copy = _lerp_rows(columns, col_taps)
         total = total + weights[k] * copy
         if few_image:
-            derivative_copies = _lerp_rows(extended_columns[:, plane_size:], col_taps)
-            derivative_total = derivative_total + weights[k] * derivative_copies
+            derivative_columns = derivative_planes.rows_to_columns(k, derivative_planes.sample_rows(derivative_by_rows, row_taps))
+            derivative_total = derivative_total + weights[k] * _lerp_rows(derivative_columns, col_taps)
         if moves:
             x_derivative, y_derivative = derivatives(k, columns, col_taps, col_slopes, row_slopes)
         if few_schedule:
@@ -264,7 +260,7 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
     zeros = planes.zeros(dtype)
     sums = (
         zeros,
-        jnp.zeros((planes.width, extended_planes.channels * planes.height - plane_size), dtype) if few_image else None,
+        derivative_planes.zeros(dtype) if few_image else None,
         jnp.zeros((len(schedule_direction),) + zeros.shape, dtype) if few_schedule else None,
         jnp.zeros((2,) + zeros.shape, dtype) if light_varies else None,
     )
@@ -272,8 +268,8 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
 
     tangent = jnp.zeros_like(total)
     if few_image:
-        by_number = derivative_total.reshape(planes.width, image_direction.size, plane_size)
-        tangent += jnp.einsum("wqp,q->wp", by_number, image_direction)
+        by_number = derivative_total.reshape(planes.width, planes.channels, image_direction.size, planes.height)
+        tangent += jnp.einsum("wcqh,q->wch", by_number, image_direction).reshape(total.shape)
     if few_schedule:
         tangent += jnp.tensordot(schedule_direction, schedule_sums, 1)
     if light_varies:

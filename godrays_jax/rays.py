@@ -247,22 +247,23 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
             x_derivative, y_derivative = derivatives(k, columns, col_taps, col_slopes, row_slopes)
         if few_schedule:
             radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
-            schedule_sums = (
-                schedule_sums
-                + weight_jacobian[k][:, None, None] * copy
-                + (weights[k] * scale_jacobian[k])[:, None, None] * radial_derivative
+            # One array per number: independent updates run concurrently on several cores.
+            schedule_sums = tuple(
+                total_p + weight_jacobian[k, p] * copy + (weights[k] * scale_jacobian[k, p]) * radial_derivative
+                for p, total_p in enumerate(schedule_sums)
             )
         if light_varies:
             # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale.
-            light_sums = light_sums + (weights[k] * (1.0 - scales[k])) * jnp.stack([x_derivative, y_derivative])
+            step = weights[k] * (1.0 - scales[k])
+            light_sums = (light_sums[0] + step * x_derivative, light_sums[1] + step * y_derivative)
         return total, derivative_total, schedule_sums, light_sums
 
     zeros = planes.zeros(dtype)
     sums = (
         zeros,
         derivative_planes.zeros(dtype) if few_image else None,
-        jnp.zeros((len(schedule_direction),) + zeros.shape, dtype) if few_schedule else None,
-        jnp.zeros((2,) + zeros.shape, dtype) if light_varies else None,
+        (zeros,) * len(schedule_direction) if few_schedule else None,
+        (zeros, zeros) if light_varies else None,
     )
     total, derivative_total, schedule_sums, light_sums = jax.lax.fori_loop(0, scales.shape[0], add_copy, sums)
 
@@ -271,9 +272,9 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
         by_number = derivative_total.reshape(planes.width, planes.channels, image_direction.size, planes.height)
         tangent += jnp.einsum("wcqh,q->wch", by_number, image_direction).reshape(total.shape)
     if few_schedule:
-        tangent += jnp.tensordot(schedule_direction, schedule_sums, 1)
+        tangent += jnp.tensordot(schedule_direction, jnp.stack(schedule_sums), 1)
     if light_varies:
-        tangent += jnp.tensordot(jnp.asarray(light_dot, dtype), light_sums, 1)
+        tangent += jnp.tensordot(jnp.asarray(light_dot, dtype), jnp.stack(light_sums), 1)
 
     # Inputs of many numbers: a tangent loop, rematerialised so that reverse
     # mode recomputes each copy instead of storing one image per copy. The

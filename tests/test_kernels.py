@@ -332,3 +332,19 @@ def test_sample_bilinear_pixel_centres_and_addressing():
     np.testing.assert_allclose(gr.sample_bilinear(image, x, y, addressing="zero")[:, 0], [0.0, 5.0, 0.5, 0.0, 1.0])
     with pytest.raises(ValueError, match="addressing"):
         gr.sample_bilinear(image, x, y, addressing="wrap")
+
+
+@pytest.mark.parametrize(
+    "shape, copies",
+    [((2, 3, 1), 3), ((2, 2, 2), 6), ((6, 7, 3), 6)],
+    ids=["tiny_image_few_copies", "tiny_image_many_weights", "large_image_many_weights"],
+)
+def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
+    """Inputs of few numbers are differentiated inside the sample loop (forward mode), the others by a
+    tangent loop that reverse mode transposes; the shapes here take each path for the image and weights."""
+    image = jnp.asarray(rng.uniform(0.2, 2.0, size=shape))
+    args = (image, jnp.asarray([1.37, 0.81]), jnp.asarray([0.97, 0.83, 0.61, 0.47, 1.21, 0.33][:copies]),
+            jnp.asarray([0.9, 0.5, 0.7, 0.3, 0.2, 0.6][:copies]))  # fmt: skip
+    for addressing in ("clamp", "zero"):
+        kernel = jax.jit(lambda *a, addressing=addressing: gr.scaled_copies(*a, addressing=addressing))
+        check_grads(kernel, args, order=1, modes=("fwd", "rev"), eps=1e-6)

@@ -22,11 +22,14 @@ How the parameters are fitted:
   memory O(image x parameters) whatever the loop lengths. Levenberg-Marquardt
   and Gauss-Newton need that Jacobian (millions of residuals, a handful of
   parameters), which reverse mode would build one residual at a time.
-  Reverse mode also fits in memory (the kernels' sample loops have custom
-  JVPs that recompute each copy instead of storing it: O(image) for any
-  loop length, where a plain differentiated loop would store every
-  iteration, about 1.5 GB at 480x270 for 128 samples and 23 GB at
-  1920x1080); `benchmarks/bench_fit.py` compares the two for one gradient.
+  The kernels' sample loops have custom JVPs: a handful of parameters are
+  differentiated inside the loop that sums the copies (one loop for all of
+  them, where vectorised JVPs of a plain loop would run one per parameter),
+  so the Jacobian costs about what a reverse-mode gradient costs (about 4x
+  the forward pass) and memory O(image) for any loop length, where a plain
+  differentiated loop would store every iteration, about 1.5 GB at 480x270
+  for 128 samples and 23 GB at 1920x1080; `benchmarks/bench_fit.py`
+  compares the two for one gradient.
 """
 
 import dataclasses

@@ -11,12 +11,20 @@ relaxation used for fitting); see each function for the relaxation.
 Both kernels are sums of copies of the image scaled about the light,
 `sum_k weight_k * image(light + (p - light) * scale_k)`, and share one
 implementation, `scaled_copies`. Scaling about a point keeps x and y
-separate, so each bilinear copy is two 1-D interpolations (whole rows, then
-whole columns), several times faster on a CPU than a 2-D gather per pixel and
-equal to `sampling.sample_bilinear` up to rounding. Its derivatives (forward
-and reverse mode) re-run the sampling loop instead of storing every copy, so
-value and gradient need memory proportional to the image, not to the number
-of samples.
+separate, so each bilinear copy is two 1-D interpolations: whole rows, then,
+after a transpose, whole rows again (the columns), equal to
+`sampling.sample_bilinear` up to rounding and several times faster on a CPU
+than a 2-D gather per pixel or a gather along columns.
+
+Derivatives need memory proportional to the image, not to the number of
+copies, in forward and reverse mode. Inputs of few numbers (the copies'
+parameters such as density and decay, the light, an emitter's radius) are
+differentiated in forward mode inside the loop that sums the copies: it also
+sums, per number, the copies' derivative in it, so a gradient costs one such
+loop and one reduction per number, and a forward-mode Jacobian the same
+loop. Inputs of many numbers (a whole image, one weight per copy) get a
+tangent loop that recomputes each copy and that reverse mode transposes
+(scattering the image's adjoint). See `FEW_NUMBERS`.
 """
 
 import functools

@@ -255,10 +255,11 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
             x_derivative, y_derivative = derivatives(k, columns, col_taps, col_slopes, row_slopes)
         if few_schedule:
             radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
-            # One array per number: independent updates run concurrently on several cores.
-            schedule_sums = tuple(
-                total_p + weight_jacobian[k, p] * copy + (weights[k] * scale_jacobian[k, p]) * radial_derivative
-                for p, total_p in enumerate(schedule_sums)
+            # The numbers along the last axis: each copy is read once for all of them.
+            schedule_sums = (
+                schedule_sums
+                + weight_jacobian[k] * copy[..., None]
+                + (weights[k] * scale_jacobian[k]) * radial_derivative[..., None]
             )
         if light_varies:
             # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale.
@@ -270,7 +271,7 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
     sums = (
         zeros,
         derivative_planes.zeros(dtype) if few_image else None,
-        (zeros,) * len(schedule_direction) if few_schedule else None,
+        jnp.zeros(zeros.shape + (len(schedule_direction),), dtype) if few_schedule else None,
         (zeros, zeros) if light_varies else None,
     )
     total, derivative_total, schedule_sums, light_sums = jax.lax.fori_loop(0, scales.shape[0], add_copy, sums)
@@ -280,7 +281,7 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
         by_number = derivative_total.reshape(planes.width, planes.channels, image_direction.size, planes.height)
         tangent += jnp.einsum("wcqh,q->wch", by_number, image_direction).reshape(total.shape)
     if few_schedule:
-        tangent += jnp.tensordot(schedule_direction, jnp.stack(schedule_sums), 1)
+        tangent += schedule_sums @ schedule_direction
     if light_varies:
         tangent += jnp.tensordot(jnp.asarray(light_dot, dtype), jnp.stack(light_sums), 1)
 

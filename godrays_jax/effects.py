@@ -161,7 +161,8 @@ def _emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front):
     would cost a derivative image of zeros.
     """
     radius = effect.light_radius if effect.source == "disc" else None
-    return functools.partial(_emitter, effect.source), (buffers, light_xy, radius, light_in_front, effect.offscreen_fade)
+    arguments = (buffers, light_xy, radius, light_in_front, effect.offscreen_fade)
+    return functools.partial(_emitter, effect.source), arguments
 
 
 RayMethod = Literal["exact", "multipass", "fast"]

@@ -72,7 +72,7 @@ def _apart(step, compute, *operands):
 
 
 class _Planes:
-    """An `(H, W, C)` image held as 2-D arrays for the sample loop: its channel planes stacked, `(C*H, W)` by rows or `(W, C*H)` by columns.
+    """An `(H, W, C)` image as stacked channel planes: `(C*H, W)` by rows, `(W, C*H)` by columns.
 
     Both interpolations of a copy then gather whole rows (contiguous slices)
     of a stored 2-D array, the columns' from the transposed rows; transposes
@@ -104,6 +104,8 @@ class _Planes:
 
     def rows_to_columns(self, step, rows):
         def transpose(rows):
+            # Through a unit axis: XLA would give a plain 2-D transpose a column-major
+            # layout instead of storing it, and gathering rows from that is strided again.
             return jnp.swapaxes(rows[..., None], 0, 1)[..., 0]
 
         return _apart(step, transpose, rows)
@@ -120,7 +122,7 @@ class _Planes:
 
 
 def _lerp_rows(values, taps):
-    """Linear interpolation between whole rows of a 2-D array: `values[low] * low_weight + values[high] * high_weight`."""
+    """Interpolation between whole rows of a 2-D array: `values[low] * low_weight + values[high] * high_weight`."""
     low, high, low_weight, high_weight = taps
     lower = values.at[low].get(mode="promise_in_bounds")
     upper = values.at[high].get(mode="promise_in_bounds")
@@ -145,7 +147,7 @@ weights per copy) get a tangent loop that reverse mode transposes.
 
 
 def _split_varying(args, tangents):
-    """The flattened `args` and tangents, and the indices of differentiated leaves: few numbers (see FEW_NUMBERS), many."""
+    """The flattened `args` and tangents, and the differentiated leaves' indices: few numbers (FEW_NUMBERS), many."""
     leaves, tree = jax.tree.flatten(args)
     tangent_leaves = tree.flatten_up_to(tangents)
     few, many, budget = [], [], FEW_NUMBERS
@@ -169,7 +171,7 @@ def _replaced(leaves, tree, indices, values):
 
 
 def _forward_derivatives(function, leaves, tree, tangent_leaves, indices):
-    """`(value, jacobian, direction)`: `function(*args)`, its Jacobian in the leaves at `indices` (last axis), their tangents flattened."""
+    """`function(*args)`, its Jacobian in the leaves at `indices` (last axis), and those leaves' tangents, flattened."""
     flat, unflatten = jax.flatten_util.ravel_pytree([leaves[i] for i in indices])
     direction, _ = jax.flatten_util.ravel_pytree([jnp.asarray(tangent_leaves[i], flat.dtype) for i in indices])
 
@@ -249,7 +251,8 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
         copy = _lerp_rows(columns, col_taps)
         total = total + weights[k] * copy
         if few_image:
-            derivative_columns = derivative_planes.rows_to_columns(k, derivative_planes.sample_rows(derivative_by_rows, row_taps))
+            derivative_rows = derivative_planes.sample_rows(derivative_by_rows, row_taps)
+            derivative_columns = derivative_planes.rows_to_columns(k, derivative_rows)
             derivative_total = derivative_total + weights[k] * _lerp_rows(derivative_columns, col_taps)
         if moves:
             x_derivative, y_derivative = derivatives(k, columns, col_taps, col_slopes, row_slopes)
@@ -315,7 +318,8 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
             columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
             x_derivative, y_derivative = derivatives(k, columns, col_taps, col_slopes, row_slopes)
             radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
-            total_dot += weights_dot[k] * _lerp_rows(columns, col_taps) + (weights[k] * scales_dot[k]) * radial_derivative
+            copy = _lerp_rows(columns, col_taps)
+            total_dot += weights_dot[k] * copy + (weights[k] * scales_dot[k]) * radial_derivative
         return total_dot
 
     if many_image or many_schedule:
@@ -367,7 +371,8 @@ def scaled_copies(
     weights = jnp.asarray(weights, dtype)
     if scales.ndim != 1 or scales.shape != weights.shape:
         raise ValueError(f"scales and weights must be vectors of one length, got {scales.shape} and {weights.shape}")
-    return _scaled_copies(_the_image, _vector_schedule, addressing, (image,), jnp.asarray(light_xy, dtype), (scales, weights))
+    light_xy = jnp.asarray(light_xy, dtype)
+    return _scaled_copies(_the_image, _vector_schedule, addressing, (image,), light_xy, (scales, weights))
 
 
 def _powers(base, length: int, dtype):

@@ -39,6 +39,19 @@ def median_seconds(function, *args, repeats=5):
     return statistics.median(times)
 
 
+def interleaved_medians(functions, *args, rounds=11):
+    """Median seconds of each function, timed in turn round after round (a shared machine's slow spells hit all)."""
+    for function in functions:
+        jax.block_until_ready(function(*args))
+    times = [[] for _ in functions]
+    for _ in range(rounds):
+        for function, spent in zip(functions, times):
+            start = time.perf_counter()
+            jax.block_until_ready(function(*args))
+            spent.append(time.perf_counter() - start)
+    return [statistics.median(spent) for spent in times]
+
+
 def temp_mib(function, *args):
     return jax.jit(function).lower(*args).compile().memory_analysis().temp_size_in_bytes / 2**20
 
@@ -270,14 +283,15 @@ def bench_gradient(lines, sizes):
                 basis = jnp.eye(flat.size, dtype=flat.dtype)
                 return jax.vmap(lambda d: jax.jvp(lambda f: loss(unravel(f)), (flat,), (d,)), out_axes=(None, 0))(basis)
 
-            forward = median_seconds(jax.jit(loss), values)
-            reverse = median_seconds(jax.jit(jax.value_and_grad(loss)), values)
-            fwd_mode = median_seconds(jax.jit(forward_mode), values)
+            forward, reverse, fwd_mode = interleaved_medians(
+                [jax.jit(loss), jax.jit(jax.value_and_grad(loss)), jax.jit(forward_mode)], values
+            )
             memory = [temp_mib(loss, values), temp_mib(jax.value_and_grad(loss), values), temp_mib(forward_mode, values)]
             lines.append(f"| {model} | {width}x{height} | {forward:.3f} | {reverse:.3f} ({reverse / forward:.1f}x) | "
                          f"{fwd_mode:.3f} ({fwd_mode / forward:.1f}x) | {memory[0]:.0f} / {memory[1]:.0f} / {memory[2]:.0f} |")  # fmt: skip
             print(lines[-1], flush=True)
-    lines += ["", f"Medians of 5 runs after a warm-up; {load_average()} on 2 cores.", ""]
+    lines += ["", f"Medians of 11 rounds (each round times the three in turn) after a warm-up; {load_average()} "
+              "on 2 cores.", ""]
 
 
 def main():

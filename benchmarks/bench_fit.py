@@ -29,16 +29,6 @@ from godrays_jax.losses import mse_loss, ssim
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def median_seconds(function, *args, repeats=5):
-    jax.block_until_ready(function(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(function(*args))
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def interleaved_medians(functions, *args, rounds=11):
     """Median seconds of each function, timed in turn round after round (a shared machine's slow spells hit all)."""
     for function in functions:

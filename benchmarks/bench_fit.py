@@ -1,8 +1,9 @@
 """Fitting figures: the path-traced fog frame, parameter recovery, fit time, gradient cost and memory.
 
-Run as a script (CPU here; no GPU is lent to this project's sessions):
+Run as a script, on the CPU or a GPU (JAX's default device):
 
     python benchmarks/bench_fit.py [--only fog,recovery,time,grad] [--out benchmarks/fit_results.md]
+    python benchmarks/bench_fit.py --only time,grad --time-size 1080x1920 --sizes 1080x1920   # the GPU figures
 
 Timings are medians of repeated runs after a warm-up (compilation reported
 separately); memory is XLA's compiled temporary-buffer size
@@ -48,6 +49,16 @@ def temp_mib(function, *args):
 
 def load_average() -> str:
     return "load average " + ", ".join(f"{value:.1f}" for value in os.getloadavg())
+
+
+def device_name() -> str:
+    device = jax.devices()[0]
+    return device.platform if device.platform == "cpu" else f"{device.platform} {device.device_kind}"
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    height, width = (int(v) for v in text.split("x"))
+    return height, width
 
 
 def resized(buffers, height, width):
@@ -213,10 +224,10 @@ SIX = ("extinction", "max_distance", "anisotropy", "sun_irradiance")
 timing fit: they change few pixels and made 50 Levenberg-Marquardt steps end unconverged (23 % off)."""
 
 
-def bench_time(lines, repeats):
-    """A 6-parameter ScatteringFog fit at 480x270 to a frame rendered with known parameters."""
+def bench_time(lines, repeats, height, width):
+    """A 6-parameter ScatteringFog fit at `width`x`height` to a frame rendered with known parameters."""
     frame, _, light, fov = colonnade()
-    frame, light = resized(frame, 270, 480), light * 1.5
+    frame, light = resized(frame, height, width), light * jnp.array([width / 320, height / 180])
     truth = gr.ScatteringFog(extinction=0.015, max_distance=60.0, anisotropy=0.85, shaft_strength=0.7, density=0.8,
                              decay=0.95, fov_x_deg=fov, ambient=(0.05, 0.03, 0.02), sun_irradiance=(0.6, 0.45, 0.27))  # fmt: skip
     start = eqx.tree_at(lambda e: [getattr(e, n) for n in SIX], truth,
@@ -231,14 +242,14 @@ def bench_time(lines, repeats):
     errors = max(float(np.max(np.abs(np.asarray(getattr(results[-1].effect, n)) / np.asarray(getattr(truth, n)) - 1)))
                  for n in SIX)  # fmt: skip
     warm = statistics.median(seconds[1:])
-    lines += ["## Fit time: 6 parameters at 480x270 (ScatteringFog, 32 samples)", "",
+    lines += [f"## Fit time: 6 parameters at {width}x{height} (ScatteringFog, 32 samples, {device_name()})", "",
               f"Fitted {', '.join(SIX)} from the participating_media values to a frame rendered with known ones: "
               f"{results[-1].steps} steps, converged: {results[-1].converged}, largest relative error "
               f"{100 * errors:.3f} %.", "",
               f"- first fit (with compilation): {seconds[0]:.1f} s",
               f"- later fits (compiled step reused), median of {len(seconds) - 1}: {warm:.1f} s "
               f"(so compilation about {seconds[0] - warm:.1f} s)",
-              f"- {load_average()} on 2 cores while measuring", ""]  # fmt: skip
+              f"- {load_average()} on {os.cpu_count()} cores while measuring", ""]  # fmt: skip
     print("\n".join(lines[-6:]), flush=True)
 
 
@@ -281,7 +292,7 @@ def bench_gradient(lines, sizes):
                          f"{fwd_mode:.3f} ({fwd_mode / forward:.1f}x) | {memory[0]:.0f} / {memory[1]:.0f} / {memory[2]:.0f} |")  # fmt: skip
             print(lines[-1], flush=True)
     lines += ["", f"Medians of 11 rounds (each round times the three in turn) after a warm-up; {load_average()} "
-              "on 2 cores.", ""]
+              f"on {os.cpu_count()} CPU cores, {device_name()}.", ""]
 
 
 def main():
@@ -291,20 +302,21 @@ def main():
     parser.add_argument("--fog-steps", type=int, default=30, help="solver steps for the ScatteringFog fit")
     parser.add_argument("--additive-steps", type=int, default=15, help="solver steps for the additive models' fits")
     parser.add_argument("--recovery-steps", type=int, default=40)
-    parser.add_argument("--repeats", type=int, default=3, help="fits timed at 480x270 (the first compiles)")
+    parser.add_argument("--repeats", type=int, default=3, help="fits timed (the first compiles)")
+    parser.add_argument("--time-size", default="270x480", help="HxW of the timed fit (the GPU figure: 1080x1920)")
     parser.add_argument("--out", help="append the Markdown tables to this file")
     args = parser.parse_args()
     parts = args.only.split(",")
-    lines = [f"# bench_fit ({jax.devices()[0].platform}, jax {jax.__version__}, {os.cpu_count()} CPU cores; "
+    lines = [f"# bench_fit ({device_name()}, jax {jax.__version__}, {os.cpu_count()} CPU cores; "
              f"{load_average()} at the start)", ""]  # fmt: skip
     if "fog" in parts:
         bench_fog(lines, args.fog_steps, args.additive_steps)
     if "recovery" in parts:
         bench_recovery(lines, args.recovery_steps)
     if "time" in parts:
-        bench_time(lines, args.repeats)
+        bench_time(lines, args.repeats, *parse_size(args.time_size))
     if "grad" in parts:
-        bench_gradient(lines, [tuple(int(v) for v in size.split("x")) for size in args.sizes.split(",")])
+        bench_gradient(lines, [parse_size(size) for size in args.sizes.split(",")])
     if args.out:
         with open(args.out, "a") as stream:
             stream.write("\n".join(lines) + "\n")

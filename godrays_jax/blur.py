@@ -124,7 +124,8 @@ def gaussian_blur(
         shape[axis] = 2 * radius + 1
         weights = jnp.broadcast_to(kernel.reshape([-1 if i == axis else 1 for i in range(4)]), shape)
         return jax.lax.conv_general_dilated(
-            padded, weights, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), feature_group_count=channels
+            padded, weights, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), feature_group_count=channels,
+            precision="highest",
         )[0]
 
     return blur_axis(blur_axis(image, 0), 1)

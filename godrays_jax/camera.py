@@ -91,7 +91,7 @@ class Camera(eqx.Module):
     def to_view(self, points: Float[Array, "*N 3"]) -> Float[Array, "*N 3"]:
         """World points to view coordinates (x right, y up, z forward), scene units."""
         right, up, forward = self.basis()
-        return (points - self.position) @ jnp.stack([right, up, forward], axis=1)
+        return jnp.matmul(points - self.position, jnp.stack([right, up, forward], axis=1), precision="highest")
 
     def ray_directions(self) -> Float[Array, "H W 3"]:
         """View-space directions through every pixel centre, scaled so the

@@ -221,7 +221,7 @@ def _forward_mode(function):
         (y,), (tangent,) = primals, tangents
         basis = jnp.eye(y.shape[0], dtype=y.dtype)
         value, jacobian = jax.vmap(lambda direction: jax.jvp(function, (y,), (direction,)), out_axes=(None, -1))(basis)
-        return value, jacobian @ tangent
+        return value, jnp.matmul(jacobian, tangent, precision="highest")
 
     return wrapped
 
@@ -378,32 +378,35 @@ def fit(
     function = _residual_function if least_squares else _objective_function
     f_struct = jax.eval_shape(lambda: function(y0, data)[0])
 
-    loss_before = float(_evaluate(effect, data))
-    history = [loss_before]
-    y = y0
-    state = _init(optimiser, function, y, data, f_struct)
-    done, result = _terminate(optimiser, function, y, state, data)
-    steps = 0
-    while steps < max_steps and not bool(done):
-        y, state = _step(optimiser, function, y, state, data)
+    # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
+    with jax.default_matmul_precision("highest"):
+        loss_before = float(_evaluate(effect, data))
+        history = [loss_before]
+        y = y0
+        state = _init(optimiser, function, y, data, f_struct)
         done, result = _terminate(optimiser, function, y, state, data)
-        steps += 1
-        if steps > 1:  # after the first step the state holds the start's loss, already recorded
-            history.append(_accepted_loss(state, least_squares))
-        if progress is not None:
-            progress(steps, history[-1])
-    fitted_effect = problem.effect_at(y)
-    if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
-        raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
-    rounded = round_counts(fitted_effect)
-    loss_after = float(_evaluate(fitted_effect, data))
+        steps = 0
+        while steps < max_steps and not bool(done):
+            y, state = _step(optimiser, function, y, state, data)
+            done, result = _terminate(optimiser, function, y, state, data)
+            steps += 1
+            if steps > 1:  # after the first step the state holds the start's loss, already recorded
+                history.append(_accepted_loss(state, least_squares))
+            if progress is not None:
+                progress(steps, history[-1])
+        fitted_effect = problem.effect_at(y)
+        if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
+            raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
+        rounded = round_counts(fitted_effect)
+        loss_after = float(_evaluate(fitted_effect, data))
+        loss_rounded = float(_evaluate(rounded, data))
     return FitResult(
         effect=fitted_effect,
         rounded=rounded,
         loss_history=np.asarray(history),
         loss_before=loss_before,
         loss_after=loss_after,
-        loss_rounded=float(_evaluate(rounded, data)),
+        loss_rounded=loss_rounded,
         fitted=names,
         steps=steps,
         converged=bool(done) and bool(result == optx.RESULTS.successful),

@@ -125,7 +125,7 @@ def lens_dirt_intensity(
     dtype = jnp.result_type(depth, jnp.float32)
     toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=in_front, dtype=dtype)
     if view == "pixel":
-        cosine = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype) @ toward_light
+        cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_light, precision="highest")
     else:
         cosine = jnp.broadcast_to(toward_light[2], (height, width))
     occlusion = jnp.maximum(linear_depth(depth.astype(dtype), far), 0.8)
@@ -200,7 +200,7 @@ def sun_spot(
     for name, value in (("sun_distance", sun_distance), ("sun_sharpness", sun_sharpness)):
         check_scalar(value, name)
     toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=in_front, dtype=dtype)
-    cosine = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype) @ toward_light
+    cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_light, precision="highest")
     exponent = jnp.asarray(sun_distance, dtype) * 2000.0
     spot = jnp.clip(safe_power(jnp.clip(cosine, 0.0, 1.0), exponent), 0.0, 1.0)
     return (spot * jnp.asarray(sun_sharpness, dtype) * 30.0)[..., None]

@@ -100,7 +100,7 @@ def _valid_band(length: int, window: np.ndarray) -> np.ndarray:
 
 def _filter_valid(image, rows_band, cols_band):
     """Separable filtering keeping only pixels whose window lies inside the image (two matrix products)."""
-    return jnp.einsum("sw,rwc->rsc", cols_band, jnp.einsum("rh,hwc->rwc", rows_band, image))
+    return jnp.einsum("sw,rwc->rsc", cols_band, jnp.einsum("rh,hwc->rwc", rows_band, image, precision="highest"), precision="highest")
 
 
 def ssim(

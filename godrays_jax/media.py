@@ -106,7 +106,7 @@ def in_scattering(
         check_plane(lit, "lit", height, width)
     dtype = jnp.result_type(depth, jnp.float32)
     toward_sun = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=light_in_front, dtype=dtype)
-    cosine = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype) @ toward_sun
+    cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_sun, precision="highest")
     sun = henyey_greenstein(cosine, anisotropy) * jnp.asarray(lit, dtype)
     scattered = jnp.asarray(ambient, dtype) + sun[..., None] * jnp.asarray(sun_irradiance, dtype)
     opacity = 1.0 - transmittance(depth, extinction=extinction, max_distance=max_distance)

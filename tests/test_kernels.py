@@ -348,3 +348,29 @@ def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
     for addressing in ("clamp", "zero"):
         kernel = jax.jit(lambda *a, addressing=addressing: gr.scaled_copies(*a, addressing=addressing))
         check_grads(kernel, args, order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+@pytest.mark.parametrize("copies", [1, 11, 16])
+@pytest.mark.parametrize("addressing", ["clamp", "zero"])
+def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
+    """A GPU sums `COPIES_PER_STEP` copies per loop step from 2-D corner gathers, a CPU one copy per step through
+    transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for
+    copy counts below, between and at multiples of the step, lights on and off screen."""
+    from godrays_jax.rays import _copy_sums_batched, _copy_sums_by_planes
+
+    image = jnp.asarray(random_image(rng))
+    derivative_image = jnp.asarray(random_image(rng, channels=2))
+    scales = jnp.asarray(rng.uniform(-0.3, 1.4, copies))
+    weights = jnp.asarray(rng.uniform(0.1, 1.0, copies))
+    jacobians = (jnp.asarray(rng.normal(size=(copies, 3))), jnp.asarray(rng.normal(size=(copies, 3))))
+    for light in (LIGHTS["on_screen"], LIGHTS["off_screen"]):
+        args = (image, derivative_image, jnp.asarray(light), scales, weights, jacobians)
+        expected = jax.jit(lambda *a: _copy_sums_by_planes(addressing, True, *a))(*args)
+        actual = jax.jit(lambda *a: _copy_sums_batched(addressing, True, *a))(*args)
+        total, derivative_total, schedule_sums, light_sums = expected
+        assert total.shape == (WIDTH, 3 * HEIGHT) and schedule_sums.shape == (WIDTH, 3 * HEIGHT, 3)
+        for got, want in zip(jax.tree.leaves(actual), jax.tree.leaves(expected), strict=True):
+            assert_close(got, want, 1e-12)
+        without = jax.jit(lambda *a: _copy_sums_batched(addressing, False, *a))(image, None, *args[2:5], None)
+        assert without[1:] == (None, None, None)
+        assert_close(without[0], total, 1e-12)

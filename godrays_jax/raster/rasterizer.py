@@ -88,9 +88,9 @@ def _flatten(scene: Scene, camera: Camera, object_scales: tuple[float | None, ..
         else:
             world, world_normals = obj.world_triangles(local_scale=scale)
             face_normal = jnp.cross(world[:, 1] - world[:, 0], world[:, 2] - world[:, 0])
-            facing_camera = jnp.einsum("fi,fi->f", world[:, 0] - camera.position, face_normal) < 0
+            facing_camera = jnp.einsum("fi,fi->f", world[:, 0] - camera.position, face_normal, precision="highest") < 0
             corners.append(camera.to_view(world))
-            normals.append(world_normals @ to_view)
+            normals.append(jnp.matmul(world_normals, to_view, precision="highest"))
             triangle_object.append(jnp.full(world.shape[0], index, jnp.int32))
             triangle_drawn.append(facing_camera | obj.double_sided)
     if not corners:
@@ -125,7 +125,7 @@ def _triangle_setup(geometry: _Geometry, camera: Camera) -> tuple[Float[Array, "
     v0, v1, v2 = geometry.corners[:, 0], geometry.corners[:, 1], geometry.corners[:, 2]
     edge_normals = jnp.stack([jnp.cross(v1, v2), jnp.cross(v2, v0), jnp.cross(v0, v1)], axis=1)
     plane = edge_normals.sum(axis=1)
-    plane_offset = jnp.einsum("ni,ni->n", v0, plane)
+    plane_offset = jnp.einsum("ni,ni->n", v0, plane, precision="highest")
     orientation = jnp.where(plane_offset < 0, -1.0, 1.0)
     edges = _pixel_affine(edge_normals, camera)
     edge_gradient = jnp.sqrt(jnp.sum(edges[..., :2] ** 2, axis=-1, keepdims=True) + 1e-30)
@@ -242,7 +242,7 @@ def _triangle_table(geometry: _Geometry, camera: Camera) -> Float[Array, "N 27"]
     v0, v1, v2 = geometry.corners[:, 0], geometry.corners[:, 1], geometry.corners[:, 2]
     edge_normals = jnp.stack([jnp.cross(v1, v2), jnp.cross(v2, v0), jnp.cross(v0, v1)], axis=1)
     # View space is left-handed, so a positive plane offset means the front face is seen.
-    back_facing = jnp.einsum("ni,ni->n", v0, edge_normals.sum(axis=1)) < 0
+    back_facing = jnp.einsum("ni,ni->n", v0, edge_normals.sum(axis=1), precision="highest") < 0
     normals = jnp.where(back_facing[:, None, None], -geometry.corner_normals, geometry.corner_normals)
     count = geometry.corners.shape[0]
     return jnp.concatenate(

@@ -91,7 +91,7 @@ def _rotation_matrix(rotation_deg: Float[Array, "3"]) -> Float[Array, "3 3"]:
     rx = jnp.array([[one, zero, zero], [zero, cx, -sx], [zero, sx, cx]])
     ry = jnp.array([[cy, zero, sy], [zero, one, zero], [-sy, zero, cy]])
     rz = jnp.array([[cz, -sz, zero], [sz, cz, zero], [zero, zero, one]])
-    return rz @ ry @ rx
+    return jnp.matmul(jnp.matmul(rz, ry, precision="highest"), rx, precision="highest")
 
 
 class Mesh(eqx.Module):
@@ -151,13 +151,13 @@ class Mesh(eqx.Module):
     def world_triangles(self, *, local_scale: float | Array = 1.0) -> tuple[Float[Array, "F 3 3"], Float[Array, "F 3 3"]]:
         """World-space corners `(F, 3, 3)` and unit shading normals at each corner."""
         rotation = _rotation_matrix(self.rotation_deg)
-        world_vertices = (self.vertices * (self.scale * local_scale)) @ rotation.T + self.translation
+        world_vertices = jnp.matmul(self.vertices * (self.scale * local_scale), rotation.T, precision="highest") + self.translation
         corners = world_vertices[self.faces]
         if self.normals is None:
             face_normal = jnp.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
             normals = jnp.broadcast_to(face_normal[:, None, :], corners.shape)
         else:
-            normals = ((self.normals / self.scale) @ rotation.T)[self.faces]
+            normals = jnp.matmul(self.normals / self.scale, rotation.T, precision="highest")[self.faces]
         normals = normals / jnp.maximum(jnp.linalg.norm(normals, axis=-1, keepdims=True), 1e-30)
         return corners, normals
 

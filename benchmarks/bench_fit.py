@@ -288,8 +288,8 @@ def bench_gradient(lines, sizes):
                 [jax.jit(loss), jax.jit(jax.value_and_grad(loss)), jax.jit(forward_mode)], values
             )
             memory = [temp_mib(loss, values), temp_mib(jax.value_and_grad(loss), values), temp_mib(forward_mode, values)]
-            lines.append(f"| {model} | {width}x{height} | {forward:.3f} | {reverse:.3f} ({reverse / forward:.1f}x) | "
-                         f"{fwd_mode:.3f} ({fwd_mode / forward:.1f}x) | {memory[0]:.0f} / {memory[1]:.0f} / {memory[2]:.0f} |")  # fmt: skip
+            lines.append(f"| {model} | {width}x{height} | {forward:.3g} | {reverse:.3g} ({reverse / forward:.1f}x) | "
+                         f"{fwd_mode:.3g} ({fwd_mode / forward:.1f}x) | {memory[0]:.0f} / {memory[1]:.0f} / {memory[2]:.0f} |")  # fmt: skip
             print(lines[-1], flush=True)
     lines += ["", f"Medians of 11 rounds (each round times the three in turn) after a warm-up; {load_average()} "
               f"on {os.cpu_count()} CPU cores, {device_name()}.", ""]

@@ -291,7 +291,7 @@ def _corners(image, row_taps, col_taps):
 
 def _copy_sums_batched(addressing, light_varies, image, derivative_image, light_xy, scales, weights, jacobians):
     """`_copy_sums` for a GPU: one copy per loop step, unrolled `COPIES_PER_STEP` times so XLA fuses those copies."""
-    height, width, channels = image.shape
+    height, width, _ = image.shape
     dtype = image.dtype
     x_offsets = jnp.arange(width, dtype=dtype) + 0.5 - light_xy[0]
     y_offsets = jnp.arange(height, dtype=dtype) + 0.5 - light_xy[1]

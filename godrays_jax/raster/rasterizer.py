@@ -42,7 +42,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from godrays_jax.buffers import Buffers
 from godrays_jax.camera import Camera
-from godrays_jax.raster.scene import DirectionalLight, Mesh, Scene, Sphere
+from godrays_jax.raster.scene import DirectionalLight, Scene, Sphere
 
 GLOW_SOURCE_SCALE = 1.3
 GLOW_OCCLUDER_SCALE = 0.8

@@ -355,6 +355,9 @@ def fit(
     to_space(jnp.zeros((1, 1, 1)), space)  # validates `space` before any tracing
     optimiser = _solver(solver, loss, rtol, atol)
     least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
+    # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
+    # loss compile twice: once for them, once for the fitted effect's.
+    effect = jax.tree.map(lambda leaf: jnp.asarray(leaf, leaf.dtype) if eqx.is_array(leaf) else leaf, effect)
     frames, lights, targets, in_front = _as_frames(buffers, light_xy, target, light_in_front)
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)

@@ -3,6 +3,7 @@
 import json
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -81,6 +82,20 @@ def test_a_second_fit_of_the_same_problem_reuses_the_compilation(two_frame_fit):
     # A recompilation of the solver step takes seconds even for these tiny frames.
     assert time.perf_counter() - started < 5.0
     np.testing.assert_allclose(again.effect.density, TRUTH["density"], rtol=0.02)
+
+
+def test_a_weakly_typed_start_compiles_the_loss_once(caplog):
+    """`eqx.tree_at(..., jnp.asarray(0.6))` gives a weakly typed field; the fitted effect's are not."""
+    frame = _frame()
+    effect = _rays(max_samples=6, num_samples=6.0)  # a problem no other test compiles
+    target = eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.8))(frame, LIGHT)
+    start = eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.6))
+    assert start.density.aval.weak_type
+    with jax.log_compiles(), caplog.at_level("WARNING"):
+        result = fit(start, frame, LIGHT, target, fixed=FIXED_RAYS + ("decay", "exposure"), max_steps=5)
+    compiled = [r.getMessage() for r in caplog.records if "XLA compilation of jit(_evaluate)" in r.getMessage()]
+    assert len(compiled) == 1, compiled
+    assert result.loss_after < result.loss_before
 
 
 def test_minimiser_with_ssim_loss_improves_and_counts_round():

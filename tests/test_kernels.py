@@ -355,7 +355,8 @@ def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
 def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     """A GPU sums `COPIES_PER_STEP` copies per loop step from 2-D corner gathers, a CPU one copy per step through
     transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for
-    copy counts below, between and at multiples of the step, lights on and off screen."""
+    copy counts below, between and at multiples of the step, lights on and off screen, jitted and under vmap
+    (the CPU loop eagerly)."""
     from godrays_jax.rays import _copy_sums_batched, _copy_sums_by_planes
 
     image = jnp.asarray(random_image(rng))
@@ -374,3 +375,10 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
         without = jax.jit(lambda *a: _copy_sums_batched(addressing, False, *a))(image, None, *args[2:5], None)
         assert without[1:] == (None, None, None)
         assert_close(without[0], total, 1e-12)
+    lights = jnp.asarray([LIGHTS["on_screen"], LIGHTS["off_screen"]])
+    batched = jax.vmap(lambda light: _copy_sums_batched(addressing, True, image, derivative_image, light, scales,
+                                                        weights, jacobians))(lights)  # fmt: skip
+    for index, light in enumerate(lights):
+        expected = _copy_sums_by_planes(addressing, True, image, derivative_image, light, scales, weights, jacobians)
+        for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(expected), strict=True):
+            assert_close(got[index], want, 1e-12)

@@ -215,52 +215,101 @@ def _copy_derivatives(planes: _Planes, by_rows, k, columns, col_taps, col_slopes
     return x_derivative, y_derivative
 
 
+BLOCKED_SIZE = 2**22
+"""Images of at least this many numbers (`H * W * C`) are summed in blocks of output rows on a CPU.
+
+All copies of one block of `ROWS_PER_BLOCK` output rows are summed before the
+next block, so a block's sums and rows stay in cache instead of streaming
+through memory once per copy. Measured on 2 cores, GodRays with 128 samples:
+at 1920x1080 RGB the forward pass is 2.2x and value and gradient 1.65x faster
+in blocks; at 1920x1080 with one channel no faster, at 960x540 RGB the
+gradient 10 % slower (a loop step's overhead), hence the threshold.
+"""
+
+ROWS_PER_BLOCK = 64
+"""Output rows per block (the divisor of the image's height nearest to it is used)."""
+
+
+def _rows_per_block(height: int, width: int, channels: int) -> int:
+    if height * width * channels < BLOCKED_SIZE:
+        return height
+    return min((d for d in range(1, height + 1) if height % d == 0), key=lambda d: abs(d - ROWS_PER_BLOCK))
+
+
 def _copy_sums_by_planes(addressing, light_varies, image, derivative_image, light_xy, scales, weights, jacobians):
-    """`_copy_sums` for a CPU: one copy per loop step, as rows gathered, transposed and gathered again (`_Planes`)."""
+    """`_copy_sums` for a CPU: one copy per loop step, as rows gathered, transposed and gathered again (`_Planes`).
+
+    Large images are summed block by block of output rows (`BLOCKED_SIZE`).
+    """
     dtype = image.dtype
     planes = _Planes(image.shape)
     by_rows = planes.by_rows(image)
-    col_offsets, row_offsets = _offsets(planes, light_xy, dtype)
     if derivative_image is not None:
         derivative_planes = _Planes(derivative_image.shape)
         derivative_by_rows = derivative_planes.by_rows(derivative_image)
     moves = jacobians is not None or light_varies
+    height, width, channels = planes.height, planes.width, planes.channels
+    block = _rows_per_block(height, width, channels)
+    col_offsets = (jnp.arange(width, dtype=dtype) + 0.5 - light_xy[0])[:, None]
 
-    def add_copy(k, sums):
-        total, derivative_total, schedule_sums, light_sums = sums
-        (col_taps, col_slopes), (row_taps, row_slopes) = _copy_taps(planes, light_xy, scales[k], addressing, dtype)
-        columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
-        copy = _lerp_rows(columns, col_taps)
-        total = total + weights[k] * copy
-        if derivative_image is not None:
-            derivative_rows = derivative_planes.sample_rows(derivative_by_rows, row_taps)
-            derivative_columns = derivative_planes.rows_to_columns(k, derivative_rows)
-            derivative_total = derivative_total + weights[k] * _lerp_rows(derivative_columns, col_taps)
-        if moves:
-            x_derivative, y_derivative = _copy_derivatives(planes, by_rows, k, columns, col_taps, col_slopes, row_slopes)
-        if jacobians is not None:
-            scale_jacobian, weight_jacobian = jacobians
-            radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
-            # The numbers along the last axis: each copy is read once for all of them.
-            schedule_sums = (
-                schedule_sums
-                + weight_jacobian[k] * copy[..., None]
-                + (weights[k] * scale_jacobian[k]) * radial_derivative[..., None]
+    def sums_of_block(first_row):
+        """The sums for output rows `first_row .. first_row + block` of every plane: `(W, C * block)` each."""
+        rows = jax.lax.dynamic_slice_in_dim(jnp.arange(height, dtype=dtype) + 0.5 - light_xy[1], first_row, block)
+        row_offsets = jnp.tile(rows, channels)[None, :]
+
+        def add_copy(k, sums):
+            total, derivative_total, schedule_sums, light_sums = sums
+            (col_taps, col_slopes), (row_taps, row_slopes) = _copy_taps(planes, light_xy, scales[k], addressing, dtype)
+            row_taps, row_slopes = (
+                tuple(jax.lax.dynamic_slice_in_dim(values, first_row, block) for values in taps)
+                for taps in (row_taps, row_slopes)
             )
-        if light_varies:
-            # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale.
-            step = weights[k] * (1.0 - scales[k])
-            light_sums = (light_sums[0] + step * x_derivative, light_sums[1] + step * y_derivative)
-        return total, derivative_total, schedule_sums, light_sums
+            columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
+            copy = _lerp_rows(columns, col_taps)
+            total = total + weights[k] * copy
+            if derivative_image is not None:
+                derivative_rows = derivative_planes.sample_rows(derivative_by_rows, row_taps)
+                derivative_columns = derivative_planes.rows_to_columns(k, derivative_rows)
+                derivative_total = derivative_total + weights[k] * _lerp_rows(derivative_columns, col_taps)
+            if moves:
+                x_derivative, y_derivative = _copy_derivatives(
+                    planes, by_rows, k, columns, col_taps, col_slopes, row_slopes
+                )
+            if jacobians is not None:
+                scale_jacobian, weight_jacobian = jacobians
+                radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
+                # The numbers along the last axis: each copy is read once for all of them.
+                schedule_sums = (
+                    schedule_sums
+                    + weight_jacobian[k] * copy[..., None]
+                    + (weights[k] * scale_jacobian[k]) * radial_derivative[..., None]
+                )
+            if light_varies:
+                # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale.
+                step = weights[k] * (1.0 - scales[k])
+                light_sums = (light_sums[0] + step * x_derivative, light_sums[1] + step * y_derivative)
+            return total, derivative_total, schedule_sums, light_sums
 
-    zeros = planes.zeros(dtype)
-    sums = (
-        zeros,
-        None if derivative_image is None else _Planes(derivative_image.shape).zeros(dtype),
-        None if jacobians is None else jnp.zeros(zeros.shape + jacobians[0].shape[1:], dtype),
-        (zeros, zeros) if light_varies else None,
-    )
-    return jax.lax.fori_loop(0, scales.shape[0], add_copy, sums)
+        zeros = jnp.zeros((width, channels * block), dtype)
+        sums = (
+            zeros,
+            None if derivative_image is None else jnp.zeros((width, derivative_planes.channels * block), dtype),
+            None if jacobians is None else jnp.zeros(zeros.shape + jacobians[0].shape[1:], dtype),
+            (zeros, zeros) if light_varies else None,
+        )
+        return jax.lax.fori_loop(0, scales.shape[0], add_copy, sums)
+
+    if block == height:
+        return sums_of_block(0)
+    blocks = jax.lax.map(sums_of_block, jnp.arange(0, height, block))
+
+    def joined(values):
+        """`(blocks, W, C * block, ...)` back to the column layout `(W, C * H, ...)`."""
+        count, _, planes_and_rows = values.shape[:3]
+        split = values.reshape((count, width, planes_and_rows // block, block) + values.shape[3:])
+        return jnp.moveaxis(split, 0, 2).reshape((width, planes_and_rows // block * height) + values.shape[3:])
+
+    return jax.tree.map(joined, blocks)
 
 
 COPIES_PER_STEP = 8

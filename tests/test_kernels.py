@@ -382,3 +382,35 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
         expected = _copy_sums_by_planes(addressing, True, image, derivative_image, light, scales, weights, jacobians)
         for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(expected), strict=True):
             assert_close(got[index], want, 1e-12)
+
+
+def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
+    """Large images are summed block by block of output rows on a CPU (`BLOCKED_SIZE`); forced here on small ones,
+    with blocks of 3 rows, every sum equals the GPU loop's and the kernels' values and gradients are unchanged."""
+    from godrays_jax import rays
+    from godrays_jax.rays import _copy_sums_batched, _copy_sums_by_planes
+
+    image = jnp.asarray(random_image(rng, height=12, width=7))
+    copies = 11
+    args = (image, jnp.asarray(random_image(rng, channels=2, height=12, width=7)), jnp.asarray(LIGHTS["on_screen"]),
+            jnp.asarray(rng.uniform(-0.3, 1.4, copies)), jnp.asarray(rng.uniform(0.1, 1.0, copies)),
+            (jnp.asarray(rng.normal(size=(copies, 2))), jnp.asarray(rng.normal(size=(copies, 2)))))  # fmt: skip
+    light, scales, weights = args[2:5]
+
+    def kernel(image, light, scales, weights):
+        return gr.scaled_copies(image, light, scales, weights, addressing="zero")
+
+    unblocked = kernel(image, light, scales, weights)
+    monkeypatch.setattr(rays, "BLOCKED_SIZE", 0)
+    monkeypatch.setattr(rays, "ROWS_PER_BLOCK", 3)
+    assert rays._rows_per_block(12, 7, 3) == 3
+    jax.clear_caches()  # traced loops are cached by shape
+    for addressing in ("clamp", "zero"):
+        blocked = jax.jit(lambda *a, addressing=addressing: _copy_sums_by_planes(addressing, True, *a))(*args)
+        expected = _copy_sums_batched(addressing, True, *args)
+        for got, want in zip(jax.tree.leaves(blocked), jax.tree.leaves(expected), strict=True):
+            assert_close(got, want, 1e-12)
+    assert_close(jax.jit(kernel)(image, light, scales, weights), unblocked, 1e-12)
+    check_grads(jax.jit(kernel), (image, light, scales[:3], weights[:3]), order=1, modes=("fwd", "rev"), eps=1e-6)
+    jax.clear_caches()
+

@@ -227,13 +227,16 @@ gradient 10 % slower (a loop step's overhead), hence the threshold.
 """
 
 ROWS_PER_BLOCK = 64
-"""Output rows per block (the divisor of the image's height nearest to it is used)."""
+"""Output rows per block: the divisor of the image's height nearest to it, if within a factor 2 of it."""
 
 
 def _rows_per_block(height: int, width: int, channels: int) -> int:
+    """Rows per block, or `height` (one block) for a small image or a height with no divisor near `ROWS_PER_BLOCK`."""
     if height * width * channels < BLOCKED_SIZE:
         return height
-    return min((d for d in range(1, height + 1) if height % d == 0), key=lambda d: abs(d - ROWS_PER_BLOCK))
+    rows = min((d for d in range(1, height + 1) if height % d == 0), key=lambda d: abs(d - ROWS_PER_BLOCK))
+    # Blocks of a few rows (a prime height) would cost a loop step per copy and row.
+    return rows if ROWS_PER_BLOCK // 2 <= rows <= 2 * ROWS_PER_BLOCK else height
 
 
 def _copy_sums_by_planes(addressing, light_varies, image, derivative_image, light_xy, scales, weights, jacobians):
@@ -250,7 +253,7 @@ def _copy_sums_by_planes(addressing, light_varies, image, derivative_image, ligh
     moves = jacobians is not None or light_varies
     height, width, channels = planes.height, planes.width, planes.channels
     block = _rows_per_block(height, width, channels)
-    col_offsets = (jnp.arange(width, dtype=dtype) + 0.5 - light_xy[0])[:, None]
+    col_offsets, _ = _offsets(planes, light_xy, dtype)
 
     def sums_of_block(first_row):
         """The sums for output rows `first_row .. first_row + block` of every plane: `(W, C * block)` each."""

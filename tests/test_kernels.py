@@ -401,6 +401,8 @@ def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
         return gr.scaled_copies(image, light, scales, weights, addressing="zero")
 
     unblocked = kernel(image, light, scales, weights)
+    assert rays._rows_per_block(1080, 1920, 3) == 60
+    assert rays._rows_per_block(1091, 1920, 3) == 1091, "a prime height is one block, not 1091 blocks of a row"
     monkeypatch.setattr(rays, "BLOCKED_SIZE", 0)
     monkeypatch.setattr(rays, "ROWS_PER_BLOCK", 3)
     assert rays._rows_per_block(12, 7, 3) == 3

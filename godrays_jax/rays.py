@@ -250,7 +250,8 @@ def _copy_sums_by_planes(addressing, light_varies, image, derivative_image, ligh
     if derivative_image is not None:
         derivative_planes = _Planes(derivative_image.shape)
         derivative_by_rows = derivative_planes.by_rows(derivative_image)
-    moves = jacobians is not None or light_varies
+    scale_jacobian, weight_jacobian = jacobians
+    moves = scale_jacobian is not None or light_varies
     height, width, channels = planes.height, planes.width, planes.channels
     block = _rows_per_block(height, width, channels)
     col_offsets, _ = _offsets(planes, light_xy, dtype)
@@ -261,7 +262,7 @@ def _copy_sums_by_planes(addressing, light_varies, image, derivative_image, ligh
         row_offsets = jnp.tile(rows, channels)[None, :]
 
         def add_copy(k, sums):
-            total, derivative_total, schedule_sums, light_sums = sums
+            total, derivative_total, scale_sums, weight_sums, light_sums = sums
             (col_taps, col_slopes), (row_taps, row_slopes) = _copy_taps(planes, light_xy, scales[k], addressing, dtype)
             row_taps, row_slopes = (
                 tuple(jax.lax.dynamic_slice_in_dim(values, first_row, block) for values in taps)
@@ -278,26 +279,23 @@ def _copy_sums_by_planes(addressing, light_varies, image, derivative_image, ligh
                 x_derivative, y_derivative = _copy_derivatives(
                     planes, by_rows, k, columns, col_taps, col_slopes, row_slopes
                 )
-            if jacobians is not None:
-                scale_jacobian, weight_jacobian = jacobians
+            # The numbers along the last axis: each copy is read once for all of them.
+            if scale_jacobian is not None:
                 radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
-                # The numbers along the last axis: each copy is read once for all of them.
-                schedule_sums = (
-                    schedule_sums
-                    + weight_jacobian[k] * copy[..., None]
-                    + (weights[k] * scale_jacobian[k]) * radial_derivative[..., None]
-                )
+                scale_sums = scale_sums + (weights[k] * scale_jacobian[k]) * radial_derivative[..., None]
+            if weight_jacobian is not None:
+                weight_sums = weight_sums + weight_jacobian[k] * copy[..., None]
             if light_varies:
                 # Positions `light + (p - light) * scale`: d/d(light) = 1 - scale.
                 step = weights[k] * (1.0 - scales[k])
                 light_sums = (light_sums[0] + step * x_derivative, light_sums[1] + step * y_derivative)
-            return total, derivative_total, schedule_sums, light_sums
+            return total, derivative_total, scale_sums, weight_sums, light_sums
 
         zeros = jnp.zeros((width, channels * block), dtype)
         sums = (
             zeros,
             None if derivative_image is None else jnp.zeros((width, derivative_planes.channels * block), dtype),
-            None if jacobians is None else jnp.zeros(zeros.shape + jacobians[0].shape[1:], dtype),
+            *(None if jacobian is None else jnp.zeros(zeros.shape + jacobian.shape[1:], dtype) for jacobian in jacobians),
             (zeros, zeros) if light_varies else None,
         )
         return jax.lax.fori_loop(0, scales.shape[0], add_copy, sums)
@@ -347,10 +345,11 @@ def _copy_sums_batched(addressing, light_varies, image, derivative_image, light_
     dtype = image.dtype
     x_offsets = jnp.arange(width, dtype=dtype) + 0.5 - light_xy[0]
     y_offsets = jnp.arange(height, dtype=dtype) + 0.5 - light_xy[1]
-    moves = jacobians is not None or light_varies
+    scale_jacobian, weight_jacobian = jacobians
+    moves = scale_jacobian is not None or light_varies
 
     def add_copy(k, sums):
-        total, derivative_total, schedule_sums, light_sums = sums
+        total, derivative_total, scale_sums, weight_sums, light_sums = sums
         scale, weight = scales[k], weights[k]
         col_taps, col_slopes = _taps_and_slopes(width, light_xy[0] + x_offsets * scale - 0.5, addressing)
         row_taps, row_slopes = _taps_and_slopes(height, light_xy[1] + y_offsets * scale - 0.5, addressing)
@@ -363,28 +362,26 @@ def _copy_sums_batched(addressing, light_varies, image, derivative_image, light_
         if moves:
             x_derivative = _bilinear(corners, row_taps[2:], col_slopes[2:])
             y_derivative = _bilinear(corners, row_slopes[2:], col_taps[2:])
-        if jacobians is not None:
-            scale_jacobian, weight_jacobian = jacobians
+        if scale_jacobian is not None:
             radial = x_derivative * x_offsets[:, None] + y_derivative * y_offsets[:, None, None]
-            schedule_sums = tuple(
-                number_sum + weight_factor * copy + (weight * scale_factor) * radial
-                for number_sum, weight_factor, scale_factor in zip(schedule_sums, weight_jacobian[k], scale_jacobian[k])
-            )
+            scale_sums = tuple(sum_ + (weight * factor) * radial for sum_, factor in zip(scale_sums, scale_jacobian[k]))
+        if weight_jacobian is not None:
+            weight_sums = tuple(sum_ + factor * copy for sum_, factor in zip(weight_sums, weight_jacobian[k]))
         if light_varies:
             moved = weight * (1.0 - scale)
             light_sums = (light_sums[0] + moved * x_derivative, light_sums[1] + moved * y_derivative)
-        return total, derivative_total, schedule_sums, light_sums
+        return total, derivative_total, scale_sums, weight_sums, light_sums
 
     zeros = jnp.zeros(image.shape, dtype)
     sums = (
         zeros,
         None if derivative_image is None else jnp.zeros(derivative_image.shape, dtype),
-        None if jacobians is None else (zeros,) * jacobians[0].shape[1],
+        *(None if jacobian is None else (zeros,) * jacobian.shape[1] for jacobian in jacobians),
         (zeros, zeros) if light_varies else None,
     )
     count = scales.shape[0]
     sums = jax.lax.fori_loop(0, count, add_copy, sums, unroll=max(1, min(COPIES_PER_STEP, count)))
-    total, derivative_total, schedule_sums, light_sums = sums
+    total, derivative_total, scale_sums, weight_sums, light_sums = sums
 
     def as_columns(values):
         """`(H, W, C, ...)` in `_Planes`' column layout `(W, C*H, ...)`."""
@@ -394,7 +391,8 @@ def _copy_sums_batched(addressing, light_varies, image, derivative_image, light_
     return (
         as_columns(total),
         None if derivative_image is None else as_columns(derivative_total),
-        None if jacobians is None else as_columns(jnp.stack(schedule_sums, axis=-1)),
+        *(None if number_sums is None else as_columns(jnp.stack(number_sums, axis=-1))
+          for number_sums in (scale_sums, weight_sums)),
         None if light_sums is None else tuple(as_columns(light_sum) for light_sum in light_sums),
     )
 
@@ -403,12 +401,15 @@ def _copy_sums(addressing, light_varies, image, derivative_image, light_xy, scal
     """The copies' sum and, for forward-mode derivatives, the sums of their derivative images.
 
     With `image (H, W, C)` and `K` copies: the weighted copies' sum; if
-    `derivative_image (H, W, C')` is given, its copies' sum; if `jacobians`
-    (the scales' and weights' Jacobians, `(K, P)` each) are given, per number
-    the sum of every copy's derivative (the copy and its radial derivative
-    `(p - light) . grad`); if `light_varies`, the sums of the copies' x and y
-    derivatives times `1 - scale` (their derivatives in the light). All in
-    `_Planes`' column layout `(W, C*H)` (with `P` last); absent ones are None.
+    `derivative_image (H, W, C')` is given, its copies' sum; `jacobians` is the
+    scales' Jacobian `(K, S)` and the weights' `(K, V)` in the few numbers each
+    depends on (either may be None): per scale number the sum of every copy's
+    radial derivative `(p - light) . grad` times its weight and its scale's
+    derivative, per weight number the sum of every copy times its weight's
+    derivative; if `light_varies`, the sums of the copies' x and y
+    derivatives times `1 - scale` (their derivatives in the light). Returns
+    `(total, derivative_total, scale_sums, weight_sums, light_sums)` in
+    `_Planes`' column layout `(W, C*H)` (numbers last); absent ones are None.
     The CPU and other platforms get different loops (same values).
     """
     operands = (image, derivative_image, light_xy, scales, weights, jacobians)
@@ -421,57 +422,86 @@ def _copy_sums(addressing, light_varies, image, derivative_image, light_xy, scal
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
 def _scaled_copies(image_fn, schedule, addressing, image_args, light_xy, schedule_args):
-    """`scaled_copies(image_fn(*image_args), light_xy, *schedule(*schedule_args))`, differentiable in every argument."""
+    """`scaled_copies(image_fn(*image_args), light_xy, scales, weights)`, differentiable in every argument.
+
+    `schedule = (scales_fn, weights_fn)` and `schedule_args = (scale_args,
+    weight_args)`: `scales = scales_fn(*scale_args)`, `weights =
+    weights_fn(*weight_args)`. Keeping them apart lets the derivative loop sum
+    radial derivatives only for the numbers that move the copies and copies
+    only for the numbers that weight them.
+    """
     image = image_fn(*image_args)
-    scales, weights = schedule(*schedule_args)
-    total, _, _, _ = _copy_sums(addressing, False, image, None, light_xy, scales, weights, None)
+    (scales_fn, weights_fn), (scale_args, weight_args) = schedule, schedule_args
+    total, _, _, _, _ = _copy_sums(
+        addressing, False, image, None, light_xy, scales_fn(*scale_args), weights_fn(*weight_args), (None, None)
+    )
     return _Planes(image.shape).image_from_columns(total)
+
+
+def _differentiated(function, args, tangents):
+    """`function(*args)`, with its forward-mode Jacobian in the few differentiated numbers of `args`.
+
+    Returns the value, the Jacobian (numbers on the last axis; None without
+    few numbers), those numbers' tangents (flattened) and the inputs of many
+    numbers `(leaves, tree, tangent_leaves, indices)` (see `FEW_NUMBERS`).
+    """
+    leaves, tree, tangent_leaves, few, many = _split_varying(args, tangents)
+    if few:
+        value, jacobian, direction = _forward_derivatives(function, leaves, tree, tangent_leaves, few)
+    else:
+        value, jacobian, direction = function(*args), None, None
+    return value, jacobian, direction, (leaves, tree, tangent_leaves, many)
+
+
+def _tangent_of(function, part):
+    """The tangent of `function` in the inputs of many numbers of `part` (from `_differentiated`), or None."""
+    leaves, tree, tangent_leaves, many = part
+    if not many:
+        return None
+    _, tangent = jax.jvp(
+        lambda *values: function(*_replaced(leaves, tree, many, values)),
+        [leaves[i] for i in many],
+        [jnp.asarray(tangent_leaves[i]) for i in many],
+    )
+    return tangent
 
 
 @functools.partial(_scaled_copies.defjvp, symbolic_zeros=True)
 def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
-    image_args, light_xy, schedule_args = primals
-    image_tangents, light_dot, schedule_tangents = tangents
-    leaves, tree, image_dots, few_image, many_image = _split_varying(image_args, image_tangents)
-    schedule_leaves, schedule_tree, schedule_dots, few_schedule, many_schedule = _split_varying(
-        schedule_args, schedule_tangents
-    )
+    image_args, light_xy, (scale_args, weight_args) = primals
+    image_tangents, light_dot, (scale_tangents, weight_tangents) = tangents
+    scales_fn, weights_fn = schedule
     light_varies = type(light_dot) is not SymbolicZero
-    if few_image:
-        image, image_jacobian, image_direction = _forward_derivatives(image_fn, leaves, tree, image_dots, few_image)
-    else:
-        image = image_fn(*image_args)
-    if few_schedule:
-        (scales, weights), (scale_jacobian, weight_jacobian), schedule_direction = _forward_derivatives(
-            schedule, schedule_leaves, schedule_tree, schedule_dots, few_schedule
-        )
-    else:
-        scales, weights = schedule(*schedule_args)
+    image, image_jacobian, image_direction, image_part = _differentiated(image_fn, image_args, image_tangents)
+    scales, scale_jacobian, scale_direction, scale_part = _differentiated(scales_fn, scale_args, scale_tangents)
+    weights, weight_jacobian, weight_direction, weight_part = _differentiated(weights_fn, weight_args, weight_tangents)
     dtype = image.dtype
     planes = _Planes(image.shape)
     # One loop computes the copies' sum and, for every differentiated input
     # of few numbers, the image its tangent multiplies: the sum over copies of
-    # the copy's derivative in that input. The copies' weights and scales act
-    # through the copy and its radial derivative `(p - light) . grad`, the
-    # light's sampling through its x and y derivatives times `1 - scale`, and
-    # the image's few inputs through their derivative images sampled like it.
-    total, derivative_total, schedule_sums, light_sums = _copy_sums(
+    # the copy's derivative in that input. The copies' scales act through
+    # their radial derivatives `(p - light) . grad`, the weights through the
+    # copies, the light's sampling through their x and y derivatives times
+    # `1 - scale`, and the image's few inputs through their derivative images
+    # sampled like it.
+    total, derivative_total, scale_sums, weight_sums, light_sums = _copy_sums(
         addressing,
         light_varies,
         image,
-        image_jacobian.reshape(planes.height, planes.width, -1) if few_image else None,
+        None if image_jacobian is None else image_jacobian.reshape(planes.height, planes.width, -1),
         light_xy,
         scales,
         weights,
-        (scale_jacobian, weight_jacobian) if few_schedule else None,
+        (scale_jacobian, weight_jacobian),
     )
 
     tangent = jnp.zeros_like(total)
-    if few_image:
+    if image_jacobian is not None:
         by_number = derivative_total.reshape(planes.width, planes.channels, image_direction.size, planes.height)
         tangent += jnp.einsum("wcqh,q->wch", by_number, image_direction, precision="highest").reshape(total.shape)
-    if few_schedule:
-        tangent += jnp.matmul(schedule_sums, schedule_direction, precision="highest")
+    for number_sums, direction in ((scale_sums, scale_direction), (weight_sums, weight_direction)):
+        if number_sums is not None:
+            tangent += jnp.matmul(number_sums, direction, precision="highest")
     if light_varies:
         tangent += jnp.tensordot(jnp.asarray(light_dot, dtype), jnp.stack(light_sums), 1, precision="highest")
 
@@ -480,35 +510,24 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
     # image's tangent is sampled like the image (reverse mode scatters whole
     # rows); per-copy weight and scale tangents multiply the copy and its
     # radial derivative (reverse mode reduces the cotangent against them).
-    if many_image or many_schedule:
+    image_dot, scales_dot, weights_dot = (
+        _tangent_of(function, part)
+        for function, part in ((image_fn, image_part), (scales_fn, scale_part), (weights_fn, weight_part))
+    )
+    if image_dot is not None or scales_dot is not None or weights_dot is not None:
         tangent += _tangent_of_many(
-            planes, addressing, image_fn, schedule, image, light_xy, scales, weights,
-            (leaves, tree, image_dots, many_image), (schedule_leaves, schedule_tree, schedule_dots, many_schedule),
-        )  # fmt: skip
+            planes, addressing, image, light_xy, scales, weights, image_dot, scales_dot, weights_dot
+        )
     return planes.image_from_columns(total), planes.image_from_columns(tangent)
 
 
-def _tangent_of_many(planes, addressing, image_fn, schedule, image, light_xy, scales, weights, image_part, schedule_part):
-    """The tangent of the copies' sum in the inputs of many numbers, in the column layout (see `_scaled_copies_jvp`)."""
-    leaves, tree, image_dots, many_image = image_part
-    schedule_leaves, schedule_tree, schedule_dots, many_schedule = schedule_part
+def _tangent_of_many(planes, addressing, image, light_xy, scales, weights, image_dot, scales_dot, weights_dot):
+    """The copies' sum's tangent in the image's, scales' and weights' tangents (None: zero), in the column layout."""
     dtype = image.dtype
     by_rows = planes.by_rows(image)
     col_offsets, row_offsets = _offsets(planes, light_xy, dtype)
-    image_dot = None
-    if many_image:
-        _, image_dot = jax.jvp(
-            lambda *values: image_fn(*_replaced(leaves, tree, many_image, values)),
-            [leaves[i] for i in many_image],
-            [jnp.asarray(image_dots[i]) for i in many_image],
-        )
+    if image_dot is not None:
         image_dot_by_rows = planes.by_rows(image_dot)
-    if many_schedule:
-        _, (scales_dot, weights_dot) = jax.jvp(
-            lambda *values: schedule(*_replaced(schedule_leaves, schedule_tree, many_schedule, values)),
-            [schedule_leaves[i] for i in many_schedule],
-            [jnp.asarray(schedule_dots[i]) for i in many_schedule],
-        )
 
     @jax.checkpoint
     def add_tangent(k, total_dot):
@@ -516,22 +535,20 @@ def _tangent_of_many(planes, addressing, image_fn, schedule, image, light_xy, sc
         if image_dot is not None:
             columns_dot = planes.rows_to_columns(k, planes.sample_rows(image_dot_by_rows, row_taps))
             total_dot += weights[k] * _lerp_rows(columns_dot, col_taps)
-        if many_schedule:
+        if scales_dot is not None or weights_dot is not None:
             columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
+        if weights_dot is not None:
+            total_dot += weights_dot[k] * _lerp_rows(columns, col_taps)
+        if scales_dot is not None:
             x_derivative, y_derivative = _copy_derivatives(planes, by_rows, k, columns, col_taps, col_slopes, row_slopes)
             radial_derivative = x_derivative * col_offsets + y_derivative * row_offsets
-            copy = _lerp_rows(columns, col_taps)
-            total_dot += weights_dot[k] * copy + (weights[k] * scales_dot[k]) * radial_derivative
+            total_dot += (weights[k] * scales_dot[k]) * radial_derivative
         return total_dot
 
     return jax.lax.fori_loop(0, scales.shape[0], add_tangent, planes.zeros(dtype))
 
 
-def _vector_schedule(scales, weights):
-    return scales, weights
-
-
-def _the_image(image):
+def _identity(image):
     return image
 
 
@@ -572,7 +589,7 @@ def scaled_copies(
     if scales.ndim != 1 or scales.shape != weights.shape:
         raise ValueError(f"scales and weights must be vectors of one length, got {scales.shape} and {weights.shape}")
     light_xy = jnp.asarray(light_xy, dtype)
-    return _scaled_copies(_the_image, _vector_schedule, addressing, (image,), light_xy, (scales, weights))
+    return _scaled_copies(_identity, (_identity, _identity), addressing, (image,), light_xy, ((scales,), (weights,)))
 
 
 def _powers(base, length: int, dtype):
@@ -633,7 +650,7 @@ def radial_rays(
     """
     check_image(image)
     return _radial_rays(
-        _the_image,
+        _identity,
         (jnp.asarray(image),),
         light_xy,
         num_samples=num_samples,
@@ -646,17 +663,17 @@ def radial_rays(
     )
 
 
-def _radial_schedule(loop_length: int, relaxed: bool, density, decay, count):
-    """Seed 003's sample scales `1 - i * density / n` and weights `decay**(i-1)` (relaxed: times the fade-in)."""
-    dtype = density.dtype
-    steps = jnp.arange(1, loop_length + 1, dtype=dtype)
-    # At n = 0 every weight is 0; a unit divisor keeps the (unused) positions finite.
-    divisor = jnp.where(count > 0, count, 1.0) if relaxed else count
-    scales = 1.0 - steps * (density / divisor)
-    weights = _powers(decay, loop_length, dtype)
+def _radial_scales(loop_length: int, step):
+    """Seed 003's sample scales `1 - i * step` (i = 1..loop_length), `step = density / n`."""
+    return 1.0 - jnp.arange(1, loop_length + 1, dtype=step.dtype) * step
+
+
+def _faded_powers(loop_length: int, relaxed: bool, decay, count):
+    """Weights `decay**j` (j = 0..loop_length-1); relaxed, times the fade-in `clip(count - j, 0, 1)`."""
+    weights = _powers(decay, loop_length, decay.dtype)
     if relaxed:
-        weights = weights * jnp.clip(count - steps + 1.0, 0.0, 1.0)
-    return scales, weights
+        weights = weights * jnp.clip(count - jnp.arange(loop_length, dtype=decay.dtype), 0.0, 1.0)
+    return weights
 
 
 def _window_of(image_fn, size, origin, *image_args):
@@ -683,9 +700,12 @@ def _radial_rays(image_fn, image_args, light_xy, *, num_samples, density, decay,
         count = checked_count(num_samples, loop_length, "num_samples", "max_samples", dtype)
     else:
         count = jnp.asarray(num_samples, dtype)
-    schedule = functools.partial(_radial_schedule, loop_length, relaxed)
+    schedule = (functools.partial(_radial_scales, loop_length), functools.partial(_faded_powers, loop_length, relaxed))
+    # At n = 0 every weight is 0; a unit divisor keeps the (unused) positions finite.
+    step = jnp.asarray(density, dtype) / (jnp.where(count > 0, count, 1.0) if relaxed else count)
+    # The scales depend on density and n only through the step: one radial derivative sum in the loop for both.
     # `weight` scales every sample alike, so it multiplies their sum: one derivative image fewer in the loop.
-    schedule_args = (jnp.asarray(density, dtype), jnp.asarray(decay, dtype), count)
+    schedule_args = ((step,), (jnp.asarray(decay, dtype), count))
     weight = jnp.asarray(weight, dtype)
     exposure = jnp.asarray(exposure, dtype)
     light_xy = jnp.asarray(light_xy, dtype)
@@ -769,19 +789,14 @@ def scale_iterated_flares(
     """
     check_image(masked, "masked")
     return _scale_iterated_flares(
-        _the_image, (jnp.asarray(masked),), light_xy, num_iters=num_iters, scale_step=scale_step, decay=decay,
+        _identity, (jnp.asarray(masked),), light_xy, num_iters=num_iters, scale_step=scale_step, decay=decay,
         max_iters=max_iters,
     )  # fmt: skip
 
 
-def _flare_schedule(loop_length: int, relaxed: bool, scale_step, decay, count):
-    """kbEngine's copy scales `scale_step**-k` and weights `decay**k` (relaxed: times the fade-in)."""
-    dtype = scale_step.dtype
-    scales = _powers(1.0 / scale_step, loop_length, dtype)
-    weights = _powers(decay, loop_length, dtype)
-    if relaxed:
-        weights = weights * jnp.clip(count - jnp.arange(loop_length, dtype=dtype), 0.0, 1.0)
-    return scales, weights
+def _flare_scales(loop_length: int, scale_step):
+    """kbEngine's copy scales `scale_step**-k` (k = 0..loop_length-1)."""
+    return _powers(1.0 / scale_step, loop_length, scale_step.dtype)
 
 
 def _scale_iterated_flares(image_fn, image_args, light_xy, *, num_iters, scale_step, decay=1.0, max_iters=None):
@@ -795,6 +810,6 @@ def _scale_iterated_flares(image_fn, image_args, light_xy, *, num_iters, scale_s
         count = checked_count(num_iters, loop_length, "num_iters", "max_iters", dtype)
     else:
         count = jnp.asarray(num_iters, dtype)
-    schedule = functools.partial(_flare_schedule, loop_length, relaxed)
-    schedule_args = (jnp.asarray(scale_step, dtype), jnp.asarray(decay, dtype), count)
+    schedule = (functools.partial(_flare_scales, loop_length), functools.partial(_faded_powers, loop_length, relaxed))
+    schedule_args = ((jnp.asarray(scale_step, dtype),), (jnp.asarray(decay, dtype), count))
     return _scaled_copies(image_fn, schedule, "zero", image_args, jnp.asarray(light_xy, dtype), schedule_args)

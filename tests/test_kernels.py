@@ -363,18 +363,25 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     derivative_image = jnp.asarray(random_image(rng, channels=2))
     scales = jnp.asarray(rng.uniform(-0.3, 1.4, copies))
     weights = jnp.asarray(rng.uniform(0.1, 1.0, copies))
-    jacobians = (jnp.asarray(rng.normal(size=(copies, 3))), jnp.asarray(rng.normal(size=(copies, 3))))
+    jacobians = (jnp.asarray(rng.normal(size=(copies, 2))), jnp.asarray(rng.normal(size=(copies, 3))))
     for light in (LIGHTS["on_screen"], LIGHTS["off_screen"]):
         args = (image, derivative_image, jnp.asarray(light), scales, weights, jacobians)
         expected = jax.jit(lambda *a: _copy_sums_by_planes(addressing, True, *a))(*args)
         actual = jax.jit(lambda *a: _copy_sums_batched(addressing, True, *a))(*args)
-        total, derivative_total, schedule_sums, light_sums = expected
-        assert total.shape == (WIDTH, 3 * HEIGHT) and schedule_sums.shape == (WIDTH, 3 * HEIGHT, 3)
+        total, derivative_total, scale_sums, weight_sums, light_sums = expected
+        assert total.shape == (WIDTH, 3 * HEIGHT) and scale_sums.shape == (WIDTH, 3 * HEIGHT, 2)
+        assert weight_sums.shape == (WIDTH, 3 * HEIGHT, 3)
         for got, want in zip(jax.tree.leaves(actual), jax.tree.leaves(expected), strict=True):
             assert_close(got, want, 1e-12)
-        without = jax.jit(lambda *a: _copy_sums_batched(addressing, False, *a))(image, None, *args[2:5], None)
-        assert without[1:] == (None, None, None)
+        without = jax.jit(lambda *a: _copy_sums_batched(addressing, False, *a))(image, None, *args[2:5], (None, None))
+        assert without[1:] == (None, None, None, None)
         assert_close(without[0], total, 1e-12)
+        for only in ((jacobians[0], None), (None, jacobians[1])):
+            for loop in (_copy_sums_batched, _copy_sums_by_planes):
+                sums = jax.jit(lambda *a, loop=loop: loop(addressing, False, *a))(image, None, *args[2:5], only)
+                assert (sums[2] is None, sums[3] is None) == (only[0] is None, only[1] is None)
+                assert_close(sums[2] if only[1] is None else sums[3], scale_sums if only[1] is None else weight_sums,
+                             1e-12)  # fmt: skip
     lights = jnp.asarray([LIGHTS["on_screen"], LIGHTS["off_screen"]])
     batched = jax.vmap(lambda light: _copy_sums_batched(addressing, True, image, derivative_image, light, scales,
                                                         weights, jacobians))(lights)  # fmt: skip
@@ -394,7 +401,7 @@ def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
     copies = 11
     args = (image, jnp.asarray(random_image(rng, channels=2, height=12, width=7)), jnp.asarray(LIGHTS["on_screen"]),
             jnp.asarray(rng.uniform(-0.3, 1.4, copies)), jnp.asarray(rng.uniform(0.1, 1.0, copies)),
-            (jnp.asarray(rng.normal(size=(copies, 2))), jnp.asarray(rng.normal(size=(copies, 2)))))  # fmt: skip
+            (jnp.asarray(rng.normal(size=(copies, 1))), jnp.asarray(rng.normal(size=(copies, 2)))))  # fmt: skip
     light, scales, weights = args[2:5]
 
     def kernel(image, light, scales, weights):

@@ -391,6 +391,30 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
             assert_close(got[index], want, 1e-12)
 
 
+def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
+    """Summed in blocks of rows, a gradient's memory must not grow by an image's worth per copy: a loop value
+    that is the same for every block (once, a zero output of a never-taken branch) was stored once per copy."""
+    from godrays_jax import rays
+
+    monkeypatch.setattr(rays, "BLOCKED_SIZE", 0)
+    monkeypatch.setattr(rays, "ROWS_PER_BLOCK", 8)
+    image = jnp.ones((64, 128, 3), jnp.float32)
+    jax.clear_caches()
+    temporaries = []
+    for copies in (32, 256):
+
+        def loss(density, decay, copies=copies):
+            rays_image = gr.radial_rays(image, jnp.asarray([13.3, 9.1]), num_samples=20.0, max_samples=copies,
+                                        density=density, decay=decay, weight=0.5, exposure=1.0)  # fmt: skip
+            return rays_image.sum()
+
+        compiled = jax.jit(jax.value_and_grad(loss, argnums=(0, 1))).lower(0.5, 0.9).compile()
+        temporaries.append(compiled.memory_analysis().temp_size_in_bytes)
+    jax.clear_caches()
+    # Per copy only its taps are kept (about (H + W) numbers each): well under a tenth of the image.
+    assert (temporaries[1] - temporaries[0]) / (256 - 32) < 0.15 * image.nbytes
+
+
 def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
     """Large images are summed block by block of output rows on a CPU (`BLOCKED_SIZE`); forced here on small ones,
     with blocks of 3 rows, every sum equals the GPU loop's and the kernels' values and gradients are unchanged."""

@@ -156,7 +156,8 @@ def _copy_taps(planes: _Planes, light_xy, scale, addressing: Addressing, dtype):
 
 
 FEW_NUMBERS = 8
-"""Differentiated inputs with at most this many numbers in all are differentiated in forward mode inside the loop.
+"""Differentiated inputs with at most this many numbers in all (counted for the image's inputs, and for the copies'
+scales' and weights' together) are differentiated in forward mode inside the loop.
 
 Their derivative images (of the copies' weights and scales, the light, or
 the few numbers an image is computed from) are accumulated alongside the
@@ -166,11 +167,11 @@ weights per copy) get a tangent loop that reverse mode transposes.
 """
 
 
-def _split_varying(args, tangents):
-    """The flattened `args` and tangents, and the differentiated leaves' indices: few numbers (FEW_NUMBERS), many."""
+def _split_varying(args, tangents, budget):
+    """The flattened `args` and tangents, and the differentiated leaves' indices: few numbers (`budget` in all), many."""
     leaves, tree = jax.tree.flatten(args)
     tangent_leaves = tree.flatten_up_to(tangents)
-    few, many, budget = [], [], FEW_NUMBERS
+    few, many = [], []
     for index, (leaf, tangent) in enumerate(zip(leaves, tangent_leaves)):
         if type(tangent) is SymbolicZero:
             continue
@@ -454,14 +455,15 @@ def _scaled_copies(image_fn, schedule, addressing, image_args, light_xy, schedul
     return _Planes(image.shape).image_from_columns(total)
 
 
-def _differentiated(function, args, tangents):
+def _differentiated(function, args, tangents, budget=FEW_NUMBERS):
     """`function(*args)`, with its forward-mode Jacobian in the few differentiated numbers of `args`.
 
     Returns the value, the Jacobian (numbers on the last axis; None without
     few numbers), those numbers' tangents (flattened) and the inputs of many
-    numbers `(leaves, tree, tangent_leaves, indices)` (see `FEW_NUMBERS`).
+    numbers `(leaves, tree, tangent_leaves, indices)`: the leaves that fit in
+    `budget` numbers are few (see `FEW_NUMBERS`).
     """
-    leaves, tree, tangent_leaves, few, many = _split_varying(args, tangents)
+    leaves, tree, tangent_leaves, few, many = _split_varying(args, tangents, budget)
     if few:
         value, jacobian, direction = _forward_derivatives(function, leaves, tree, tangent_leaves, few)
     else:
@@ -490,7 +492,12 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
     light_varies = type(light_dot) is not SymbolicZero
     image, image_jacobian, image_direction, image_part = _differentiated(image_fn, image_args, image_tangents)
     scales, scale_jacobian, scale_direction, scale_part = _differentiated(scales_fn, scale_args, scale_tangents)
-    weights, weight_jacobian, weight_direction, weight_part = _differentiated(weights_fn, weight_args, weight_tangents)
+    # The scales and weights share one budget: vectors of a weight per copy are many numbers even when the scales
+    # are few (a sum per number would cost more than the tangent loop).
+    weight_budget = FEW_NUMBERS - (0 if scale_direction is None else scale_direction.size)
+    weights, weight_jacobian, weight_direction, weight_part = _differentiated(
+        weights_fn, weight_args, weight_tangents, weight_budget
+    )
     dtype = image.dtype
     planes = _Planes(image.shape)
     # One loop computes the copies' sum and, for every differentiated input

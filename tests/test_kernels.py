@@ -391,6 +391,20 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
             assert_close(got[index], want, 1e-12)
 
 
+def test_scales_and_weights_share_the_few_numbers_budget():
+    """The scales and weights are differentiated in the loop (a sum per number) only up to `FEW_NUMBERS` numbers
+    together; a weight per copy beyond that takes the tangent loop. Eight scales and eight weights: 17 images of
+    temporaries for value and gradient; 24 when each vector got its own budget (16 sums)."""
+    image = jnp.ones((64, 128, 3), jnp.float32)
+
+    def total(scales, weights):
+        return gr.scaled_copies(image, jnp.asarray([30.2, 20.7]), scales, weights).sum()
+
+    args = (jnp.linspace(1.0, 0.5, 8), jnp.linspace(1.0, 0.3, 8))
+    compiled = jax.jit(jax.value_and_grad(total, argnums=(0, 1))).lower(*args).compile()
+    assert compiled.memory_analysis().temp_size_in_bytes < 20 * image.nbytes
+
+
 def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
     """Summed in blocks of rows, a gradient's memory must not grow by an image's worth per copy: a loop value
     that is the same for every block (once, a zero output of a never-taken branch) was stored once per copy."""

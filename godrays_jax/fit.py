@@ -287,6 +287,18 @@ def _evaluate(candidate, data):
 
 
 @eqx.filter_jit
+def _render(effect, buffers, light_xy, light_in_front):
+    # Compiled: the report's frame took 3.4 s op by op at 320x180, 0.6 s compiled.
+    return effect(buffers, light_xy, light_in_front=light_in_front)
+
+
+@eqx.filter_jit
+def _effect_at(problem, y):
+    # Compiled: op by op, every scalar operation compiled on its own (0.4 s).
+    return problem.effect_at(y)
+
+
+@eqx.filter_jit
 def _init(optimiser, function, y, data, f_struct):
     # Under jit the state's static parts (a linearised operator's jaxpr, compared by
     # identity) come from the compilation cache, so a later fit reuses `_step` too.
@@ -397,7 +409,7 @@ def fit(
                 history.append(_accepted_loss(state, least_squares))
             if progress is not None:
                 progress(steps, history[-1])
-        fitted_effect = problem.effect_at(y)
+        fitted_effect = _effect_at(problem, y)
         if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
         rounded = round_counts(fitted_effect)
@@ -545,7 +557,7 @@ def run_fit_command(args) -> int:
     after = result.loss_after if args.fractional_counts else result.loss_rounded
     print(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
     if args.report:
-        fitted_image = chosen(frames[0], light_positions[0], light_in_front=in_front[0])
+        fitted_image = _render(chosen, frames[0], light_positions[0], in_front[0])
         write_image(args.report, fit_report_image(targets[0], fitted_image, result.loss_history))
         print(f"wrote {args.report}")
     print(f"wrote {args.output}")

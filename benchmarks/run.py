@@ -344,7 +344,7 @@ def main(argv=None):
             add("flares", f"peer {name}", runner, peak if name in TRACED_PEERS else None, exact_flares)
 
     print()
-    print(f"| case | resolution | median time | peak memory | PSNR vs exact | " + " | ".join(f"x vs {p}" for p in peers) + " |")
+    print("| case | resolution | median time | peak memory | PSNR vs exact | " + " | ".join(f"x vs {p}" for p in peers) + " |")
     print("|---|---|---|---|---|" + "---|" * len(peers))
     for group, name, seconds, runs, peak, quality in rows:
         peer_times = {n.removeprefix("peer "): s for g, n, s, _, _, _ in rows if g == group and n.startswith("peer ")}

@@ -27,9 +27,9 @@ loop and one reduction per number, and a forward-mode Jacobian the same
 loop. The copies' scales and weights come from separate functions of their
 own parameters, so a number that only weights the copies (decay) adds a sum
 of copies and one that only moves them (density / samples, seed 003's step)
-a sum of radial derivatives. Inputs of many numbers (a whole image, one weight per copy) get a
-tangent loop that recomputes each copy and that reverse mode transposes
-(scattering the image's adjoint). See `FEW_NUMBERS`.
+a sum of radial derivatives. Inputs of many numbers (a whole image, one
+weight per copy) get a tangent loop that recomputes each copy and that
+reverse mode transposes (scattering the image's adjoint). See `FEW_NUMBERS`.
 """
 
 import functools
@@ -75,7 +75,8 @@ def _transposed_apart(step, values):
     once per copy, and returning the values themselves (reshaped) made XLA
     copy them every step (forward 50 % slower at 480x270).
     """
-    return jax.lax.cond(step >= 0, _tiled_transpose, lambda rows: jnp.broadcast_to(rows[0, 0], rows.shape[::-1]), values)
+    never_taken = lambda rows: jnp.broadcast_to(rows[0, 0], rows.shape[::-1])  # noqa: E731
+    return jax.lax.cond(step >= 0, _tiled_transpose, never_taken, values)
 
 
 class _Planes:
@@ -171,7 +172,7 @@ weights per copy) get a tangent loop that reverse mode transposes.
 
 
 def _split_varying(args, tangents, budget):
-    """The flattened `args` and tangents, and the differentiated leaves' indices: few numbers (`budget` in all), many."""
+    """The flattened `args` and tangents, and the differentiated leaves' indices: few (`budget` numbers in all), many."""
     leaves, tree = jax.tree.flatten(args)
     tangent_leaves = tree.flatten_up_to(tangents)
     few, many = [], []
@@ -318,7 +319,7 @@ def _copy_sums_by_planes(addressing, light_varies, image, derivative_image, ligh
         sums = (
             zeros,
             None if derivative_image is None else jnp.zeros((width, derivative_width), dtype),
-            *(None if jacobian is None else jnp.zeros(zeros.shape + jacobian.shape[1:], dtype) for jacobian in jacobians),
+            *(None if jac is None else jnp.zeros(zeros.shape + jac.shape[1:], dtype) for jac in jacobians),
             (zeros, zeros) if light_varies else None,
         )
         return jax.lax.fori_loop(0, scales.shape[0], add_copy, sums)

@@ -13,7 +13,6 @@ from pathlib import Path
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 
 import godrays_jax as gr

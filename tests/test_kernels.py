@@ -1,6 +1,5 @@
 """Kernels against the slow NumPy loops in reference.py: eager, jit, vmap, gradients, degenerate inputs."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np

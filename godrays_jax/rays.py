@@ -223,18 +223,21 @@ def _copy_derivatives(planes: _Planes, by_rows, k, columns, col_taps, col_slopes
     return x_derivative, y_derivative
 
 
-BLOCKED_SIZE = 2**22
+BLOCKED_SIZE = 2**21
 """Images of at least this many numbers (`H * W` times the planes sampled) are summed in blocks of output rows on a CPU.
 
 All copies of one block of `ROWS_PER_BLOCK` output rows are summed before the
 next block, so a block's sums and rows stay in cache instead of streaming
 through memory once per copy. A step samples the image's planes, and for
 derivatives also their y-slopes and any derivative image's planes. Measured on
-2 cores, GodRays with 128 samples: at 1920x1080 RGB the forward pass is 2.2x
-and value and gradient 1.65x faster in blocks; at 1920x1080 with one channel
-the forward pass (one plane) no faster, value and gradient of the disc emitter
-(three planes) 1.3x faster (891 -> 650-710 ms); at 960x540 RGB the gradient
-10 % slower (a loop step's overhead), hence the threshold.
+2 cores, GodRays with 128 samples (forward pass / value and gradient of six
+fields, one plane for the disc emitter, three for the sky's RGB): in blocks at
+1920x1080 the sky's forward pass is 2.2x faster, the disc's value and gradient
+(3 planes) 1.3x; at 1280x720 the sky's forward pass 1.6x (234 -> 145 ms), the
+disc's value and gradient 1.3x (370 -> 289 ms); at 960x540 the sky's value and
+gradient (6 planes) 1.6x (405 -> 257 ms). Below the threshold blocks cost more
+than they save: the disc's forward pass at 1280x720 (55 -> 70 ms), its value
+and gradient at 960x540 (148 -> 184 ms), the sky's at 480x270 (57 -> 62 ms).
 """
 
 ROWS_PER_BLOCK = 64

@@ -393,14 +393,16 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
 def test_scales_and_weights_share_the_few_numbers_budget():
     """The scales and weights are differentiated in the loop (a sum per number) only up to `FEW_NUMBERS` numbers
     together; a weight per copy beyond that takes the tangent loop. Eight scales and eight weights: 17 images of
-    temporaries for value and gradient; 24 when each vector got its own budget (16 sums)."""
-    image = jnp.ones((64, 128, 3), jnp.float32)
+    temporaries for value and gradient; 24 when each vector got its own budget (16 sums). The CPU loop's figures:
+    compiled for the CPU on any machine."""
+    with jax.default_device(jax.devices("cpu")[0]):
+        image = jnp.ones((64, 128, 3), jnp.float32)
 
-    def total(scales, weights):
-        return gr.scaled_copies(image, jnp.asarray([30.2, 20.7]), scales, weights).sum()
+        def total(scales, weights):
+            return gr.scaled_copies(image, jnp.asarray([30.2, 20.7]), scales, weights).sum()
 
-    args = (jnp.linspace(1.0, 0.5, 8), jnp.linspace(1.0, 0.3, 8))
-    compiled = jax.jit(jax.value_and_grad(total, argnums=(0, 1))).lower(*args).compile()
+        args = (jnp.linspace(1.0, 0.5, 8), jnp.linspace(1.0, 0.3, 8))
+        compiled = jax.jit(jax.value_and_grad(total, argnums=(0, 1))).lower(*args).compile()
     assert compiled.memory_analysis().temp_size_in_bytes < 20 * image.nbytes
 
 
@@ -411,18 +413,19 @@ def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
 
     monkeypatch.setattr(rays, "BLOCKED_SIZE", 0)
     monkeypatch.setattr(rays, "ROWS_PER_BLOCK", 8)
-    image = jnp.ones((64, 128, 3), jnp.float32)
     jax.clear_caches()
     temporaries = []
-    for copies in (32, 256):
+    with jax.default_device(jax.devices("cpu")[0]):  # the CPU loop, on any machine
+        image = jnp.ones((64, 128, 3), jnp.float32)
+        for copies in (32, 256):
 
-        def loss(density, decay, copies=copies):
-            rays_image = gr.radial_rays(image, jnp.asarray([13.3, 9.1]), num_samples=20.0, max_samples=copies,
-                                        density=density, decay=decay, weight=0.5, exposure=1.0)  # fmt: skip
-            return rays_image.sum()
+            def loss(density, decay, copies=copies):
+                rays_image = gr.radial_rays(image, jnp.asarray([13.3, 9.1]), num_samples=20.0, max_samples=copies,
+                                            density=density, decay=decay, weight=0.5, exposure=1.0)  # fmt: skip
+                return rays_image.sum()
 
-        compiled = jax.jit(jax.value_and_grad(loss, argnums=(0, 1))).lower(0.5, 0.9).compile()
-        temporaries.append(compiled.memory_analysis().temp_size_in_bytes)
+            compiled = jax.jit(jax.value_and_grad(loss, argnums=(0, 1))).lower(0.5, 0.9).compile()
+            temporaries.append(compiled.memory_analysis().temp_size_in_bytes)
     jax.clear_caches()
     # Per copy only its taps are kept (about (H + W) numbers each): well under a tenth of the image.
     assert (temporaries[1] - temporaries[0]) / (256 - 32) < 0.15 * image.nbytes

@@ -264,7 +264,7 @@ def bench_gradient(lines, sizes):
               "temp MiB forward / reverse / forward-mode |", "|---|---|---|---|---|---|"]  # fmt: skip
     models = {
         "GodRays sky, 128 samples": (gr.GodRays(source="sky", num_samples=100.0, max_samples=128), FITTED_RAYS),
-        # The default disc emitter depends on light_radius: its gradient runs the image's adjoint through the loop.
+        # The disc emitter depends on light_radius: its derivative image is a third plane sampled by every copy.
         "GodRays disc, 128 samples": (gr.GodRays(source="disc", num_samples=100.0, max_samples=128), FITTED_RAYS),
         "ScatteringFog, 32 samples": (gr.preset("participating_media"), SIX),
     }

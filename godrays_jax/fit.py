@@ -46,7 +46,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.buffers import Buffers
 from godrays_jax.effects import Effect, parameter_bounds
-from godrays_jax.losses import LOSSES, Space, to_space
+from godrays_jax.losses import LOSSES, Space, check_space, to_space
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
@@ -175,7 +175,8 @@ def _as_frames(buffers, light_xy, target, light_in_front):
             )
         lights.append(light)
         targets.append(image)
-    return buffers, lights, targets, [jnp.asarray(flag) for flag in light_in_front]
+    # From NumPy: `jnp.asarray(True)` compiles a conversion.
+    return buffers, lights, targets, [jnp.asarray(np.asarray(flag)) for flag in light_in_front]
 
 
 def _match_channels(image, target):
@@ -293,27 +294,50 @@ def _render(effect, buffers, light_xy, light_in_front):
 
 
 @eqx.filter_jit
-def _effect_at(problem, y):
-    # Compiled: op by op, every scalar operation compiled on its own (0.4 s).
-    return problem.effect_at(y)
+def _start_point(problem, dtype):
+    """The flat unit-scaled unknowns of the starting effect."""
+    return jnp.concatenate([
+        jnp.ravel(_to_unit(jnp.asarray(getattr(problem.effect, name), dtype), low, high))
+        for name, (low, high) in zip(problem.names, problem.bounds)
+    ])  # fmt: skip
 
 
 @eqx.filter_jit
-def _init(optimiser, function, y, data, f_struct):
-    # Under jit the state's static parts (a linearised operator's jaxpr, compared by
-    # identity) come from the compilation cache, so a later fit reuses `_step` too.
-    return optimiser.init(function, y, data, {}, f_struct, None, frozenset())
+def _fitted_effects(problem, y):
+    """The fitted effect and its counts rounded, compiled (op by op each scalar operation compiles on its own)."""
+    effect = problem.effect_at(y)
+    return effect, round_counts(effect)
 
 
 @eqx.filter_jit
-def _step(optimiser, function, y, state, data):
+def _init(optimiser, function, y, data):
+    """The solver's first state and whether it is done already.
+
+    Under jit the state's static parts (a linearised operator's jaxpr,
+    compared by identity) come from the compilation cache, so a later fit
+    reuses `_step` too; the residuals' shape is found here, not by tracing
+    the effect again on every fit.
+    """
+    f_struct = jax.eval_shape(lambda: function(y, data)[0])
+    state = optimiser.init(function, y, data, {}, f_struct, None, frozenset())
+    done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
+    return state, done, result
+
+
+@eqx.filter_jit
+def _step(optimiser, function, y, state, data, least_squares):
+    """One solver step: the new unknowns and state, whether it is done, and the loss at its last accepted point."""
     y, state, _ = optimiser.step(function, y, data, {}, state, frozenset())
-    return y, state
+    done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
+    accepted_loss = jnp.sum(state.f_info.residual**2) if least_squares else state.f_info.f
+    return y, state, done, result, accepted_loss
 
 
-@eqx.filter_jit
-def _terminate(optimiser, function, y, state, data):
-    return optimiser.terminate(function, y, data, {}, state, frozenset())
+def _strongly_typed(leaf):
+    """A weakly typed array (`jnp.asarray(0.5)`) as a strongly typed one; converted on the host (no compilation)."""
+    if isinstance(leaf, jax.Array) and leaf.weak_type:
+        return jax.device_put(np.asarray(leaf))
+    return leaf
 
 
 def fit(
@@ -364,12 +388,12 @@ def fit(
         raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
     if not (isinstance(max_steps, int) and max_steps >= 0):
         raise ValueError(f"max_steps must be an int >= 0, got {max_steps!r}")
-    to_space(jnp.zeros((1, 1, 1)), space)  # validates `space` before any tracing
+    check_space(space)
     optimiser = _solver(solver, loss, rtol, atol)
     least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
-    effect = jax.tree.map(lambda leaf: jnp.asarray(leaf, leaf.dtype) if eqx.is_array(leaf) else leaf, effect)
+    effect = jax.tree.map(_strongly_typed, effect)
     frames, lights, targets, in_front = _as_frames(buffers, light_xy, target, light_in_front)
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
@@ -388,31 +412,26 @@ def fit(
         loss=loss,
         space=space,
     )
-    y0 = jnp.concatenate([jnp.ravel(_to_unit(jnp.asarray(getattr(effect, n), dtype), *bounds[n])) for n in names])
     data = (problem, (frames, lights, targets, in_front))
     function = _residual_function if least_squares else _objective_function
-    f_struct = jax.eval_shape(lambda: function(y0, data)[0])
 
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
     with jax.default_matmul_precision("highest"):
         loss_before = float(_evaluate(effect, data))
         history = [loss_before]
-        y = y0
-        state = _init(optimiser, function, y, data, f_struct)
-        done, result = _terminate(optimiser, function, y, state, data)
+        y = _start_point(problem, np.dtype(dtype))
+        state, done, result = _init(optimiser, function, y, data)
         steps = 0
         while steps < max_steps and not bool(done):
-            y, state = _step(optimiser, function, y, state, data)
-            done, result = _terminate(optimiser, function, y, state, data)
+            y, state, done, result, accepted_loss = _step(optimiser, function, y, state, data, least_squares)
             steps += 1
             if steps > 1:  # after the first step the state holds the start's loss, already recorded
-                history.append(_accepted_loss(state, least_squares))
+                history.append(float(accepted_loss))
             if progress is not None:
                 progress(steps, history[-1])
-        fitted_effect = _effect_at(problem, y)
+        fitted_effect, rounded = _fitted_effects(problem, y)
         if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
-        rounded = round_counts(fitted_effect)
         loss_after = float(_evaluate(fitted_effect, data))
         loss_rounded = float(_evaluate(rounded, data))
     return FitResult(
@@ -426,13 +445,6 @@ def fit(
         steps=steps,
         converged=bool(done) and bool(result == optx.RESULTS.successful),
     )
-
-
-def _accepted_loss(state, least_squares: bool) -> float:
-    """The loss at the solver's last accepted point, read from its state (no extra evaluation)."""
-    if least_squares:
-        return float(jnp.sum(state.f_info.residual**2))
-    return float(state.f_info.f)
 
 
 def default_fit_effect() -> Effect:

@@ -26,13 +26,16 @@ Space = Literal["display", "linear"]
 SPACES: tuple[str, ...] = ("display", "linear")
 
 
+def check_space(space) -> None:
+    """Raise `ValueError` naming `space` unless it is one of `SPACES`."""
+    if space not in SPACES:
+        raise ValueError(f"space must be one of {', '.join(SPACES)}; got {space!r}")
+
+
 def to_space(image: Float[Array, "H W C"], space: Space = "display") -> Float[Array, "H W C"]:
     """Map a linear image into a comparison space (see the module docstring)."""
-    if space == "display":
-        return image / (1.0 + jnp.abs(image))
-    if space == "linear":
-        return image
-    raise ValueError(f"space must be one of {', '.join(SPACES)}; got {space!r}")
+    check_space(space)
+    return image / (1.0 + jnp.abs(image)) if space == "display" else image
 
 
 def _pair(image, target, space):

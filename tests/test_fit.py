@@ -98,6 +98,40 @@ def test_a_weakly_typed_start_compiles_the_loss_once(caplog):
     assert result.loss_after < result.loss_before
 
 
+def test_a_fit_compiles_only_its_own_steps(caplog):
+    """No operation outside the solver's compiled functions is compiled on its own (each costs a compilation)."""
+    frame = _frame()
+    fixed = FIXED_RAYS + ("decay", "exposure")
+    # optimistix and equinox build a few constants on their first use in a process: a first fit of
+    # another size and other unknowns, whose operations compiled one by one would not serve the next.
+    small = gr.Buffers(color=frame.color[:16], depth=frame.depth[:16], coverage=frame.coverage[:16])
+    effect = _rays(max_samples=3, num_samples=3.0)
+    fit(effect, small, LIGHT, effect(small, LIGHT), fixed=FIXED_RAYS + ("exposure",), max_steps=1)
+    effect = _rays(max_samples=5, num_samples=5.0)  # a problem no other test compiles
+    target = eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.8, jnp.float32))(frame, LIGHT)
+    with jax.log_compiles(), caplog.at_level("WARNING"):
+        fit(effect, frame, LIGHT, target, fixed=fixed, max_steps=3)
+    compiled = {r.getMessage().split()[4] for r in caplog.records if r.getMessage().startswith("Finished XLA")}
+    assert compiled == {f"jit({name})" for name in ("_start_point", "_init", "_step", "_evaluate", "_fitted_effects")}
+
+
+def test_a_repeated_fit_traces_and_compiles_nothing(caplog, monkeypatch):
+    frame = _frame()
+    effect = _rays(max_samples=4, num_samples=4.0)  # a problem no other test compiles
+    target = eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.8, jnp.float32))(frame, LIGHT)
+    traced = []
+    call = gr.GodRays.__call__
+    monkeypatch.setattr(gr.GodRays, "__call__", lambda self, *args, **kwargs: traced.append(1) or call(self, *args, **kwargs))
+    fit(effect, frame, LIGHT, target, fixed=FIXED_RAYS + ("decay", "exposure"), max_steps=3)
+    assert traced
+    traced.clear()
+    with jax.log_compiles(), caplog.at_level("WARNING"):
+        result = fit(effect, frame, LIGHT, target, fixed=FIXED_RAYS + ("decay", "exposure"), max_steps=3)
+    assert not traced
+    assert not [r.getMessage() for r in caplog.records if r.getMessage().startswith("Finished XLA")]
+    assert result.loss_after < result.loss_before
+
+
 def test_minimiser_with_ssim_loss_improves_and_counts_round():
     frame = _frame()
     target = _rays(density=0.8, decay=0.9, exposure=0.3, num_samples=8.0)(frame, LIGHT)

@@ -40,6 +40,7 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
@@ -198,7 +199,10 @@ def _solver(solver, loss, rtol, atol):
     if solver in ("levenberg_marquardt", "gauss_newton") and loss != "mse":
         raise ValueError(f"solver={solver!r} fits least squares (loss='mse') only; use solver='bfgs' for loss={loss!r}")
     if solver == "levenberg_marquardt":
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+        # Damped steps by the normal equations (J^T J + lambda I is positive definite for any lambda > 0; a
+        # 6x6 Cholesky for 6 parameters) instead of optimistix's default QR of the whole Jacobian, which
+        # took half of a compiled 480x270 fit (0.43 -> 0.22 s; at 1920x1080 6.4 -> 5.7 s).
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     if solver == "gauss_newton":
         return optx.GaussNewton(rtol=rtol, atol=atol)
     return optx.BFGS(rtol=rtol, atol=atol)
@@ -372,6 +376,9 @@ def fit(
         solver: `"auto"` (Levenberg-Marquardt for `"mse"`, BFGS otherwise),
             `"levenberg_marquardt"`, `"gauss_newton"`, `"bfgs"`, or an
             optimistix least-squares solver (MSE only) or minimiser.
+            Levenberg-Marquardt solves its damped steps by the normal
+            equations (parameters x parameters, Cholesky), the others with
+            optimistix's default linear solvers.
         fixed: names of fittable fields to leave as they are.
         max_steps: solver steps at most (each evaluates the effect and its
             Jacobian once).

@@ -229,7 +229,7 @@ def _add_fit(subparsers) -> None:
     parser.add_argument("--space", choices=("display", "linear"), default="display", help="compare in x/(1+x) (default) or linear")
     parser.add_argument(
         "--solver", choices=("auto", "levenberg_marquardt", "gauss_newton", "bfgs"), default="auto",
-        help="auto: Levenberg-Marquardt for mse, BFGS otherwise",
+        help="auto: Levenberg-Marquardt for mse, BFGS otherwise; gauss_newton needs a start near the solution",
     )  # fmt: skip
     parser.add_argument("--fixed", metavar="A,B", help="comma-separated fields to keep as they are")
     parser.add_argument("--max-steps", type=int, default=50, help="solver steps at most (default 50)")

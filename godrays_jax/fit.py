@@ -378,7 +378,8 @@ def fit(
             optimistix least-squares solver (MSE only) or minimiser.
             Levenberg-Marquardt solves its damped steps by the normal
             equations (parameters x parameters, Cholesky), the others with
-            optimistix's default linear solvers.
+            optimistix's default linear solvers. Gauss-Newton takes full,
+            undamped steps: use it from a start near the solution.
         fixed: names of fittable fields to leave as they are.
         max_steps: solver steps at most (each evaluates the effect and its
             Jacobian once).

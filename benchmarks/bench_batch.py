@@ -37,9 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax import batch
-from godrays_jax.cli import DEFAULT_PRESET
-from godrays_jax.io import read_frame, write_frame_like
+from godrays_jax.pipeline import batch
+from godrays_jax.app.cli import DEFAULT_PRESET
+from godrays_jax.primitives.io import read_frame, write_frame_like
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
 

@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.fit import fit
-from godrays_jax.losses import mse_loss, ssim
+from godrays_jax.pipeline.fit import fit
+from godrays_jax.kernels.losses import mse_loss, ssim
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -15,7 +15,7 @@ import time
 import jax
 import numpy as np
 
-from godrays_jax.camera import Camera
+from godrays_jax.primitives.camera import Camera
 from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sphere, plan_tile_capacity, render, uv_sphere
 
 

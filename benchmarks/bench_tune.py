@@ -23,8 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.buffers import Buffers
-from godrays_jax.tune import HOST, Tuner, TuneServer
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.app.tune import HOST, Tuner, TuneServer
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
 

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax import fast
+from godrays_jax.kernels import fast
 
 TRACED_PEERS = ("numpy", "opencv")  # their arrays are NumPy's, which tracemalloc sees
 RAYS = dict(num_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.15)

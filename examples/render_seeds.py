@@ -12,8 +12,8 @@ from pathlib import Path
 
 import jax.numpy as jnp
 
-from godrays_jax.effects import preset
-from godrays_jax.io import write_image
+from godrays_jax.effects.effects import preset
+from godrays_jax.primitives.io import write_image
 from godrays_jax.raster import light_pixel, load_scene, render
 
 SCENES = Path(__file__).parent / "scenes"

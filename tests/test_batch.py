@@ -1,4 +1,4 @@
-"""Tests for godrays_jax.batch and `godrays-jax batch`: sequences, bad frames, resume, devices, I/O that keeps the input."""
+"""Tests for godrays_jax.pipeline.batch and `godrays-jax batch`: sequences, bad frames, resume, devices, I/O that keeps the input."""
 
 import json
 import os
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax import batch
-from godrays_jax.cli import DEFAULT_PRESET, main
-from godrays_jax.io import read_frame, write_frame_like
+from godrays_jax.pipeline import batch
+from godrays_jax.app.cli import DEFAULT_PRESET, main
+from godrays_jax.primitives.io import read_frame, write_frame_like
 
 H, W = 16, 24
 ROOT = Path(__file__).resolve().parents[1]
@@ -304,7 +304,7 @@ def test_progress_line():
 
 
 def _cli(*args: str, env: dict | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "godrays_jax.cli", "batch", *args],
+    return subprocess.Popen([sys.executable, "-m", "godrays_jax", "batch", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)  # fmt: skip
 
 
@@ -344,7 +344,7 @@ def test_frames_spread_over_two_devices(tmp_path):
     pattern = str(tmp_path / "in" / "shot.####.exr")
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     script = (
-        "import json, sys, godrays_jax as gr; from godrays_jax import batch\n"
+        "import json, sys, godrays_jax as gr; from godrays_jax.pipeline import batch\n"
         f"jobs = batch.plan_batch(batch.expand_frames({pattern!r}), {str(tmp_path / 'two')!r})\n"
         "report = batch.run_batch(jobs, gr.preset('xna_crepuscular'), batch.METADATA, progress=None)\n"
         "print(json.dumps(dict(devices=report.devices, compilations=report.compilations, written=len(report.written))))\n"

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from godrays_jax.camera import Camera, project_point
+from godrays_jax.primitives.camera import Camera, project_point
 
 SCENES_JSON = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes.json"  # shared/ beside the checkout
 

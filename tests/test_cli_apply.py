@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.cli import main
+from godrays_jax.app.cli import main
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
 
@@ -19,7 +19,7 @@ SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_fra
 def run_cli(*args):
     """The installed entry point in a subprocess, as a user runs it."""
     return subprocess.run(
-        [sys.executable, "-m", "godrays_jax.cli", *map(str, args)], capture_output=True, text=True, timeout=600
+        [sys.executable, "-m", "godrays_jax", *map(str, args)], capture_output=True, text=True, timeout=600
     )
 
 
@@ -101,7 +101,7 @@ def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
 
 
 def test_every_command_has_help():
-    from godrays_jax.cli import build_parser
+    from godrays_jax.app.cli import build_parser
 
     commands = build_parser()._subparsers._group_actions[0].choices
     assert "apply" in commands

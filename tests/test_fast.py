@@ -1,4 +1,4 @@
-"""Fast variants (godrays_jax.fast) against NumPy loops, and the O(image) gradients of the exact kernels."""
+"""Fast variants (godrays_jax.kernels.fast) against NumPy loops, and the O(image) gradients of the exact kernels."""
 
 import math
 
@@ -10,7 +10,7 @@ from jax.test_util import check_grads
 
 import godrays_jax as gr
 import reference
-from godrays_jax import fast
+from godrays_jax.kernels import fast
 
 RAYS = dict(density=0.45, decay=0.93, weight=0.8, exposure=0.3)
 

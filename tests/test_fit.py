@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.cli import main
-from godrays_jax.fit import _from_unit, _to_unit, fit, fitted_bounds, round_counts
+from godrays_jax.app.cli import main
+from godrays_jax.pipeline.fit import _from_unit, _to_unit, fit, fitted_bounds, round_counts
 
 HEIGHT, WIDTH = 24, 32
 

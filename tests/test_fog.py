@@ -11,7 +11,7 @@ from jax.test_util import check_grads
 from reference import radial_rays as reference_rays
 
 import godrays_jax as gr
-from godrays_jax.media import apply_fog, henyey_greenstein, in_scattering, transmittance
+from godrays_jax.kernels.media import apply_fog, henyey_greenstein, in_scattering, transmittance
 
 HEIGHT, WIDTH = 6, 8
 LIGHT = (3.3, 1.7)

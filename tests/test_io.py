@@ -1,4 +1,4 @@
-"""Tests for godrays_jax.io: round trips, channel names, metadata, errors, atomic writes."""
+"""Tests for godrays_jax.primitives.io: round trips, channel names, metadata, errors, atomic writes."""
 
 import os
 from pathlib import Path
@@ -8,7 +8,7 @@ import OpenImageIO as oiio
 import pytest
 
 from godrays_jax import Buffers, check_buffers, read_buffers, read_image, read_light, write_buffers, write_image
-from godrays_jax import io as gio
+from godrays_jax.primitives import io as gio
 
 COLONNADE = Path(__file__).resolve().parents[2] / "shared" / "data" / "colonnade_buffers.exr"  # shared/ beside the checkout
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"

@@ -356,7 +356,7 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for
     copy counts below, between and at multiples of the step, lights on and off screen, jitted and under vmap
     (the CPU loop eagerly)."""
-    from godrays_jax.rays import _copy_sums_batched, _copy_sums_by_planes
+    from godrays_jax.kernels.rays import _copy_sums_batched, _copy_sums_by_planes
 
     image = jnp.asarray(random_image(rng))
     derivative_image = jnp.asarray(random_image(rng, channels=2))
@@ -409,7 +409,7 @@ def test_scales_and_weights_share_the_few_numbers_budget():
 def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
     """Summed in blocks of rows, a gradient's memory must not grow by an image's worth per copy: a loop value
     that is the same for every block (once, a zero output of a never-taken branch) was stored once per copy."""
-    from godrays_jax import rays
+    from godrays_jax.kernels import rays
 
     monkeypatch.setattr(rays, "BLOCKED_SIZE", 0)
     monkeypatch.setattr(rays, "ROWS_PER_BLOCK", 8)
@@ -434,8 +434,8 @@ def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
 def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
     """Large images are summed block by block of output rows on a CPU (`BLOCKED_SIZE`); forced here on small ones,
     with blocks of 3 rows, every sum equals the GPU loop's and the kernels' values and gradients are unchanged."""
-    from godrays_jax import rays
-    from godrays_jax.rays import _copy_sums_batched, _copy_sums_by_planes
+    from godrays_jax.kernels import rays
+    from godrays_jax.kernels.rays import _copy_sums_batched, _copy_sums_by_planes
 
     image = jnp.asarray(random_image(rng, height=12, width=7))
     copies = 11

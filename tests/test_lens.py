@@ -9,8 +9,8 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from godrays_jax import lens
-from godrays_jax.camera import Camera, project_point
+from godrays_jax.kernels import lens
+from godrays_jax.primitives.camera import Camera, project_point
 import reference
 
 H, W = 9, 12

@@ -7,7 +7,7 @@ import pytest
 from jax.test_util import check_grads
 from skimage.metrics import structural_similarity
 
-from godrays_jax.losses import LOSSES, charbonnier_loss, l1_loss, mse_loss, ssim, ssim_loss, to_space
+from godrays_jax.kernels.losses import LOSSES, charbonnier_loss, l1_loss, mse_loss, ssim, ssim_loss, to_space
 
 
 def _images(seed=0, shape=(20, 24, 3), scale=4.0):

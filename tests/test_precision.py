@@ -14,8 +14,8 @@ import pytest
 from jax.extend.core import ClosedJaxpr, Jaxpr
 
 import godrays_jax as gr
-from godrays_jax.camera import Camera
-from godrays_jax.fit import _forward_mode
+from godrays_jax.primitives.camera import Camera
+from godrays_jax.pipeline.fit import _forward_mode
 from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sphere, render
 from test_effects import LIGHT, make_frame, small
 

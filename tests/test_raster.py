@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from godrays_jax.camera import Camera, project_point
+from godrays_jax.primitives.camera import Camera, project_point
 from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sky, Sphere, load_obj, load_scene, render
 from godrays_jax.raster import rasterizer as R
 

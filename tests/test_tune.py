@@ -15,9 +15,9 @@ import OpenImageIO as oiio
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.buffers import Buffers
-from godrays_jax.cli import main
-from godrays_jax.tune import (
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.app.cli import main
+from godrays_jax.app.tune import (
     HOST,
     PIXEL_FIELDS,
     RenderQueue,

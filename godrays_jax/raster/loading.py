@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from godrays_jax.camera import Camera
+from godrays_jax.primitives.camera import Camera
 from godrays_jax.raster.scene import DirectionalLight, Material, Mesh, PointLight, Scene, Sky, Sphere
 
 _CAMERA_KEYS = {"position", "target", "up", "fov_x_deg", "width", "height", "near", "far"}

@@ -40,8 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from godrays_jax.buffers import Buffers
-from godrays_jax.camera import Camera
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.camera import Camera
 from godrays_jax.raster.scene import DirectionalLight, Scene, Sphere
 
 GLOW_SOURCE_SCALE = 1.3
@@ -814,7 +814,7 @@ def light_pixel(scene: Scene, camera: Camera) -> tuple[Float[Array, "2"], Float[
     (a mesh's translation), else of a point light, else of the camera position
     plus a directional light's direction (a light at infinity). Returns
     `(xy, view_depth, in_front)` as `project_point` does."""
-    from godrays_jax.camera import project_point
+    from godrays_jax.primitives.camera import project_point
 
     if scene.sun is not None:
         sun = scene.objects[scene.sun]

@@ -24,10 +24,10 @@ from collections.abc import Callable
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, is_static_int, resolve_count
-from godrays_jax.blur import downsample_box
-from godrays_jax.rays import scaled_copies
-from godrays_jax.sampling import pixel_centres, sample_bilinear, sample_separable
+from godrays_jax.primitives.checks import check_image, check_light, check_scalar, checked_count, is_static_int, resolve_count
+from godrays_jax.kernels.blur import downsample_box
+from godrays_jax.kernels.rays import scaled_copies
+from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear, sample_separable
 
 
 def _check_ray_options(image, light_xy, density, decay, weight, exposure):

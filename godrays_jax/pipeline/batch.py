@@ -53,9 +53,9 @@ import numpy as np
 import OpenImageIO as oiio
 from jaxtyping import Array, Bool, Float
 
-from godrays_jax.buffers import Buffers
-from godrays_jax.effects import Effect
-from godrays_jax.io import FrameFile, read_frame, read_light, write_frame_like, write_image
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.effects.effects import Effect
+from godrays_jax.primitives.io import FrameFile, read_frame, read_light, write_frame_like, write_image
 
 Light = tuple[tuple[float, float], bool]
 """A light for one frame: `((x, y) pixels, in front of the camera)`."""
@@ -648,7 +648,7 @@ def parse_shard(text: str) -> tuple[int, int]:
 
 def run_command(args) -> int:
     """`godrays-jax batch`: the CLI handler (arguments from `cli._add_batch`)."""
-    from godrays_jax.cli import load_effect_option
+    from godrays_jax.app.cli import load_effect_option
 
     light: LightSource = METADATA
     if args.light is not None:

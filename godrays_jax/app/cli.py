@@ -37,7 +37,7 @@ def parse_light(text: str) -> tuple[float, float]:
 
 def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:
     """The `--light` value, or the position stored in the frame's metadata."""
-    from godrays_jax.io import read_light
+    from godrays_jax.primitives.io import read_light
 
     if light is not None:
         return light, True
@@ -49,7 +49,7 @@ def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple
 
 def load_effect_option(preset_name: str | None, params_path: str | None):
     """The effect named by `--preset` or stored in `--params` (the default preset if neither)."""
-    from godrays_jax.effects import load_effect, preset
+    from godrays_jax.effects.effects import load_effect, preset
 
     if preset_name and params_path:
         raise CommandError("give --preset or --params, not both")
@@ -72,7 +72,7 @@ DEFAULT_PRESET = "xna_crepuscular"
 
 
 def _add_effect_options(parser: argparse.ArgumentParser) -> None:
-    from godrays_jax.effects import PRESETS
+    from godrays_jax.effects.effects import PRESETS
 
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
@@ -104,7 +104,7 @@ def _add_apply(subparsers) -> None:
 def _run_apply(args) -> int:
     import jax.numpy as jnp
 
-    from godrays_jax.io import read_buffers, write_image
+    from godrays_jax.primitives.io import read_buffers, write_image
 
     check_output_path(args.output, args.buffers)
     effect = load_effect_option(args.preset, args.params)
@@ -163,7 +163,7 @@ def _add_batch(subparsers) -> None:
 
 
 def _run_batch(args) -> int:
-    from godrays_jax.batch import run_command
+    from godrays_jax.pipeline.batch import run_command
 
     return run_command(args)
 
@@ -195,13 +195,13 @@ def _add_tune(subparsers) -> None:
 
 
 def _run_tune(args) -> int:
-    from godrays_jax.tune import run_tune
+    from godrays_jax.app.tune import run_tune
 
     return run_tune(args)
 
 
 def _add_fit(subparsers) -> None:
-    from godrays_jax.effects import PRESETS
+    from godrays_jax.effects.effects import PRESETS
 
     parser = subparsers.add_parser(
         "fit",
@@ -241,7 +241,7 @@ def _add_fit(subparsers) -> None:
 
 
 def _run_fit(args) -> int:
-    from godrays_jax.fit import run_fit_command
+    from godrays_jax.pipeline.fit import run_fit_command
 
     return run_fit_command(args)
 
@@ -262,7 +262,7 @@ def _add_render(subparsers) -> None:
 
 
 def _run_render(args) -> int:
-    from godrays_jax.io import write_buffers
+    from godrays_jax.primitives.io import write_buffers
     from godrays_jax.raster import light_pixel, load_scene, render
 
     check_output_path(args.output, args.scene)

@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax._checks import check_image, check_plane, check_scalar
-from godrays_jax.lens import light_direction, view_directions
+from godrays_jax.primitives.checks import check_image, check_plane, check_scalar
+from godrays_jax.kernels.lens import light_direction, view_directions
 
 
 def henyey_greenstein(cosine: Float[ArrayLike, "*S"], anisotropy: Float[ArrayLike, ""]) -> Float[Array, "*S"]:

@@ -45,9 +45,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 
-from godrays_jax.buffers import Buffers
-from godrays_jax.effects import Effect, parameter_bounds
-from godrays_jax.losses import LOSSES, Space, check_space, to_space
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.effects.effects import Effect, parameter_bounds
+from godrays_jax.kernels.losses import LOSSES, Space, check_space, to_space
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
@@ -467,7 +467,7 @@ def default_fit_effect() -> Effect:
     When the camera's field of view is known, set it and keep it fixed
     (`fixed=("fov_x_deg", ...)`).
     """
-    from godrays_jax.effects import preset
+    from godrays_jax.effects.effects import preset
 
     return preset("participating_media")
 
@@ -528,9 +528,9 @@ def run_fit_command(args) -> int:
     """`godrays-jax fit`: read frames and targets, fit, print progress and results, write params (and a report)."""
     import sys
 
-    from godrays_jax.cli import CommandError, check_output_path, resolve_light
-    from godrays_jax.effects import effect_to_dict, load_effect, preset, save_effect
-    from godrays_jax.io import read_buffers, read_image, write_image
+    from godrays_jax.app.cli import CommandError, check_output_path, resolve_light
+    from godrays_jax.effects.effects import effect_to_dict, load_effect, preset, save_effect
+    from godrays_jax.primitives.io import read_buffers, read_image, write_image
 
     pairs = [(args.buffers, args.target), *[tuple(pair) for pair in args.frames or []]]
     check_output_path(args.output, *[path for pair in pairs for path in pair])

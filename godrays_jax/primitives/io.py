@@ -56,7 +56,7 @@ import numpy as np
 import OpenImageIO as oiio
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax.buffers import Buffers, coverage_from_depth
+from godrays_jax.primitives.buffers import Buffers, coverage_from_depth
 
 SKY_DEPTH_SENTINEL = 1e30
 """Depth values at or above this are read as sky (`+inf`)."""

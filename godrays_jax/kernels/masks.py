@@ -8,8 +8,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax._checks import check_image, check_light, check_plane, check_scalar, is_static_int
-from godrays_jax.sampling import pixel_centres, sample_bilinear
+from godrays_jax.primitives.checks import check_image, check_light, check_plane, check_scalar, is_static_int
+from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 
 
 def sky_mask(depth: Float[Array, "H W"], *, far: Float[ArrayLike, ""] = jnp.inf) -> Float[Array, "H W"]:

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax._checks import checked_count, check_image, check_scalar, is_static_int, resolve_count
-from godrays_jax.sampling import sample_separable
+from godrays_jax.primitives.checks import checked_count, check_image, check_scalar, is_static_int, resolve_count
+from godrays_jax.primitives.sampling import sample_separable
 
 POISSON_OFFSETS = np.array(
     [

@@ -1,7 +1,7 @@
 """Seed 001's (VBex engine) camera and sky extras: lens dirt, a procedural dirt texture, the sky sun spot.
 
 Both formulas need directions, not just pixel positions. They are computed in
-view space (x right, y up, z forward, as `godrays_jax.camera.Camera.to_view`)
+view space (x right, y up, z forward, as `godrays_jax.primitives.camera.Camera.to_view`)
 from a horizontal field of view `fov_x_deg` (degrees) and the image size, with
 the project's pixel convention (x right, y down, centres at `i + 0.5`, focal
 length `f = (W / 2) / tan(fov_x / 2)` pixels). `view_directions` equals
@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax._checks import check_image, check_light, check_scalar, is_static_int
-from godrays_jax.sampling import pixel_centres, sample_bilinear
+from godrays_jax.primitives.checks import check_image, check_light, check_scalar, is_static_int
+from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 
 ViewMode = Literal["pixel", "axis"]
 

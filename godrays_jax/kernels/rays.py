@@ -42,8 +42,8 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax._checks import check_image, check_light, check_scalar, checked_count, resolve_count
-from godrays_jax.sampling import Addressing, _axis_taps
+from godrays_jax.primitives.checks import check_image, check_light, check_scalar, checked_count, resolve_count
+from godrays_jax.primitives.sampling import Addressing, _axis_taps
 
 
 def _copy_positions(shape, light_xy, scale, dtype):
@@ -651,7 +651,7 @@ def radial_rays(
     sample lands on the light; lights off screen read the clamped edge.
 
     Value and gradient (reverse or forward mode) need memory O(image), not
-    O(samples x image). `godrays_jax.fast` has cheaper approximations.
+    O(samples x image). `godrays_jax.kernels.fast` has cheaper approximations.
 
     Args:
         image: the occlusion image (light source bright, occluders black).

@@ -10,7 +10,7 @@ from typing import Literal
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from godrays_jax._checks import check_image
+from godrays_jax.primitives.checks import check_image
 
 BlendMode = Literal["add", "screen", "multiply", "alpha_over"]
 BLEND_MODES: tuple[str, ...] = ("add", "screen", "multiply", "alpha_over")

@@ -62,10 +62,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
-from godrays_jax.blur import downsample_box
-from godrays_jax.buffers import Buffers
-from godrays_jax.effects import PRESETS, Effect, effect_from_dict, effect_to_dict, preset, save_effect
-from godrays_jax.losses import to_space
+from godrays_jax.kernels.blur import downsample_box
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.effects.effects import PRESETS, Effect, effect_from_dict, effect_to_dict, preset, save_effect
+from godrays_jax.kernels.losses import to_space
 
 HOST = "127.0.0.1"
 """The tuner serves this address only: the page can write files, so it is never exposed to a network."""
@@ -343,12 +343,12 @@ class Tuner:
 
     def bounds(self, effect: Effect | None = None) -> dict[str, tuple[float, float]]:
         """Slider ranges: the effect's bounds, counts capped by their static loop lengths."""
-        from godrays_jax.fit import fitted_bounds
+        from godrays_jax.pipeline.fit import fitted_bounds
 
         return fitted_bounds(self.effect if effect is None else effect)
 
     def state(self) -> dict:
-        from godrays_jax.fit import COUNT_FIELDS
+        from godrays_jax.pipeline.fit import COUNT_FIELDS
 
         with self._lock:
             effect = self.effect
@@ -466,7 +466,7 @@ class Tuner:
 
     def fit(self, payload: Mapping) -> dict:
         """Fit the page's effect to the target at preview resolution; the answer holds full-resolution values."""
-        from godrays_jax.fit import fit
+        from godrays_jax.pipeline.fit import fit
 
         if self.target is None:
             raise TuneRequestError("no target to fit to: start the tuner with --target TARGET")
@@ -522,7 +522,7 @@ def _clip_to_bounds(effect: Effect, bounds: Mapping[str, tuple[float, float]]) -
 @functools.cache
 def page_html() -> bytes:
     """The tuner page (package data `tune_page.html`)."""
-    return resources.files("godrays_jax").joinpath("tune_page.html").read_bytes()
+    return resources.files("godrays_jax.app").joinpath("tune_page.html").read_bytes()
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
@@ -562,7 +562,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         return payload
 
     def _answer(self, action: Callable[[], Any]) -> None:
-        from godrays_jax.cli import error_line
+        from godrays_jax.app.cli import error_line
 
         try:
             self._json(200, action())
@@ -659,8 +659,8 @@ class TuneServer:
 
 def run_tune(args) -> int:
     """The `godrays-jax tune` command: serve the tuner until Ctrl-C (see `cli._add_tune` for the options)."""
-    from godrays_jax.cli import CommandError, check_output_path, load_effect_option, resolve_light
-    from godrays_jax.io import read_buffers, read_image
+    from godrays_jax.app.cli import CommandError, check_output_path, load_effect_option, resolve_light
+    from godrays_jax.primitives.io import read_buffers, read_image
 
     check_output_path(args.output, args.buffers, *([args.target] if args.target else []))
     if args.preview_pixels < 1:

@@ -28,16 +28,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax._checks import check_light
-from godrays_jax.blur import bloom, gaussian_blur, poisson_blur
-from godrays_jax.buffers import Buffers
-from godrays_jax.composite import BLEND_MODES, blend
-from godrays_jax.lens import LENS_DIRT_ABERRATION, ViewMode, dirt_texture, lens_dirt, sun_spot
-from godrays_jax.media import apply_fog, in_scattering
-from godrays_jax.masks import bright_pass, coverage_mask, dilate, erode, light_source_mask
-from godrays_jax.fast import fast_radial_rays, radial_rays_multipass
-from godrays_jax.rays import _radial_rays, _scale_iterated_flares, radial_rays
-from godrays_jax.sampling import pixel_centres
+from godrays_jax.primitives.checks import check_light
+from godrays_jax.kernels.blur import bloom, gaussian_blur, poisson_blur
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.kernels.composite import BLEND_MODES, blend
+from godrays_jax.kernels.lens import LENS_DIRT_ABERRATION, ViewMode, dirt_texture, lens_dirt, sun_spot
+from godrays_jax.kernels.media import apply_fog, in_scattering
+from godrays_jax.kernels.masks import bright_pass, coverage_mask, dilate, erode, light_source_mask
+from godrays_jax.kernels.fast import fast_radial_rays, radial_rays_multipass
+from godrays_jax.kernels.rays import _radial_rays, _scale_iterated_flares, radial_rays
+from godrays_jax.primitives.sampling import pixel_centres
 
 Source = Literal["disc", "sky", "light_pass"]
 SOURCES: tuple[str, ...] = ("disc", "sky", "light_pass")
@@ -177,7 +177,7 @@ def _disc_radius(effect) -> float | None:
 
 
 RAY_METHODS: tuple[str, ...] = ("exact", "multipass", "fast")
-"""`GodRays.method`: the exact loop, or the fast variants of `godrays_jax.fast` (errors in benchmarks/README.md)."""
+"""`GodRays.method`: the exact loop, or the fast variants of `godrays_jax.kernels.fast` (errors in benchmarks/README.md)."""
 
 
 class GodRays(Effect):

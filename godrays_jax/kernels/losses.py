@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax._checks import check_image
+from godrays_jax.primitives.checks import check_image
 
 Space = Literal["display", "linear"]
 SPACES: tuple[str, ...] = ("display", "linear")

@@ -1,0 +1,7 @@
+"""`python -m godrays_jax`: the command line, as the `godrays-jax` script."""
+
+import sys
+
+from godrays_jax.app.cli import main
+
+sys.exit(main())

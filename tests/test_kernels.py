@@ -7,6 +7,9 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
+from godrays_jax.kernels import cpu_loop, rays
+from godrays_jax.kernels.cpu_loop import copy_sums_cpu
+from godrays_jax.kernels.gpu_loop import copy_sums_gpu
 import reference
 
 HEIGHT, WIDTH = 9, 13
@@ -137,21 +140,21 @@ def test_radial_rays_on_a_window_around_a_compact_source_equal_the_full_loop(lig
         np.testing.assert_allclose(windowed, full, rtol=1e-5, atol=1e-5 * float(jnp.max(full) + 1))
     # The window really is smaller than the frame here, also under jit with
     # the parameters closed over; traced or unbounded scales use the whole frame.
-    window = gr.rays._rays_window
+    window = rays._rays_window
     assert window((height, width, 3), radius, 0.5, 32, 32, False) == (50, 50, 24)
     assert window((height, width, 3), radius, jnp.float32(0.5), jnp.float32(20.5), 24, True) == (52, 52, 25)
     assert window((height, width, 3), radius, 1.0, 32, 32, False) is None
     assert window((height, width, 3), radius, -0.5, 32, 32, False) is None
     assert jax.jit(lambda d: jnp.asarray(window((height, width, 3), radius, d, 32, 32, False) is None))(0.5)
     calls = []
-    original = gr.rays._rays_window
+    original = rays._rays_window
     try:
-        gr.rays._rays_window = lambda *args: calls.append(original(*args)) or calls[-1]
+        rays._rays_window = lambda *args: calls.append(original(*args)) or calls[-1]
         density = jnp.float32(0.5)  # closed over, as an effect's fields are: concrete at trace time
         jax.jit(lambda im, xy: gr.radial_rays(im, xy, source_radius=radius, num_samples=32, density=density,
                                               decay=0.95, weight=1.0, exposure=0.2))(image, light)  # fmt: skip
     finally:
-        gr.rays._rays_window = original
+        rays._rays_window = original
     assert calls == [(50, 50, 24)]
 
 
@@ -356,7 +359,6 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for
     copy counts below, between and at multiples of the step, lights on and off screen, jitted and under vmap
     (the CPU loop eagerly)."""
-    from godrays_jax.kernels.rays import _copy_sums_batched, _copy_sums_by_planes
 
     image = jnp.asarray(random_image(rng))
     derivative_image = jnp.asarray(random_image(rng, channels=2))
@@ -365,27 +367,27 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     jacobians = (jnp.asarray(rng.normal(size=(copies, 2))), jnp.asarray(rng.normal(size=(copies, 3))))
     for light in (LIGHTS["on_screen"], LIGHTS["off_screen"]):
         args = (image, derivative_image, jnp.asarray(light), scales, weights, jacobians)
-        expected = jax.jit(lambda *a: _copy_sums_by_planes(addressing, True, *a))(*args)
-        actual = jax.jit(lambda *a: _copy_sums_batched(addressing, True, *a))(*args)
+        expected = jax.jit(lambda *a: copy_sums_cpu(addressing, True, *a))(*args)
+        actual = jax.jit(lambda *a: copy_sums_gpu(addressing, True, *a))(*args)
         total, derivative_total, scale_sums, weight_sums, light_sums = expected
         assert total.shape == (WIDTH, 3 * HEIGHT) and scale_sums.shape == (WIDTH, 3 * HEIGHT, 2)
         assert weight_sums.shape == (WIDTH, 3 * HEIGHT, 3)
         for got, want in zip(jax.tree.leaves(actual), jax.tree.leaves(expected), strict=True):
             assert_close(got, want, 1e-12)
-        without = jax.jit(lambda *a: _copy_sums_batched(addressing, False, *a))(image, None, *args[2:5], (None, None))
+        without = jax.jit(lambda *a: copy_sums_gpu(addressing, False, *a))(image, None, *args[2:5], (None, None))
         assert without[1:] == (None, None, None, None)
         assert_close(without[0], total, 1e-12)
         for only in ((jacobians[0], None), (None, jacobians[1])):
-            for loop in (_copy_sums_batched, _copy_sums_by_planes):
+            for loop in (copy_sums_gpu, copy_sums_cpu):
                 sums = jax.jit(lambda *a, loop=loop: loop(addressing, False, *a))(image, None, *args[2:5], only)
                 assert (sums[2] is None, sums[3] is None) == (only[0] is None, only[1] is None)
                 assert_close(sums[2] if only[1] is None else sums[3], scale_sums if only[1] is None else weight_sums,
                              1e-12)  # fmt: skip
     lights = jnp.asarray([LIGHTS["on_screen"], LIGHTS["off_screen"]])
-    batched = jax.vmap(lambda light: _copy_sums_batched(addressing, True, image, derivative_image, light, scales,
+    batched = jax.vmap(lambda light: copy_sums_gpu(addressing, True, image, derivative_image, light, scales,
                                                         weights, jacobians))(lights)  # fmt: skip
     for index, light in enumerate(lights):
-        expected = _copy_sums_by_planes(addressing, True, image, derivative_image, light, scales, weights, jacobians)
+        expected = copy_sums_cpu(addressing, True, image, derivative_image, light, scales, weights, jacobians)
         for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(expected), strict=True):
             assert_close(got[index], want, 1e-12)
 
@@ -409,10 +411,8 @@ def test_scales_and_weights_share_the_few_numbers_budget():
 def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
     """Summed in blocks of rows, a gradient's memory must not grow by an image's worth per copy: a loop value
     that is the same for every block (once, a zero output of a never-taken branch) was stored once per copy."""
-    from godrays_jax.kernels import rays
-
-    monkeypatch.setattr(rays, "BLOCKED_SIZE", 0)
-    monkeypatch.setattr(rays, "ROWS_PER_BLOCK", 8)
+    monkeypatch.setattr(cpu_loop, "BLOCKED_SIZE", 0)
+    monkeypatch.setattr(cpu_loop, "ROWS_PER_BLOCK", 8)
     jax.clear_caches()
     temporaries = []
     with jax.default_device(jax.devices("cpu")[0]):  # the CPU loop, on any machine
@@ -434,8 +434,6 @@ def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
 def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
     """Large images are summed block by block of output rows on a CPU (`BLOCKED_SIZE`); forced here on small ones,
     with blocks of 3 rows, every sum equals the GPU loop's and the kernels' values and gradients are unchanged."""
-    from godrays_jax.kernels import rays
-    from godrays_jax.kernels.rays import _copy_sums_batched, _copy_sums_by_planes
 
     image = jnp.asarray(random_image(rng, height=12, width=7))
     copies = 11
@@ -448,15 +446,15 @@ def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
         return gr.scaled_copies(image, light, scales, weights, addressing="zero")
 
     unblocked = kernel(image, light, scales, weights)
-    assert rays._rows_per_block(1080, 1920, 3) == 60
-    assert rays._rows_per_block(1091, 1920, 3) == 1091, "a prime height is one block, not 1091 blocks of a row"
-    monkeypatch.setattr(rays, "BLOCKED_SIZE", 0)
-    monkeypatch.setattr(rays, "ROWS_PER_BLOCK", 3)
-    assert rays._rows_per_block(12, 7, 3) == 3
+    assert cpu_loop.rows_per_block(1080, 1920, 3) == 60
+    assert cpu_loop.rows_per_block(1091, 1920, 3) == 1091, "a prime height is one block, not 1091 blocks of a row"
+    monkeypatch.setattr(cpu_loop, "BLOCKED_SIZE", 0)
+    monkeypatch.setattr(cpu_loop, "ROWS_PER_BLOCK", 3)
+    assert cpu_loop.rows_per_block(12, 7, 3) == 3
     jax.clear_caches()  # traced loops are cached by shape
     for addressing in ("clamp", "zero"):
-        blocked = jax.jit(lambda *a, addressing=addressing: _copy_sums_by_planes(addressing, True, *a))(*args)
-        expected = _copy_sums_batched(addressing, True, *args)
+        blocked = jax.jit(lambda *a, addressing=addressing: copy_sums_cpu(addressing, True, *a))(*args)
+        expected = copy_sums_gpu(addressing, True, *args)
         for got, want in zip(jax.tree.leaves(blocked), jax.tree.leaves(expected), strict=True):
             assert_close(got, want, 1e-12)
     assert_close(jax.jit(kernel)(image, light, scales, weights), unblocked, 1e-12)

@@ -36,7 +36,7 @@ from godrays_jax.kernels.lens import LENS_DIRT_ABERRATION, ViewMode, dirt_textur
 from godrays_jax.kernels.media import apply_fog, in_scattering
 from godrays_jax.kernels.masks import bright_pass, coverage_mask, dilate, erode, light_source_mask
 from godrays_jax.kernels.fast import fast_radial_rays, radial_rays_multipass
-from godrays_jax.kernels.rays import _radial_rays, _scale_iterated_flares, radial_rays
+from godrays_jax.kernels.rays import radial_rays, radial_rays_of, scale_iterated_flares_of
 from godrays_jax.primitives.sampling import pixel_centres
 
 Source = Literal["disc", "sky", "light_pass"]
@@ -235,7 +235,7 @@ class GodRays(Effect):
             exposure=self.exposure,
         )
         if self.method == "exact":
-            rays = _radial_rays(
+            rays = radial_rays_of(
                 emitter_fn, emitter_args, light_xy, max_samples=self.max_samples, source_radius=_disc_radius(self),
                 **fields,
             )  # fmt: skip
@@ -275,7 +275,7 @@ class FlareOuts(Effect):
         """The flare-outs alone, `(H, W, 3)`."""
         check_light(light_xy)
         emitter_fn, emitter_args = _emitter_inputs(self, buffers, light_xy, light_in_front)
-        flares = _scale_iterated_flares(
+        flares = scale_iterated_flares_of(
             emitter_fn,
             emitter_args,
             light_xy,

@@ -59,7 +59,7 @@ def sample_bilinear(
     return top * (1 - fv) + bottom * fv
 
 
-def _axis_taps(size: int, u, addressing: Addressing):
+def axis_taps(size: int, u, addressing: Addressing):
     """Lower/upper texel indices and weights for linear interpolation at texel coordinates `u` (texel `i` at `u = i`)."""
     if addressing == "clamp":
         # Clamp-to-edge bilinear equals sampling the clamped coordinate.
@@ -107,8 +107,8 @@ def sample_separable(
         raise ValueError(f"addressing must be 'clamp' or 'zero', got {addressing!r}")
     image = jnp.asarray(image)
     height, width, _ = image.shape
-    rows = _lerp(image, 0, *_axis_taps(height, ys - 0.5, addressing))
-    return _lerp(rows, 1, *_axis_taps(width, xs - 0.5, addressing))
+    rows = _lerp(image, 0, *axis_taps(height, ys - 0.5, addressing))
+    return _lerp(rows, 1, *axis_taps(width, xs - 0.5, addressing))
 
 
 def pixel_centres(height: int, width: int, dtype=jnp.float32) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import jax.numpy as jnp
 
-from godrays_jax.effects.effects import preset
+from godrays_jax.effects.presets import preset
 from godrays_jax.primitives.io import write_image
 from godrays_jax.raster import light_pixel, load_scene, render
 

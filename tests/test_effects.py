@@ -11,7 +11,7 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from godrays_jax.effects.effects import parameter_bounds
+from godrays_jax.effects.base import parameter_bounds
 
 HEIGHT, WIDTH = 18, 24
 

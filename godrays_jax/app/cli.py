@@ -49,7 +49,8 @@ def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple
 
 def load_effect_option(preset_name: str | None, params_path: str | None):
     """The effect named by `--preset` or stored in `--params` (the default preset if neither)."""
-    from godrays_jax.effects.effects import load_effect, preset
+    from godrays_jax.effects.presets import preset
+    from godrays_jax.effects.serialization import load_effect
 
     if preset_name and params_path:
         raise CommandError("give --preset or --params, not both")
@@ -72,7 +73,7 @@ DEFAULT_PRESET = "xna_crepuscular"
 
 
 def _add_effect_options(parser: argparse.ArgumentParser) -> None:
-    from godrays_jax.effects.effects import PRESETS
+    from godrays_jax.effects.presets import PRESETS
 
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
@@ -201,7 +202,7 @@ def _run_tune(args) -> int:
 
 
 def _add_fit(subparsers) -> None:
-    from godrays_jax.effects.effects import PRESETS
+    from godrays_jax.effects.presets import PRESETS
 
     parser = subparsers.add_parser(
         "fit",

@@ -64,7 +64,9 @@ from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
 from godrays_jax.kernels.blur import downsample_box
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.effects.effects import PRESETS, Effect, effect_from_dict, effect_to_dict, preset, save_effect
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.presets import PRESETS, preset
+from godrays_jax.effects.serialization import effect_from_dict, effect_to_dict, save_effect
 from godrays_jax.kernels.losses import to_space
 
 HOST = "127.0.0.1"

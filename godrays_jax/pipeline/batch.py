@@ -54,7 +54,8 @@ import OpenImageIO as oiio
 from jaxtyping import Array, Bool, Float
 
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.effects.effects import Effect
+from godrays_jax.primitives.files import temporaries_of
+from godrays_jax.effects.base import Effect
 from godrays_jax.primitives.io import FrameFile, read_frame, read_light, write_frame_like, write_image
 
 Light = tuple[tuple[float, float], bool]
@@ -318,9 +319,7 @@ def remove_stale_temporaries(jobs: Sequence[Job]) -> list[str]:
     """Delete the hidden temporary files a killed run left for these jobs' outputs; returns them."""
     removed = []
     for job in jobs:
-        folder, base = os.path.split(os.path.abspath(job.output))
-        stem, ext = os.path.splitext(base)
-        for stale in glob.glob(os.path.join(glob.escape(folder), f".{glob.escape(stem)}.tmp-*{glob.escape(ext)}")):
+        for stale in temporaries_of(job.output):
             os.remove(stale)
             removed.append(stale)
     return removed

@@ -46,7 +46,7 @@ import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.effects.effects import Effect, parameter_bounds
+from godrays_jax.effects.base import Effect, parameter_bounds
 from godrays_jax.kernels.losses import LOSSES, Space, check_space, to_space
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
@@ -467,7 +467,7 @@ def default_fit_effect() -> Effect:
     When the camera's field of view is known, set it and keep it fixed
     (`fixed=("fov_x_deg", ...)`).
     """
-    from godrays_jax.effects.effects import preset
+    from godrays_jax.effects.presets import preset
 
     return preset("participating_media")
 
@@ -529,7 +529,8 @@ def run_fit_command(args) -> int:
     import sys
 
     from godrays_jax.app.cli import CommandError, check_output_path, resolve_light
-    from godrays_jax.effects.effects import effect_to_dict, load_effect, preset, save_effect
+    from godrays_jax.effects.presets import preset
+    from godrays_jax.effects.serialization import effect_to_dict, load_effect, save_effect
     from godrays_jax.primitives.io import read_buffers, read_image, write_image
 
     pairs = [(args.buffers, args.target), *[tuple(pair) for pair in args.frames or []]]

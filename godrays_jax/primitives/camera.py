@@ -10,7 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, ArrayLike
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 # Points this close to the camera plane (in scene units) are projected as if
 # they were this far, so that projection stays finite.

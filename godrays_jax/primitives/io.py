@@ -47,7 +47,6 @@ partial output is ever left behind.
 
 import dataclasses
 import os
-import secrets
 from collections.abc import Mapping, Sequence
 from typing import Literal
 
@@ -57,6 +56,7 @@ import OpenImageIO as oiio
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.primitives.buffers import Buffers, coverage_from_depth
+from godrays_jax.primitives.files import atomic_write
 
 SKY_DEPTH_SENTINEL = 1e30
 """Depth values at or above this are read as sky (`+inf`)."""
@@ -336,30 +336,20 @@ def _set_attribute(spec: oiio.ImageSpec, name: str, value: object) -> None:
         )
 
 
-def _atomic_write(path: str | os.PathLike, spec: oiio.ImageSpec, pixels: np.ndarray) -> None:
-    """Write `pixels` to a temporary file beside `path`, then rename it into place."""
+def _write_image_file(path: str | os.PathLike, spec: oiio.ImageSpec, pixels: np.ndarray) -> None:
+    """Write `pixels` with `spec` to `path`, whole or not at all (`atomic_write`)."""
     path = os.fspath(path)
-    folder, base = os.path.split(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise FileNotFoundError(f"cannot write image '{path}': folder '{folder}' does not exist")
-    stem, ext = os.path.splitext(base)
-    tmp = os.path.join(folder, f".{stem}.tmp-{secrets.token_hex(4)}{ext}")
-    try:
-        out = oiio.ImageOutput.create(tmp)
+    with atomic_write(path) as temporary:
+        out = oiio.ImageOutput.create(temporary)
         if out is None:
             raise OSError(f"cannot write image '{path}': {oiio.geterror()}")
         try:
-            if not out.open(tmp, spec) or not out.write_image(pixels):
+            if not out.open(temporary, spec) or not out.write_image(pixels):
                 raise OSError(f"cannot write image '{path}': {out.geterror()}")
         finally:
             closed = out.close()
         if not closed:
             raise OSError(f"cannot write image '{path}': {out.geterror()}")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 def _host_float(name: str, array: ArrayLike, shape: tuple[int, ...]) -> np.ndarray:
@@ -436,7 +426,7 @@ def write_buffers(
         x, y = light_xy
         spec.attribute(_LIGHT_PX_ATTR, oiio.TypeFloat2, (float(x), float(y)))
         spec.attribute(_LIGHT_IN_FRONT_ATTR, oiio.TypeInt, int(bool(light_in_front)))
-    _atomic_write(path, spec, pixels)
+    _write_image_file(path, spec, pixels)
 
 
 def write_image(
@@ -518,7 +508,7 @@ def write_image(
         spec.attribute("jpeg:subsampling", "4:4:4")  # full-resolution colour
     for key, value in (metadata or {}).items():
         _set_attribute(spec, key, value)
-    _atomic_write(path, spec, np.ascontiguousarray(pixels))
+    _write_image_file(path, spec, np.ascontiguousarray(pixels))
 
 
 # ----------------------------------------------------------------------------- frames kept as stored
@@ -596,4 +586,4 @@ def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], 
         raise ValueError(f"'{like.path}' has no {', '.join(missing)} channel to replace; channels: {_channels_text(names)}")
     pixels = like.pixels.copy()
     pixels[..., [names.index(n) for n in ("R", "G", "B")]] = color
-    _atomic_write(path, oiio.ImageSpec(like.spec), np.ascontiguousarray(pixels))
+    _write_image_file(path, oiio.ImageSpec(like.spec), np.ascontiguousarray(pixels))

@@ -1,0 +1,168 @@
+"""What every effect shares: fittable fields, the `Effect` base class, the off-screen rule and the emitters.
+
+An effect is called as `effect(buffers, light_xy, *, light_in_front=True)` and
+returns the composited frame; `effect.layer(...)` returns the effect alone,
+before blending. Every array field is fittable (a JAX scalar or vector);
+static fields (`eqx.field(static=True)`) are Python values that select the
+algorithm. Sizes are in pixels, except `blur_power`, which is in UV units as
+in the sun-overcasting article.
+
+Off-screen and behind-camera lights, the same rule for every effect that a
+light drives: the layer is multiplied by `light_visibility(light_xy, ...,
+fade=offscreen_fade)`, 1 while the light is on screen, fading smoothly to 0
+once the light is `offscreen_fade` frame-widths beyond the edge, and 0 when
+the light is behind the camera (`light_in_front` false: the frame comes back
+unchanged). `Bloom` does not depend on the light and ignores both.
+"""
+
+import dataclasses
+import functools
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from godrays_jax.kernels.composite import BLEND_MODES, blend
+from godrays_jax.kernels.masks import coverage_mask, light_source_mask
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import check_light
+
+Source = Literal["disc", "sky", "light_pass"]
+
+
+SOURCES: tuple[str, ...] = ("disc", "sky", "light_pass")
+
+
+def _array(value) -> Array:
+    return jnp.asarray(value, dtype=jnp.result_type(float))
+
+
+def param(default, *, low: float, high: float):
+    """A fittable field, stored as a floating JAX array whatever number or list is given.
+
+    `[low, high]` is its valid range (every element, for a vector): fitting keeps
+    the value inside it and the tuner's sliders span it.
+    """
+    return eqx.field(converter=_array, default=default, metadata={"bounds": (low, high)})
+
+
+def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, float]]:
+    """`{field name: (low, high)}` for every fittable field of an effect (instance or class)."""
+    cls = effect if isinstance(effect, type) else type(effect)
+    return {field.name: field.metadata["bounds"] for field in dataclasses.fields(cls) if "bounds" in field.metadata}
+
+
+class Effect(eqx.Module):
+    """Base class: subclasses define `layer` and a static `blend_mode` field."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        _EFFECT_CLASSES[cls.__name__] = cls
+
+    def __check_init__(self):
+        mode = getattr(self, "blend_mode", "add")
+        if mode not in BLEND_MODES:
+            raise ValueError(f"blend_mode must be one of {', '.join(BLEND_MODES)}; got {mode!r}")
+        source = getattr(self, "source", "disc")
+        if source not in SOURCES:
+            raise ValueError(f"source must be one of {', '.join(SOURCES)}; got {source!r}")
+        for name, (low, high) in parameter_bounds(self).items():
+            value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):
+                continue  # built inside a traced function: the kernels check what they must at run time
+            values = np.asarray(value)
+            if not (np.all(np.isfinite(values)) and np.all(values >= low) and np.all(values <= high)):
+                raise ValueError(f"{type(self).__name__}.{name} must lie in [{low:g}, {high:g}], got {values.tolist()}")
+
+    def layer(
+        self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True
+    ) -> Float[Array, "H W L"]:
+        raise NotImplementedError
+
+    def __call__(
+        self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True
+    ) -> Float[Array, "H W C"]:
+        """The frame with the effect blended on: `blend(buffers.color, layer, mode=blend_mode)`."""
+        return blend(buffers.color, self.layer(buffers, light_xy, light_in_front=light_in_front), mode=self.blend_mode)
+
+
+_EFFECT_CLASSES: dict[str, type[Effect]] = {}
+
+
+def effect_class(name: str) -> type[Effect]:
+    """The effect class of that name (every subclass of `Effect` registers itself); `ValueError` if none."""
+    if name not in _EFFECT_CLASSES:
+        raise ValueError(f"unknown effect {name!r}; known effects: {', '.join(sorted(_EFFECT_CLASSES))}")
+    return _EFFECT_CLASSES[name]
+
+
+def light_visibility(
+    light_xy: Float[ArrayLike, "2"],
+    height: int,
+    width: int,
+    *,
+    fade: Float[ArrayLike, ""],
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
+    dtype=jnp.float32,
+) -> Float[Array, ""]:
+    """How much of a light-driven effect to draw: the off-screen fade and behind-camera rule of every effect.
+
+    1 while the light is on screen (`0 <= x <= W`, `0 <= y <= H`); outside, it
+    falls smoothly (`1 - smoothstep(t)`, `t` = the light's distance to the
+    screen rectangle divided by `fade * max(W, H)`) to 0 once the light is
+    `fade` frame-widths (of the larger side) beyond the edge, so shafts and
+    glows neither vanish abruptly nor stretch across the frame from a far-away
+    light. 0 when the light is behind the camera (`light_in_front` false).
+    Differentiable in `light_xy` and `fade` (gradients finite everywhere).
+    """
+    check_light(light_xy)
+    light_xy = jnp.asarray(light_xy, dtype)
+    outside_x = jnp.maximum(jnp.maximum(-light_xy[0], light_xy[0] - width), 0.0)
+    outside_y = jnp.maximum(jnp.maximum(-light_xy[1], light_xy[1] - height), 0.0)
+    squared = outside_x**2 + outside_y**2
+    distance = jnp.where(squared > 0, jnp.sqrt(jnp.where(squared > 0, squared, 1.0)), 0.0)
+    reach = jnp.maximum(jnp.asarray(fade, dtype), 1e-6) * max(height, width)
+    t = jnp.clip(distance / reach, 0.0, 1.0)
+    return (1.0 - t * t * (3.0 - 2.0 * t)) * jnp.asarray(light_in_front, dtype)
+
+
+def _emitter(
+    source: str,
+    buffers: Buffers,
+    light_xy,
+    radius,
+    light_in_front,
+    fade,
+) -> Float[Array, "H W C"]:
+    """What shines: a disc at the light seen through the sky, the sky's own colour, or the light pass."""
+    dtype = buffers.color.dtype
+    visible = light_visibility(
+        light_xy, buffers.height, buffers.width, fade=fade, light_in_front=light_in_front, dtype=dtype
+    )
+    open_sky = coverage_mask(buffers.coverage)[..., None]
+    if source == "disc":
+        disc = light_source_mask(buffers.height, buffers.width, light_xy, radius=radius, dtype=dtype)
+        return disc * open_sky * visible
+    if source == "sky":
+        colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
+        return colour * open_sky * visible
+    if buffers.light_pass is None:
+        raise ValueError("source='light_pass' needs buffers.light_pass (render it, or use source='disc')")
+    return buffers.light_pass[..., None].astype(dtype) * visible
+
+
+def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front):
+    """`(function, arguments)` drawing the effect's emitter; the arguments hold only what that source depends on.
+
+    The loops differentiate an emitter's few-number arguments in forward mode,
+    one sampled derivative image each, so an unused one (a sky's disc radius)
+    would cost a derivative image of zeros.
+    """
+    radius = effect.light_radius if effect.source == "disc" else None
+    arguments = (buffers, light_xy, radius, light_in_front, effect.offscreen_fade)
+    return functools.partial(_emitter, effect.source), arguments
+
+

@@ -1,0 +1,90 @@
+"""Participating media: `ScatteringFog`, a homogeneous medium in closed form with screen-space shaft shadowing."""
+
+import functools
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from godrays_jax.effects.base import Effect, light_visibility, param
+from godrays_jax.kernels.masks import coverage_mask
+from godrays_jax.kernels.media import apply_fog, in_scattering
+from godrays_jax.kernels.rays import radial_rays
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import check_light
+
+
+class ScatteringFog(Effect):
+    """A homogeneous participating medium: extinction of the frame plus in-scattered sky and sun light.
+
+    The frame becomes `color * T + (1 - T) * (ambient + sun_irradiance * p(theta) * lit)`
+    (`media.apply_fog`, single scattering in closed form): `T = exp(-extinction *
+    min(depth, max_distance))` with `depth` the distance along the camera ray in
+    scene units (sky: `max_distance`), `extinction` per scene unit, `p` the
+    Henyey-Greenstein phase function (per steradian) of `anisotropy` at the
+    angle between each pixel's view ray and the sun (from `fov_x_deg`, the
+    horizontal field of view in degrees), `ambient` and `sun_irradiance` RGB
+    (albedo times sky radiance and times sun irradiance).
+
+    `lit` is the screen-space estimate of how much of each ray the sun
+    reaches, so occluders cast shafts of shadow into the medium:
+    `lit = 1 - shaft_strength * v * (1 - rays)`, `rays` the GPU Gems radial
+    blur (`radial_rays`, `num_samples` up to `max_samples`, `density`,
+    `decay`) of the open-sky mask toward the sun, normalised so open sky gives
+    1, and `v` the off-screen fade (`light_visibility`): far off-screen or
+    behind-camera suns cast no screen-space shafts, while the extinction, the
+    ambient light and the (backward, behind the camera) sun lobe stay.
+
+    Unlike the additive effects the medium also removes light: `effect(...)` is
+    the fogged frame, `effect.layer(...)` the in-scattered light alone (the
+    frame is `color * media.transmittance(...) + layer`).
+    """
+
+    extinction: Float[Array, ""] = param(0.01, low=0.0, high=1.0)
+    max_distance: Float[Array, ""] = param(100.0, low=0.0, high=1e4)
+    anisotropy: Float[Array, ""] = param(0.76, low=-0.95, high=0.95)
+    ambient: Float[Array, "3"] = param((0.05, 0.06, 0.08), low=0.0, high=10.0)
+    sun_irradiance: Float[Array, "3"] = param((1.0, 0.9, 0.75), low=0.0, high=100.0)
+    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
+    shaft_strength: Float[Array, ""] = param(1.0, low=0.0, high=1.0)
+    density: Float[Array, ""] = param(1.0, low=0.0, high=2.0)
+    decay: Float[Array, ""] = param(0.97, low=0.5, high=1.0)
+    num_samples: Float[Array, ""] = param(32.0, low=1.0, high=512.0)
+    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
+    max_samples: int = eqx.field(static=True, default=32)
+
+    def lit(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W"]:
+        """The fraction of each camera ray the sun reaches, in [0, 1] (1 without occluders)."""
+        check_light(light_xy)
+        dtype = buffers.color.dtype
+        open_sky = coverage_mask(buffers.coverage.astype(dtype))[..., None]
+        shafts = functools.partial(
+            radial_rays, light_xy=light_xy, num_samples=self.num_samples, max_samples=self.max_samples,
+            density=self.density, decay=self.decay, weight=1.0, exposure=1.0,
+        )  # fmt: skip
+        # Clamp addressing makes a 1x1 image of ones read 1 everywhere: its rays are the
+        # weight sum, which normalises open sky to exactly 1 at any (relaxed) sample count.
+        normalised = shafts(open_sky)[..., 0] / shafts(jnp.ones((1, 1, 1), dtype))[0, 0, 0]
+        visible = light_visibility(
+            light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
+        )
+        return 1.0 - self.shaft_strength.astype(dtype) * visible * (1.0 - normalised)
+
+    def _fog_options(self, buffers, light_xy, light_in_front):
+        return dict(
+            fov_x_deg=self.fov_x_deg, extinction=self.extinction, max_distance=self.max_distance, ambient=self.ambient,
+            sun_irradiance=self.sun_irradiance, anisotropy=self.anisotropy, light_in_front=light_in_front,
+            lit=self.lit(buffers, light_xy, light_in_front=light_in_front),
+        )  # fmt: skip
+
+    def layer(self, buffers, light_xy, *, light_in_front=True):
+        """The in-scattered light alone, `(H, W, 3)`."""
+        options = self._fog_options(buffers, light_xy, light_in_front)
+        return in_scattering(buffers.depth, light_xy, **options).astype(buffers.color.dtype)
+
+    def __call__(self, buffers, light_xy, *, light_in_front=True):
+        """The fogged frame: `color * T + layer` on the colour channels, alpha unchanged."""
+        options = self._fog_options(buffers, light_xy, light_in_front)
+        return apply_fog(buffers.color, buffers.depth, light_xy, **options)
+
+

@@ -37,8 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.pipeline import batch
-from godrays_jax.app.cli import DEFAULT_PRESET
+from godrays_jax.pipeline import batch, sequences
+from godrays_jax.app.options import DEFAULT_PRESET
 from godrays_jax.primitives.io import read_frame, write_frame_like
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
@@ -133,7 +133,7 @@ def main() -> None:
 
         jobs = batch.plan_batch(paths, os.path.join(folder, "batch"))
         os.makedirs(os.path.join(folder, "batch"))
-        report = batch.run_batch(jobs, effect, batch.METADATA, io_threads=args.io_threads, progress=None)
+        report = batch.run_batch(jobs, effect, sequences.METADATA, io_threads=args.io_threads, progress=None)
         assert not report.failures, report.failures
 
         sequential_dir = os.path.join(folder, "sequential")

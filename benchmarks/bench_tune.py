@@ -24,7 +24,8 @@ import numpy as np
 
 import godrays_jax as gr
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.app.tune import HOST, Tuner, TuneServer
+from godrays_jax.app.server import HOST, TuneServer
+from godrays_jax.app.tuner import Tuner
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
 
@@ -65,8 +66,8 @@ def main() -> None:
     print(f"frame {frame.width}x{frame.height}, {jax.devices()[0].device_kind}, {os.cpu_count()} CPU cores")
     for name in args.presets.split(","):
         effect = gr.preset(name)
-        field = next(iter(gr.effects.parameter_bounds(effect)))
-        low, high = gr.effects.parameter_bounds(effect)[field]
+        field = next(iter(gr.parameter_bounds(effect)))
+        low, high = gr.parameter_bounds(effect)[field]
         values = np.linspace(float(getattr(effect, field)), (float(getattr(effect, field)) + high) / 2, args.repeats)
         tuner = Tuner(frame, light, effect=effect, max_preview_pixels=args.preview_pixels)
         with TuneServer(tuner) as server:

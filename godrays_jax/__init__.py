@@ -2,53 +2,22 @@
 
 Kernels are pure functions (image first, options keyword-only); effects are
 `equinox.Module` parameter sets with presets; `fit`, `render`, `run_batch` and
-the I/O functions build on them. Every name below lives in one module.
+the I/O functions build on them. This is the library: the command line and
+the tuner's server live in `godrays_jax.app` and are not imported here.
 """
 
-from godrays_jax.pipeline.batch import expand_frames as expand_frames
-from godrays_jax.pipeline.batch import plan_batch as plan_batch
-from godrays_jax.pipeline.batch import read_light_track as read_light_track
-from godrays_jax.pipeline.batch import run_batch as run_batch
-from godrays_jax.kernels.blur import bloom as bloom
-from godrays_jax.kernels.blur import downsample_box as downsample_box
-from godrays_jax.kernels.blur import gaussian_blur as gaussian_blur
-from godrays_jax.kernels.blur import poisson_blur as poisson_blur
-from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
+import importlib.metadata
+
+
+# Image primitives: sampling, resampling, colour, buffers, camera, I/O.
 from godrays_jax.primitives.buffers import Buffers as Buffers
 from godrays_jax.primitives.camera import Camera as Camera
 from godrays_jax.primitives.camera import project_point as project_point
-from godrays_jax.kernels.composite import add as add
-from godrays_jax.kernels.composite import alpha_over as alpha_over
-from godrays_jax.kernels.composite import blend as blend
-from godrays_jax.kernels.composite import BLEND_MODES as BLEND_MODES
-from godrays_jax.kernels.composite import multiply as multiply
-from godrays_jax.kernels.composite import screen as screen
-from godrays_jax.effects.glow import Bloom as Bloom
-from godrays_jax.effects.base import Effect as Effect
-from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
-from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
-from godrays_jax.effects.shafts import FlareOuts as FlareOuts
-from godrays_jax.effects.shafts import GodRays as GodRays
-from godrays_jax.effects.glow import LensDirt as LensDirt
-from godrays_jax.effects.base import light_visibility as light_visibility
-from godrays_jax.effects.serialization import load_effect as load_effect
-from godrays_jax.effects.base import parameter_bounds as parameter_bounds
-from godrays_jax.effects.presets import preset as preset
-from godrays_jax.effects.presets import PRESETS as PRESETS
-from godrays_jax.effects.serialization import save_effect as save_effect
-from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
-from godrays_jax.effects.glow import SunOvercast as SunOvercast
-from godrays_jax.effects.glow import SunSpot as SunSpot
-from godrays_jax.kernels.fast import at_reduced_resolution as at_reduced_resolution
-from godrays_jax.kernels.fast import fast_radial_rays as fast_radial_rays
-from godrays_jax.kernels.fast import interleaved_gradient_noise as interleaved_gradient_noise
-from godrays_jax.kernels.fast import radial_rays_jittered as radial_rays_jittered
-from godrays_jax.kernels.fast import radial_rays_multipass as radial_rays_multipass
-from godrays_jax.kernels.fast import upsample_bilinear as upsample_bilinear
-from godrays_jax.pipeline.fit import fit as fit
-from godrays_jax.pipeline.fit import fit_report_image as fit_report_image
-from godrays_jax.pipeline.fit import FitResult as FitResult
+from godrays_jax.primitives.color import display_map as display_map
+from godrays_jax.primitives.color import srgb_decode as srgb_decode
+from godrays_jax.primitives.color import srgb_encode as srgb_encode
 from godrays_jax.primitives.io import check_buffers as check_buffers
+from godrays_jax.primitives.io import encode_png as encode_png
 from godrays_jax.primitives.io import read_buffers as read_buffers
 from godrays_jax.primitives.io import read_frame as read_frame
 from godrays_jax.primitives.io import read_image as read_image
@@ -56,6 +25,26 @@ from godrays_jax.primitives.io import read_light as read_light
 from godrays_jax.primitives.io import write_buffers as write_buffers
 from godrays_jax.primitives.io import write_frame_like as write_frame_like
 from godrays_jax.primitives.io import write_image as write_image
+from godrays_jax.primitives.resample import box_pool as box_pool
+from godrays_jax.primitives.resample import downsample_box as downsample_box
+from godrays_jax.primitives.resample import upsample_bilinear as upsample_bilinear
+from godrays_jax.primitives.sampling import sample_bilinear as sample_bilinear
+
+# Kernels: pure functions, image first, options keyword-only.
+from godrays_jax.kernels.blur import bloom as bloom
+from godrays_jax.kernels.blur import gaussian_blur as gaussian_blur
+from godrays_jax.kernels.blur import poisson_blur as poisson_blur
+from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
+from godrays_jax.kernels.composite import add as add
+from godrays_jax.kernels.composite import alpha_over as alpha_over
+from godrays_jax.kernels.composite import blend as blend
+from godrays_jax.kernels.composite import BLEND_MODES as BLEND_MODES
+from godrays_jax.kernels.composite import multiply as multiply
+from godrays_jax.kernels.composite import screen as screen
+from godrays_jax.kernels.fast import at_reduced_resolution as at_reduced_resolution
+from godrays_jax.kernels.fast import fast_radial_rays as fast_radial_rays
+from godrays_jax.kernels.fast import radial_rays_jittered as radial_rays_jittered
+from godrays_jax.kernels.fast import radial_rays_multipass as radial_rays_multipass
 from godrays_jax.kernels.lens import dirt_texture as dirt_texture
 from godrays_jax.kernels.lens import lens_dirt as lens_dirt
 from godrays_jax.kernels.lens import lens_dirt_intensity as lens_dirt_intensity
@@ -80,6 +69,38 @@ from godrays_jax.kernels.media import apply_fog as apply_fog
 from godrays_jax.kernels.media import henyey_greenstein as henyey_greenstein
 from godrays_jax.kernels.media import in_scattering as in_scattering
 from godrays_jax.kernels.media import transmittance as transmittance
+from godrays_jax.kernels.rays import radial_rays as radial_rays
+from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
+from godrays_jax.kernels.rays import scaled_copies as scaled_copies
+
+# Effects: parameter sets (equinox Modules), presets, serialisation.
+from godrays_jax.effects.base import Effect as Effect
+from godrays_jax.effects.base import light_visibility as light_visibility
+from godrays_jax.effects.base import parameter_bounds as parameter_bounds
+from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
+from godrays_jax.effects.glow import Bloom as Bloom
+from godrays_jax.effects.glow import LensDirt as LensDirt
+from godrays_jax.effects.glow import SunOvercast as SunOvercast
+from godrays_jax.effects.glow import SunSpot as SunSpot
+from godrays_jax.effects.presets import preset as preset
+from godrays_jax.effects.presets import PRESETS as PRESETS
+from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
+from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
+from godrays_jax.effects.serialization import load_effect as load_effect
+from godrays_jax.effects.serialization import save_effect as save_effect
+from godrays_jax.effects.shafts import FlareOuts as FlareOuts
+from godrays_jax.effects.shafts import GodRays as GodRays
+
+# Pipeline: sequences and batches of frames, fitting and its report.
+from godrays_jax.pipeline.batch import plan_batch as plan_batch
+from godrays_jax.pipeline.batch import run_batch as run_batch
+from godrays_jax.pipeline.fit import fit as fit
+from godrays_jax.pipeline.fit import FitResult as FitResult
+from godrays_jax.pipeline.report import fit_report_image as fit_report_image
+from godrays_jax.pipeline.sequences import expand_frames as expand_frames
+from godrays_jax.pipeline.sequences import read_light_track as read_light_track
+
+# The rasterizer: scenes to Buffers.
 from godrays_jax.raster import DirectionalLight as DirectionalLight
 from godrays_jax.raster import light_pixel as light_pixel
 from godrays_jax.raster import load_obj as load_obj
@@ -94,11 +115,5 @@ from godrays_jax.raster import scene_from_dict as scene_from_dict
 from godrays_jax.raster import Sky as Sky
 from godrays_jax.raster import Sphere as Sphere
 from godrays_jax.raster import uv_sphere as uv_sphere
-from godrays_jax.kernels.rays import radial_rays as radial_rays
-from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
-from godrays_jax.kernels.rays import scaled_copies as scaled_copies
-from godrays_jax.primitives.sampling import sample_bilinear as sample_bilinear
-from godrays_jax.app.tune import Tuner as Tuner
-from godrays_jax.app.tune import TuneServer as TuneServer
 
-__version__ = "0.1.0"
+__version__ = importlib.metadata.version("godrays_jax")

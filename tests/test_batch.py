@@ -1,5 +1,6 @@
 """Tests for godrays_jax.pipeline.batch and `godrays-jax batch`: sequences, bad frames, resume, devices, I/O that keeps the input."""
 
+import io
 import json
 import os
 import re
@@ -16,8 +17,9 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.pipeline import batch
-from godrays_jax.app.cli import DEFAULT_PRESET, main
+from godrays_jax.pipeline import batch, sequences
+from godrays_jax.app.cli import main
+from godrays_jax.app.options import DEFAULT_PRESET
 from godrays_jax.primitives.io import read_frame, write_frame_like
 
 H, W = 16, 24
@@ -81,52 +83,52 @@ def test_expand_frames_patterns(tmp_path):
     _sequence(tmp_path, 3, first=9)
     (tmp_path / "shot.10.exr").write_bytes(b"")  # two digits: not a #### frame
     expected = [str(tmp_path / f"shot.{n:04d}.exr") for n in (9, 10, 11)]
-    assert batch.expand_frames(str(tmp_path / "shot.####.exr")) == expected
-    assert batch.expand_frames(str(tmp_path / "shot.%04d.exr")) == expected
-    assert batch.expand_frames(str(tmp_path / "shot.*.exr")) == expected[:2] + [str(tmp_path / "shot.10.exr")] + expected[2:]
-    assert batch.expand_frames(expected[1]) == [expected[1]]
-    with pytest.raises(batch.BatchError, match="no frames match"):
-        batch.expand_frames(str(tmp_path / "other.####.exr"))
-    assert batch.frame_number("a/b7/shot.v2.0042.exr") == 42 and batch.frame_number("plate.exr") is None
+    assert sequences.expand_frames(str(tmp_path / "shot.####.exr")) == expected
+    assert sequences.expand_frames(str(tmp_path / "shot.%04d.exr")) == expected
+    assert sequences.expand_frames(str(tmp_path / "shot.*.exr")) == expected[:2] + [str(tmp_path / "shot.10.exr")] + expected[2:]
+    assert sequences.expand_frames(expected[1]) == [expected[1]]
+    with pytest.raises(ValueError, match="no frames match"):
+        sequences.expand_frames(str(tmp_path / "other.####.exr"))
+    assert sequences.frame_number("a/b7/shot.v2.0042.exr") == 42 and sequences.frame_number("plate.exr") is None
 
 
 def test_light_tracks(tmp_path):
     csv_path = tmp_path / "track.csv"
     csv_path.write_text("frame,x,y,in_front\n1,10.5,20,1\n2, 11.5 ,21,false\n# comment\n\n3,-1e4,5\n")
-    assert batch.read_light_track(csv_path) == {1: ((10.5, 20.0), True), 2: ((11.5, 21.0), False), 3: ((-1e4, 5.0), True)}
+    assert sequences.read_light_track(csv_path) == {1: ((10.5, 20.0), True), 2: ((11.5, 21.0), False), 3: ((-1e4, 5.0), True)}
     json_path = tmp_path / "track.json"
     json_path.write_text(json.dumps({"1": [1, 2], "2": {"x": 3, "y": 4, "in_front": False}}))
-    assert batch.read_light_track(json_path) == {1: ((1.0, 2.0), True), 2: ((3.0, 4.0), False)}
+    assert sequences.read_light_track(json_path) == {1: ((1.0, 2.0), True), 2: ((3.0, 4.0), False)}
     json_path.write_text(json.dumps([{"frame": 5, "x": 1.5, "y": 2.5}]))
-    assert batch.read_light_track(json_path) == {5: ((1.5, 2.5), True)}
+    assert sequences.read_light_track(json_path) == {5: ((1.5, 2.5), True)}
     for text, message in [("1,2\n", "frame, x, y"), ("1,nan,2\n", "non-finite"), ("a,1,2\n", "integer frame"),
                           ("1,1,2,maybe\n", "in_front"), ("frame,x,y\n", "no frames")]:  # fmt: skip
         csv_path.write_text(text)
         with pytest.raises(ValueError, match=message):
-            batch.read_light_track(csv_path)
+            sequences.read_light_track(csv_path)
     json_path.write_text("{")
     with pytest.raises(ValueError, match="not valid JSON"):
-        batch.read_light_track(json_path)
+        sequences.read_light_track(json_path)
 
 
 def test_light_for_each_source(tmp_path):
     (path,) = _sequence(tmp_path, 1, first=7)
-    assert batch.light_for(str(path), (1, 2)) == ((1.0, 2.0), True)
-    assert batch.light_for(str(path), batch.METADATA) == (_light(7), True)
-    assert batch.light_for(str(path), {7: ((3.0, 4.0), False)}) == ((3.0, 4.0), False)
+    assert sequences.light_for(str(path), (1, 2)) == ((1.0, 2.0), True)
+    assert sequences.light_for(str(path), sequences.METADATA) == (_light(7), True)
+    assert sequences.light_for(str(path), {7: ((3.0, 4.0), False)}) == ((3.0, 4.0), False)
     with pytest.raises(ValueError, match=r"frame 7 is outside the light track \(frames 8-9\)"):
-        batch.light_for(str(path), {8: ((3.0, 4.0), False), 9: ((3.0, 4.0), False)})
+        sequences.light_for(str(path), {8: ((3.0, 4.0), False), 9: ((3.0, 4.0), False)})
     bare = tmp_path / "bare.exr"
     gr.write_buffers(bare, _frame(0))
     with pytest.raises(ValueError, match="no light position"):
-        batch.light_for(str(bare), batch.METADATA)
+        sequences.light_for(str(bare), sequences.METADATA)
 
 
 def test_sparse_light_track_interpolates_between_keys():
     track = {1: ((10.0, 20.0), True), 5: ((30.0, 0.0), True), 7: ((0.0, 0.0), False), 10: ((6.0, 3.0), False)}
 
     def at(number):
-        return batch.light_for(f"shot.{number:04d}.exr", track)
+        return sequences.light_for(f"shot.{number:04d}.exr", track)
 
     assert at(1) == ((10.0, 20.0), True)
     assert at(2) == ((15.0, 15.0), True)
@@ -182,7 +184,7 @@ def test_batch_matches_the_effect_and_compiles_once(tmp_path, capsys):
     for path in inputs:
         out, stored = read_frame(tmp_path / "out" / path.name)
         _assert_half_close(out.color, _expected(path))
-        assert stored.spec.getattribute("shot:note") == f"frame {batch.frame_number(str(path))}"
+        assert stored.spec.getattribute("shot:note") == f"frame {sequences.frame_number(str(path))}"
     # frame 2 has its light behind the camera: no rays, the frame comes back unchanged
     np.testing.assert_array_equal(read_frame(tmp_path / "out" / inputs[1].name)[0].color, gr.read_buffers(inputs[1]).color)
 
@@ -281,27 +283,14 @@ def test_plan_shards_split_the_frames(tmp_path):
         batch.plan_batch([inputs[0], inputs[0]], str(tmp_path / "o"))
 
 
-def test_progress_line():
-    class Sink(list):
-        def write(self, text):
-            self.append(text)
-
-        def flush(self):
-            pass
-
-        def isatty(self):
-            return False
-
-    sink = Sink()
-    bar = batch.Progress(20, sink, width=10)
-    for _ in range(20):
-        bar.advance()
-    assert len(sink) == 10  # a line about every 10 %, not per frame, when not a terminal
-    assert sink[-1].startswith("[##########] 20/20 frames  ") and "frames/s  ETA 00:00:00" in sink[-1]
-
-
-# ------------------------------------------------------------------------------ kill, resume, devices
-
+def test_progress_bar_counts_frames_with_a_rate_and_an_eta(tmp_path):
+    inputs = _sequence(tmp_path / "in", 3)
+    jobs = batch.plan_batch([str(p) for p in inputs], str(tmp_path / "out"))
+    stream = io.StringIO()
+    report = batch.run_batch(jobs, gr.GodRays(num_samples=4.0, max_samples=4), (3.5, 2.5), progress=stream)
+    assert len(report.written) == 3
+    last = stream.getvalue().replace("\r", "\n").strip().splitlines()[-1]
+    assert re.search(r"3/3 \[[0-9:]+<[0-9:]+, +[0-9.]+ ?(frame/s|s/frame)\]", last), last
 
 def _cli(*args: str, env: dict | None = None) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "godrays_jax", "batch", *args],
@@ -344,9 +333,9 @@ def test_frames_spread_over_two_devices(tmp_path):
     pattern = str(tmp_path / "in" / "shot.####.exr")
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     script = (
-        "import json, sys, godrays_jax as gr; from godrays_jax.pipeline import batch\n"
-        f"jobs = batch.plan_batch(batch.expand_frames({pattern!r}), {str(tmp_path / 'two')!r})\n"
-        "report = batch.run_batch(jobs, gr.preset('xna_crepuscular'), batch.METADATA, progress=None)\n"
+        "import json, sys, godrays_jax as gr; from godrays_jax.pipeline import batch, sequences\n"
+        f"jobs = batch.plan_batch(sequences.expand_frames({pattern!r}), {str(tmp_path / 'two')!r})\n"
+        "report = batch.run_batch(jobs, gr.preset('xna_crepuscular'), sequences.METADATA, progress=None)\n"
         "print(json.dumps(dict(devices=report.devices, compilations=report.compilations, written=len(report.written))))\n"
     )
     done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)

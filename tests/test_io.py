@@ -7,7 +7,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from godrays_jax import Buffers, check_buffers, read_buffers, read_image, read_light, write_buffers, write_image
+from godrays_jax import Buffers, check_buffers, read_buffers, read_image, read_light, srgb_decode, srgb_encode, write_buffers, write_image
 from godrays_jax.primitives import io as gio
 
 COLONNADE = Path(__file__).resolve().parents[2] / "shared" / "data" / "colonnade_buffers.exr"  # shared/ beside the checkout
@@ -109,7 +109,7 @@ def test_lightpass_alternative_name(tmp_path):
 )
 def test_image_round_trip(tmp_path, ext, kwargs, step):
     y, x = np.mgrid[0:16, 0:24] / 24.0  # smooth once encoded, so that JPEG keeps it well
-    image = gio._srgb_decode(np.stack([x, y, 0.5 * (x + y)], -1)).astype(np.float32)
+    image = srgb_decode(np.stack([x, y, 0.5 * (x + y)], -1)).astype(np.float32)
     if ext == ".exr":
         image[0, 0] = [100.0, 0.0, 5.0]  # unclipped HDR
     path = tmp_path / f"img{ext}"
@@ -120,9 +120,9 @@ def test_image_round_trip(tmp_path, ext, kwargs, step):
         np.testing.assert_allclose(back, image, rtol=step, atol=0)
     elif step is not None:
         # within half a code step, in the encoded (sRGB) space where the codes are uniform
-        np.testing.assert_allclose(gio._srgb_encode(back), gio._srgb_encode(image), atol=0.51 * step)
+        np.testing.assert_allclose(srgb_encode(back), srgb_encode(image), atol=0.51 * step)
     else:  # JPEG: lossy; a smooth image comes back within a few codes
-        assert np.abs(gio._srgb_encode(back) - gio._srgb_encode(image)).max() < 6 / 255
+        assert np.abs(srgb_encode(back) - srgb_encode(image)).max() < 6 / 255
 
 
 def test_display_encoding_is_srgb_and_clipped(tmp_path):

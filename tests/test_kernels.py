@@ -289,7 +289,7 @@ def test_light_source_mask_matches_loop_and_is_off_when_behind():
             distance = np.hypot(col + 0.5 - light[0], row + 0.5 - light[1])
             expected = 2 * max(0.0, 1 - distance / 4.0) ** 2
             assert abs(float(mask[row, col, 0]) - expected) < 1e-5
-    assert float(jnp.max(gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0, in_front=False))) == 0.0
+    assert float(jnp.max(gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0, light_in_front=False))) == 0.0
     # A texture covers the square light +- radius.
     texture = jnp.ones((4, 4, 3)) * 0.5
     textured = gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0, texture=texture)

@@ -84,7 +84,7 @@ def test_lens_dirt_seed_constants_and_behind_camera(scene):
     sky = gr.lens_dirt_intensity(jnp.full((H, W), jnp.inf), jnp.asarray(light), **options)
     np.testing.assert_allclose(near, sky * 0.8**20, rtol=1e-4)  # occluders nearer than 0.8 * far
     behind = _reference_lens_dirt(dirt, depth, light, FOV, 100.0, np.ones(3), 20.0, 2.0, 0.002, in_front=False)
-    got_behind = gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.asarray(light), fov_x_deg=FOV, far=100.0, in_front=False)
+    got_behind = gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.asarray(light), fov_x_deg=FOV, far=100.0, light_in_front=False)
     np.testing.assert_allclose(got_behind, behind, atol=1e-7)
     assert float(got_behind.max()) < 1e-6
 
@@ -104,7 +104,7 @@ def test_view_directions_match_the_camera():
     for point in ([1.0, -2.0, -5.0], [0.5, 0.3, 4.0]):
         xy, _, in_front = project_point(camera, jnp.array(point))
         view = camera.to_view(jnp.array(point))
-        np.testing.assert_allclose(gr.light_direction(xy, H, W, fov_x_deg=FOV, in_front=in_front), view / jnp.linalg.norm(view), atol=1e-5)
+        np.testing.assert_allclose(gr.light_direction(xy, H, W, fov_x_deg=FOV, light_in_front=in_front), view / jnp.linalg.norm(view), atol=1e-5)
 
 
 def test_dirt_texture_is_deterministic_and_bounded():
@@ -137,7 +137,7 @@ def test_gradients(x64, scene, in_front):
     def dirt_layer(power, scale, aberration, far, fov, light_xy):
         return gr.lens_dirt(
             jnp.asarray(dirt), jnp.asarray(depth), light_xy, fov_x_deg=fov, far=far, power=power, scale=scale,
-            aberration=aberration, in_front=in_front,
+            aberration=aberration, light_in_front=in_front,
         )  # fmt: skip
 
     arguments = (4.0, 2.0, 0.03, 100.0, FOV, jnp.asarray(light, jnp.float64))
@@ -146,7 +146,7 @@ def test_gradients(x64, scene, in_front):
 
     @jax.jit
     def spot(distance, sharpness, fov, light_xy):
-        return gr.sun_spot(H, W, light_xy, fov_x_deg=fov, sun_distance=distance, sun_sharpness=sharpness, in_front=in_front, dtype=jnp.float64)
+        return gr.sun_spot(H, W, light_xy, fov_x_deg=fov, sun_distance=distance, sun_sharpness=sharpness, light_in_front=in_front, dtype=jnp.float64)
 
     check_grads(spot, (0.01, 1.0, FOV, jnp.asarray(light, jnp.float64)), order=1, modes=["rev"], eps=1e-5, rtol=1e-3)
     for grads in (jax.grad(lambda a: dirt_layer(*a).sum())(arguments), jax.grad(lambda a: spot(*a).sum())((1.0, 1.0, FOV, jnp.asarray(light)))):

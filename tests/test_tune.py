@@ -17,19 +17,18 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.app.cli import main
-from godrays_jax.app.tune import (
-    HOST,
+from godrays_jax.app.server import HOST, TuneServer
+from godrays_jax.app.tuner import (
     PIXEL_FIELDS,
     RenderQueue,
     Superseded,
     Tuner,
-    TuneServer,
     display_encode,
     downsample_buffers,
-    encode_png,
     preview_factor,
     scale_pixel_fields,
 )
+from godrays_jax.primitives.io import encode_png
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
 CHROMIUM = "/usr/bin/chromium"
@@ -65,7 +64,7 @@ def test_encode_png_round_trips_through_openimageio(tmp_path):
 
 
 def test_encode_png_rejects_other_channel_counts():
-    with pytest.raises(ValueError, match="pixels must have shape"):
+    with pytest.raises(ValueError, match="pixels must be uint8 of shape"):
         encode_png(np.zeros((2, 2, 4), np.uint8))
 
 
@@ -120,7 +119,7 @@ def test_downsample_buffers_matches_block_loops():
 def test_scale_pixel_fields_scales_only_pixel_sizes():
     effect = gr.preset("kbengine_flares")
     scaled = scale_pixel_fields(effect, 0.25)
-    for name in gr.effects.parameter_bounds(effect):
+    for name in gr.parameter_bounds(effect):
         factor = 0.25 if name in PIXEL_FIELDS else 1.0
         np.testing.assert_allclose(getattr(scaled, name), np.asarray(getattr(effect, name)) * factor)
 
@@ -131,7 +130,7 @@ def test_preview_render_approximates_the_downsampled_full_render():
     effect = gr.GodRays(num_samples=8.0, max_samples=8, light_radius=12.0, exposure=0.5)
     light = jnp.asarray([40.0, 8.0])
     layer = eqx.filter_jit(lambda effect, frame, light: effect.layer(frame, light))
-    full = gr.blur.downsample_box(layer(effect, frame, light), 4)
+    full = gr.downsample_box(layer(effect, frame, light), 4)
     preview = layer(scale_pixel_fields(effect, 0.25), downsample_buffers(frame, 4), light / 4)
     unscaled = layer(effect, downsample_buffers(frame, 4), light / 4)
     error = float(jnp.mean(jnp.abs(preview - full)))
@@ -236,7 +235,7 @@ def test_state_lists_sliders_with_the_effects_bounds(server):
     status, state = Client(server.port).request("GET", "/api/state")
     assert status == 200
     assert (state["width"], state["height"], state["preview_factor"]) == (64, 36, 3)
-    assert state["bounds"]["decay"] == list(gr.effects.parameter_bounds(gr.GodRays)["decay"])
+    assert state["bounds"]["decay"] == list(gr.parameter_bounds(gr.GodRays)["decay"])
     assert state["bounds"]["num_samples"] == [1.0, 8.0]  # capped by the static loop length max_samples
     assert state["effect"]["effect"] == "GodRays" and state["has_target"]
     assert sorted(state["presets"]) == sorted(gr.PRESETS)

@@ -1,21 +1,21 @@
-"""The `godrays-jax` command line.
+"""The `godrays-jax` command line: its parser, and `main`, which runs the chosen command's module.
 
 Every command reports an error as one line on stderr and exits non-zero; no
 command leaves a partial output file (writes go through a temporary file that is
-renamed into place). Commands register themselves in `COMMANDS`.
+renamed into place). `COMMANDS` adds each subcommand's options; its handler
+is `run(args)` in `godrays_jax.app.<command>_command`.
 """
 
 import argparse
-import math
-import os
+import importlib
 import sys
 from collections.abc import Callable
 
+from godrays_jax.app.options import DEFAULT_PRESET, parse_light
+from godrays_jax.effects.presets import PRESETS
+from godrays_jax.primitives.checks import error_line
+
 PROGRAM = "godrays-jax"
-
-
-class CommandError(Exception):
-    """A user error the CLI reports as one line (no traceback)."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -23,58 +23,7 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
-def parse_light(text: str) -> tuple[float, float]:
-    """`"X,Y"` -> `(x, y)` pixels; both finite numbers."""
-    parts = text.replace(" ", "").split(",")
-    try:
-        x, y = (float(part) for part in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--light must be X,Y in pixels (e.g. 160.5,42), got {text!r}") from None
-    if not (math.isfinite(x) and math.isfinite(y)):
-        raise argparse.ArgumentTypeError(f"--light must be finite, got {text!r}")
-    return x, y
-
-
-def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:
-    """The `--light` value, or the position stored in the frame's metadata."""
-    from godrays_jax.primitives.io import read_light
-
-    if light is not None:
-        return light, True
-    stored = read_light(buffers_path)
-    if stored is None:
-        raise CommandError(f"{buffers_path} stores no light position (godrays:light_px): pass --light X,Y")
-    return stored
-
-
-def load_effect_option(preset_name: str | None, params_path: str | None):
-    """The effect named by `--preset` or stored in `--params` (the default preset if neither)."""
-    from godrays_jax.effects.presets import preset
-    from godrays_jax.effects.serialization import load_effect
-
-    if preset_name and params_path:
-        raise CommandError("give --preset or --params, not both")
-    if params_path:
-        return load_effect(params_path)
-    return preset(preset_name or DEFAULT_PRESET)
-
-
-def check_output_path(output: str, *inputs: str) -> None:
-    """Refuse to overwrite an input and to write into a folder that does not exist."""
-    folder = os.path.dirname(os.path.abspath(output))
-    if not os.path.isdir(folder):
-        raise CommandError(f"output folder {folder} does not exist")
-    for path in inputs:
-        if os.path.exists(output) and os.path.exists(path) and os.path.samefile(output, path):
-            raise CommandError(f"refusing to overwrite the input {path}")
-
-
-DEFAULT_PRESET = "xna_crepuscular"
-
-
 def _add_effect_options(parser: argparse.ArgumentParser) -> None:
-    from godrays_jax.effects.presets import PRESETS
-
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
         "--preset", choices=sorted(PRESETS), help=f"a source article's effect (default {DEFAULT_PRESET})"
@@ -99,26 +48,7 @@ def _add_apply(subparsers) -> None:
     _add_effect_options(parser)
     parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
-    parser.set_defaults(handler=_run_apply)
-
-
-def _run_apply(args) -> int:
-    import jax.numpy as jnp
-
-    from godrays_jax.primitives.io import read_buffers, write_image
-
-    check_output_path(args.output, args.buffers)
-    effect = load_effect_option(args.preset, args.params)
-    buffers = read_buffers(args.buffers, depth_channel=args.depth_channel)
-    light_xy, in_front = resolve_light(args.light, args.buffers)
-    light = jnp.asarray(light_xy, jnp.float32)
-    if args.layer_only:
-        image = effect.layer(buffers, light, light_in_front=in_front)
-    else:
-        image = effect(buffers, light, light_in_front=in_front)
-    write_image(args.output, image)
-    print(f"wrote {args.output}")
-    return 0
+    parser.set_defaults(handler="godrays_jax.app.apply_command:run")
 
 
 def _add_batch(subparsers) -> None:
@@ -160,13 +90,7 @@ def _add_batch(subparsers) -> None:
     parser.add_argument("--num-processes", type=int, metavar="N", help="with --distributed and --coordinator")
     parser.add_argument("--process-id", type=int, metavar="I", help="with --distributed and --coordinator: 0..N-1")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress line")
-    parser.set_defaults(handler=_run_batch)
-
-
-def _run_batch(args) -> int:
-    from godrays_jax.pipeline.batch import run_command
-
-    return run_command(args)
+    parser.set_defaults(handler="godrays_jax.app.batch_command:run")
 
 
 def _add_tune(subparsers) -> None:
@@ -192,18 +116,10 @@ def _add_tune(subparsers) -> None:
         "--preview-pixels", type=int, default=40_000, help="pixels at most in drag previews (default 40000)"
     )
     parser.add_argument("--fit-steps", type=int, default=20, help="solver steps at most per fit (default 20)")
-    parser.set_defaults(handler=_run_tune)
-
-
-def _run_tune(args) -> int:
-    from godrays_jax.app.tune import run_tune
-
-    return run_tune(args)
+    parser.set_defaults(handler="godrays_jax.app.tune_command:run")
 
 
 def _add_fit(subparsers) -> None:
-    from godrays_jax.effects.presets import PRESETS
-
     parser = subparsers.add_parser(
         "fit",
         help="fit an effect's parameters to reference frames",
@@ -238,13 +154,7 @@ def _add_fit(subparsers) -> None:
         "--fractional-counts", action="store_true",
         help="save counts (num_samples, ...) as fitted; by default they are rounded to integers",
     )  # fmt: skip
-    parser.set_defaults(handler=_run_fit)
-
-
-def _run_fit(args) -> int:
-    from godrays_jax.pipeline.fit import run_fit_command
-
-    return run_fit_command(args)
+    parser.set_defaults(handler="godrays_jax.app.fit_command:run")
 
 
 def _add_render(subparsers) -> None:
@@ -259,23 +169,7 @@ def _add_render(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, help="output frame (.exr)")
     parser.add_argument("--light", action="store_true", help="also print the light's pixel position")
     parser.add_argument("--no-glow", action="store_true", help="skip the glow pass (one rasterization instead of two)")
-    parser.set_defaults(handler=_run_render)
-
-
-def _run_render(args) -> int:
-    from godrays_jax.primitives.io import write_buffers
-    from godrays_jax.raster import light_pixel, load_scene, render
-
-    check_output_path(args.output, args.scene)
-    scene, camera = load_scene(args.scene)
-    buffers = render(scene, camera, with_glow_pass=not args.no_glow)
-    xy, _, in_front = light_pixel(scene, camera)
-    light_xy = (float(xy[0]), float(xy[1]))
-    write_buffers(args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front))
-    if args.light:
-        print(f"light {light_xy[0]:.4f},{light_xy[1]:.4f} {'in front' if in_front else 'behind the camera'}")
-    print(f"wrote {args.output}")
-    return 0
+    parser.set_defaults(handler="godrays_jax.app.render_command:run")
 
 
 COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch, _add_tune, _add_fit, _add_render]
@@ -295,7 +189,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.handler(args)
+        module, function = args.handler.split(":")
+        # Only the chosen command's module is imported: `apply` never loads the rasterizer or the solver.
+        return getattr(importlib.import_module(module), function)(args)
     except KeyboardInterrupt:
         print(f"{PROGRAM} {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -304,14 +200,3 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
-def error_line(error: BaseException) -> str:
-    """The one line that says what went wrong, also for errors raised inside jitted code."""
-    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
-    for line in lines:
-        if line.startswith("equinox.EquinoxRuntimeError:"):
-            return line.split(":", 1)[1].strip()
-    return lines[0] if lines else type(error).__name__
-
-
-if __name__ == "__main__":
-    sys.exit(main())

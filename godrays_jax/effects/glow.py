@@ -112,7 +112,7 @@ class LensDirt(Effect):
         dirt = jnp.asarray(_cached_dirt(buffers.height, buffers.width, self.dirt_seed), dtype)
         lit = lens_dirt(
             dirt, buffers.depth, light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
-            power=self.power, scale=self.scale, aberration=self.aberration, in_front=light_in_front, view=self.view,
+            power=self.power, scale=self.scale, aberration=self.aberration, light_in_front=light_in_front, view=self.view,
         )  # fmt: skip
         visible = light_visibility(
             light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
@@ -152,7 +152,7 @@ class SunSpot(Effect):
         dtype = buffers.color.dtype
         spot = sun_spot(
             buffers.height, buffers.width, light_xy, fov_x_deg=self.fov_x_deg, sun_distance=self.sun_distance,
-            sun_sharpness=self.sun_sharpness, in_front=light_in_front, dtype=dtype,
+            sun_sharpness=self.sun_sharpness, light_in_front=light_in_front, dtype=dtype,
         )  # fmt: skip
         visible = light_visibility(
             light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype

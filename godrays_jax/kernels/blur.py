@@ -10,7 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax.primitives.checks import checked_count, check_image, check_scalar, is_static_int, resolve_count
+from godrays_jax.primitives.checks import (
+    check_image,
+    check_scalar,
+    checked_count,
+    is_static_int,
+    resolve_count,
+)
+from godrays_jax.primitives.resample import downsample_box
 from godrays_jax.primitives.sampling import sample_separable
 
 POISSON_OFFSETS = np.array(
@@ -133,22 +140,6 @@ def gaussian_blur(
 
 BLOOM_LEVELS = (2, 4, 8, 16)
 """Seed 001's bloom pyramid: blurs at 1/2, 1/4, 1/8 and 1/16 of the full resolution."""
-
-
-def downsample_box(image: Float[Array, "H W C"], factor: int) -> Float[Array, "h w C"]:
-    """Average each `factor x factor` block of pixels, `h = ceil(H / factor)`, `w = ceil(W / factor)`.
-
-    A ragged last row or column of blocks is completed with the edge pixels
-    (clamp-to-edge). Output pixel `(j, i)` covers full-resolution pixels
-    `[factor * i, factor * (i + 1))` x `[factor * j, factor * (j + 1))`.
-    """
-    check_image(image)
-    if not is_static_int(factor) or factor < 1:
-        raise ValueError(f"factor must be a Python int >= 1, got {factor!r}")
-    height, width, channels = image.shape
-    low_h, low_w = -(-height // factor), -(-width // factor)
-    padded = jnp.pad(image, ((0, low_h * factor - height), (0, low_w * factor - width), (0, 0)), mode="edge")
-    return padded.reshape(low_h, factor, low_w, factor, channels).mean(axis=(1, 3))
 
 
 def bloom(

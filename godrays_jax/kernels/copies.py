@@ -20,7 +20,13 @@ from jax.custom_derivatives import SymbolicZero
 from godrays_jax.kernels.cpu_loop import copy_sums_cpu
 from godrays_jax.kernels.forward_mode import FEW_NUMBERS, differentiated, tangent_of
 from godrays_jax.kernels.gpu_loop import copy_sums_gpu
-from godrays_jax.kernels.planes import Planes, copy_derivatives, copy_taps, lerp_rows, offsets
+from godrays_jax.kernels.planes import (
+    Planes,
+    copy_derivatives,
+    copy_taps,
+    lerp_rows,
+    offsets,
+)
 
 
 def copy_sums(addressing, light_varies, image, derivative_image, light_xy, scales, weights, jacobians):

@@ -24,10 +24,17 @@ from collections.abc import Callable
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax.primitives.checks import check_image, check_light, check_scalar, checked_count, is_static_int, resolve_count
-from godrays_jax.kernels.blur import downsample_box
 from godrays_jax.kernels.rays import scaled_copies
-from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear, sample_separable
+from godrays_jax.primitives.checks import (
+    check_image,
+    check_light,
+    check_scalar,
+    checked_count,
+    is_static_int,
+    resolve_count,
+)
+from godrays_jax.primitives.resample import downsample_box, upsample_bilinear
+from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 
 
 def _check_ray_options(image, light_xy, density, decay, weight, exposure):
@@ -150,20 +157,6 @@ def radial_rays_multipass(
         rays = scaled_copies(rays, light_xy, scales, jnp.exp(slope * digits * stride))
     comb_mass = jnp.sum(jnp.exp(slope * m))
     return (image + rays * (total_mass / comb_mass)) * jnp.asarray(exposure, dtype)
-
-
-def upsample_bilinear(image: Float[Array, "h w C"], factor: int, height: int, width: int) -> Float[Array, "H W C"]:
-    """Read a `1/factor` resolution image back at `height x width` bilinearly, clamp-to-edge.
-
-    Full-resolution pixel centre `x` reads low-resolution position `x / factor`,
-    the inverse of `blur.downsample_box`'s block layout.
-    """
-    check_image(image)
-    _check_positive_int(factor, "factor")
-    dtype = image.dtype
-    ys = (jnp.arange(height, dtype=dtype) + 0.5) / factor
-    xs = (jnp.arange(width, dtype=dtype) + 0.5) / factor
-    return sample_separable(image, xs, ys)
 
 
 def at_reduced_resolution(

@@ -13,7 +13,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-
 FEW_NUMBERS = 8
 """Differentiated inputs with at most this many numbers in all (counted for the image's inputs, and for the copies'
 scales' and weights' together) are differentiated in forward mode inside the loop.

@@ -22,21 +22,19 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.primitives.checks import check_image, check_light, check_scalar, is_static_int
+from godrays_jax.primitives.camera import focal_length_px, unit_vectors
+from godrays_jax.primitives.checks import (
+    check_image,
+    check_light,
+    check_scalar,
+    is_static_int,
+)
 from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 
 ViewMode = Literal["pixel", "axis"]
 
 LENS_DIRT_ABERRATION = 0.002
 """Seed 001's per-channel texture offset (UV): green reads `+0.002` in v, blue `+0.002` in u."""
-
-
-def _focal_px(width: int, fov_x_deg, dtype) -> Float[Array, ""]:
-    return 0.5 * width / jnp.tan(jnp.deg2rad(jnp.asarray(fov_x_deg, dtype)) / 2)
-
-
-def _unit(vectors):
-    return vectors / jnp.sqrt(jnp.sum(vectors**2, axis=-1, keepdims=True))
 
 
 def view_directions(
@@ -47,10 +45,10 @@ def view_directions(
     `fov_x_deg` is the horizontal field of view in degrees, in (0, 180).
     """
     check_scalar(fov_x_deg, "fov_x_deg")
-    focal = _focal_px(width, fov_x_deg, dtype)
+    focal = focal_length_px(width, fov_x_deg, dtype)
     x, y = pixel_centres(height, width, dtype)
     rays = jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
-    return _unit(rays)
+    return unit_vectors(rays)
 
 
 def light_direction(
@@ -59,23 +57,23 @@ def light_direction(
     width: int,
     *,
     fov_x_deg: Float[ArrayLike, ""],
-    in_front: Bool[ArrayLike, ""] | bool = True,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype=jnp.float32,
 ) -> Float[Array, "3"]:
     """Unit view-space direction from the camera toward a light projected at `light_xy` pixels.
 
     `light_xy` may be anywhere (off screen: a direction far from the axis). A
     light behind the camera is projected through its mirror image in the
-    camera plane (`camera.project_point`), so when `in_front` is false the
+    camera plane (`camera.project_point`), so when `light_in_front` is false the
     forward (z) component of the direction through `light_xy` is negated.
     """
     check_light(light_xy)
     check_scalar(fov_x_deg, "fov_x_deg")
     light_xy = jnp.asarray(light_xy, dtype)
-    focal = _focal_px(width, fov_x_deg, dtype)
-    forward = jnp.where(jnp.asarray(in_front), 1.0, -1.0).astype(dtype)
+    focal = focal_length_px(width, fov_x_deg, dtype)
+    forward = jnp.where(jnp.asarray(light_in_front), 1.0, -1.0).astype(dtype)
     ray = jnp.stack([(light_xy[0] - 0.5 * width) / focal, (0.5 * height - light_xy[1]) / focal, forward])
-    return _unit(ray)
+    return unit_vectors(ray)
 
 
 def safe_power(base: Float[Array, "*S"], exponent: Float[ArrayLike, ""]) -> Float[Array, "*S"]:
@@ -103,7 +101,7 @@ def lens_dirt_intensity(
     far: Float[ArrayLike, ""],
     power: Float[ArrayLike, ""] = 20.0,
     scale: Float[ArrayLike, ""] = 2.0,
-    in_front: Bool[ArrayLike, ""] | bool = True,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
     view: ViewMode = "pixel",
 ) -> Float[Array, "H W"]:
     """Seed 001's `pow(saturate(dot(view, -lightdir) * max(LDepth, 0.8)), power) * scale`.
@@ -123,7 +121,7 @@ def lens_dirt_intensity(
         check_scalar(value, name)
     height, width = depth.shape
     dtype = jnp.result_type(depth, jnp.float32)
-    toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=in_front, dtype=dtype)
+    toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
     if view == "pixel":
         cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_light, precision="highest")
     else:
@@ -143,7 +141,7 @@ def lens_dirt(
     power: Float[ArrayLike, ""] = 20.0,
     scale: Float[ArrayLike, ""] = 2.0,
     aberration: Float[ArrayLike, ""] = LENS_DIRT_ABERRATION,
-    in_front: Bool[ArrayLike, ""] | bool = True,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
     view: ViewMode = "pixel",
 ) -> Float[Array, "H W 3"]:
     """Seed 001's lens dirt layer, to be added onto the frame: `dirt colour * lens_dirt_intensity`.
@@ -162,7 +160,7 @@ def lens_dirt(
     if np.shape(sun_color) != (3,):
         raise ValueError(f"sun_color must be an RGB triple, shape (3,), got shape {np.shape(sun_color)}")
     intensity = lens_dirt_intensity(
-        depth, light_xy, fov_x_deg=fov_x_deg, far=far, power=power, scale=scale, in_front=in_front, view=view
+        depth, light_xy, fov_x_deg=fov_x_deg, far=far, power=power, scale=scale, light_in_front=light_in_front, view=view
     )
     height, width = intensity.shape
     dtype = intensity.dtype
@@ -186,7 +184,7 @@ def sun_spot(
     fov_x_deg: Float[ArrayLike, ""],
     sun_distance: Float[ArrayLike, ""],
     sun_sharpness: Float[ArrayLike, ""],
-    in_front: Bool[ArrayLike, ""] | bool = True,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype=jnp.float32,
 ) -> Float[Array, "H W 1"]:
     """Seed 001's sky sun spot `saturate(pow(dot(dir, L), SunDistance * 2000)) * SunSharpness * 30`.
@@ -199,11 +197,23 @@ def sun_spot(
     """
     for name, value in (("sun_distance", sun_distance), ("sun_sharpness", sun_sharpness)):
         check_scalar(value, name)
-    toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=in_front, dtype=dtype)
+    toward_light = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
     cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_light, precision="highest")
-    exponent = jnp.asarray(sun_distance, dtype) * 2000.0
+    return sun_spot_intensity(cosine, sun_distance=sun_distance, sun_sharpness=sun_sharpness)[..., None]
+
+
+def sun_spot_intensity(
+    cosine: Float[Array, "*S"], *, sun_distance: Float[ArrayLike, ""], sun_sharpness: Float[ArrayLike, ""]
+) -> Float[Array, "*S"]:
+    """The VBex sky shader's spot at a view ray: `saturate(pow(cosine, SunDistance * 2000)) * SunSharpness * 30`.
+
+    `cosine` is the dot product of the unit view ray and the unit direction
+    toward the sun; a negative one gives 0. Used by `sun_spot` and by the
+    rasterizer's sky.
+    """
+    exponent = jnp.asarray(sun_distance, cosine.dtype) * 2000.0
     spot = jnp.clip(safe_power(jnp.clip(cosine, 0.0, 1.0), exponent), 0.0, 1.0)
-    return (spot * jnp.asarray(sun_sharpness, dtype) * 30.0)[..., None]
+    return spot * jnp.asarray(sun_sharpness, cosine.dtype) * 30.0
 
 
 def dirt_texture(

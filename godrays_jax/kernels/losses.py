@@ -21,6 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.primitives.checks import check_image
+from godrays_jax.primitives.color import display_map
 
 Space = Literal["display", "linear"]
 SPACES: tuple[str, ...] = ("display", "linear")
@@ -35,7 +36,7 @@ def check_space(space) -> None:
 def to_space(image: Float[Array, "H W C"], space: Space = "display") -> Float[Array, "H W C"]:
     """Map a linear image into a comparison space (see the module docstring)."""
     check_space(space)
-    return image / (1.0 + jnp.abs(image)) if space == "display" else image
+    return display_map(image) if space == "display" else image
 
 
 def _pair(image, target, space):

@@ -8,7 +8,13 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.primitives.checks import check_image, check_light, check_plane, check_scalar, is_static_int
+from godrays_jax.primitives.checks import (
+    check_image,
+    check_light,
+    check_plane,
+    check_scalar,
+    is_static_int,
+)
 from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 
 
@@ -49,7 +55,7 @@ def light_source_mask(
     *,
     radius: Float[ArrayLike, ""],
     texture: Float[Array, "h w C"] | None = None,
-    in_front: Bool[ArrayLike, ""] | bool = True,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype=jnp.float32,
 ) -> Float[Array, "H W C"]:
     """Seed 003's light-source mask: a flare centred on the light, `2 * pow(flare, 2)`.
@@ -60,7 +66,7 @@ def light_source_mask(
     one channel; a `texture` is stretched over the square and sampled
     bilinearly with clamp-to-edge addressing, as seed 003 does. Off-screen
     lights draw the part of the flare that overlaps the image. A light behind
-    the camera (`in_front` false) draws nothing.
+    the camera (`light_in_front` false) draws nothing.
     """
     check_light(light_xy)
     check_scalar(radius, "radius")
@@ -76,7 +82,7 @@ def light_source_mask(
         u = (x - light_xy[0]) / (2 * radius) + 0.5
         v = (y - light_xy[1]) / (2 * radius) + 0.5
         flare = sample_bilinear(texture.astype(dtype), u * tex_w, v * tex_h)
-    return 2.0 * flare**2 * jnp.asarray(in_front, dtype)
+    return 2.0 * flare**2 * jnp.asarray(light_in_front, dtype)
 
 
 def depth_test_mask(

@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.primitives.checks import check_image, check_plane, check_scalar
 from godrays_jax.kernels.lens import light_direction, view_directions
+from godrays_jax.primitives.checks import check_image, check_plane, check_scalar
 
 
 def henyey_greenstein(cosine: Float[ArrayLike, "*S"], anisotropy: Float[ArrayLike, ""]) -> Float[Array, "*S"]:
@@ -105,7 +105,7 @@ def in_scattering(
     if jnp.ndim(lit) != 0:
         check_plane(lit, "lit", height, width)
     dtype = jnp.result_type(depth, jnp.float32)
-    toward_sun = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, in_front=light_in_front, dtype=dtype)
+    toward_sun = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
     cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_sun, precision="highest")
     sun = henyey_greenstein(cosine, anisotropy) * jnp.asarray(lit, dtype)
     scattered = jnp.asarray(ambient, dtype) + sun[..., None] * jnp.asarray(sun_irradiance, dtype)

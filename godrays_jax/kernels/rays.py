@@ -26,7 +26,13 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.kernels.copies import scaled_copies_of
-from godrays_jax.primitives.checks import check_image, check_light, check_scalar, checked_count, resolve_count
+from godrays_jax.primitives.checks import (
+    check_image,
+    check_light,
+    check_scalar,
+    checked_count,
+    resolve_count,
+)
 from godrays_jax.primitives.sampling import Addressing
 
 

@@ -45,14 +45,17 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 
-from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.effects.base import Effect, parameter_bounds
+from godrays_jax.effects.presets import preset
 from godrays_jax.kernels.losses import LOSSES, Space, check_space, to_space
+from godrays_jax.primitives.buffers import Buffers
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
+
 COUNT_FIELDS: tuple[str, ...] = ("num_samples", "num_iters", "passes")
 """Fittable fields that are integer counts: fitted relaxed, reported rounded."""
+
 
 _STATIC_CAPS = {
     "num_samples": "max_samples",
@@ -292,8 +295,8 @@ def _evaluate(candidate, data):
 
 
 @eqx.filter_jit
-def _render(effect, buffers, light_xy, light_in_front):
-    # Compiled: the report's frame took 3.4 s op by op at 320x180, 0.6 s compiled.
+def render_compiled(effect, buffers, light_xy, light_in_front):
+    """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own)."""
     return effect(buffers, light_xy, light_in_front=light_in_front)
 
 
@@ -467,119 +470,6 @@ def default_fit_effect() -> Effect:
     When the camera's field of view is known, set it and keep it fixed
     (`fixed=("fov_x_deg", ...)`).
     """
-    from godrays_jax.effects.presets import preset
-
     return preset("participating_media")
 
 
-def _display_tile(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image, np.float64)[..., :3]
-    if image.shape[-1] == 1:
-        image = np.repeat(image, 3, axis=-1)
-    return np.maximum(image, 0.0) / (1.0 + np.maximum(image, 0.0))
-
-
-def _heat(values: np.ndarray) -> np.ndarray:
-    """Black -> red -> yellow -> white for values in [0, 1]."""
-    scaled = np.clip(values, 0.0, 1.0)[..., None] * 3.0
-    return np.clip(scaled - np.array([0.0, 1.0, 2.0]), 0.0, 1.0)
-
-
-def _curve_tile(history: np.ndarray, height: int, width: int) -> np.ndarray:
-    """The loss curve (log scale) as a dark polyline on a light tile; axes span the history."""
-    tile = np.full((height, width, 3), 0.9)
-    margin = max(2, min(height, width) // 12)
-    tile[margin:-margin, margin] = tile[height - margin - 1, margin:-margin] = 0.5  # axes
-    logs = np.log10(np.maximum(np.asarray(history, np.float64), 1e-30))
-    if logs.size < 2:
-        logs = np.repeat(logs, 2)
-    span = max(logs.max() - logs.min(), 1e-12)
-    xs = margin + (width - 2 * margin - 1) * np.arange(logs.size) / (logs.size - 1)
-    ys = margin + (height - 2 * margin - 1) * (logs.max() - logs) / span
-    dense = np.linspace(0.0, logs.size - 1, 8 * width)
-    px = np.rint(np.interp(dense, np.arange(logs.size), xs)).astype(int)
-    py = np.rint(np.interp(dense, np.arange(logs.size), ys)).astype(int)
-    for dy in (0, 1):
-        tile[np.clip(py + dy, 0, height - 1), px] = (0.1, 0.2, 0.7)
-    return tile
-
-
-def fit_report_image(
-    target: Float[ArrayLike, "H W C"], fitted: Float[ArrayLike, "H W C"], loss_history: Sequence[float]
-) -> Float[np.ndarray, "2H 2W 3"]:
-    """A 2x2 picture of a fit, in display space (`x / (1 + x)`), values in [0, 1].
-
-    Top left the target, top right the fitted frame, bottom left the absolute
-    difference as a heat map (black 0, white the largest difference), bottom
-    right the loss history on a log scale (left to right: steps).
-    """
-    target_tile = _display_tile(target)
-    fitted_tile = _display_tile(fitted)
-    difference = np.abs(fitted_tile - target_tile).mean(axis=-1)
-    difference_tile = _heat(difference / max(difference.max(), 1e-12))
-    height, width = target_tile.shape[:2]
-    curve = _curve_tile(np.asarray(loss_history), height, width)
-    return np.concatenate(
-        [np.concatenate([target_tile, fitted_tile], axis=1), np.concatenate([difference_tile, curve], axis=1)], axis=0
-    )
-
-
-def run_fit_command(args) -> int:
-    """`godrays-jax fit`: read frames and targets, fit, print progress and results, write params (and a report)."""
-    import sys
-
-    from godrays_jax.app.cli import CommandError, check_output_path, resolve_light
-    from godrays_jax.effects.presets import preset
-    from godrays_jax.effects.serialization import effect_to_dict, load_effect, save_effect
-    from godrays_jax.primitives.io import read_buffers, read_image, write_image
-
-    pairs = [(args.buffers, args.target), *[tuple(pair) for pair in args.frames or []]]
-    check_output_path(args.output, *[path for pair in pairs for path in pair])
-    if args.report:
-        check_output_path(args.report, *[path for pair in pairs for path in pair])
-    lights = args.light or []
-    if len(lights) not in (0, len(pairs)):
-        raise CommandError(f"give --light once per frame ({len(pairs)} frames) or not at all, got {len(lights)}")
-    if args.params:
-        effect = load_effect(args.params)
-    elif args.preset:
-        effect = preset(args.preset)
-    else:
-        effect = default_fit_effect()
-    frames, light_positions, in_front, targets = [], [], [], []
-    for index, (buffers_path, target_path) in enumerate(pairs):
-        frame = read_buffers(buffers_path)
-        (light, front) = resolve_light(lights[index] if lights else None, buffers_path)
-        target = read_image(target_path)
-        if target.shape[:2] != frame.color.shape[:2]:
-            raise CommandError(
-                f"{target_path} is {target.shape[1]}x{target.shape[0]} but {buffers_path} is {frame.width}x{frame.height}"
-            )
-        frames.append(frame)
-        light_positions.append(jnp.asarray(light, jnp.float32))
-        in_front.append(bool(front))
-        targets.append(target)
-    fixed = tuple(name for name in (args.fixed or "").split(",") if name)
-
-    def progress(step, value):
-        print(f"step {step}: loss {value:.6g}", file=sys.stderr, flush=True)
-
-    result = fit(
-        effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
-        fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, progress=progress,
-    )  # fmt: skip
-    chosen = result.effect if args.fractional_counts else result.rounded
-    save_effect(args.output, chosen)
-    values = effect_to_dict(chosen)
-    print(f"fitted {type(chosen).__name__} ({result.steps} steps, {'converged' if result.converged else 'stopped at --max-steps'}):")
-    for name in result.fitted:
-        print(f"  {name} = {values[name]}")
-    loss_name = f"{args.loss} ({args.space})"
-    after = result.loss_after if args.fractional_counts else result.loss_rounded
-    print(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
-    if args.report:
-        fitted_image = _render(chosen, frames[0], light_positions[0], in_front[0])
-        write_image(args.report, fit_report_image(targets[0], fitted_image, result.loss_history))
-        print(f"wrote {args.report}")
-    print(f"wrote {args.output}")
-    return 0

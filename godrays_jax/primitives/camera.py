@@ -17,6 +17,17 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 _MIN_PROJECTION_DEPTH = 1e-6
 
 
+def focal_length_px(width: int, fov_x_deg: Float[ArrayLike, ""], dtype=jnp.float32) -> Float[Array, ""]:
+    """The pinhole focal length in pixels of a frame `width` pixels wide: `(W / 2) / tan(fov_x / 2)`."""
+    return 0.5 * width / jnp.tan(jnp.deg2rad(jnp.asarray(fov_x_deg, dtype)) / 2)
+
+
+def unit_vectors(vectors: Float[Array, "*S"], *, axis: int = -1) -> Float[Array, "*S"]:
+    """`vectors` scaled to length 1 along `axis` (a zero vector stays finite: its length is floored)."""
+    squared = jnp.sum(vectors * vectors, axis=axis, keepdims=True)
+    return vectors * jax.lax.rsqrt(jnp.maximum(squared, 1e-24))
+
+
 def _as_float_array(value: ArrayLike) -> Array:
     return jnp.asarray(value, dtype=jnp.float32)
 
@@ -78,7 +89,7 @@ class Camera(eqx.Module):
     @property
     def focal_px(self) -> Float[Array, ""]:
         """Focal length in pixels."""
-        return 0.5 * self.width / jnp.tan(jnp.deg2rad(self.fov_x_deg) / 2)
+        return focal_length_px(self.width, self.fov_x_deg)
 
     def basis(self) -> tuple[Float[Array, "3"], Float[Array, "3"], Float[Array, "3"]]:
         """Orthonormal (right, up, forward) world vectors of the view."""

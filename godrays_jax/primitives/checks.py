@@ -1,4 +1,4 @@
-"""Trace-time argument checks shared by the kernels; each error names the argument."""
+"""Trace-time argument checks (each error names the argument), and the one line that reports any error."""
 
 import numbers
 
@@ -60,3 +60,12 @@ def checked_count(count, upper: int, name: str, upper_name: str, dtype):
     """A relaxed count as a `dtype` scalar, with a runtime error if it is outside [0, upper]."""
     count = jnp.asarray(count, dtype)
     return eqx.error_if(count, (count < 0) | (count > upper), f"{name} must lie in [0, {upper_name}={upper}]")
+
+
+def error_line(error: BaseException) -> str:
+    """The one line that says what went wrong, also for errors raised inside jitted code (`equinox.error_if`)."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    for line in lines:
+        if line.startswith("equinox.EquinoxRuntimeError:"):
+            return line.split(":", 1)[1].strip()
+    return lines[0] if lines else type(error).__name__

@@ -47,6 +47,7 @@ partial output is ever left behind.
 
 import dataclasses
 import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from typing import Literal
 
@@ -56,6 +57,7 @@ import OpenImageIO as oiio
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.primitives.buffers import Buffers, coverage_from_depth
+from godrays_jax.primitives.color import srgb_decode, srgb_encode
 from godrays_jax.primitives.files import atomic_write
 
 SKY_DEPTH_SENTINEL = 1e30
@@ -300,23 +302,13 @@ def read_image(path: str | os.PathLike) -> Float[Array, "H W C"]:
     if spec.format.basetype not in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE):
         names = tuple(spec.channelnames)
         colour = np.array([name != "A" for name in names])
-        pixels = np.where(colour, _srgb_decode(pixels), pixels)
+        pixels = np.where(colour, srgb_decode(pixels), pixels)
         if "A" in names:
             pixels = np.where(colour, pixels * pixels[..., names.index("A"), None], pixels)
     return jnp.asarray(pixels.astype(np.float32))
 
 
 # ----------------------------------------------------------------------------- writing
-
-
-def _srgb_encode(linear: np.ndarray) -> np.ndarray:
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
-def _srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    x = np.clip(encoded, 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
 
 
 def _set_attribute(spec: oiio.ImageSpec, name: str, value: object) -> None:
@@ -484,9 +476,9 @@ def write_image(
         if channels == 4:
             alpha = np.clip(pixels[..., 3:], 0.0, 1.0)
             straight = np.where(alpha > 0, pixels[..., :3] / np.where(alpha > 0, alpha, 1.0), 0.0)
-            encoded = np.concatenate([_srgb_encode(straight), alpha], axis=-1)
+            encoded = np.concatenate([srgb_encode(straight), alpha], axis=-1)
         else:
-            encoded = _srgb_encode(pixels)
+            encoded = srgb_encode(pixels)
         scale = 2**bits - 1
         pixels = np.rint(encoded * scale).astype(np.uint8 if bits == 8 else np.uint16)
     else:
@@ -587,3 +579,22 @@ def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], 
     pixels = like.pixels.copy()
     pixels[..., [names.index(n) for n in ("R", "G", "B")]] = color
     _write_image_file(path, oiio.ImageSpec(like.spec), np.ascontiguousarray(pixels))
+
+
+def encode_png(pixels: np.ndarray, *, compression: int = 1) -> bytes:
+    """An 8-bit RGB `(H, W, 3)` array as PNG bytes, through OpenImageIO.
+
+    `compression` is zlib's level, 0-9: the tuner's frames change with every
+    request, so its default favours speed.
+    """
+    pixels = np.ascontiguousarray(pixels)
+    if pixels.dtype != np.uint8 or pixels.ndim != 3 or pixels.shape[-1] != 3:
+        raise ValueError(f"pixels must be uint8 of shape (H, W, 3), got {pixels.dtype} {pixels.shape}")
+    height, width, _ = pixels.shape
+    spec = oiio.ImageSpec(width, height, 3, oiio.UINT8)
+    spec.attribute("png:compressionLevel", int(compression))
+    with tempfile.TemporaryDirectory(prefix="godrays-png-") as folder:
+        path = os.path.join(folder, "frame.png")
+        _write_image_file(path, spec, pixels)
+        with open(path, "rb") as stream:
+            return stream.read()

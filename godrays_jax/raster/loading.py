@@ -27,7 +27,15 @@ from pathlib import Path
 import numpy as np
 
 from godrays_jax.primitives.camera import Camera
-from godrays_jax.raster.scene import DirectionalLight, Material, Mesh, PointLight, Scene, Sky, Sphere
+from godrays_jax.raster.scene import (
+    DirectionalLight,
+    Material,
+    Mesh,
+    PointLight,
+    Scene,
+    Sky,
+    Sphere,
+)
 
 _CAMERA_KEYS = {"position", "target", "up", "fov_x_deg", "width", "height", "near", "far"}
 _MATERIAL_KEYS = {"albedo", "emission", "atmosphere_color", "atmosphere_sharpness", "night_color", "night_sharpness"}

@@ -41,7 +41,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.primitives.camera import Camera
+from godrays_jax.kernels.lens import sun_spot_intensity
+from godrays_jax.primitives.camera import Camera, unit_vectors
 from godrays_jax.raster.scene import DirectionalLight, Scene, Sphere
 
 GLOW_SOURCE_SCALE = 1.3
@@ -391,8 +392,9 @@ def _times(vectors: Float[Array, "3 *P"], matrix: Float[Array, "3 3"]) -> Float[
     return vectors[0] * column(0) + vectors[1] * column(1) + vectors[2] * column(2)
 
 
-def _unit(vectors: Float[Array, "3 *P"]) -> Float[Array, "3 *P"]:
-    return vectors * jax.lax.rsqrt(jnp.maximum(_dot(vectors, vectors), 1e-24))
+def _unit_first(vectors: Float[Array, "3 *P"]) -> Float[Array, "3 *P"]:
+    """Component-first vectors scaled to length 1 (`unit_vectors` along axis 0)."""
+    return unit_vectors(vectors, axis=0)
 
 
 def _triangle_surface(columns: Float[Array, "27 P"], px: Float[Array, "P"], py: Float[Array, "P"]) -> tuple[Float[Array, "3 P"], Float[Array, "3 P"]]:
@@ -410,7 +412,7 @@ def _triangle_surface(columns: Float[Array, "27 P"], px: Float[Array, "P"], py: 
 
 def _sphere_surface(center: Float[Array, "3 P"], radius: Float[Array, "P"], rays: Float[Array, "3 P"]) -> tuple[Float[Array, "3 P"], Float[Array, "3 P"]]:
     """The ray's hit, or its closest approach to the sphere at silhouettes."""
-    unit = _unit(rays)
+    unit = _unit_first(rays)
     along = _dot(unit, center)
     center_squared = _dot(center, center)
     chord_squared = radius**2 - (center_squared - along**2)
@@ -540,7 +542,7 @@ def _rasterize(geometry: _Geometry, camera: Camera, finish, *, tile_size: int, c
                 sphere_position, sphere_normal = _sphere_surface(centers.T[:, sphere], radii[sphere], rays)
                 position = jnp.where(from_triangles, position, sphere_position)
                 normal = jnp.where(from_triangles, normal, sphere_normal)
-            return position, _unit(normal)
+            return position, _unit_first(normal)
 
         # One copy of the surface code for the three layers keeps compilation short.
         positions, normals = jax.vmap(surface)(*(jnp.stack([layer[i] for layer in layers]) for i in (0, 2)))
@@ -581,8 +583,8 @@ def _stack_materials(scene: Scene):
 
 def _light_direction(scene: Scene, world_position: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
     if isinstance(scene.light, DirectionalLight):
-        return jnp.broadcast_to(_unit(scene.light.direction)[:, None], world_position.shape)
-    return _unit(scene.light.position[:, None] - world_position)
+        return jnp.broadcast_to(_unit_first(scene.light.direction)[:, None], world_position.shape)
+    return _unit_first(scene.light.position[:, None] - world_position)
 
 
 def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
@@ -594,7 +596,7 @@ def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Arra
     n_dot_l = _dot(normal, to_light)
     lit = jnp.clip(n_dot_l, 0.0, 1.0)
     # Kept off 0 so that rim ** p has finite gradients for any p > 0.
-    rim = 1.0 - jnp.clip(-_dot(_unit(world_rays), normal), 0.0, 1.0 - 1e-6)
+    rim = 1.0 - jnp.clip(-_dot(_unit_first(world_rays), normal), 0.0, 1.0 - 1e-6)
     sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
     dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
     return (
@@ -615,11 +617,11 @@ def _sun_direction(scene: Scene, camera: Camera) -> Float[Array, "3"]:
 
 def _sky(scene: Scene, camera: Camera, world_rays: Float[Array, "3 P"]) -> tuple[Float[Array, "3 P"], Float[Array, "P"]]:
     """Sky colour and the sun spot's intensity (seed 001)."""
-    unit = _unit(world_rays)
+    unit = _unit_first(world_rays)
     height = jnp.clip(_dot(unit, (camera.up / jnp.linalg.norm(camera.up))[:, None]), 0.0, 1.0)
     sky = scene.sky
-    cosine = jnp.clip(_dot(unit, _sun_direction(scene, camera)[:, None]), 1e-30, 1.0)
-    spot = jnp.clip(cosine ** (sky.sun_distance * 2000.0), 0.0, 1.0) * sky.sun_sharpness * 30.0
+    cosine = _dot(unit, _sun_direction(scene, camera)[:, None])
+    spot = sun_spot_intensity(cosine, sun_distance=sky.sun_distance, sun_sharpness=sky.sun_sharpness)
     color = sky.horizon_color[:, None] + (sky.zenith_color - sky.horizon_color)[:, None] * height + sky.sun_color[:, None] * spot
     return color, spot
 

@@ -1,4 +1,4 @@
-"""A live parameter tuner: a local web page with a slider for every parameter of an effect.
+"""The live tuner's state and actions, independent of HTTP: renders, presets, fits and saves for its page.
 
 `godrays-jax tune FRAME.exr` serves `tune_page.html` on 127.0.0.1 (never on
 other interfaces) and answers its JSON API. The page is self-contained (inline
@@ -44,17 +44,13 @@ fitted values at full resolution; fields named in `fixed` stay as they are.
 
 import base64
 import dataclasses
-import functools
-import http.server
 import json
 import math
 import os
 import threading
 import time
-import zlib
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
-from importlib import resources
 from typing import Any, Literal
 
 import equinox as eqx
@@ -62,15 +58,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
-from godrays_jax.kernels.blur import downsample_box
-from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.presets import PRESETS, preset
-from godrays_jax.effects.serialization import effect_from_dict, effect_to_dict, save_effect
-from godrays_jax.kernels.losses import to_space
-
-HOST = "127.0.0.1"
-"""The tuner serves this address only: the page can write files, so it is never exposed to a network."""
+from godrays_jax.effects.serialization import (
+    effect_from_dict,
+    effect_to_dict,
+    save_effect,
+)
+from godrays_jax.pipeline.fit import COUNT_FIELDS, fit, fitted_bounds
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.color import display_map, to_srgb8
+from godrays_jax.primitives.io import encode_png
+from godrays_jax.primitives.resample import box_pool, downsample_box
 
 PIXEL_FIELDS: frozenset[str] = frozenset(
     {"light_radius", "source_radius", "blur_sigma", "source_grow", "occluder_shrink", "gaussian_sigma", "sigma",
@@ -79,13 +78,18 @@ PIXEL_FIELDS: frozenset[str] = frozenset(
 """Fittable fields measured in pixels (bloom's `sigma`, `glow_sigma`: pixels of its pyramid levels, which
 shrink with the frame too): scaled with the resolution for previews and preview-resolution fits."""
 
+
 VIEWS: tuple[str, ...] = ("after", "before", "layer", "difference", "target")
+
+
 TONEMAPS: tuple[str, ...] = ("reinhard", "clip")
+
+
 QUALITIES: tuple[str, ...] = ("preview", "full")
+
+
 DIFFERENCE_GAIN = 4.0
 """The difference view shows `DIFFERENCE_GAIN * |after - reference|` in display space, so small errors show."""
-
-_MAX_BODY_BYTES = 1 << 20
 
 
 class TuneRequestError(ValueError):
@@ -106,18 +110,11 @@ def preview_factor(height: int, width: int, *, max_pixels: int = 40_000) -> int:
     return factor
 
 
-def _min_pool(plane: Float[Array, "H W"], factor: int) -> Float[Array, "h w"]:
-    height, width = plane.shape
-    low_h, low_w = -(-height // factor), -(-width // factor)
-    padded = jnp.pad(plane, ((0, low_h * factor - height), (0, low_w * factor - width)), mode="edge")
-    return padded.reshape(low_h, factor, low_w, factor).min(axis=(1, 3))
-
-
 def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
     """The frame at `1 / factor` of its resolution, `ceil(H / factor) x ceil(W / factor)` pixels.
 
     Colour, coverage and the light and glow passes are box-averaged
-    (`blur.downsample_box`); depth takes each block's nearest surface (sky only
+    (`downsample_box`); depth takes each block's nearest surface (sky only
     where the whole block is sky); normals and object ids take each block's
     top-left pixel. Full-resolution pixel position `x` is position `x / factor`.
     """
@@ -132,7 +129,7 @@ def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
 
     return Buffers(
         color=box(buffers.color),
-        depth=_min_pool(buffers.depth, factor),
+        depth=box_pool(buffers.depth, factor, pooling="min"),
         coverage=plane(buffers.coverage),
         normal=None if buffers.normal is None else buffers.normal[::factor, ::factor],
         object_id=None if buffers.object_id is None else buffers.object_id[::factor, ::factor],
@@ -160,35 +157,7 @@ def display_encode(
     if tonemap not in TONEMAPS:
         raise ValueError(f"tonemap must be one of {', '.join(TONEMAPS)}; got {tonemap!r}")
     rgb = jnp.maximum(image[..., :3], 0.0)
-    return _to_srgb8(to_space(rgb, "display") if tonemap == "reinhard" else rgb)
-
-
-def _to_srgb8(display: Float[Array, "H W C"]) -> UInt8[Array, "H W 3"]:
-    # io's sRGB encoder is NumPy (host); this one runs inside the jitted render so only bytes leave the device.
-    rgb = jnp.broadcast_to(display[..., :1], (*display.shape[:2], 3)) if display.shape[-1] < 3 else display
-    x = jnp.clip(rgb, 0.0, 1.0)
-    encoded = jnp.where(x <= 0.0031308, 12.92 * x, 1.055 * jnp.power(jnp.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
-    return jnp.round(encoded * 255.0).astype(jnp.uint8)
-
-
-def encode_png(pixels: np.ndarray) -> bytes:
-    """An 8-bit RGB `(H, W, 3)` array as PNG bytes (stdlib zlib, fast compression: frames change every request)."""
-    pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
-    height, width, channels = pixels.shape
-    if channels != 3:
-        raise ValueError(f"pixels must have shape (H, W, 3), got {pixels.shape}")
-    rows = np.concatenate([np.zeros((height, 1), np.uint8), pixels.reshape(height, width * 3)], axis=1)
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
-
-    header = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes((8, 2, 0, 0, 0))
-    return (
-        b"\x89PNG\r\n\x1a\n"
-        + chunk(b"IHDR", header)
-        + chunk(b"IDAT", zlib.compress(rows.tobytes(), 1))
-        + chunk(b"IEND", b"")
-    )
+    return to_srgb8(display_map(rgb) if tonemap == "reinhard" else rgb)
 
 
 @eqx.filter_jit
@@ -213,10 +182,9 @@ def _render_view(
     reference = buffers.color if target is None else target
     channels = min(after.shape[-1], reference.shape[-1], 3)
     difference = jnp.abs(
-        to_space(jnp.maximum(after[..., :channels], 0.0), "display")
-        - to_space(jnp.maximum(reference[..., :channels], 0.0), "display")
+        display_map(jnp.maximum(after[..., :channels], 0.0)) - display_map(jnp.maximum(reference[..., :channels], 0.0))
     )
-    return _to_srgb8(DIFFERENCE_GAIN * difference)
+    return to_srgb8(DIFFERENCE_GAIN * difference)
 
 
 class RenderQueue:
@@ -345,13 +313,9 @@ class Tuner:
 
     def bounds(self, effect: Effect | None = None) -> dict[str, tuple[float, float]]:
         """Slider ranges: the effect's bounds, counts capped by their static loop lengths."""
-        from godrays_jax.pipeline.fit import fitted_bounds
-
         return fitted_bounds(self.effect if effect is None else effect)
 
     def state(self) -> dict:
-        from godrays_jax.pipeline.fit import COUNT_FIELDS
-
         with self._lock:
             effect = self.effect
         return {
@@ -468,8 +432,6 @@ class Tuner:
 
     def fit(self, payload: Mapping) -> dict:
         """Fit the page's effect to the target at preview resolution; the answer holds full-resolution values."""
-        from godrays_jax.pipeline.fit import fit
-
         if self.target is None:
             raise TuneRequestError("no target to fit to: start the tuner with --target TARGET")
         effect = self.parse_effect(payload.get("params"))
@@ -521,179 +483,3 @@ def _clip_to_bounds(effect: Effect, bounds: Mapping[str, tuple[float, float]]) -
     )
 
 
-@functools.cache
-def page_html() -> bytes:
-    """The tuner page (package data `tune_page.html`)."""
-    return resources.files("godrays_jax.app").joinpath("tune_page.html").read_bytes()
-
-
-class _Handler(http.server.BaseHTTPRequestHandler):
-    server: "_HTTPServer"
-    protocol_version = "HTTP/1.1"
-
-    def log_message(self, format, *args):  # the page polls; a line per request would flood the terminal
-        pass
-
-    def _send(self, status: int, body: bytes, content_type: str) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", content_type)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(body)
-
-    def _json(self, status: int, value: Any) -> None:
-        self._send(status, json.dumps(value).encode(), "application/json")
-
-    def _host_allowed(self) -> bool:
-        # DNS rebinding: a foreign page that resolves its own name to 127.0.0.1 sends its own Host header.
-        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
-        return host in ("127.0.0.1", "localhost")
-
-    def _payload(self) -> dict:
-        length = int(self.headers.get("Content-Length") or 0)
-        if length > _MAX_BODY_BYTES:
-            raise TuneRequestError(f"request body too large ({length} bytes, at most {_MAX_BODY_BYTES})")
-        text = self.rfile.read(length) if length else b"{}"
-        try:
-            payload = json.loads(text)
-        except (json.JSONDecodeError, UnicodeDecodeError) as error:
-            raise TuneRequestError(f"malformed JSON: {error}") from None
-        if not isinstance(payload, dict):
-            raise TuneRequestError("the request body must be a JSON object")
-        return payload
-
-    def _answer(self, action: Callable[[], Any]) -> None:
-        from godrays_jax.app.cli import error_line
-
-        try:
-            self._json(200, action())
-        except TuneRequestError as error:
-            self._json(400, {"error": str(error)})
-        except Superseded as error:
-            self._json(409, {"error": str(error)})
-        except Exception as error:  # a failed render must not take the server down
-            self._json(500, {"error": error_line(error)})
-
-    def do_GET(self):
-        if not self._host_allowed():
-            return self._json(403, {"error": "the tuner answers requests to 127.0.0.1 or localhost only"})
-        tuner = self.server.tuner
-        path = self.path.split("?", 1)[0]
-        if path in ("/", "/index.html"):
-            return self._send(200, page_html(), "text/html; charset=utf-8")
-        if path == "/api/state":
-            return self._answer(tuner.state)
-        if path == "/api/fit":
-            return self._answer(tuner.fit_progress)
-        self._json(404, {"error": f"no such page {path}"})
-
-    def do_POST(self):
-        if not self._host_allowed():
-            return self._json(403, {"error": "the tuner answers requests to 127.0.0.1 or localhost only"})
-        tuner = self.server.tuner
-        actions = {"/api/render": tuner.render, "/api/preset": tuner.set_preset, "/api/fit": tuner.fit,
-                   "/api/save": tuner.save}  # fmt: skip
-        action = actions.get(self.path)
-        if action is None:
-            # the body is read anyway so the connection stays usable (HTTP/1.1 keep-alive)
-            self.rfile.read(int(self.headers.get("Content-Length") or 0))
-            return self._json(404, {"error": f"no such endpoint {self.path}"})
-        try:
-            payload = self._payload()
-        except TuneRequestError as error:
-            self.close_connection = True
-            return self._json(400, {"error": str(error)})
-        self._answer(lambda: action(payload))
-
-
-class _HTTPServer(http.server.ThreadingHTTPServer):
-    daemon_threads = True
-    tuner: Tuner
-
-
-class TuneServer:
-    """The tuner's HTTP server on 127.0.0.1, serving in a background thread.
-
-    `port=0` lets the OS choose a free port (see `url`). Use as a context
-    manager, or call `close()`: it stops the server, then the render worker.
-    """
-
-    def __init__(self, tuner: Tuner, *, port: int = 0):
-        if not (isinstance(port, int) and 0 <= port <= 65535):
-            raise ValueError(f"port must be an int in [0, 65535], got {port!r}")
-        self.tuner = tuner
-        self._http = _HTTPServer((HOST, port), _Handler)
-        self._http.tuner = tuner
-        self._thread = threading.Thread(target=self._http.serve_forever, name="godrays-tune-http", daemon=True)
-        self._thread.start()
-
-    @property
-    def port(self) -> int:
-        return self._http.server_address[1]
-
-    @property
-    def url(self) -> str:
-        return f"http://{HOST}:{self.port}/"
-
-    def close(self) -> None:
-        self._http.shutdown()
-        self._http.server_close()
-        self._thread.join()
-        self.tuner.close()
-
-    def __enter__(self) -> "TuneServer":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def wait(self) -> None:
-        """Block until the server stops (Ctrl-C raises `KeyboardInterrupt` here)."""
-        while self._thread.is_alive():
-            self._thread.join(0.5)
-
-    def warm_up(self) -> None:
-        """Compile the starting effect's preview and full-resolution renders so the first slider move is fast."""
-        for quality in QUALITIES:
-            self.tuner.render({"quality": quality})
-
-
-def run_tune(args) -> int:
-    """The `godrays-jax tune` command: serve the tuner until Ctrl-C (see `cli._add_tune` for the options)."""
-    from godrays_jax.app.cli import CommandError, check_output_path, load_effect_option, resolve_light
-    from godrays_jax.primitives.io import read_buffers, read_image
-
-    check_output_path(args.output, args.buffers, *([args.target] if args.target else []))
-    if args.preview_pixels < 1:
-        raise CommandError(f"--preview-pixels must be >= 1, got {args.preview_pixels}")
-    if args.fit_steps < 1:
-        raise CommandError(f"--fit-steps must be >= 1, got {args.fit_steps}")
-    effect = load_effect_option(args.preset, args.params)
-    buffers = read_buffers(args.buffers, depth_channel=args.depth_channel)
-    light_xy, in_front = resolve_light(args.light, args.buffers)
-    target = None if args.target is None else read_image(args.target)
-    if target is not None and target.shape[:2] != (buffers.height, buffers.width):
-        raise CommandError(
-            f"--target {args.target} is {target.shape[1]}x{target.shape[0]}, "
-            f"the frame {buffers.width}x{buffers.height}: they must match"
-        )
-    tuner = Tuner(
-        buffers, light_xy, effect=effect, target=target, light_in_front=in_front, save_path=args.output,
-        max_preview_pixels=args.preview_pixels, fit_steps=args.fit_steps,
-    )  # fmt: skip
-    try:
-        server = TuneServer(tuner, port=args.port)
-    except OSError as error:
-        tuner.close()
-        raise CommandError(f"cannot listen on {HOST}:{args.port}: {error.strerror or error}") from None
-    try:
-        print(f"compiling the first renders for {buffers.width}x{buffers.height} ...", flush=True)
-        server.warm_up()
-        print(f"tuner at {server.url} (Ctrl-C stops it); save writes {tuner.save_path}", flush=True)
-        server.wait()
-    except KeyboardInterrupt:
-        print("tuner stopped", flush=True)
-    finally:
-        server.close()
-    return 0

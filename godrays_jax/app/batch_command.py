@@ -1,0 +1,87 @@
+"""`godrays-jax batch`: a sequence of frames through one effect, on this host's share of the frames."""
+
+import re
+import sys
+
+import jax
+
+from godrays_jax.app.options import effect_option
+from godrays_jax.pipeline.batch import BatchError, describe_plan, plan_batch, run_batch
+from godrays_jax.pipeline.sequences import (
+    METADATA,
+    LightSource,
+    expand_frames,
+    read_light_track,
+)
+
+
+def parse_frame_range(text: str) -> tuple[int, int]:
+    """`"1001-1100"` (inclusive) or `"1042"` -> `(first, last)`."""
+    match = re.fullmatch(r"\s*(-?\d+)\s*(?:[-:]\s*(-?\d+)\s*)?", text)
+    if not match:
+        raise ValueError(f"--frames must be FIRST-LAST (e.g. 1001-1100), got {text!r}")
+    first = int(match.group(1))
+    last = int(match.group(2)) if match.group(2) is not None else first
+    if last < first:
+        raise ValueError(f"--frames {text!r}: the last frame comes before the first")
+    return first, last
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """`"I/N"` -> `(I, N)`: this host's share, 0-based."""
+    match = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", text)
+    if not match:
+        raise ValueError(f"--shard must be INDEX/COUNT (e.g. 0/4), got {text!r}")
+    return int(match.group(1)), int(match.group(2))
+
+
+def run(args) -> int:
+    """`godrays-jax batch` (arguments from `cli`): plan, then run or list the frames; exit status 1 if any frame failed."""
+    light: LightSource = METADATA
+    if args.light is not None:
+        light = args.light
+    elif args.light_track is not None:
+        light = read_light_track(args.light_track)
+    shard = parse_shard(args.shard) if args.shard else None
+    explicit = (args.coordinator, args.num_processes, args.process_id)
+    if any(value is not None for value in explicit) and not args.distributed:
+        raise BatchError("--coordinator, --num-processes and --process-id need --distributed")
+    if args.distributed:
+        if shard is not None:
+            raise BatchError("give --shard or --distributed, not both")
+        if any(value is not None for value in explicit) and None in explicit:
+            raise BatchError("give all of --coordinator, --num-processes and --process-id, or none (auto-detection)")
+        if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
+            raise BatchError(f"--process-id must be in 0..{args.num_processes - 1}, got {args.process_id}")
+        jax.distributed.initialize(
+            coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
+        )
+        shard = (jax.process_index(), jax.process_count())
+    effect = effect_option(args.preset, args.params)
+    inputs = expand_frames(args.pattern)
+    jobs = plan_batch(
+        inputs,
+        args.output,
+        ext=args.ext,
+        resume=args.resume,
+        overwrite=args.overwrite,
+        frames=parse_frame_range(args.frames) if args.frames else None,
+        shard=shard,
+    )
+    if args.dry_run:
+        print("\n".join(describe_plan(jobs, light)))
+        todo = sum(not job.done for job in jobs)
+        print(f"{todo} frame(s) to run, {len(jobs) - todo} done, on {len(jax.local_devices())} device(s); nothing written")
+        return 0
+    report = run_batch(
+        jobs,
+        effect,
+        light,
+        layer_only=args.layer_only,
+        depth_channel=args.depth_channel,
+        progress=None if args.quiet else sys.stderr,
+    )
+    print(report.summary(), file=sys.stderr if report.failures else sys.stdout)
+    return 1 if report.failures else 0
+
+

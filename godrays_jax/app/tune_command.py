@@ -1,0 +1,50 @@
+"""`godrays-jax tune`: serve the live tuner for one frame until Ctrl-C."""
+
+from godrays_jax.app.options import (
+    CommandError,
+    check_output_path,
+    effect_option,
+    resolve_light,
+)
+from godrays_jax.app.server import HOST, TuneServer
+from godrays_jax.app.tuner import Tuner
+from godrays_jax.primitives.io import read_buffers, read_image
+
+
+def run(args) -> int:
+    """The `godrays-jax tune` command: serve the tuner until Ctrl-C (options: `cli`)."""
+    check_output_path(args.output, args.buffers, *([args.target] if args.target else []))
+    if args.preview_pixels < 1:
+        raise CommandError(f"--preview-pixels must be >= 1, got {args.preview_pixels}")
+    if args.fit_steps < 1:
+        raise CommandError(f"--fit-steps must be >= 1, got {args.fit_steps}")
+    effect = effect_option(args.preset, args.params)
+    buffers = read_buffers(args.buffers, depth_channel=args.depth_channel)
+    light_xy, in_front = resolve_light(args.light, args.buffers)
+    target = None if args.target is None else read_image(args.target)
+    if target is not None and target.shape[:2] != (buffers.height, buffers.width):
+        raise CommandError(
+            f"--target {args.target} is {target.shape[1]}x{target.shape[0]}, "
+            f"the frame {buffers.width}x{buffers.height}: they must match"
+        )
+    tuner = Tuner(
+        buffers, light_xy, effect=effect, target=target, light_in_front=in_front, save_path=args.output,
+        max_preview_pixels=args.preview_pixels, fit_steps=args.fit_steps,
+    )  # fmt: skip
+    try:
+        server = TuneServer(tuner, port=args.port)
+    except OSError as error:
+        tuner.close()
+        raise CommandError(f"cannot listen on {HOST}:{args.port}: {error.strerror or error}") from None
+    try:
+        print(f"compiling the first renders for {buffers.width}x{buffers.height} ...", flush=True)
+        server.warm_up()
+        print(f"tuner at {server.url} (Ctrl-C stops it); save writes {tuner.save_path}", flush=True)
+        server.wait()
+    except KeyboardInterrupt:
+        print("tuner stopped", flush=True)
+    finally:
+        server.close()
+    return 0
+
+

@@ -46,7 +46,7 @@ def _poisson_pass(image, blur_power):
     offsets = jnp.asarray(POISSON_OFFSETS, image.dtype) * blur_power * jnp.asarray([width, height], image.dtype)
 
     # A loop, not 12 unrolled taps: as fast to run, and its gradient compiles
-    # about 5x faster (XLA's CPU compile time grows steeply with unrolled scatters).
+    # much faster (XLA's CPU compile time grows steeply with unrolled scatters).
     def add_tap(k, total):
         return total + sample_separable(image, xs + offsets[k, 0], ys + offsets[k, 1])
 
@@ -81,8 +81,8 @@ def poisson_blur(
     blur_power = jnp.asarray(blur_power, image.dtype)
     loop_length, relaxed = resolve_count(passes, max_passes, "passes", "max_passes", minimum=0)
     # The barrier makes XLA materialise each pass: fused into the next pass's
-    # gathers it would be recomputed for every tap (measured 7x slower at 960x540).
-    # A Python loop, not fori_loop: XLA's CPU while loop ran these gathers 7x slower.
+    # gathers it would be recomputed for every tap.
+    # A Python loop, not fori_loop: XLA's CPU while loop runs these gathers far slower.
     count = checked_count(passes, loop_length, "passes", "max_passes", image.dtype) if relaxed else None
     blurred = image
     total = jnp.clip(1.0 - jnp.abs(count), 0.0, 1.0) * image if relaxed else None

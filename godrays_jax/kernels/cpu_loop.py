@@ -16,15 +16,10 @@ BLOCKED_SIZE = 2**21
 All copies of one block of `ROWS_PER_BLOCK` output rows are summed before the
 next block, so a block's sums and rows stay in cache instead of streaming
 through memory once per copy. A step samples the image's planes, and for
-derivatives also their y-slopes and any derivative image's planes. Measured on
-2 cores, GodRays with 128 samples (forward pass / value and gradient of six
-fields, one plane for the disc emitter, three for the sky's RGB): in blocks at
-1920x1080 the sky's forward pass is 2.2x faster, the disc's value and gradient
-(3 planes) 1.3x; at 1280x720 the sky's forward pass 1.6x (234 -> 145 ms), the
-disc's value and gradient 1.3x (370 -> 289 ms); at 960x540 the sky's value and
-gradient (6 planes) 1.6x (405 -> 257 ms). Below the threshold blocks cost more
-than they save: the disc's forward pass at 1280x720 (55 -> 70 ms), its value
-and gradient at 960x540 (148 -> 184 ms), the sky's at 480x270 (57 -> 62 ms).
+derivatives also their y-slopes and any derivative image's planes. Once an
+image's planes outgrow the cache, blocks are faster; below this size they cost
+more than they save. The threshold was chosen from the measurements in
+`benchmarks/fit_results.md` ("blocks of rows").
 """
 
 

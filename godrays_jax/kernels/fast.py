@@ -9,7 +9,7 @@ them into the project's default fast path (used by `GodRays(method="fast")`):
   effective samples cost `passes * taps` image reads.
 - `at_reduced_resolution`: run any kernel on a `factor x factor` box-averaged
   image and read it back bilinearly (rays are smooth, so 1/2 resolution costs
-  4x less for little error).
+  a quarter of the reads for little error; errors in `benchmarks/README.md`).
 - `radial_rays_jittered`: per-pixel interleaved-gradient-noise offsets of the
   sample positions, trading the banding of low sample counts for fine noise.
 

@@ -34,13 +34,13 @@ def _transposed_apart(step, values):
 
     XLA fuses a gather with the computation of its operand and then evaluates
     that operand once per gathered element, through strided transposed reads:
-    30x slower on a CPU than gathering from a stored array. A conditional is
+    far slower on a CPU than gathering from a stored array. A conditional is
     not fused with its surroundings, and its predicate (a loop counter
     `step >= 0`, always true) cannot be folded at compile time. The branch
     never taken fills the result with one of the values: a constant there
     (zeros) is hoisted out of an enclosing loop over blocks of rows and stored
     once per copy, and returning the values themselves (reshaped) made XLA
-    copy them every step (forward 50 % slower at 480x270).
+    copy them every step.
     """
     never_taken = lambda rows: jnp.broadcast_to(rows[0, 0], rows.shape[::-1])  # noqa: E731
     return jax.lax.cond(step >= 0, _tiled_transpose, never_taken, values)
@@ -53,7 +53,7 @@ class Planes:
     of a stored 2-D array, the columns' from the transposed rows; transposes
     are plain 2-D ones (XLA's CPU transposes of interleaved channels are
     several times slower), and every reduction reverse mode makes is over a
-    2-D array (XLA's CPU library reduction is ~40x slower over three
+    2-D array (XLA's CPU library reduction is much slower over three
     dimensions).
     """
 
@@ -102,7 +102,7 @@ def _tiled_transpose(values):
 
     XLA's CPU transpose walks one axis with the other's stride: at 1920x1080
     every read misses the cache. Tiles of about 32x32 (a 4-D transpose) keep
-    both sides in cache: 30 % faster there. It also makes the result a stored
+    both sides in cache. It also makes the result a stored
     array (XLA would give a plain 2-D transpose a column-major layout instead,
     and gathering rows from that is strided again).
     """

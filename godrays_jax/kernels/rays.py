@@ -119,9 +119,8 @@ def radial_rays(
             between it and the light and clamping only moves samples away from
             the light, so the rays are 0 farther than
             `(source_radius + 2) / min(scale)` from the light: the loop then
-            runs on that window around the light (same result, fewer pixels;
-            e.g. 8x fewer at 1920x1080 with seed 003's radius 120 px and
-            density 0.5). An image that breaks the promise gives wrong rays.
+            runs on that window around the light (same result, fewer pixels).
+            An image that breaks the promise gives wrong rays.
 
     Returns:
         The rays image, same shape and dtype as `image`.

@@ -25,11 +25,9 @@ How the parameters are fitted:
   The kernels' sample loops have custom JVPs: a handful of parameters are
   differentiated inside the loop that sums the copies (one loop for all of
   them, where vectorised JVPs of a plain loop would run one per parameter),
-  so the Jacobian costs about what a reverse-mode gradient costs (about 4x
-  the forward pass) and memory O(image) for any loop length, where a plain
-  differentiated loop would store every iteration, about 1.5 GB at 480x270
-  for 128 samples and 23 GB at 1920x1080; `benchmarks/bench_fit.py`
-  compares the two for one gradient.
+  so the Jacobian costs about what a reverse-mode gradient costs and memory
+  O(image) for any loop length, where a plain differentiated loop would store
+  every iteration; `benchmarks/bench_fit.py` compares the two.
 """
 
 import dataclasses
@@ -202,9 +200,9 @@ def _solver(solver, loss, rtol, atol):
     if solver in ("levenberg_marquardt", "gauss_newton") and loss != "mse":
         raise ValueError(f"solver={solver!r} fits least squares (loss='mse') only; use solver='bfgs' for loss={loss!r}")
     if solver == "levenberg_marquardt":
-        # Damped steps by the normal equations (J^T J + lambda I is positive definite for any lambda > 0; a
-        # 6x6 Cholesky for 6 parameters) instead of optimistix's default QR of the whole Jacobian, which
-        # took half of a compiled 480x270 fit (0.43 -> 0.22 s; at 1920x1080 6.4 -> 5.7 s).
+        # Damped steps by the normal equations (J^T J + lambda I is positive definite for any lambda > 0, and
+        # as small as the parameter count) instead of optimistix's default QR of the whole Jacobian, which
+        # dominated a compiled fit (`benchmarks/fit_results.md`).
         return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     if solver == "gauss_newton":
         return optx.GaussNewton(rtol=rtol, atol=atol)

@@ -52,7 +52,7 @@ DEFAULT_TILE_CAPACITY = 128
 
 _COARSE_TILES_PER_SIDE = 4
 # A coarse tile keeps up to this many times a fine tile's capacity: triangles
-# span several fine tiles, so a coarse tile holds 3-4x its busiest fine tile's load.
+# span several fine tiles, so a coarse tile holds a few times its busiest fine tile's load.
 _COARSE_CAPACITY_FACTOR = 4
 # Fine tiles evaluated together; tile grids are multiples of 4 x 4 tiles.
 _TILES_PER_BATCH = 16

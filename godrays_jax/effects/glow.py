@@ -25,11 +25,11 @@ from godrays_jax.primitives.sampling import pixel_centres
 
 
 class SunOvercast(Effect):
-    """Seed 000's sun overcasting: a glow pass blurred twice with the Poisson blur, then added.
+    """The sun-overcasting article's sun overcasting: a glow pass blurred twice with the Poisson blur, then added.
 
     The glow pass is `buffers.glow_pass` when the rasterizer rendered it (the
     source enlarged x1.3 in `glow_color`, occluders shrunk x0.8 in transparent
-    black). For other buffers it is drawn in image space, seed 000's two
+    black). For other buffers it is drawn in image space, the sun-overcasting article's two
     object scalings becoming a fittable number of pixels: the light source's
     coverage (`buffers.light_pass` if present, else a disc of `source_radius`
     pixels at the light) dilated by `source_grow` pixels, in `glow_color`, with
@@ -84,13 +84,13 @@ class SunOvercast(Effect):
 
 
 class LensDirt(Effect):
-    """Seed 001's lens dirt: a dirt texture lit by the sun, `lens.lens_dirt`, added.
+    """The VBex article's lens dirt: a dirt texture lit by the sun, `lens.lens_dirt`, added.
 
     The texture is `lens.dirt_texture(H, W, seed=dirt_seed)`, generated at the
     frame's size on first use and cached (pass your own texture to
     `lens.lens_dirt`). Directions come from `fov_x_deg` (horizontal field of
-    view, degrees); `far` (scene units) normalises depth to seed 001's
-    `LDepth`; `power` and `scale` are seed 001's 20 and 2; `aberration` is the
+    view, degrees); `far` (scene units) normalises depth to the VBex article's
+    `LDepth`; `power` and `scale` are the VBex article's 20 and 2; `aberration` is the
     per-channel UV offset (0.002); `sun_color` tints the dirt.
     """
 
@@ -128,9 +128,9 @@ def _cached_dirt(height: int, width: int, seed: int) -> np.ndarray:
 
 
 class SunSpot(Effect):
-    """Seed 001's sky sun spot, `lens.sun_spot` on the sky in `sun_color`, plus its glow.
+    """The VBex article's sky sun spot, `lens.sun_spot` on the sky in `sun_color`, plus its glow.
 
-    As in seed 001 the spot is also written to a glow target (`glow`), which
+    As in the VBex article the spot is also written to a glow target (`glow`), which
     the bloom pyramid (`blur.bloom`, no threshold, `glow_weights`, `glow_sigma`
     level pixels) spreads; the layer is `spot + glow_intensity * bloom(spot)`.
     """
@@ -147,7 +147,7 @@ class SunSpot(Effect):
     blend_mode: str = eqx.field(static=True, default="add")
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 3"]:
-        """The glow target: the coloured spot on sky pixels (seed 001's `Out.glow`), unblurred."""
+        """The glow target: the coloured spot on sky pixels (the VBex article's `Out.glow`), unblurred."""
         check_light(light_xy)
         dtype = buffers.color.dtype
         spot = sun_spot(
@@ -171,9 +171,9 @@ BloomMethod = Literal["pyramid", "gaussian"]
 
 
 class Bloom(Effect):
-    """Seed 001's bright glow (`blur.bloom`): bright pass, blurs at 1/2 .. 1/16 resolution, summed, added.
+    """The VBex article's bright glow (`blur.bloom`): bright pass, blurs at 1/2 .. 1/16 resolution, summed, added.
 
-    `method="gaussian"` is the single large Gaussian seed 001 compares it with:
+    `method="gaussian"` is the single large Gaussian the VBex article compares it with:
     the same bright pass blurred once at full resolution with `gaussian_sigma`
     pixels (`gaussian_radius` taps each side). The layer is `intensity` times
     either. Bloom does not depend on the light: `light_xy` and

@@ -10,8 +10,8 @@ from godrays_jax.kernels.lens import LENS_DIRT_ABERRATION
 
 
 def _xna_crepuscular() -> GodRays:
-    """Seed 003: 128 samples, density .5, decay .95, weight 1, exposure .15, bright pass, additive."""
-    # Seed 003 leaves the flare size (SunSize / z), the bright-pass threshold and
+    """The XNA crepuscular-rays article: 128 samples, density .5, decay .95, weight 1, exposure .15, bright pass, additive."""
+    # The XNA crepuscular-rays article leaves the flare size (SunSize / z), the bright-pass threshold and
     # the colour open: with decay .95 the shafts reach only ~8 % of the way to the
     # light, so the disc must reach the occluders (120 px on a 320 px frame), and
     # a warm tint below 1 keeps the saturated core from washing the silhouettes out.
@@ -23,7 +23,7 @@ def _xna_crepuscular() -> GodRays:
 
 
 def _galaxy_vls() -> GodRays:
-    """Seed 004: light white and occluders black, 200 samples, density 1, decay .98, exposure .05, additive."""
+    """The galaxy-engine VLS article: light white and occluders black, 200 samples, density 1, decay .98, exposure .05, additive."""
     return GodRays(
         density=1.0, decay=0.98, weight=1.0, exposure=0.05, num_samples=200.0, max_samples=200,
         source="light_pass", use_bright_pass=False, blend_mode="add",
@@ -31,14 +31,14 @@ def _galaxy_vls() -> GodRays:
 
 
 def _kbengine_flares() -> FlareOuts:
-    """Seed 002: kbEngine3's 20 flare-outs scaled x1.03 each, blurred against banding, added."""
+    """KbEngine's article: kbEngine3's 20 flare-outs scaled x1.03 each, blurred against banding, added."""
     return FlareOuts(scale_step=1.03, num_iters=20.0, max_iters=20, intensity=0.1, blur_sigma=2.0)
 
 
 def _sun_overcast() -> SunOvercast:
-    """Seed 000: orange (0.8, 0.5, 0, 0.65) glow, two Poisson-blur passes, additive."""
+    """The sun-overcasting article: orange (0.8, 0.5, 0, 0.65) glow, two Poisson-blur passes, additive."""
     # The halo size and the occluders' shrink (x1.3 / x0.8 of objects in the seed) are
-    # open in image space: a 45 px halo and 2 px of seeping read as the seed's picture.
+    # open in image space: a 45 px halo and 2 px of seeping read as the article's picture.
     return SunOvercast(
         blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2, source_radius=45.0,
         occluder_shrink=2.0,
@@ -46,27 +46,27 @@ def _sun_overcast() -> SunOvercast:
 
 
 def _vbex_lens_dirt() -> LensDirt:
-    """Seed 001: power 20, scale 2, chromatic offset 0.002, warm sun colour, added."""
+    """The VBex article: power 20, scale 2, chromatic offset 0.002, warm sun colour, added."""
     return LensDirt(power=20.0, scale=2.0, aberration=LENS_DIRT_ABERRATION, sun_color=(1.0, 0.8, 0.55))
 
 
 def _vbex_sun_spot() -> SunSpot:
-    """Seed 001: `pow(dot, SunDistance * 2000) * SunSharpness * 30` on the sky, bloomed through the glow target."""
+    """The VBex article: `pow(dot, SunDistance * 2000) * SunSharpness * 30` on the sky, bloomed through the glow target."""
     return SunSpot(sun_distance=1.0, sun_sharpness=1.0, sun_color=(1.0, 0.85, 0.6), glow_intensity=0.5)
 
 
 def _vbex_bloom() -> Bloom:
-    """Seed 001: bright pass, blurs at 1/2, 1/4, 1/8, 1/16 resolution added with equal weights."""
+    """The VBex article: bright pass, blurs at 1/2, 1/4, 1/8, 1/16 resolution added with equal weights."""
     return Bloom(threshold=1.0, weights=(1.0, 1.0, 1.0, 1.0), intensity=0.25, method="pyramid")
 
 
 def _gaussian_bloom() -> Bloom:
-    """The single large Gaussian that seed 001's pyramid replaces, for comparison."""
+    """The single large Gaussian that the VBex article's pyramid replaces, for comparison."""
     return Bloom(threshold=1.0, gaussian_sigma=12.0, gaussian_radius=36, intensity=1.0, method="gaussian")
 
 
 def _participating_media() -> ScatteringFog:
-    """A light haze: no seed; physically motivated defaults, not tuned to any reference frame."""
+    """A light haze: no source article; physically motivated defaults, not tuned to any reference frame."""
     # Mie haze has g ~ 0.76; extinction 0.01 per unit leaves 37 % of the light after
     # 100 units; a bluish ambient (sky light) and a warm sun; the medium ends at 100 units.
     return ScatteringFog(

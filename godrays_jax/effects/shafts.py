@@ -29,12 +29,12 @@ def _disc_radius(effect) -> float | None:
 
 
 class GodRays(Effect):
-    """Radial light shafts, seeds 003 and 004 (GPU Gems 3 ch. 13).
+    """Radial light shafts, the XNA crepuscular-rays and galaxy-engine VLS articles (GPU Gems 3 ch. 13).
 
-    Passes: the emitter (`source`: `"disc"`, seed 003's light-source mask
+    Passes: the emitter (`source`: `"disc"`, the XNA crepuscular-rays article's light-source mask
     `2 * saturate(1 - d / light_radius)**2` through the sky; `"sky"`, the frame's
-    own colour on sky pixels; `"light_pass"`, seed 004's white-light/black-occluder
-    pass), then `radial_rays`, then seed 003's `bright_pass` if `use_bright_pass`,
+    own colour on sky pixels; `"light_pass"`, the galaxy-engine VLS article's white-light/black-occluder
+    pass), then `radial_rays`, then the XNA crepuscular-rays article's `bright_pass` if `use_bright_pass`,
     times `tint`, then the blend.
 
     `num_samples` is fittable through `radial_rays`'s relaxation (loop length
@@ -97,7 +97,7 @@ class GodRays(Effect):
 
 
 class FlareOuts(Effect):
-    """kbEngine's screen-space god rays, seed 002.
+    """kbEngine's screen-space god rays, kbEngine's article.
 
     The emitter (as in `GodRays`: a disc through the sky by default, kbEngine's
     "base flare texture x (1 - sign(depth))"), scaled about the light

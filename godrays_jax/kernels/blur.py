@@ -1,4 +1,4 @@
-"""Blurs: seed 000's 12-tap Poisson-disk blur, a separable Gaussian, seed 001's bloom pyramid.
+"""Blurs: the sun-overcasting article's 12-tap Poisson-disk blur, a separable Gaussian, the VBex article's bloom pyramid.
 
 All use clamp-to-edge addressing, so a constant image stays constant.
 """
@@ -36,7 +36,7 @@ POISSON_OFFSETS = np.array(
         [-0.791559, -0.597705],
     ]
 )
-"""Seed 000's 12 Poisson-disk offsets, in UV units before scaling by `blur_power`."""
+"""The sun-overcasting article's 12 Poisson-disk offsets, in UV units before scaling by `blur_power`."""
 
 
 def _poisson_pass(image, blur_power):
@@ -60,7 +60,7 @@ def poisson_blur(
     passes: int | Float[ArrayLike, ""] = 1,
     max_passes: int | None = None,
 ) -> Float[Array, "H W C"]:
-    """Seed 000's blur: the centre tap plus 12 Poisson-disk taps, summed and divided by 13.
+    """The sun-overcasting article's blur: the centre tap plus 12 Poisson-disk taps, summed and divided by 13.
 
     Tap `i` reads the image at `p + offsets[i] * blur_power * (W, H)` pixels: the
     offsets are in UV units, so `blur_power = 0.01` reaches about 1 % of the
@@ -69,7 +69,7 @@ def poisson_blur(
     Args:
         image: the image to blur.
         blur_power: tap radius in UV units; 0 returns the image unchanged.
-        passes: how many times to apply the blur (seed 000 uses 2). A Python
+        passes: how many times to apply the blur (the sun-overcasting article uses 2). A Python
             int >= 0 is exact. A float `p` is the relaxation
             `(1 - f) * blur^k(image) + f * blur^(k+1)(image)` with `k = floor(p)`,
             `f = p - k`: the piecewise-linear interpolation between whole pass
@@ -139,7 +139,7 @@ def gaussian_blur(
 
 
 BLOOM_LEVELS = (2, 4, 8, 16)
-"""Seed 001's bloom pyramid: blurs at 1/2, 1/4, 1/8 and 1/16 of the full resolution."""
+"""The VBex article's bloom pyramid: blurs at 1/2, 1/4, 1/8 and 1/16 of the full resolution."""
 
 
 def bloom(
@@ -150,17 +150,17 @@ def bloom(
     sigma: Float[ArrayLike, ""] = 2.0,
     radius: int = 6,
 ) -> Float[Array, "H W C"]:
-    """Seed 001's bright glow: a bright pass, blurred at 1/2, 1/4, 1/8, 1/16 resolution, summed.
+    """The VBex article's bright glow: a bright pass, blurred at 1/2, 1/4, 1/8, 1/16 resolution, summed.
 
     Bright pass: `max(image - threshold, 0)` per channel, unclipped (HDR: a
-    sun at 40 keeps its energy; seed 003's clipped `bright_pass` is for LDR).
+    sun at 40 keeps its energy; the XNA crepuscular-rays article's clipped `bright_pass` is for LDR).
     Level `k` (factor `2, 4, 8, 16`, `BLOOM_LEVELS`) is the bright pass
     averaged over `factor x factor` blocks (`downsample_box`), blurred with a
     Gaussian of `sigma` pixels *of that level* (`gaussian_blur`, `radius`
     taps each side, static), and read back at full resolution bilinearly
     (full-resolution pixel `x` reads level position `x / factor`,
     clamp-to-edge). The output is `sum_k weights[k] * level_k`, no clipping;
-    seed 001 adds the four levels with equal weights. Compare with one large
+    the VBex article adds the four levels with equal weights. Compare with one large
     Gaussian: `gaussian_blur(bright, sigma_px)`.
     """
     check_image(image)

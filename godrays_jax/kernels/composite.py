@@ -32,7 +32,7 @@ def _join(colour, rest):
 
 
 def add(scene: Float[Array, "H W C"], layer: Float[Array, "H W L"]) -> Float[Array, "H W C"]:
-    """`scene + layer` (seeds 000, 002, 003's Additive, 004)."""
+    """`scene + layer` (the sun-overcasting, kbEngine and XNA crepuscular-rays articles' Additive, 004)."""
     colour, rest = _split(scene, layer)
     return _join(colour + layer[..., : colour.shape[-1]], rest)
 
@@ -44,7 +44,7 @@ def screen(scene: Float[Array, "H W C"], layer: Float[Array, "H W L"]) -> Float[
 
 
 def multiply(scene: Float[Array, "H W C"], layer: Float[Array, "H W L"]) -> Float[Array, "H W C"]:
-    """`scene * layer` (seed 003's Blend technique)."""
+    """`scene * layer` (the XNA crepuscular-rays article's Blend technique)."""
     colour, rest = _split(scene, layer)
     return _join(colour * layer[..., : colour.shape[-1]], rest)
 

@@ -1,4 +1,4 @@
-"""Seed 001's (VBex engine) camera and sky extras: lens dirt, a procedural dirt texture, the sky sun spot.
+"""The VBex article's (VBex engine) camera and sky extras: lens dirt, a procedural dirt texture, the sky sun spot.
 
 Both formulas need directions, not just pixel positions. They are computed in
 view space (x right, y up, z forward, as `godrays_jax.primitives.camera.Camera.to_view`)
@@ -34,7 +34,7 @@ from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 ViewMode = Literal["pixel", "axis"]
 
 LENS_DIRT_ABERRATION = 0.002
-"""Seed 001's per-channel texture offset (UV): green reads `+0.002` in v, blue `+0.002` in u."""
+"""The VBex article's per-channel texture offset (UV): green reads `+0.002` in v, blue `+0.002` in u."""
 
 
 def view_directions(
@@ -87,7 +87,7 @@ def safe_power(base: Float[Array, "*S"], exponent: Float[ArrayLike, ""]) -> Floa
 
 
 def linear_depth(depth: Float[Array, "H W"], far: Float[ArrayLike, ""]) -> Float[Array, "H W"]:
-    """Seed 001's `LDepth`: `depth / far` clipped to [0, 1]; the sky (`+inf`) is 1."""
+    """The VBex article's `LDepth`: `depth / far` clipped to [0, 1]; the sky (`+inf`) is 1."""
     finite = jnp.isfinite(depth)
     far = jnp.asarray(far, depth.dtype)
     return jnp.where(finite, jnp.clip(jnp.where(finite, depth, 0.0) / far, 0.0, 1.0), 1.0)
@@ -104,14 +104,14 @@ def lens_dirt_intensity(
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     view: ViewMode = "pixel",
 ) -> Float[Array, "H W"]:
-    """Seed 001's `pow(saturate(dot(view, -lightdir) * max(LDepth, 0.8)), power) * scale`.
+    """The VBex article's `pow(saturate(dot(view, -lightdir) * max(LDepth, 0.8)), power) * scale`.
 
     `-lightdir` is the direction toward the light (`light_direction`). `view` is
     each pixel's own view ray (`"pixel"`, the default: the dirt lights up
     around the sun) or the optical axis for every pixel (`"axis"`: the whole
     texture brightens as the camera turns to the sun). `LDepth` is
     `linear_depth(depth, far)` (scene units), so occluders nearer than
-    `0.8 * far` are dimmed by `0.8 ** power`. Seed 001: `power = 20`, `scale = 2`.
+    `0.8 * far` are dimmed by `0.8 ** power`. The VBex article: `power = 20`, `scale = 2`.
     """
     if view not in ("pixel", "axis"):
         raise ValueError(f"view must be 'pixel' or 'axis', got {view!r}")
@@ -144,12 +144,12 @@ def lens_dirt(
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     view: ViewMode = "pixel",
 ) -> Float[Array, "H W 3"]:
-    """Seed 001's lens dirt layer, to be added onto the frame: `dirt colour * lens_dirt_intensity`.
+    """The VBex article's lens dirt layer, to be added onto the frame: `dirt colour * lens_dirt_intensity`.
 
     The one-channel `dirt` texture (any size; `dirt_texture` makes one) is
     stretched over the frame and sampled bilinearly, clamp-to-edge: red at the
     pixel's UV, green at `uv + (0, aberration)`, blue at `uv + (aberration, 0)`
-    (UV units; seed 001: 0.002, a chromatic-aberration fringe), each times that
+    (UV units; the VBex article: 0.002, a chromatic-aberration fringe), each times that
     channel of `sun_color` (linear RGB). See `lens_dirt_intensity` for the
     other arguments.
     """
@@ -187,7 +187,7 @@ def sun_spot(
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype=jnp.float32,
 ) -> Float[Array, "H W 1"]:
-    """Seed 001's sky sun spot `saturate(pow(dot(dir, L), SunDistance * 2000)) * SunSharpness * 30`.
+    """The VBex article's sky sun spot `saturate(pow(dot(dir, L), SunDistance * 2000)) * SunSharpness * 30`.
 
     `dir` is each pixel's unit view ray and `L` the direction toward the light;
     a negative dot gives 0. One channel, unmasked: multiply by the sky

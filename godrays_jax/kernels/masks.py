@@ -58,13 +58,13 @@ def light_source_mask(
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype=jnp.float32,
 ) -> Float[Array, "H W C"]:
-    """Seed 003's light-source mask: a flare centred on the light, `2 * pow(flare, 2)`.
+    """The XNA crepuscular-rays article's light-source mask: a flare centred on the light, `2 * pow(flare, 2)`.
 
-    The flare covers the square `light +- radius` pixels (seed 003 sizes it as
+    The flare covers the square `light +- radius` pixels (the XNA crepuscular-rays article sizes it as
     `SunSize / clip-space z`; pass that size converted to pixels). With no
     `texture` the flare is the analytic disc `saturate(1 - distance / radius)`,
     one channel; a `texture` is stretched over the square and sampled
-    bilinearly with clamp-to-edge addressing, as seed 003 does. Off-screen
+    bilinearly with clamp-to-edge addressing, as the XNA crepuscular-rays article does. Off-screen
     lights draw the part of the flare that overlaps the image. A light behind
     the camera (`light_in_front` false) draws nothing.
     """
@@ -91,11 +91,11 @@ def depth_test_mask(
     *,
     bias: Float[ArrayLike, ""] = 0.0,
 ) -> Float[Array, "H W"]:
-    """Seed 003's scene mask: 0 where the scene is in front of the light, else 1.
+    """The XNA crepuscular-rays article's scene mask: 0 where the scene is in front of the light, else 1.
 
     `depth` and `light_depth` are linear distances in scene units (`+inf` sky
     always passes); `bias` (scene units) keeps surfaces at the light's own depth
-    from masking themselves, as seed 003's `0.00025` does in hardware depth.
+    from masking themselves, as the XNA crepuscular-rays article's `0.00025` does in hardware depth.
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
@@ -104,9 +104,9 @@ def depth_test_mask(
 
 
 def bright_pass(image: Float[Array, "H W C"], threshold: Float[ArrayLike, ""]) -> Float[Array, "H W C"]:
-    """Seed 003's bright pass `saturate((c - T) / (1 - T))`, per channel, for `T` in [0, 1).
+    """The XNA crepuscular-rays article's bright pass `saturate((c - T) / (1 - T))`, per channel, for `T` in [0, 1).
 
-    The output is clipped to [0, 1], as in the seed.
+    The output is clipped to [0, 1], as in the article.
     """
     check_image(image)
     check_scalar(threshold, "threshold")

@@ -88,7 +88,7 @@ def radial_rays(
     max_samples: int | None = None,
     source_radius: float | None = None,
 ) -> Float[Array, "H W C"]:
-    """The GPU Gems 3 (ch. 13) radial-blur loop, exactly as seed 003 writes it.
+    """The GPU Gems 3 (ch. 13) radial-blur loop, exactly as the XNA crepuscular-rays article writes it.
 
     For each pixel centre `p`, with `delta = (p - light) * density / num_samples`:
     `exposure * (image(p) + sum_{i=1..n} weight * decay**(i-1) * image(p - i * delta))`,
@@ -154,7 +154,7 @@ def scale_iterated_flares(
     `sum_{k=0..n-1} decay**k * masked(light + (p - light) / scale_step**k)`: copy `k`
     is the texture enlarged `scale_step**k` times about the light, sampled
     bilinearly; texels outside the image are 0 (a copy never smears the border).
-    Copy 0 is `masked` itself. The sum is not normalised (seed 002 adds every
+    Copy 0 is `masked` itself. The sum is not normalised (kbEngine's article adds every
     copy into its target); scale it in the effect. Value and gradient need
     memory O(image), not O(iterations x image).
 
@@ -187,7 +187,7 @@ def _powers(base, length: int, dtype):
 
 
 def _radial_scales(loop_length: int, step):
-    """Seed 003's sample scales `1 - i * step` (i = 1..loop_length), `step = density / n`."""
+    """The XNA crepuscular-rays article's sample scales `1 - i * step` (i = 1..loop_length), `step = density / n`."""
     return 1.0 - jnp.arange(1, loop_length + 1, dtype=step.dtype) * step
 
 

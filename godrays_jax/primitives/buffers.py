@@ -15,9 +15,9 @@ class Buffers(eqx.Module):
         coverage: fraction of each pixel covered by geometry, `(H, W)` in [0, 1].
         normal: world-space unit normals `(H, W, 3)`, zero on sky, if rendered.
         object_id: index of the object seen in each pixel, `-1` on sky, if rendered.
-        light_pass: seed 004's pass (the light white, everything else black),
+        light_pass: the galaxy-engine VLS article's pass (the light white, everything else black),
             `(H, W)`, if rendered.
-        glow_pass: seed 000's overcast pass (the source enlarged and tinted,
+        glow_pass: the sun-overcasting article's overcast pass (the source enlarged and tinted,
             occluders shrunk and transparent black), `(H, W, 4)` RGBA, if rendered.
     """
 

@@ -11,8 +11,8 @@ alternatives in brackets):
 | `Z` [`depth.Z`, `depth`, or a name the caller gives] | `depth` `(H, W)` | linear distance along the camera ray, scene units; required |
 | `N.X`, `N.Y`, `N.Z` | `normal` `(H, W, 3)` | optional |
 | `object_id` | `object_id` `(H, W)` | optional; stored as float32, `-1` on sky |
-| `light.Y` [`lightpass`] | `light_pass` `(H, W)` | optional; seed 004's pass |
-| `glow.R`, `glow.G`, `glow.B`, `glow.A` | `glow_pass` `(H, W, 4)` | optional; seed 000's pass |
+| `light.Y` [`lightpass`] | `light_pass` `(H, W)` | optional; the galaxy-engine VLS article's pass |
+| `glow.R`, `glow.G`, `glow.B`, `glow.A` | `glow_pass` `(H, W, 4)` | optional; the sun-overcasting article's pass |
 
 Sky: depth `+inf` means nothing was hit. Some renderers write a huge finite
 "far" value instead, so depth values `>= 1e30` (`SKY_DEPTH_SENTINEL`) are read

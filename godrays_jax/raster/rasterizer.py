@@ -29,7 +29,7 @@ How it works (all inside one `jit`):
    its primitives' coverage, clipped to 1, which is exact across a mesh's shared
    edges), over the sky. Depth, normal and object id are the hard values at the
    pixel centre.
-5. The glow pass (seed 000) rasterizes the scaled geometry again, but only in
+5. The glow pass (the sun-overcasting article) rasterizes the scaled geometry again, but only in
    the tiles that the enlarged sun object (or, without one, the sky's sun spot)
    overlaps: everything else is transparent black, so the pass is zero there.
 """
@@ -616,7 +616,7 @@ def _sun_direction(scene: Scene, camera: Camera) -> Float[Array, "3"]:
 
 
 def _sky(scene: Scene, camera: Camera, world_rays: Float[Array, "3 P"]) -> tuple[Float[Array, "3 P"], Float[Array, "P"]]:
-    """Sky colour and the sun spot's intensity (seed 001)."""
+    """Sky colour and the sun spot's intensity (the VBex article)."""
     unit = _unit_first(world_rays)
     height = jnp.clip(_dot(unit, (camera.up / jnp.linalg.norm(camera.up))[:, None]), 0.0, 1.0)
     sky = scene.sky
@@ -652,10 +652,10 @@ def render(
     Args:
         scene: the `Scene`.
         camera: the `Camera` (image size, clipping planes).
-        glow_source_scale: seed 000's enlargement of the sun object (about its
+        glow_source_scale: the sun-overcasting article's enlargement of the sun object (about its
             origin) in the glow pass.
-        glow_occluder_scale: seed 000's shrinking of every other object.
-        glow_color: the glow pass colour, premultiplied RGBA in [0, 1] (seed 000:
+        glow_occluder_scale: the sun-overcasting article's shrinking of every other object.
+        glow_color: the glow pass colour, premultiplied RGBA in [0, 1] (the sun-overcasting article:
             `(0.8, 0.5, 0, 0.65)`).
         with_glow_pass: render the glow pass (a second rasterization, of the
             tiles near the sun object only: elsewhere it is zero); if False

@@ -38,9 +38,9 @@ class Material(eqx.Module):
     Shaded colour = `albedo * (ambient + light_color * saturate(N.L))`
     `+ emission` (the sun: unlit, visible in the dark)
     `+ atmosphere_color * min(1, 10 * rim ** (30 * atmosphere_sharpness)) * saturate(N.L)`
-    with `rim = 1 - saturate(view . N)` (seed 001's planet rim, lit by N.L)
+    with `rim = 1 - saturate(view . N)` (the VBex article's planet rim, lit by N.L)
     `+ night_color * city_pattern(N) * saturate(-N.L * night_sharpness)`
-    (seed 001's emissive night lights, only on the dark side; `city_pattern`
+    (the VBex article's emissive night lights, only on the dark side; `city_pattern`
     is a fixed procedural stand-in for an emissive light map, in [0, 1]).
     """
 
@@ -104,7 +104,7 @@ class Mesh(eqx.Module):
             `None` shades each face flat.
         translation, rotation_deg (x, y, z Euler angles, degrees), scale (per axis,
             > 0): the transform. Scaling for the glow pass happens about the
-            mesh origin, before this transform, as in seed 000's vertex shader.
+            mesh origin, before this transform, as in the sun-overcasting article's vertex shader.
         double_sided: draw back faces too (static); single-sided meshes are
             culled like a GPU's back-face culling, which also keeps the
             silhouette's antialiasing exact for closed meshes.
@@ -188,7 +188,7 @@ class PointLight(eqx.Module):
 
 
 class Sky(eqx.Module):
-    """Background: a vertical gradient plus seed 001's sun spot.
+    """Background: a vertical gradient plus the VBex article's sun spot.
 
     Sky colour = `mix(horizon_color, zenith_color, saturate(dir . up))`
     `+ sun_color * saturate(saturate(dir . L) ** (sun_distance * 2000)) * sun_sharpness * 30`,

@@ -61,6 +61,10 @@ _EDGE_X, _EDGE_Y, _EDGE_C = slice(0, 3), slice(3, 6), slice(6, 9)
 _INV_DEPTH = slice(9, 12)
 _AREA = 12
 _BOX = slice(13, 17)
+# Rows of the per-triangle shading table (`_triangle_table`), component first: the barycentric numerators as
+# affine functions of the pixel position (3 per corner), then the corners, then the shading normals (3 each).
+_TABLE_CORNERS = 9
+_TABLE_NORMALS = 18
 
 
 class _Geometry(eqx.Module):
@@ -345,13 +349,15 @@ def _picks(distance, inverse_depth, area, candidate_object, candidate_index, cam
 def _triangle_picks(setup, objects, candidates: Int[Array, "B K"], px, py, camera: Camera, slot_bits: int) -> _Picks:
     rows = setup[candidates][:, None]
     x, y = px[..., None], py[..., None]
-    edge = lambda i: x * rows[..., i] + y * rows[..., 3 + i] + rows[..., 6 + i]
+    edge_x, edge_y, edge_c = rows[..., _EDGE_X], rows[..., _EDGE_Y], rows[..., _EDGE_C]
+    edge = lambda i: x * edge_x[..., i] + y * edge_y[..., i] + edge_c[..., i]
     # The bounding box's sides join the three edges: past a sliver's sharp
     # corner the edges alone would leave coverage leaking along its extension.
     box = rows[..., _BOX]
     box_distance = jnp.minimum(jnp.minimum(x - box[..., 0], box[..., 2] - x), jnp.minimum(y - box[..., 1], box[..., 3] - y))
     distance = jnp.minimum(jnp.minimum(jnp.minimum(edge(0), edge(1)), edge(2)), box_distance)
-    inverse_depth = x * rows[..., 9] + y * rows[..., 10] + rows[..., 11]
+    plane = rows[..., _INV_DEPTH]
+    inverse_depth = x * plane[..., 0] + y * plane[..., 1] + plane[..., 2]
     return _picks(distance, inverse_depth, rows[..., _AREA], objects[candidates][:, None], candidates[:, None], camera, slot_bits)
 
 
@@ -407,7 +413,7 @@ def _triangle_surface(columns: Float[Array, "27 P"], px: Float[Array, "P"], py: 
     total = jnp.maximum(weights[0] + weights[1] + weights[2], 1e-12)
     weights = [w / total for w in weights]
     blend = lambda start: jnp.stack([sum(weights[i] * columns[start + 3 * i + c] for i in range(3)) for c in range(3)])
-    return blend(9), blend(18)
+    return blend(_TABLE_CORNERS), blend(_TABLE_NORMALS)
 
 
 def _sphere_surface(center: Float[Array, "3 P"], radius: Float[Array, "P"], rays: Float[Array, "3 P"]) -> tuple[Float[Array, "3 P"], Float[Array, "3 P"]]:

@@ -8,6 +8,75 @@ the tuner's server live in `godrays_jax.app` and are not imported here.
 
 import importlib.metadata
 
+# Effects: parameter sets (equinox Modules), presets, serialisation.
+from godrays_jax.effects.base import Effect as Effect
+from godrays_jax.effects.base import light_visibility as light_visibility
+from godrays_jax.effects.base import parameter_bounds as parameter_bounds
+from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
+from godrays_jax.effects.glow import Bloom as Bloom
+from godrays_jax.effects.glow import LensDirt as LensDirt
+from godrays_jax.effects.glow import SunOvercast as SunOvercast
+from godrays_jax.effects.glow import SunSpot as SunSpot
+from godrays_jax.effects.presets import PRESETS as PRESETS
+from godrays_jax.effects.presets import preset as preset
+from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
+from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
+from godrays_jax.effects.serialization import load_effect as load_effect
+from godrays_jax.effects.serialization import save_effect as save_effect
+from godrays_jax.effects.shafts import FlareOuts as FlareOuts
+from godrays_jax.effects.shafts import GodRays as GodRays
+from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
+
+# Kernels: pure functions, image first, options keyword-only.
+from godrays_jax.kernels.blur import bloom as bloom
+from godrays_jax.kernels.blur import gaussian_blur as gaussian_blur
+from godrays_jax.kernels.blur import poisson_blur as poisson_blur
+from godrays_jax.kernels.composite import BLEND_MODES as BLEND_MODES
+from godrays_jax.kernels.composite import add as add
+from godrays_jax.kernels.composite import alpha_over as alpha_over
+from godrays_jax.kernels.composite import blend as blend
+from godrays_jax.kernels.composite import multiply as multiply
+from godrays_jax.kernels.composite import screen as screen
+from godrays_jax.kernels.fast import at_reduced_resolution as at_reduced_resolution
+from godrays_jax.kernels.fast import fast_radial_rays as fast_radial_rays
+from godrays_jax.kernels.fast import radial_rays_jittered as radial_rays_jittered
+from godrays_jax.kernels.fast import radial_rays_multipass as radial_rays_multipass
+from godrays_jax.kernels.lens import dirt_texture as dirt_texture
+from godrays_jax.kernels.lens import lens_dirt as lens_dirt
+from godrays_jax.kernels.lens import lens_dirt_intensity as lens_dirt_intensity
+from godrays_jax.kernels.lens import light_direction as light_direction
+from godrays_jax.kernels.lens import sun_spot as sun_spot
+from godrays_jax.kernels.lens import view_directions as view_directions
+from godrays_jax.kernels.losses import LOSSES as LOSSES
+from godrays_jax.kernels.losses import charbonnier_loss as charbonnier_loss
+from godrays_jax.kernels.losses import l1_loss as l1_loss
+from godrays_jax.kernels.losses import mse_loss as mse_loss
+from godrays_jax.kernels.losses import ssim as ssim
+from godrays_jax.kernels.losses import ssim_loss as ssim_loss
+from godrays_jax.kernels.masks import bright_pass as bright_pass
+from godrays_jax.kernels.masks import coverage_mask as coverage_mask
+from godrays_jax.kernels.masks import depth_test_mask as depth_test_mask
+from godrays_jax.kernels.masks import dilate as dilate
+from godrays_jax.kernels.masks import erode as erode
+from godrays_jax.kernels.masks import flare_mask as flare_mask
+from godrays_jax.kernels.masks import light_source_mask as light_source_mask
+from godrays_jax.kernels.masks import sky_mask as sky_mask
+from godrays_jax.kernels.media import apply_fog as apply_fog
+from godrays_jax.kernels.media import henyey_greenstein as henyey_greenstein
+from godrays_jax.kernels.media import in_scattering as in_scattering
+from godrays_jax.kernels.media import transmittance as transmittance
+from godrays_jax.kernels.rays import radial_rays as radial_rays
+from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
+from godrays_jax.kernels.rays import scaled_copies as scaled_copies
+
+# Pipeline: sequences and batches of frames, fitting and its report.
+from godrays_jax.pipeline.batch import plan_batch as plan_batch
+from godrays_jax.pipeline.batch import run_batch as run_batch
+from godrays_jax.pipeline.fit import FitResult as FitResult
+from godrays_jax.pipeline.fit import fit as fit
+from godrays_jax.pipeline.report import fit_report_image as fit_report_image
+from godrays_jax.pipeline.sequences import expand_frames as expand_frames
+from godrays_jax.pipeline.sequences import read_light_track as read_light_track
 
 # Image primitives: sampling, resampling, colour, buffers, camera, I/O.
 from godrays_jax.primitives.buffers import Buffers as Buffers
@@ -30,90 +99,20 @@ from godrays_jax.primitives.resample import downsample_box as downsample_box
 from godrays_jax.primitives.resample import upsample_bilinear as upsample_bilinear
 from godrays_jax.primitives.sampling import sample_bilinear as sample_bilinear
 
-# Kernels: pure functions, image first, options keyword-only.
-from godrays_jax.kernels.blur import bloom as bloom
-from godrays_jax.kernels.blur import gaussian_blur as gaussian_blur
-from godrays_jax.kernels.blur import poisson_blur as poisson_blur
-from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
-from godrays_jax.kernels.composite import add as add
-from godrays_jax.kernels.composite import alpha_over as alpha_over
-from godrays_jax.kernels.composite import blend as blend
-from godrays_jax.kernels.composite import BLEND_MODES as BLEND_MODES
-from godrays_jax.kernels.composite import multiply as multiply
-from godrays_jax.kernels.composite import screen as screen
-from godrays_jax.kernels.fast import at_reduced_resolution as at_reduced_resolution
-from godrays_jax.kernels.fast import fast_radial_rays as fast_radial_rays
-from godrays_jax.kernels.fast import radial_rays_jittered as radial_rays_jittered
-from godrays_jax.kernels.fast import radial_rays_multipass as radial_rays_multipass
-from godrays_jax.kernels.lens import dirt_texture as dirt_texture
-from godrays_jax.kernels.lens import lens_dirt as lens_dirt
-from godrays_jax.kernels.lens import lens_dirt_intensity as lens_dirt_intensity
-from godrays_jax.kernels.lens import light_direction as light_direction
-from godrays_jax.kernels.lens import sun_spot as sun_spot
-from godrays_jax.kernels.lens import view_directions as view_directions
-from godrays_jax.kernels.losses import charbonnier_loss as charbonnier_loss
-from godrays_jax.kernels.losses import l1_loss as l1_loss
-from godrays_jax.kernels.losses import LOSSES as LOSSES
-from godrays_jax.kernels.losses import mse_loss as mse_loss
-from godrays_jax.kernels.losses import ssim as ssim
-from godrays_jax.kernels.losses import ssim_loss as ssim_loss
-from godrays_jax.kernels.masks import bright_pass as bright_pass
-from godrays_jax.kernels.masks import coverage_mask as coverage_mask
-from godrays_jax.kernels.masks import depth_test_mask as depth_test_mask
-from godrays_jax.kernels.masks import dilate as dilate
-from godrays_jax.kernels.masks import erode as erode
-from godrays_jax.kernels.masks import flare_mask as flare_mask
-from godrays_jax.kernels.masks import light_source_mask as light_source_mask
-from godrays_jax.kernels.masks import sky_mask as sky_mask
-from godrays_jax.kernels.media import apply_fog as apply_fog
-from godrays_jax.kernels.media import henyey_greenstein as henyey_greenstein
-from godrays_jax.kernels.media import in_scattering as in_scattering
-from godrays_jax.kernels.media import transmittance as transmittance
-from godrays_jax.kernels.rays import radial_rays as radial_rays
-from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
-from godrays_jax.kernels.rays import scaled_copies as scaled_copies
-
-# Effects: parameter sets (equinox Modules), presets, serialisation.
-from godrays_jax.effects.base import Effect as Effect
-from godrays_jax.effects.base import light_visibility as light_visibility
-from godrays_jax.effects.base import parameter_bounds as parameter_bounds
-from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
-from godrays_jax.effects.glow import Bloom as Bloom
-from godrays_jax.effects.glow import LensDirt as LensDirt
-from godrays_jax.effects.glow import SunOvercast as SunOvercast
-from godrays_jax.effects.glow import SunSpot as SunSpot
-from godrays_jax.effects.presets import preset as preset
-from godrays_jax.effects.presets import PRESETS as PRESETS
-from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
-from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
-from godrays_jax.effects.serialization import load_effect as load_effect
-from godrays_jax.effects.serialization import save_effect as save_effect
-from godrays_jax.effects.shafts import FlareOuts as FlareOuts
-from godrays_jax.effects.shafts import GodRays as GodRays
-
-# Pipeline: sequences and batches of frames, fitting and its report.
-from godrays_jax.pipeline.batch import plan_batch as plan_batch
-from godrays_jax.pipeline.batch import run_batch as run_batch
-from godrays_jax.pipeline.fit import fit as fit
-from godrays_jax.pipeline.fit import FitResult as FitResult
-from godrays_jax.pipeline.report import fit_report_image as fit_report_image
-from godrays_jax.pipeline.sequences import expand_frames as expand_frames
-from godrays_jax.pipeline.sequences import read_light_track as read_light_track
-
 # The rasterizer: scenes to Buffers.
 from godrays_jax.raster import DirectionalLight as DirectionalLight
+from godrays_jax.raster import Material as Material
+from godrays_jax.raster import Mesh as Mesh
+from godrays_jax.raster import PointLight as PointLight
+from godrays_jax.raster import Scene as Scene
+from godrays_jax.raster import Sky as Sky
+from godrays_jax.raster import Sphere as Sphere
 from godrays_jax.raster import light_pixel as light_pixel
 from godrays_jax.raster import load_obj as load_obj
 from godrays_jax.raster import load_scene as load_scene
-from godrays_jax.raster import Material as Material
-from godrays_jax.raster import Mesh as Mesh
 from godrays_jax.raster import plan_tile_capacity as plan_tile_capacity
-from godrays_jax.raster import PointLight as PointLight
 from godrays_jax.raster import render as render
-from godrays_jax.raster import Scene as Scene
 from godrays_jax.raster import scene_from_dict as scene_from_dict
-from godrays_jax.raster import Sky as Sky
-from godrays_jax.raster import Sphere as Sphere
 from godrays_jax.raster import uv_sphere as uv_sphere
 
 __version__ = importlib.metadata.version("godrays_jax")

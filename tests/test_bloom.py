@@ -122,8 +122,8 @@ def test_bloom_gradients(x64, hdr):
 def test_dilate_erode_match_numpy_loop(rng, radius):
     mask = (rng.uniform(0, 1, (11, 13)) > 0.8) * rng.uniform(0.5, 1, (11, 13))
     expected = _reference_dilate(mask, radius, 3)
-    np.testing.assert_allclose(gr.dilate(jnp.asarray(mask, jnp.float32), radius, max_radius=3), expected, atol=1e-6)
-    jitted = jax.jit(lambda m, r: gr.erode(m, r, max_radius=3))(jnp.asarray(1 - mask, jnp.float32), radius)
+    np.testing.assert_allclose(gr.dilate(jnp.asarray(mask, jnp.float32), radius=radius, max_radius=3), expected, atol=1e-6)
+    jitted = jax.jit(lambda m, r: gr.erode(m, radius=r, max_radius=3))(jnp.asarray(1 - mask, jnp.float32), radius)
     np.testing.assert_allclose(jitted, 1 - expected, atol=1e-6)
     if radius == 0.0:
         np.testing.assert_allclose(expected, mask)
@@ -131,11 +131,11 @@ def test_dilate_erode_match_numpy_loop(rng, radius):
 
 def test_dilate_gradients_and_limits(x64, rng):
     mask = jnp.asarray(rng.uniform(0, 1, (7, 8)) > 0.7, jnp.float64)
-    check_grads(lambda r: gr.dilate(mask, r, max_radius=2), (1.3,), order=1, modes=["rev"], eps=1e-5)
+    check_grads(lambda r: gr.dilate(mask, radius=r, max_radius=2), (1.3,), order=1, modes=["rev"], eps=1e-5)
     with pytest.raises(ValueError, match="max_radius"):
-        gr.dilate(mask, 1.0, max_radius=-1)
+        gr.dilate(mask, radius=1.0, max_radius=-1)
     with pytest.raises(Exception, match="radius must lie"):
-        jax.block_until_ready(jax.jit(lambda r: gr.dilate(mask, r, max_radius=2))(2.5))  # a GPU raises on use
+        jax.block_until_ready(jax.jit(lambda r: gr.dilate(mask, radius=r, max_radius=2))(2.5))  # a GPU raises on use
 
 
 def test_image_space_overcast_grows_into_occluders():

@@ -10,7 +10,7 @@ import pytest
 
 from godrays_jax.primitives.camera import Camera, project_point
 
-SCENES_JSON = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes.json"  # shared/ beside the checkout
+SCENES_JSON = Path(__file__).resolve().parent / "data" / "scenes.json"  # a path tracer's camera (tests/data/README.md)
 
 
 def _camera(**overrides):
@@ -31,7 +31,6 @@ def _project_reference(position, target, up, fov_x_deg, width, height, point):
     return np.array([width / 2 + focal * x / z, height / 2 - focal * y / z]), z
 
 
-@pytest.mark.skipif(not SCENES_JSON.exists(), reason="shared reference data not present")
 def test_reproduces_reference_light_position():
     scene = json.loads(SCENES_JSON.read_text())["colonnade"]
     camera = _camera(fov_x_deg=scene["fov_x_deg"], width=scene["width"], height=scene["height"])

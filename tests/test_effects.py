@@ -12,35 +12,7 @@ from jax.test_util import check_grads
 
 import godrays_jax as gr
 from godrays_jax.effects.base import parameter_bounds
-
-HEIGHT, WIDTH = 18, 24
-
-
-def make_frame(sky_rows=10, occluder_cols=(11, 13)):
-    depth = np.full((HEIGHT, WIDTH), np.inf, np.float32)
-    depth[sky_rows:, :] = 8.0
-    depth[:, occluder_cols[0] : occluder_cols[1]] = 4.0
-    coverage = np.isfinite(depth).astype(np.float32)
-    color = np.where(coverage[..., None] > 0, 0.05, 0.3).astype(np.float32) * np.ones(3, np.float32)
-    color[3:7, 8:16] = 20.0  # a sun on the sky behind the occluder
-    light_pass = np.zeros((HEIGHT, WIDTH), np.float32)
-    light_pass[3:7, 8:16] = 1.0
-    light_pass[:, occluder_cols[0] : occluder_cols[1]] = 0.0
-    return gr.Buffers(
-        color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(coverage),
-        light_pass=jnp.asarray(light_pass),
-    )  # fmt: skip
-
-
-LIGHT = jnp.asarray([12.3, 5.1], jnp.float32)
-
-
-def small(effect):
-    """The preset with its loops shortened, so the tests compile quickly."""
-    replacements = {"max_samples": 8, "num_samples": 8.0, "max_iters": 5, "num_iters": 5.0}
-    fields = {f.name: getattr(effect, f.name) for f in dataclasses.fields(effect)}
-    return type(effect)(**{**fields, **{k: v for k, v in replacements.items() if k in fields}})
-
+from frames import HEIGHT, LIGHT, WIDTH, make_frame, small
 
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))
 def test_preset_runs_jit_vmap_and_adds_light(name):

@@ -87,10 +87,10 @@ def test_fast_path_quality_and_resolution(rng):
     light = jnp.asarray(light, jnp.float32)
     exact = gr.radial_rays(image, light, num_samples=128, **RAYS)
     assert psnr(fast.fast_radial_rays(image, light, num_samples=128, **RAYS), exact) > 35
-    half = fast.at_reduced_resolution(gr.radial_rays, image, light, factor=2, num_samples=128, **RAYS)
+    half = fast.at_reduced_resolution(image, light, kernel=gr.radial_rays, factor=2, num_samples=128, **RAYS)
     assert half.shape == image.shape and psnr(half, exact) > 30
     np.testing.assert_array_equal(
-        fast.at_reduced_resolution(gr.radial_rays, image, light, factor=1, num_samples=8, **RAYS),
+        fast.at_reduced_resolution(image, light, kernel=gr.radial_rays, factor=1, num_samples=8, **RAYS),
         gr.radial_rays(image, light, num_samples=8, **RAYS),
     )
 
@@ -101,7 +101,7 @@ def test_upsample_bilinear_matches_loop_and_keeps_constants(x64, rng):
     expected = np.array([[reference.bilinear(small, (c + 0.5) / 2, (r + 0.5) / 2) for c in range(7)] for r in range(5)])
     np.testing.assert_allclose(up, expected, rtol=1e-12)
     constant = jnp.full((9, 11, 3), 0.7)
-    np.testing.assert_allclose(fast.at_reduced_resolution(lambda i, l: i, constant, jnp.zeros(2), factor=4), constant)
+    np.testing.assert_allclose(fast.at_reduced_resolution(constant, jnp.zeros(2), kernel=lambda i, l: i, factor=4), constant)
 
 
 def test_jittered_rays_match_loop(x64, rng):

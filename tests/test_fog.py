@@ -54,10 +54,10 @@ def reference_fog(color, depth, light, *, fov_x_deg, extinction, max_distance, a
 def test_henyey_greenstein_integrates_to_one_and_is_isotropic_at_zero():
     cosines = np.linspace(-1.0, 1.0, 200001)
     for g in (-0.5, 0.0, 0.8):
-        values = np.asarray(henyey_greenstein(jnp.asarray(cosines), g))
+        values = np.asarray(henyey_greenstein(jnp.asarray(cosines), anisotropy=g))
         # The sphere's measure is 2 pi d(cos theta).
         assert 2 * math.pi * np.trapezoid(values, cosines) == pytest.approx(1.0, rel=1e-4)
-    np.testing.assert_allclose(henyey_greenstein(jnp.asarray([-1.0, 0.3, 1.0]), 0.0), 1 / (4 * math.pi), rtol=1e-6)
+    np.testing.assert_allclose(henyey_greenstein(jnp.asarray([-1.0, 0.3, 1.0]), anisotropy=0.0), 1 / (4 * math.pi), rtol=1e-6)
 
 
 def test_apply_fog_matches_loop_eager_jit_vmap(x64, rng):
@@ -158,4 +158,4 @@ def test_preset_round_trips_and_errors_name_the_argument(tmp_path):
     with pytest.raises(ValueError, match="depth"):
         apply_fog(jnp.ones((3, 4, 3)), jnp.ones((3, 5)), (1.0, 1.0), **FOG)
     with pytest.raises(ValueError, match="anisotropy"):
-        henyey_greenstein(jnp.zeros(3), jnp.zeros(2))
+        henyey_greenstein(jnp.zeros(3), anisotropy=jnp.zeros(2))

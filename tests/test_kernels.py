@@ -237,34 +237,34 @@ def test_scale_iterated_flares_copy_zero_is_the_texture(rng):
 def test_poisson_blur_matches_loop(x64, rng, passes):
     image = random_image(rng)
     expected = reference.poisson_blur(image, 0.07, passes)
-    assert_close(gr.poisson_blur(jnp.asarray(image), 0.07, passes=passes), expected, 1e-6)
-    assert_close(jax.jit(lambda i: gr.poisson_blur(i, 0.07, passes=passes))(jnp.asarray(image)), expected, 1e-6)
+    assert_close(gr.poisson_blur(jnp.asarray(image), blur_power=0.07, passes=passes), expected, 1e-6)
+    assert_close(jax.jit(lambda i: gr.poisson_blur(i, blur_power=0.07, passes=passes))(jnp.asarray(image)), expected, 1e-6)
 
 
 def test_poisson_blur_constant_vmap_relaxed_and_gradients(x64, rng):
     constant = jnp.full((5, 6, 3), 0.7)
-    np.testing.assert_allclose(gr.poisson_blur(constant, 0.3, passes=3), constant, rtol=1e-12)
+    np.testing.assert_allclose(gr.poisson_blur(constant, blur_power=0.3, passes=3), constant, rtol=1e-12)
     image = jnp.asarray(random_image(rng, height=5, width=6))
-    one = gr.poisson_blur(image, 0.05, passes=1)
-    two = gr.poisson_blur(image, 0.05, passes=2)
-    relaxed = lambda p: gr.poisson_blur(image, 0.05, passes=p, max_passes=3)
+    one = gr.poisson_blur(image, blur_power=0.05, passes=1)
+    two = gr.poisson_blur(image, blur_power=0.05, passes=2)
+    relaxed = lambda p: gr.poisson_blur(image, blur_power=0.05, passes=p, max_passes=3)
     np.testing.assert_array_equal(relaxed(jnp.asarray(2.0)), two)
     np.testing.assert_allclose(relaxed(jnp.asarray(1.25)), 0.75 * one + 0.25 * two, rtol=1e-12)
     np.testing.assert_array_equal(relaxed(jnp.asarray(0.0)), image)
-    batched = jax.vmap(lambda i: gr.poisson_blur(i, 0.05))(jnp.stack([image, image * 3]))
+    batched = jax.vmap(lambda i: gr.poisson_blur(i, blur_power=0.05))(jnp.stack([image, image * 3]))
     np.testing.assert_allclose(batched[1], 3 * one, rtol=1e-12)
-    check_grads(jax.jit(lambda i, b: gr.poisson_blur(i, b, passes=2)), (image, 0.05), order=1, modes=("rev",), eps=1e-6)
+    check_grads(jax.jit(lambda i, b: gr.poisson_blur(i, blur_power=b, passes=2)), (image, 0.05), order=1, modes=("rev",), eps=1e-6)
     check_grads(jax.jit(lambda p: jnp.sum(relaxed(p) ** 2)), (1.3,), order=1, modes=("rev",), eps=1e-6)
 
 
 def test_gaussian_blur_matches_loop_and_keeps_constants(x64, rng):
     image = random_image(rng)
-    assert_close(gr.gaussian_blur(jnp.asarray(image), 1.3, radius=3), reference.gaussian_blur(image, 1.3, 3), 1e-6)
+    assert_close(gr.gaussian_blur(jnp.asarray(image), sigma=1.3, radius=3), reference.gaussian_blur(image, 1.3, 3), 1e-6)
     constant = jnp.full((4, 3, 1), 2.5)
-    np.testing.assert_allclose(gr.gaussian_blur(constant, 2.0), constant, rtol=1e-12)
-    check_grads(jax.jit(lambda i, s: gr.gaussian_blur(i, s, radius=2)), (jnp.asarray(image[:5, :6]), 0.9), order=1, modes=("rev",))
+    np.testing.assert_allclose(gr.gaussian_blur(constant, sigma=2.0), constant, rtol=1e-12)
+    check_grads(jax.jit(lambda i, s: gr.gaussian_blur(i, sigma=s, radius=2)), (jnp.asarray(image[:5, :6]), 0.9), order=1, modes=("rev",))
     with pytest.raises(ValueError, match="radius"):
-        jax.jit(lambda s: gr.gaussian_blur(jnp.asarray(image), s))(1.0)
+        jax.jit(lambda s: gr.gaussian_blur(jnp.asarray(image), sigma=s))(1.0)
 
 
 def test_sky_flare_coverage_and_depth_masks():
@@ -274,7 +274,7 @@ def test_sky_flare_coverage_and_depth_masks():
     np.testing.assert_allclose(gr.coverage_mask(jnp.asarray([[0.0, 0.25], [1.0, 1.5]])), [[1, 0.75], [0, 0]])
     flare = jnp.arange(12.0).reshape(2, 2, 3)
     np.testing.assert_array_equal(gr.flare_mask(flare, gr.sky_mask(depth)), flare * np.array([[0, 1], [0, 0]])[..., None])
-    np.testing.assert_array_equal(gr.depth_test_mask(depth, 4.0, bias=0.5), [[0, 1], [1, 1]])
+    np.testing.assert_array_equal(gr.depth_test_mask(depth, light_depth=4.0, bias=0.5), [[0, 1], [1, 1]])
     with pytest.raises(ValueError, match="sky"):
         gr.flare_mask(flare, jnp.ones((3, 2)))
     with pytest.raises(ValueError, match="depth"):
@@ -304,7 +304,7 @@ def test_light_source_mask_matches_loop_and_is_off_when_behind():
 
 def test_bright_pass():
     image = jnp.asarray([[[0.1, 0.5, 2.0]]])
-    np.testing.assert_allclose(gr.bright_pass(image, 0.25), [[[0.0, (0.5 - 0.25) / 0.75, 1.0]]], rtol=1e-6)
+    np.testing.assert_allclose(gr.bright_pass(image, threshold=0.25), [[[0.0, (0.5 - 0.25) / 0.75, 1.0]]], rtol=1e-6)
 
 
 def test_blend_modes():

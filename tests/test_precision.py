@@ -17,7 +17,7 @@ import godrays_jax as gr
 from godrays_jax.primitives.camera import Camera
 from godrays_jax.pipeline.fit import _forward_mode
 from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sphere, render
-from test_effects import LIGHT, make_frame, small
+from frames import LIGHT, make_frame, small
 
 HIGHEST = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
 PRODUCTS = ("dot_general", "conv_general_dilated")

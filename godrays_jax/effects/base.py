@@ -23,6 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.kernels.composite import BLEND_MODES, blend
@@ -106,7 +107,7 @@ def light_visibility(
     *,
     fade: Float[ArrayLike, ""],
     light_in_front: Bool[ArrayLike, ""] | bool = True,
-    dtype=jnp.float32,
+    dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, ""]:
     """How much of a light-driven effect to draw: the off-screen fade and behind-camera rule of every effect.
 

@@ -62,13 +62,13 @@ class SunOvercast(Effect):
         if buffers.glow_pass is not None:
             return buffers.glow_pass.astype(dtype) * visible
         if buffers.light_pass is not None:
-            source = dilate(buffers.light_pass.astype(dtype), self.source_grow, max_radius=self.max_morphology)
+            source = dilate(buffers.light_pass.astype(dtype), radius=self.source_grow, max_radius=self.max_morphology)
         else:
             x, y = pixel_centres(buffers.height, buffers.width, dtype)
             light_xy = jnp.asarray(light_xy, dtype)
             distance = jnp.sqrt((x - light_xy[0]) ** 2 + (y - light_xy[1]) ** 2 + 1e-12)
             source = jnp.clip(self.source_radius + self.source_grow - distance + 0.5, 0.0, 1.0)
-        occluders = erode(jnp.clip(buffers.coverage, 0.0, 1.0), self.occluder_shrink, max_radius=self.max_morphology)
+        occluders = erode(jnp.clip(buffers.coverage, 0.0, 1.0), radius=self.occluder_shrink, max_radius=self.max_morphology)
         inside = (source * (1.0 - occluders) * visible)[..., None]
         return inside * self.glow_color.astype(dtype)
 
@@ -76,7 +76,7 @@ class SunOvercast(Effect):
         """The blurred glow as added: `(H, W, 3)` = blurred rgb times blurred alpha."""
         glow = poisson_blur(
             self.glow(buffers, light_xy, light_in_front=light_in_front),
-            self.blur_power,
+            blur_power=self.blur_power,
             passes=self.passes,
             max_passes=self.max_passes,
         )
@@ -202,7 +202,7 @@ class Bloom(Effect):
             glow = bloom(colour, threshold=self.threshold, weights=self.weights, sigma=self.sigma, radius=self.radius)
         else:
             bright = jnp.maximum(colour - self.threshold.astype(colour.dtype), 0.0)
-            glow = gaussian_blur(bright, self.gaussian_sigma, radius=self.gaussian_radius)
+            glow = gaussian_blur(bright, sigma=self.gaussian_sigma, radius=self.gaussian_radius)
         return glow * self.intensity.astype(colour.dtype)
 
 

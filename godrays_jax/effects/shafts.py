@@ -92,7 +92,7 @@ class GodRays(Effect):
         else:
             rays = fast_radial_rays(emitter_fn(*emitter_args), light_xy, factor=self.resolution_factor, **fields)
         if self.use_bright_pass:
-            rays = bright_pass(rays, self.threshold)
+            rays = bright_pass(rays, threshold=self.threshold)
         return rays * self.tint.astype(rays.dtype)
 
 
@@ -132,7 +132,7 @@ class FlareOuts(Effect):
             scale_step=self.scale_step,
             decay=self.copy_decay,
         )
-        flares = gaussian_blur(flares * self.intensity, self.blur_sigma, radius=self.blur_radius)
+        flares = gaussian_blur(flares * self.intensity, sigma=self.blur_sigma, radius=self.blur_radius)
         return flares * self.tint.astype(flares.dtype)
 
 

@@ -55,8 +55,8 @@ def _poisson_pass(image, blur_power):
 
 def poisson_blur(
     image: Float[Array, "H W C"],
-    blur_power: Float[ArrayLike, ""],
     *,
+    blur_power: Float[ArrayLike, ""],
     passes: int | Float[ArrayLike, ""] = 1,
     max_passes: int | None = None,
 ) -> Float[Array, "H W C"]:
@@ -95,8 +95,8 @@ def poisson_blur(
 
 def gaussian_blur(
     image: Float[Array, "H W C"],
-    sigma: Float[ArrayLike, ""],
     *,
+    sigma: Float[ArrayLike, ""],
     radius: int | None = None,
 ) -> Float[Array, "H W C"]:
     """Separable Gaussian blur, `sigma` in pixels, clamp-to-edge.
@@ -161,7 +161,7 @@ def bloom(
     (full-resolution pixel `x` reads level position `x / factor`,
     clamp-to-edge). The output is `sum_k weights[k] * level_k`, no clipping;
     the VBex article adds the four levels with equal weights. Compare with one large
-    Gaussian: `gaussian_blur(bright, sigma_px)`.
+    Gaussian: `gaussian_blur(bright, sigma=sigma_px)`.
     """
     check_image(image)
     check_scalar(threshold, "threshold")
@@ -175,6 +175,6 @@ def bloom(
     ys = jnp.arange(image.shape[0], dtype=dtype) + 0.5
     total = jnp.zeros_like(image)
     for level, factor in enumerate(BLOOM_LEVELS):
-        low = gaussian_blur(downsample_box(bright, factor), sigma, radius=radius)
+        low = gaussian_blur(downsample_box(bright, factor), sigma=sigma, radius=radius)
         total = total + weights[level] * sample_separable(low, xs / factor, ys / factor)
     return total

@@ -22,6 +22,8 @@ kernels), and like them needs O(image) memory for value and gradient.
 from collections.abc import Callable
 
 import jax.numpy as jnp
+import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.kernels.rays import scaled_copies
@@ -160,10 +162,10 @@ def radial_rays_multipass(
 
 
 def at_reduced_resolution(
-    kernel: Callable[..., Float[Array, "h w C"]],
     image: Float[Array, "H W C"],
     light_xy: Float[ArrayLike, "2"],
     *,
+    kernel: Callable[..., Float[Array, "h w C"]],
     factor: int,
     **options,
 ) -> Float[Array, "H W C"]:
@@ -187,15 +189,13 @@ def at_reduced_resolution(
     return upsample_bilinear(small, factor, height, width)
 
 
-def interleaved_gradient_noise(height: int, width: int, *, seed: int = 0, dtype=jnp.float32) -> Float[Array, "H W"]:
+def interleaved_gradient_noise(height: int, width: int, *, seed: int = 0, dtype: DTypeLike = jnp.float32) -> Float[Array, "H W"]:
     """Jimenez's interleaved gradient noise in [0, 1): `fract(52.98 * fract(0.0671 x + 0.00584 y))`.
 
     `x, y` are integer pixel indices shifted by `seed` (a static int that picks
     another, equally blue, pattern). Computed in float64 on the host so the
     pattern is the same on every device.
     """
-    import numpy as np
-
     x = np.arange(width, dtype=np.float64)[None, :] + 5.588238 * seed
     y = np.arange(height, dtype=np.float64)[:, None] + 1.617 * seed
     noise = np.mod(52.9829189 * np.mod(0.06711056 * x + 0.00583715 * y, 1.0), 1.0)
@@ -278,4 +278,4 @@ def fast_radial_rays(
             small, small_light, num_samples=num_samples, density=density, decay=decay, weight=weight,
             exposure=1.0, passes=passes, taps=taps,
         ) - small  # fmt: skip
-    return (image + at_reduced_resolution(shafts, image, light_xy, factor=factor)) * jnp.asarray(exposure, image.dtype)
+    return (image + at_reduced_resolution(image, light_xy, kernel=shafts, factor=factor)) * jnp.asarray(exposure, image.dtype)

@@ -20,6 +20,7 @@ from typing import Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.primitives.camera import focal_length_px, unit_vectors
@@ -38,7 +39,7 @@ LENS_DIRT_ABERRATION = 0.002
 
 
 def view_directions(
-    height: int, width: int, *, fov_x_deg: Float[ArrayLike, ""], dtype=jnp.float32
+    height: int, width: int, *, fov_x_deg: Float[ArrayLike, ""], dtype: DTypeLike = jnp.float32
 ) -> Float[Array, "H W 3"]:
     """Unit view-space directions (x right, y up, z forward) through every pixel centre.
 
@@ -58,7 +59,7 @@ def light_direction(
     *,
     fov_x_deg: Float[ArrayLike, ""],
     light_in_front: Bool[ArrayLike, ""] | bool = True,
-    dtype=jnp.float32,
+    dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "3"]:
     """Unit view-space direction from the camera toward a light projected at `light_xy` pixels.
 
@@ -185,7 +186,7 @@ def sun_spot(
     sun_distance: Float[ArrayLike, ""],
     sun_sharpness: Float[ArrayLike, ""],
     light_in_front: Bool[ArrayLike, ""] | bool = True,
-    dtype=jnp.float32,
+    dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "H W 1"]:
     """The VBex article's sky sun spot `saturate(pow(dot(dir, L), SunDistance * 2000)) * SunSharpness * 30`.
 
@@ -224,7 +225,7 @@ def dirt_texture(
     num_smudges: int = 24,
     num_specks: int = 160,
     num_rings: int = 12,
-    dtype=jnp.float32,
+    dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "H W 1"]:
     """A procedural one-channel lens-dirt texture in [0, 1]: smudges, specks and water rings.
 

@@ -6,6 +6,7 @@ Masks are `(H, W)` planes in [0, 1] unless said otherwise; multiply them into an
 
 import equinox as eqx
 import jax.numpy as jnp
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.primitives.checks import (
@@ -56,7 +57,7 @@ def light_source_mask(
     radius: Float[ArrayLike, ""],
     texture: Float[Array, "h w C"] | None = None,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
-    dtype=jnp.float32,
+    dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "H W C"]:
     """The XNA crepuscular-rays article's light-source mask: a flare centred on the light, `2 * pow(flare, 2)`.
 
@@ -87,8 +88,8 @@ def light_source_mask(
 
 def depth_test_mask(
     depth: Float[Array, "H W"],
-    light_depth: Float[ArrayLike, ""],
     *,
+    light_depth: Float[ArrayLike, ""],
     bias: Float[ArrayLike, ""] = 0.0,
 ) -> Float[Array, "H W"]:
     """The XNA crepuscular-rays article's scene mask: 0 where the scene is in front of the light, else 1.
@@ -103,7 +104,7 @@ def depth_test_mask(
     return (depth >= light_depth - bias).astype(jnp.result_type(depth, jnp.float32))
 
 
-def bright_pass(image: Float[Array, "H W C"], threshold: Float[ArrayLike, ""]) -> Float[Array, "H W C"]:
+def bright_pass(image: Float[Array, "H W C"], *, threshold: Float[ArrayLike, ""]) -> Float[Array, "H W C"]:
     """The XNA crepuscular-rays article's bright pass `saturate((c - T) / (1 - T))`, per channel, for `T` in [0, 1).
 
     The output is clipped to [0, 1], as in the article.
@@ -114,7 +115,7 @@ def bright_pass(image: Float[Array, "H W C"], threshold: Float[ArrayLike, ""]) -
 
 
 def dilate(
-    mask: Float[Array, "H W"], radius: Float[ArrayLike, ""], *, max_radius: int
+    mask: Float[Array, "H W"], *, radius: Float[ArrayLike, ""], max_radius: int
 ) -> Float[Array, "H W"]:
     """Grey-scale dilation of a mask by a disc of `radius` pixels (fittable), clamp-to-edge.
 
@@ -128,9 +129,9 @@ def dilate(
 
 
 def erode(
-    mask: Float[Array, "H W"], radius: Float[ArrayLike, ""], *, max_radius: int
+    mask: Float[Array, "H W"], *, radius: Float[ArrayLike, ""], max_radius: int
 ) -> Float[Array, "H W"]:
-    """Grey-scale erosion, `1 - dilate(1 - mask, radius)`: shrinks the parts of a [0, 1] mask that are 1."""
+    """Grey-scale erosion, `1 - dilate(1 - mask, radius=radius)`: shrinks the parts of a [0, 1] mask that are 1."""
     return 1.0 - _morphology(1.0 - jnp.asarray(mask), radius, max_radius, "mask")
 
 

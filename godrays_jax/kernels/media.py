@@ -33,7 +33,7 @@ from godrays_jax.kernels.lens import light_direction, view_directions
 from godrays_jax.primitives.checks import check_image, check_plane, check_scalar
 
 
-def henyey_greenstein(cosine: Float[ArrayLike, "*S"], anisotropy: Float[ArrayLike, ""]) -> Float[Array, "*S"]:
+def henyey_greenstein(cosine: Float[ArrayLike, "*S"], *, anisotropy: Float[ArrayLike, ""]) -> Float[Array, "*S"]:
     """The Henyey-Greenstein phase function `(1 - g^2) / (4 pi (1 + g^2 - 2 g cos)^1.5)`, per steradian.
 
     `cosine` is the cosine of the angle between the view ray and the direction
@@ -107,7 +107,7 @@ def in_scattering(
     dtype = jnp.result_type(depth, jnp.float32)
     toward_sun = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
     cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_sun, precision="highest")
-    sun = henyey_greenstein(cosine, anisotropy) * jnp.asarray(lit, dtype)
+    sun = henyey_greenstein(cosine, anisotropy=anisotropy) * jnp.asarray(lit, dtype)
     scattered = jnp.asarray(ambient, dtype) + sun[..., None] * jnp.asarray(sun_irradiance, dtype)
     opacity = 1.0 - transmittance(depth, extinction=extinction, max_distance=max_distance)
     return opacity[..., None] * scattered
@@ -129,7 +129,8 @@ def apply_fog(
 ) -> Float[Array, "H W C"]:
     """`image * T + in_scattering(...)` on the colour channels; an alpha channel passes through.
 
-    `image` is the clean linear frame; the other arguments are `in_scattering`'s.
+    `image` is the clean linear frame; the other arguments are `in_scattering`'s (the light's
+    position in pixels, depth in scene units).
     A 1-channel image receives the mean of the RGB in-scattering.
     """
     check_image(image)

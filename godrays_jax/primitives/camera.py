@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 # Points this close to the camera plane (in scene units) are projected as if
@@ -17,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 _MIN_PROJECTION_DEPTH = 1e-6
 
 
-def focal_length_px(width: int, fov_x_deg: Float[ArrayLike, ""], dtype=jnp.float32) -> Float[Array, ""]:
+def focal_length_px(width: int, fov_x_deg: Float[ArrayLike, ""], dtype: DTypeLike = jnp.float32) -> Float[Array, ""]:
     """The pinhole focal length in pixels of a frame `width` pixels wide: `(W / 2) / tan(fov_x / 2)`."""
     return 0.5 * width / jnp.tan(jnp.deg2rad(jnp.asarray(fov_x_deg, dtype)) / 2)
 

@@ -7,6 +7,7 @@ sampling at `(i + 0.5, j + 0.5)` returns pixel `(j, i)` exactly.
 from typing import Literal
 
 import jax.numpy as jnp
+from jax.typing import DTypeLike
 from jaxtyping import Array, Float
 
 Addressing = Literal["clamp", "zero"]
@@ -111,7 +112,7 @@ def sample_separable(
     return _lerp(rows, 1, *axis_taps(width, xs - 0.5, addressing))
 
 
-def pixel_centres(height: int, width: int, dtype=jnp.float32) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:
+def pixel_centres(height: int, width: int, dtype: DTypeLike = jnp.float32) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:
     """The `(x, y)` pixel-centre coordinates of an `height x width` image."""
     xs = jnp.arange(width, dtype=dtype) + 0.5
     ys = jnp.arange(height, dtype=dtype) + 0.5

@@ -40,9 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.kernels.lens import sun_spot_intensity
-from godrays_jax.primitives.camera import Camera, unit_vectors
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.camera import Camera, project_point, unit_vectors
 from godrays_jax.raster.scene import DirectionalLight, Scene, Sphere
 
 GLOW_SOURCE_SCALE = 1.3
@@ -822,8 +822,6 @@ def light_pixel(scene: Scene, camera: Camera) -> tuple[Float[Array, "2"], Float[
     (a mesh's translation), else of a point light, else of the camera position
     plus a directional light's direction (a light at infinity). Returns
     `(xy, view_depth, in_front)` as `project_point` does."""
-    from godrays_jax.primitives.camera import project_point
-
     if scene.sun is not None:
         sun = scene.objects[scene.sun]
         point = sun.center if isinstance(sun, Sphere) else sun.translation

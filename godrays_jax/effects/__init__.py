@@ -1,0 +1,1 @@
+"""Effects layer: whole effects as `equinox.Module` parameter sets, their presets and their JSON form."""

@@ -1,4 +1,4 @@
-"""The VBex article's (VBex engine) camera and sky extras: lens dirt, a procedural dirt texture, the sky sun spot.
+"""The VBex engine article's camera and sky extras: lens dirt, a procedural dirt texture, the sky sun spot.
 
 Both formulas need directions, not just pixel positions. They are computed in
 view space (x right, y up, z forward, as `godrays_jax.primitives.camera.Camera.to_view`)

@@ -1,0 +1,1 @@
+"""Image primitives: sampling, resampling, colour encodings, buffers, camera, files and I/O, argument checks."""

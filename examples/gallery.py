@@ -1,13 +1,12 @@
-"""Render the sample frame through every preset: one PNG per preset and a labelled contact sheet.
+"""Every preset applied to the hero frame: one PNG per preset and a labelled contact sheet.
 
-    python examples/gallery.py [--frame examples/data/sample_frame.exr] [--out out/gallery]
-                               [--sheet docs/images/gallery.png]
+    python examples/gallery.py [--frame FRAME.exr] [--docs]
 
-The frame carries colour, depth and coverage but no light pass, so for the
-presets that read seed 004's pass (the light white, everything else black) it
-is drawn here around the sun's disc (`SUN_RADIUS_PX`, the radius
-`make_sample_frame.py` draws) where the sky shows.
-Labels are drawn with OpenImageIO's built-in font (`ImageBufAlgo.render_text`).
+Writes `out/gallery/<preset>.png` and `out/gallery/gallery.png`; with `--docs`
+the contact sheet goes to `docs/images/gallery.png` (the README's picture).
+The default frame is `examples/data/forest_hero.exr` (rendered by
+`make_hero_frame.py`), which carries the light and glow passes the seed-004
+and seed-000 presets read. Runs from any directory.
 """
 
 import argparse
@@ -15,68 +14,39 @@ from pathlib import Path
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
-import OpenImageIO as oiio
 
 import godrays_jax as gr
+from pictures import HERO_FRAME, contact_sheet, display, labelled, output_folder, resized, write_display
 
-SUN_RADIUS_PX = 10.0
 COLUMNS = 3
-LABEL_HEIGHT = 22
+TILE_WIDTH = 480
 
 
-def with_light_pass(buffers: gr.Buffers, light_xy) -> gr.Buffers:
-    disc = gr.light_source_mask(buffers.height, buffers.width, light_xy, radius=SUN_RADIUS_PX * 2)[..., 0]
-    light_pass = jnp.clip(disc * 4.0, 0.0, 1.0) * gr.coverage_mask(buffers.coverage)
-    return eqx.tree_at(lambda b: b.light_pass, buffers, light_pass, is_leaf=lambda x: x is None)
-
-
-def display(image) -> np.ndarray:
-    """Linear HDR -> sRGB-encoded [0, 1], as `write_image` encodes PNGs."""
-    linear = np.clip(np.asarray(image[..., :3], np.float32), 0.0, 1.0)
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
-
-
-def labelled(tile: np.ndarray, label: str) -> np.ndarray:
-    height, width, _ = tile.shape
-    canvas = oiio.ImageBuf(oiio.ImageSpec(width, height + LABEL_HEIGHT, 3, oiio.FLOAT))
-    canvas.set_pixels(oiio.ROI(0, width, LABEL_HEIGHT, height + LABEL_HEIGHT), np.ascontiguousarray(tile))
-    oiio.ImageBufAlgo.render_text(canvas, 6, LABEL_HEIGHT - 6, label, 15, "", (1.0, 1.0, 1.0))
-    return canvas.get_pixels(oiio.FLOAT)
+def make_gallery(frame: Path = HERO_FRAME, *, docs: bool = False) -> None:
+    """One PNG per preset in out/gallery/ and the labelled contact sheet (in docs/images/ with `docs`)."""
+    buffers = gr.read_buffers(frame)
+    light_xy, in_front = gr.read_light(frame)
+    light = jnp.asarray(light_xy, jnp.float32)
+    folder = output_folder(False, "gallery")
+    tiles = [labelled(resized(display(buffers.color), TILE_WIDTH), "input frame (no effect)")]
+    for name in sorted(gr.PRESETS):
+        effect = gr.preset(name)
+        if getattr(effect, "source", None) == "light_pass" and buffers.light_pass is None:
+            print(f"skipped {name}: the frame has no light pass (render it with godrays-jax render)")
+            continue
+        image = eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=in_front))(effect, buffers, light)
+        gr.write_image(folder / f"{name}.png", image)
+        print(f"wrote {folder / (name + '.png')}")
+        tiles.append(labelled(resized(display(image), TILE_WIDTH), f"{name} ({type(effect).__name__})"))
+    write_display(output_folder(docs, "gallery") / "gallery.png", contact_sheet(tiles, COLUMNS))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frame", default="examples/data/sample_frame.exr")
-    parser.add_argument("--out", default="out/gallery", help="folder for one PNG per preset")
-    parser.add_argument("--sheet", default="docs/images/gallery.png", help="the contact sheet PNG")
+    parser.add_argument("--frame", type=Path, default=HERO_FRAME, help="an EXR with colour, depth and the light's position")
+    parser.add_argument("--docs", action="store_true", help="write the contact sheet to docs/images/gallery.png")
     args = parser.parse_args()
-
-    buffers = gr.read_buffers(args.frame)
-    light_xy, in_front = gr.read_light(args.frame)
-    light = jnp.asarray(light_xy, jnp.float32)
-    # Only effects that read seed 004's pass get it: SunOvercast would take it as its glow source.
-    light_buffers = with_light_pass(buffers, light)
-    Path(args.out).mkdir(parents=True, exist_ok=True)
-    Path(args.sheet).parent.mkdir(parents=True, exist_ok=True)
-
-    tiles = [labelled(display(buffers.color), "input frame")]
-    for name in sorted(gr.PRESETS):
-        effect = gr.preset(name)
-        frame = light_buffers if getattr(effect, "source", None) == "light_pass" else buffers
-        image = eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=in_front))(effect, frame, light)
-        gr.write_image(Path(args.out) / f"{name}.png", image)
-        tiles.append(labelled(display(image), f"{name} ({type(effect).__name__})"))
-        print(f"wrote {Path(args.out) / (name + '.png')}")
-    while len(tiles) % COLUMNS:
-        tiles.append(np.zeros_like(tiles[0]))
-    rows = [np.concatenate(tiles[i : i + COLUMNS], axis=1) for i in range(0, len(tiles), COLUMNS)]
-    sheet = np.concatenate(rows, axis=0)
-    # The tiles are display-encoded already: write them as they are, not through write_image's sRGB encoding.
-    temporary = Path(args.sheet).with_suffix(".tmp.png")
-    oiio.ImageBuf(np.ascontiguousarray(sheet)).write(str(temporary), oiio.UINT8)
-    temporary.replace(args.sheet)
-    print(f"wrote {args.sheet}")
+    make_gallery(args.frame, docs=args.docs)
 
 
 if __name__ == "__main__":

@@ -1,22 +1,22 @@
 """Render each source article's example scene and compose it with that article's preset.
 
-    python examples/render_seeds.py [OUTPUT_FOLDER]   (default examples/output/)
+    python examples/render_seeds.py [--docs]
 
-For every scene in examples/scenes/ it writes `<name>_render.png` (the raw
-render), `<name>_<preset>.png` (the render with the seed's effect) and, for
-seed 000, `<name>_glow_pass.png` (the overcast pass itself).
+For every seed scene in examples/scenes/ it writes `<scene>_<preset>.png` (the
+render with the seed's effect), seed 000's glow pass, and `seed_scenes.png`, a
+labelled contact sheet of them; into `out/seeds/`, or `docs/images/` with
+`--docs` (the README's picture). Runs from any directory.
 """
 
-import sys
-from pathlib import Path
+import argparse
 
+import equinox as eqx
 import jax.numpy as jnp
 
-from godrays_jax.effects.presets import preset
-from godrays_jax.primitives.io import write_image
-from godrays_jax.raster import light_pixel, load_scene, render
+import godrays_jax as gr
+from pictures import ROOT, contact_sheet, display, labelled, output_folder, write_display
 
-SCENES = Path(__file__).parent / "scenes"
+SCENES = ROOT / "examples" / "scenes"
 # scene file -> the preset of the article it reproduces
 PRESET_OF_SCENE = {
     "solar_system_000": "sun_overcast",
@@ -27,19 +27,30 @@ PRESET_OF_SCENE = {
 }
 
 
-def main(output: Path) -> None:
-    output.mkdir(parents=True, exist_ok=True)
+def make_seed_pictures(*, docs: bool = False) -> None:
+    """Every seed scene rendered and composed with its article's preset, and their contact sheet."""
+    folder = output_folder(docs, "seeds")
+    tiles = []
     for name, preset_name in PRESET_OF_SCENE.items():
-        scene, camera = load_scene(SCENES / f"{name}.json")
-        buffers = render(scene, camera)
-        light_xy, _, in_front = light_pixel(scene, camera)
-        write_image(output / f"{name}_render.png", buffers.color)
-        if name.endswith("000"):
-            write_image(output / f"{name}_glow_pass.png", buffers.glow_pass)
-        composed = preset(preset_name)(buffers, jnp.asarray(light_xy), light_in_front=bool(in_front))
-        write_image(output / f"{name}_{preset_name}.png", composed)
-        print(f"{name}: light at ({float(light_xy[0]):.1f}, {float(light_xy[1]):.1f}) px, wrote {output}/{name}_*.png", flush=True)
+        scene, camera = gr.load_scene(SCENES / f"{name}.json")
+        buffers = gr.render(scene, camera)
+        light_xy, _, in_front = gr.light_pixel(scene, camera)
+        effect = gr.preset(preset_name)
+        composed = eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=bool(in_front)))(effect, buffers, jnp.asarray(light_xy))
+        gr.write_image(folder / f"{name}_{preset_name}.png", composed)
+        tiles.append(labelled(display(composed), f"{name}: {preset_name}"))
+        if name == "solar_system_000":
+            gr.write_image(folder / f"{name}_glow_pass.png", buffers.glow_pass)
+            glow_pass = labelled(display(buffers.glow_pass), f"{name}: glow pass")
+        print(f"{name}: light at ({float(light_xy[0]):.1f}, {float(light_xy[1]):.1f}) px, wrote {folder}/{name}_*.png", flush=True)
+    write_display(folder / "seed_scenes.png", contact_sheet(tiles + [glow_pass], 3))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--docs", action="store_true", help="write the pictures to docs/images/")
+    make_seed_pictures(docs=parser.parse_args().docs)
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent / "output")
+    main()

@@ -2,12 +2,30 @@
 across the frame) and `physically_based` (ScatteringFog fitted to a path-traced fog frame), whose halo
 must stay smooth when an object hides the sun, as a path tracer's does."""
 
+from pathlib import Path
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from skimage.measure import label
 
 import godrays_jax as gr
+
+HERO_FRAME = Path(__file__).resolve().parents[1] / "examples" / "data" / "forest_hero.exr"
+
+
+def test_hero_frame_cuts_the_sky_around_the_sun_into_many_gaps():
+    """The shipped hero frame: the sun on screen, partly seen, and dozens of sky gaps within 0.2 frame-widths of it."""
+    buffers = gr.read_buffers(HERO_FRAME)
+    (x, y), in_front = gr.read_light(HERO_FRAME)
+    assert in_front and 0 < x < buffers.width and 0 < y < buffers.height
+    assert buffers.light_pass is not None and buffers.glow_pass is not None
+    assert 0 < float(buffers.light_pass.sum()) < 0.01 * buffers.height * buffers.width
+    rows, columns = np.mgrid[0 : buffers.height, 0 : buffers.width] + 0.5
+    near_sun = np.hypot(columns - x, rows - y) < 0.2 * buffers.width
+    gaps = label((np.asarray(buffers.coverage) < 0.5) & near_sun, connectivity=1)
+    assert (np.bincount(gaps.ravel())[1:] >= 4).sum() >= 30
 
 # --- gpu_gems -------------------------------------------------------------------------------
 

@@ -1,0 +1,82 @@
+"""Regenerate every picture in the README.
+
+    python examples/readme_pictures.py [--docs]
+
+- `hero.png`: the hero frame (examples/data/forest_hero.exr) before and after
+  the `gpu_gems` preset, as the README's main command makes it;
+- `hidden_sun.png`: a sun fully hidden behind a box in haze (`hidden_sun.py`):
+  a single-scattering reference, `physically_based` and `gpu_gems`;
+- `gallery.png` (every preset on the hero frame, `gallery.py`) and
+  `seed_scenes.png` (each article's scene with its preset, `render_seeds.py`).
+
+Into `out/readme/` (the gallery and seed pictures into `out/gallery/` and
+`out/seeds/`), or `docs/images/` with `--docs`. Runs from any directory.
+"""
+
+import argparse
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import godrays_jax as gr
+import hidden_sun
+from gallery import make_gallery
+from pictures import HERO_FRAME, contact_sheet, display, labelled, output_folder, write_display
+from render_seeds import make_seed_pictures
+
+HERO_PRESET = "gpu_gems"
+HIDDEN_SUN_SIZE = (320, 180)
+
+
+def _apply(effect, buffers, light, in_front=True):
+    return eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=in_front))(effect, buffers, light)
+
+
+def make_hero(folder) -> None:
+    """Before and after: the README's main command on the hero frame."""
+    buffers = gr.read_buffers(HERO_FRAME)
+    light_xy, in_front = gr.read_light(HERO_FRAME)
+    after = _apply(gr.preset(HERO_PRESET), buffers, jnp.asarray(light_xy, jnp.float32), in_front)
+    tiles = [labelled(display(buffers.color), "before: the rendered frame"), labelled(display(after), f"after: --preset {HERO_PRESET}")]
+    write_display(folder / "hero.png", contact_sheet(tiles, 2))
+
+
+def _ring_normalised(layer: np.ndarray, open_sky: np.ndarray, light_xy) -> np.ndarray:
+    """A layer scaled so its mean over open sky 1.5-2.5 silhouette-radii from the light is 0.25 (shapes compare)."""
+    height, width = layer.shape
+    y, x = np.mgrid[0:height, 0:width] + 0.5
+    radius = np.hypot(x - light_xy[0], y - light_xy[1])
+    silhouette = radius[~open_sky].max()
+    ring = open_sky & (radius > 1.5 * silhouette) & (radius < 2.5 * silhouette)
+    return np.repeat((0.25 * layer / layer[ring].mean())[..., None], 3, axis=-1)
+
+
+def make_hidden_sun(folder) -> None:
+    """The hidden-sun box: reference halo against the presets' in-scattered light (each scaled to the same level)."""
+    scene, camera = hidden_sun.scene_and_camera(*HIDDEN_SUN_SIZE)
+    buffers = gr.render(scene, camera, with_glow_pass=False)
+    light_xy = jnp.asarray(gr.light_pixel(scene, camera)[0])
+    open_sky = np.asarray(buffers.coverage) < 0.5
+    layers = {"single-scattering reference": hidden_sun.single_scattering(camera)}
+    for name in ("physically_based", "gpu_gems"):
+        effect = gr.preset(name)
+        layers[f"{name} (its layer)"] = np.asarray(eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, light_xy))[..., :3].mean(-1)
+    tiles = [labelled(display(buffers.color), "the frame: a box hides the sun")]
+    tiles += [labelled(display(_ring_normalised(layer, open_sky, np.asarray(light_xy))), name) for name, layer in layers.items()]
+    write_display(folder / "hidden_sun.png", contact_sheet(tiles, 2))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--docs", action="store_true", help="write the pictures to docs/images/")
+    docs = parser.parse_args().docs
+    folder = output_folder(docs, "readme")
+    make_hero(folder)
+    make_hidden_sun(folder)
+    make_gallery(docs=docs)
+    make_seed_pictures(docs=docs)
+
+
+if __name__ == "__main__":
+    main()

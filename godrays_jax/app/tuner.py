@@ -440,6 +440,9 @@ class Tuner:
         bounds = self.bounds(effect)
         if not (isinstance(fixed, list) and all(name in bounds for name in fixed)):
             raise TuneRequestError(f"fixed must be a list of slider names ({', '.join(bounds)}), got {json.dumps(fixed)}")
+        fractional = payload.get("fractional_counts", False)
+        if not isinstance(fractional, bool):
+            raise TuneRequestError(f"fractional_counts must be true or false, got {json.dumps(fractional)}")
         if len(fixed) == len(bounds):
             raise TuneRequestError("every parameter is locked: unlock at least one to fit")
         if not self._fit_lock.acquire(blocking=False):
@@ -461,7 +464,9 @@ class Tuner:
                 light_in_front=in_front,
                 progress=progress,
             )
-            fitted = _clip_to_bounds(scale_pixel_fields(result.effect, float(self.factor)), bounds)
+            # Counts rounded, as `godrays-jax fit` saves them, unless the page asks for the relaxation's values.
+            chosen = result.effect if fractional else result.rounded
+            fitted = _clip_to_bounds(scale_pixel_fields(chosen, float(self.factor)), bounds)
         finally:
             self._fit_progress = {**self._fit_progress, "running": False}
             self._fit_lock.release()
@@ -470,7 +475,7 @@ class Tuner:
         return {
             "effect": effect_to_dict(fitted),
             "loss_before": result.loss_before,
-            "loss_after": result.loss_after,
+            "loss_after": result.loss_after if fractional else result.loss_rounded,
             "steps": result.steps,
             "fitted": list(result.fitted),
         }

@@ -50,6 +50,23 @@ def param(default, *, low: float, high: float):
     return eqx.field(converter=_array, default=default, metadata={"bounds": (low, high)})
 
 
+def plain_value(value):
+    """A field's value as plain Python (float, nested lists of floats, or the static value itself).
+
+    Floating arrays become the shortest decimals that read back to the same
+    numbers in their own precision: a float32 0.95 is `0.95`, not
+    `0.949999988079071`.
+    """
+    if not isinstance(value, (jax.Array, np.ndarray, np.generic)) or isinstance(value, jax.core.Tracer):
+        return value
+    array = np.asarray(value)
+    if not np.issubdtype(array.dtype, np.floating):
+        return array.tolist()
+    # NumPy's str of a float32 scalar is the shortest decimal that round-trips; float() of it keeps that text.
+    shortest = [float(str(number)) for number in array.ravel()]
+    return np.array(shortest, dtype=object).reshape(array.shape).tolist()
+
+
 def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, float]]:
     """`{field name: (low, high)}` for every fittable field of an effect (instance or class)."""
     cls = effect if isinstance(effect, type) else type(effect)
@@ -77,6 +94,11 @@ class Effect(eqx.Module):
             values = np.asarray(value)
             if not (np.all(np.isfinite(values)) and np.all(values >= low) and np.all(values <= high)):
                 raise ValueError(f"{type(self).__name__}.{name} must lie in [{low:g}, {high:g}], got {values.tolist()}")
+
+    def __repr__(self) -> str:
+        """`GodRays(density=0.5, ...)`: every field with its value (equinox shows `f32[]` placeholders)."""
+        fields = ", ".join(f"{field.name}={plain_value(getattr(self, field.name))!r}" for field in dataclasses.fields(self))
+        return f"{type(self).__name__}({fields})"
 
     def layer(
         self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True

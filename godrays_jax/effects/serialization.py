@@ -4,10 +4,7 @@ import dataclasses
 import json
 import os
 
-import jax.numpy as jnp
-import numpy as np
-
-from godrays_jax.effects.base import Effect, effect_class
+from godrays_jax.effects.base import Effect, effect_class, plain_value
 from godrays_jax.primitives.files import atomic_write
 
 
@@ -16,11 +13,14 @@ def _field_names(cls) -> list[str]:
 
 
 def effect_to_dict(effect: Effect) -> dict:
-    """A JSON-ready description: `{"effect": class name, field: value, ...}`."""
+    """A JSON-ready description: `{"effect": class name, field: value, ...}`.
+
+    Numbers are the shortest decimals that read back to the same float32
+    (`plain_value`), so saved files carry `0.95`, not `0.949999988079071`.
+    """
     fields = {"effect": type(effect).__name__}
     for name in _field_names(type(effect)):
-        value = getattr(effect, name)
-        fields[name] = np.asarray(value).tolist() if isinstance(value, (jnp.ndarray, np.ndarray)) else value
+        fields[name] = plain_value(getattr(effect, name))
     return fields
 
 

@@ -8,19 +8,38 @@ is `run(args)` in `godrays_jax.app.<command>_command`.
 
 import argparse
 import importlib
+import re
 import sys
 from collections.abc import Callable
 
+from godrays_jax import __version__
 from godrays_jax.app.options import DEFAULT_PRESET, parse_light
 from godrays_jax.effects.presets import PRESETS
+from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP
 from godrays_jax.primitives.checks import error_line
 
 PROGRAM = "godrays-jax"
 
 
+_NEGATIVE_VALUE = re.compile(r"-\s*(?:\d|\.\d)")
+"""A value that starts like a negative number (`-5,10`), which argparse would take for an option."""
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+    def parse_known_args(self, args=None, namespace=None):
+        # `--light -5,10` (a light left of or above the frame): argparse reads `-5,10` as an unknown option,
+        # so the value is attached as `--light=-5,10` before parsing; nothing else is rewritten.
+        args = list(sys.argv[1:] if args is None else args)
+        joined = []
+        for arg in args:
+            if joined and joined[-1] == "--light" and _NEGATIVE_VALUE.match(arg):
+                joined[-1] = f"--light={arg}"
+            else:
+                joined.append(arg)
+        return super().parse_known_args(joined, namespace)
 
 
 def _add_effect_options(parser: argparse.ArgumentParser) -> None:
@@ -43,7 +62,7 @@ def _add_apply(subparsers) -> None:
         "--light",
         type=parse_light,
         metavar="X,Y",
-        help="the light's pixel position (x right, y down); default: the frame's godrays:light_px metadata",
+        help="the light's pixel position (x right, y down; may be negative: --light -5,10); default: the frame's godrays:light_px metadata",
     )
     _add_effect_options(parser)
     parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
@@ -62,7 +81,7 @@ def _add_batch(subparsers) -> None:
             "the run then exits with status 1."
         ),
     )
-    parser.add_argument("pattern", help="frames: shot.####.exr, shot.%%04d.exr, a glob ('renders/*.exr') or a file")
+    parser.add_argument("pattern", help=FRAME_PATTERN_HELP.replace("%", "%%"))
     parser.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder (created if missing)")
     lights = parser.add_mutually_exclusive_group()
     lights.add_argument("--light", type=parse_light, metavar="X,Y", help="the same light pixel position for every frame")
@@ -178,6 +197,7 @@ COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROGRAM, description="Differentiable screen-space light scattering (god rays, glow, flares).")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     for add_command in COMMANDS:
         add_command(subparsers)

@@ -19,16 +19,26 @@ METADATA = "metadata"
 """`light=METADATA`: each frame's light from its `godrays:light_px` attribute."""
 
 
-_HASHES = re.compile(r"#+")
-
-
-_PRINTF = re.compile(r"%0?(\d*)d")
+_FRAME_TOKEN = re.compile(
+    r"(?:(?P<first>-?\d+)-(?P<last>-?\d+)(?:x(?P<step>\d+))?(?=[#@]))?"
+    r"(?:(?P<hashes>#+)|(?P<ats>@+)|%(?P<printf>0?\d*)d|\$\{?F(?P<houdini>\d*)\}?)"
+)
+"""One frame token, optionally preceded by an oiiotool range: `1001-1100#`, `@@@`, `%04d`, `$F4`, `${F4}`."""
 
 
 _GLOB_CHARS = re.compile(r"[*?\[]")
 
 
 _LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+FRAME_PATTERN_HELP = (
+    "frames: 'shot.####.exr' (one digit per #, as Nuke writes it), oiiotool's 'shot.#.exr' (a lone # is 4 digits) "
+    "and 'shot.@@@@.exr' (one digit per @), 'shot.%04d.exr', Houdini's 'shot.$F4.exr', a range before # or @ "
+    "('shot.1001-1100#.exr', 'shot.1-99x2@@.exr'), a glob ('renders/*.exr') or one file. A padded number has at "
+    "least that many digits; frame numbers that need more are written unpadded."
+)
+"""What `expand_frames` accepts, for the command line's help."""
 
 
 def frame_number(path: str) -> int | None:
@@ -41,24 +51,80 @@ def _natural_key(path: str):
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path)], path
 
 
+def _token_width(token: re.Match) -> int:
+    """Digits of padding a frame token asks for; 0 for an unpadded number."""
+    if token["hashes"]:
+        # oiiotool reads each # as 4 digits; a run of them is Nuke's and Maya's one digit per #.
+        return 4 if len(token["hashes"]) == 1 else len(token["hashes"])
+    if token["ats"]:
+        return len(token["ats"])
+    if token["printf"] is not None:
+        return int(token["printf"] or 0)
+    return int(token["houdini"] or 0)
+
+
+def _number_regex(width: int) -> str:
+    if width <= 1:
+        return r"(-?(?:0|[1-9]\d*))" if width == 0 else r"(-?\d+)"
+    # Padded as printf's `%0<width>d` pads (the sign counts: -2 is `-002`); a larger number is written as it is.
+    digits = rf"\d{{{width}}}|[1-9]\d{{{width},}}"
+    negative = rf"\d{{{width - 1}}}|[1-9]\d{{{width - 1},}}"
+    return rf"((?:{digits})|-(?:{negative}))"
+
+
+def _expand_frame_pattern(pattern: str, token: re.Match) -> list[str]:
+    before, after = pattern[: token.start()], pattern[token.end() :]
+    if _FRAME_TOKEN.search(after):
+        raise ValueError(f"frame pattern {pattern!r} has more than one frame token")
+    width = _token_width(token)
+    matcher = re.compile(re.escape(before) + _number_regex(width) + re.escape(after))
+    numbered = []
+    for path in glob.glob(glob.escape(before) + "*" + glob.escape(after)):
+        match = matcher.fullmatch(path)
+        if match and os.path.isfile(path):
+            numbered.append((int(match.group(1)), path))
+    if token["first"] is not None:
+        first, last, step = int(token["first"]), int(token["last"]), int(token["step"] or 1)
+        if last < first or step < 1:
+            raise ValueError(f"frame range {first}-{last}x{step} in {pattern!r} is empty")
+        numbered = [(n, path) for n, path in numbered if first <= n <= last and (n - first) % step == 0]
+    if not numbered:
+        digits = f"a frame number of at least {width} digits" if width > 1 else "a frame number"
+        raise ValueError(
+            f"no frames match {pattern!r} (looked for {before}<{digits}>{after}; a lone # is 4 digits, "
+            "#### or @@@@ one digit each)"
+        )
+    return [path for _, path in sorted(numbered)]
+
+
 def expand_frames(pattern: str) -> list[str]:
     """The files a pattern names, in frame order.
 
-    `pattern` is a frame pattern (`shot.####.exr`: one `#` per digit, or
-    printf-style `shot.%04d.exr`), a glob (`renders/*.exr`) or one file name.
-    Files are sorted by name with numbers compared as numbers.
+    `pattern` is one of (`FRAME_PATTERN_HELP`):
+
+    - a frame pattern with one frame token: `####` (one digit per `#`, as
+      Nuke writes it; a lone `#` is oiiotool's 4 digits), `@@@@` (one digit
+      per `@`, oiiotool), printf `%04d` / `%d`, Houdini `$F4` / `${F4}` /
+      `$F` (unpadded). Padded tokens match numbers with at least that many
+      digits (a frame past the padding is written unpadded, as these tools
+      do) and negative frames. A `#` or `@` token may follow an oiiotool
+      range, `FIRST-LAST` or `FIRST-LASTxSTEP` (`shot.1001-1100#.exr`):
+      only those frames that exist are taken.
+    - a glob (`renders/*.exr`), files sorted by name with numbers compared
+      as numbers;
+    - one existing file (even if its name holds `#` or `@`).
+
+    Frame patterns are sorted by frame number.
 
     Raises:
-        ValueError: nothing matches.
+        ValueError: nothing matches (the message says how the pattern was
+            read), or a pattern with two frame tokens or an empty range.
     """
-    if _HASHES.search(pattern):
-        glob_pattern = _HASHES.sub(lambda m: "[0-9]" * len(m.group(0)), glob.escape(pattern))
-    elif _PRINTF.search(pattern):
-        glob_pattern = _PRINTF.sub(lambda m: "[0-9]" * int(m.group(1) or 1), glob.escape(pattern))
-    elif _GLOB_CHARS.search(pattern):
-        glob_pattern = pattern
-    else:
-        glob_pattern = glob.escape(pattern)
+    if os.path.isfile(pattern):
+        return [pattern]
+    if (token := _FRAME_TOKEN.search(pattern)) is not None:
+        return _expand_frame_pattern(pattern, token)
+    glob_pattern = pattern if _GLOB_CHARS.search(pattern) else glob.escape(pattern)
     paths = sorted((p for p in glob.glob(glob_pattern) if os.path.isfile(p)), key=_natural_key)
     if not paths:
         raise ValueError(f"no frames match {pattern!r}")

@@ -261,7 +261,7 @@ def test_no_depth_channel_lists_channels(tmp_path):
     channels = _rgb_depth("Z")
     channels["A"] = channels.pop("Z")
     _write_exr(tmp_path / "n.exr", channels)
-    with pytest.raises(ValueError, match=r"n\.exr' has no depth channel \(looked for Z, depth\.Z, depth\); "
+    with pytest.raises(ValueError, match=r"n\.exr' has no depth channel \(looked for Z, depth\.Z, depth, \*\.Depth\.Z\); "
                        r"channels found: R, G, B, A"):
         read_buffers(tmp_path / "n.exr")
 

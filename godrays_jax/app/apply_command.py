@@ -1,21 +1,43 @@
 """`godrays-jax apply`: one frame through one effect."""
 
+import os
+
 import jax.numpy as jnp
 
-from godrays_jax.app.options import check_output_path, effect_option, resolve_light
-from godrays_jax.primitives.io import read_buffers, write_image
+from godrays_jax.app.options import (
+    NO_SKY,
+    check_output_path,
+    effect_for_frame,
+    effect_option,
+    frame_reading,
+    has_sky,
+    resolve_light,
+    warn,
+)
+from godrays_jax.primitives.io import read_frame, write_frame_like, write_image
+
+
+def _is_exr(path: str) -> bool:
+    return os.path.splitext(path)[1].lower() == ".exr"
 
 
 def run(args) -> int:
     check_output_path(args.output, args.buffers)
     effect = effect_option(args.preset, args.params)
-    buffers = read_buffers(args.buffers, depth_channel=args.depth_channel)
+    buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
+    if not has_sky(buffers):
+        warn("apply", f"{args.buffers} has {NO_SKY}")
+    effect = effect_for_frame("apply", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
     light = jnp.asarray(light_xy, jnp.float32)
     if args.layer_only:
         image = effect.layer(buffers, light, light_in_front=in_front)
     else:
         image = effect(buffers, light, light_in_front=in_front)
-    write_image(args.output, image)
+    if _is_exr(args.output) and _is_exr(args.buffers):
+        # EXR to EXR: every other channel, each channel's format and the metadata as the frame had them.
+        write_frame_like(args.output, image, frame_file)
+    else:
+        write_image(args.output, image)
     print(f"wrote {args.output}")
     return 0

@@ -5,7 +5,7 @@ import sys
 
 import jax
 
-from godrays_jax.app.options import effect_option
+from godrays_jax.app.options import NO_SKY, effect_for_frame, effect_option, frame_reading, warn
 from godrays_jax.pipeline.batch import BatchError, describe_plan, plan_batch, run_batch
 from godrays_jax.pipeline.sequences import (
     METADATA,
@@ -13,6 +13,7 @@ from godrays_jax.pipeline.sequences import (
     expand_frames,
     read_light_track,
 )
+from godrays_jax.primitives.io import read_buffers
 
 
 def parse_frame_range(text: str) -> tuple[int, int]:
@@ -59,6 +60,8 @@ def run(args) -> int:
         shard = (jax.process_index(), jax.process_count())
     effect = effect_option(args.preset, args.params)
     inputs = expand_frames(args.pattern)
+    if getattr(effect, "source", None) == "light_pass":
+        effect = effect_for_frame("batch", effect, read_buffers(inputs[0], **frame_reading(args)), inputs[0])
     jobs = plan_batch(
         inputs,
         args.output,
@@ -78,9 +81,12 @@ def run(args) -> int:
         effect,
         light,
         layer_only=args.layer_only,
-        depth_channel=args.depth_channel,
+        **frame_reading(args),
         progress=None if args.quiet else sys.stderr,
     )
+    if report.without_sky:
+        count = len(report.without_sky)
+        warn("batch", f"{count} frame(s) (first: {report.without_sky[0]}) have {NO_SKY}")
     print(report.summary(), file=sys.stderr if report.failures else sys.stdout)
     return 1 if report.failures else 0
 

@@ -13,7 +13,8 @@ import sys
 from collections.abc import Callable
 
 from godrays_jax import __version__
-from godrays_jax.app.options import DEFAULT_PRESET, parse_light
+from godrays_jax.app.options import DEFAULT_PRESET, SKY_DEPTH_HELP, parse_light, parse_sky_depth
+from godrays_jax.primitives.io import SKY_DEPTH
 from godrays_jax.effects.presets import PRESETS
 from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP
 from godrays_jax.primitives.checks import error_line
@@ -50,6 +51,20 @@ def _add_effect_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--params", metavar="FILE", help="effect parameters as JSON (from `fit` or save_effect)")
 
 
+def _add_frame_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--color-layer", metavar="LAYER",
+        help="the colour layer, e.g. ViewLayer.Combined (channels LAYER.R/G/B/A); default: plain R, G, B, else the "
+        "one layer with them (Blender's ViewLayer.Combined)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--depth-channel", metavar="NAME",
+        help="the depth channel, e.g. ViewLayer.Depth.Z; default: Z, depth.Z (Nuke), depth, then the colour "
+        "layer's view layer's Depth.Z (Blender)",
+    )  # fmt: skip
+    parser.add_argument("--sky-depth", type=parse_sky_depth, default=SKY_DEPTH, metavar="DEPTH", help=SKY_DEPTH_HELP)
+
+
 def _add_apply(subparsers) -> None:
     parser = subparsers.add_parser(
         "apply",
@@ -65,7 +80,7 @@ def _add_apply(subparsers) -> None:
         help="the light's pixel position (x right, y down; may be negative: --light -5,10); default: the frame's godrays:light_px metadata",
     )
     _add_effect_options(parser)
-    parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
+    _add_frame_options(parser)
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
     parser.set_defaults(handler="godrays_jax.app.apply_command:run")
 
@@ -92,7 +107,7 @@ def _add_batch(subparsers) -> None:
         "--light-track", metavar="FILE", help="per-frame lights: CSV rows 'frame,x,y[,in_front]' or JSON; frames between keys are interpolated linearly"
     )
     _add_effect_options(parser)
-    parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
+    _add_frame_options(parser)
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
     parser.add_argument("--ext", help="write this format instead (e.g. png): colour only, display-encoded")
     parser.add_argument("--resume", action="store_true", help="skip frames whose output exists")
@@ -130,7 +145,7 @@ def _add_tune(subparsers) -> None:
     _add_effect_options(parser)
     parser.add_argument("--port", type=int, default=8000, help="port on 127.0.0.1 (default 8000; 0: any free port)")
     parser.add_argument("-o", "--output", default="params.json", help="where save writes (default params.json)")
-    parser.add_argument("--depth-channel", help="the depth channel's name (default: Z, depth.Z or depth)")
+    _add_frame_options(parser)
     parser.add_argument(
         "--preview-pixels", type=int, default=40_000, help="pixels at most in drag previews (default 40000)"
     )
@@ -159,6 +174,7 @@ def _add_fit(subparsers) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: participating_media, ScatteringFog)")
     group.add_argument("--params", metavar="FILE", help="start from parameters saved as JSON")
+    _add_frame_options(parser)
     parser.add_argument("-o", "--output", required=True, help="where to write the fitted parameters (JSON)")
     parser.add_argument("--report", metavar="PNG", help="picture: target, fitted, difference heat map, loss curve")
     parser.add_argument("--loss", choices=("mse", "l1", "charbonnier", "ssim"), default="mse", help="default mse")

@@ -5,10 +5,15 @@ import sys
 import jax.numpy as jnp
 
 from godrays_jax.app.options import (
+    NO_SKY,
     CommandError,
     check_output_path,
+    effect_for_frame,
     effect_option,
+    frame_reading,
+    has_sky,
     resolve_light,
+    warn,
 )
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.fit import default_fit_effect, fit, render_compiled
@@ -28,7 +33,10 @@ def run(args) -> int:
     effect = effect_option(args.preset, args.params, default=default_fit_effect)
     frames, light_positions, in_front, targets = [], [], [], []
     for index, (buffers_path, target_path) in enumerate(pairs):
-        frame = read_buffers(buffers_path)
+        frame = read_buffers(buffers_path, **frame_reading(args))
+        if not has_sky(frame):
+            warn("fit", f"{buffers_path} has {NO_SKY}")
+        effect = effect_for_frame("fit", effect, frame, buffers_path)
         (light, front) = resolve_light(lights[index] if lights else None, buffers_path)
         target = read_image(target_path)
         if target.shape[:2] != frame.color.shape[:2]:

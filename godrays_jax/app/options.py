@@ -1,14 +1,19 @@
 """What the commands share: their user errors, the light, the effect and output-path options."""
 
 import argparse
+import dataclasses
 import math
 import os
+import sys
 from collections.abc import Callable
+
+import numpy as np
 
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
-from godrays_jax.primitives.io import read_light
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.io import SKY_DEPTH, read_light
 
 DEFAULT_PRESET = "xna_crepuscular"
 """The effect `apply`, `batch` and `tune` use without `--preset` / `--params`."""
@@ -61,3 +66,56 @@ def check_output_path(output: str, *inputs: str) -> None:
     for path in inputs:
         if os.path.exists(output) and os.path.exists(path) and os.path.samefile(output, path):
             raise CommandError(f"refusing to overwrite the input {path}")
+
+
+def parse_sky_depth(text: str) -> float:
+    """`--sky-depth`: a positive number of scene units (`inf`: only infinite depth is sky)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"--sky-depth must be a positive number of scene units, got {text!r}")
+    return value
+
+
+SKY_DEPTH_HELP = (
+    f"depth at or above this (scene units) is open sky (default {SKY_DEPTH:g}: Blender's 1e10 background, "
+    "FLT_MAX and inf; in a half-float depth channel also 65504); set it to the far plane your renderer writes "
+    "on the background, e.g. --sky-depth 1000"
+)
+
+
+def frame_reading(args: argparse.Namespace) -> dict:
+    """The keyword arguments of `read_buffers` / `read_frame` / `run_batch` from the frame options."""
+    return {"depth_channel": args.depth_channel, "color_layer": args.color_layer, "sky_depth": args.sky_depth}
+
+
+def warn(command: str, text: str) -> None:
+    """One line on stderr: `godrays-jax COMMAND: warning: TEXT`."""
+    print(f"godrays-jax {command}: warning: {text}", file=sys.stderr, flush=True)
+
+
+def has_sky(buffers: Buffers) -> bool:
+    """Whether any pixel is (partly) open sky: coverage below 1 somewhere."""
+    return bool(np.min(np.asarray(buffers.coverage)) < 1.0)
+
+
+NO_SKY = (
+    "no sky pixel (no depth >= --sky-depth, no alpha below 1): effects that shine through the sky draw "
+    "nothing; if the renderer writes its far plane on the background, pass --sky-depth FAR"
+)
+"""The warning for a frame without sky: `f"{name} has {NO_SKY}"`."""
+
+
+def effect_for_frame(command: str, effect: Effect, buffers: Buffers, name: str) -> Effect:
+    """`effect`, or its disc-emitter version (with a warning) when it reads a light pass the frame lacks.
+
+    The galaxy-engine VLS preset shines from a rendered light pass (`light.Y`,
+    written by `godrays-jax render`); a renderer's frame seldom has one, and
+    the disc at the light position is the nearest stand-in.
+    """
+    if getattr(effect, "source", None) != "light_pass" or buffers.light_pass is not None:
+        return effect
+    warn(command, f"{name} has no light pass (light.Y): using the disc emitter at the light instead (source='disc')")
+    return dataclasses.replace(effect, source="disc")

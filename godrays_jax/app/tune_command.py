@@ -1,10 +1,15 @@
 """`godrays-jax tune`: serve the live tuner for one frame until Ctrl-C."""
 
 from godrays_jax.app.options import (
+    NO_SKY,
     CommandError,
     check_output_path,
+    effect_for_frame,
     effect_option,
+    frame_reading,
+    has_sky,
     resolve_light,
+    warn,
 )
 from godrays_jax.app.server import HOST, TuneServer
 from godrays_jax.app.tuner import Tuner
@@ -19,7 +24,10 @@ def run(args) -> int:
     if args.fit_steps < 1:
         raise CommandError(f"--fit-steps must be >= 1, got {args.fit_steps}")
     effect = effect_option(args.preset, args.params)
-    buffers = read_buffers(args.buffers, depth_channel=args.depth_channel)
+    buffers = read_buffers(args.buffers, **frame_reading(args))
+    if not has_sky(buffers):
+        warn("tune", f"{args.buffers} has {NO_SKY}")
+    effect = effect_for_frame("tune", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
     target = None if args.target is None else read_image(args.target)
     if target is not None and target.shape[:2] != (buffers.height, buffers.width):

@@ -55,6 +55,7 @@ from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.files import temporaries_of
 from godrays_jax.primitives.io import (
+    SKY_DEPTH,
     FrameFile,
     read_frame,
     write_frame_like,
@@ -160,12 +161,16 @@ def remove_stale_temporaries(jobs: Sequence[Job]) -> list[str]:
 class BatchReport:
     """What a run did. Times are seconds; thread times are summed over threads.
 
+    `without_sky` lists the frames that have no sky pixel (coverage 1
+    everywhere: no depth at or above the sky threshold, no alpha below 1),
+    which effects that shine through the sky leave unchanged.
     `compilations` counts how often the effect was compiled during the run:
     1 (every frame shares it; the effect's fields are compiled in as
     constants, so each run compiles once).
     """
 
     written: list[str] = dataclasses.field(default_factory=list)
+    without_sky: list[str] = dataclasses.field(default_factory=list)
     skipped: list[str] = dataclasses.field(default_factory=list)
     failures: dict[str, str] = dataclasses.field(default_factory=dict)
     read_s: float = 0.0
@@ -194,8 +199,8 @@ class _Loaded:
     light: Light
 
 
-def _load(job: Job, light: LightSource, depth_channel: str | None) -> _Loaded:
-    buffers, frame_file = read_frame(job.input, depth_channel=depth_channel)
+def _load(job: Job, light: LightSource, reading: dict) -> _Loaded:
+    buffers, frame_file = read_frame(job.input, **reading)
     return _Loaded(job, buffers, frame_file, light_for(job.input, light))
 
 
@@ -251,6 +256,8 @@ def run_batch(
     *,
     layer_only: bool = False,
     depth_channel: str | None = None,
+    color_layer: str | None = None,
+    sky_depth: float = SKY_DEPTH,
     devices: Sequence[jax.Device] | None = None,
     io_threads: int = 2,
     progress: TextIO | None = sys.stderr,
@@ -263,7 +270,7 @@ def run_batch(
         effect: the effect, applied with the same parameters to every frame.
         light: each frame's light (`LightSource`).
         layer_only: write the effect alone instead of the composited frame.
-        depth_channel: the depth channel's name (default `Z`, `depth.Z`, `depth`).
+        depth_channel, color_layer, sky_depth: how frames are read (`io.read_frame`).
         devices: devices to spread the frames over (default: `jax.local_devices()`).
         io_threads: threads for reading and, separately, for writing.
         progress: a stream for the progress bar (frames done, frames/s, ETA; None: no bar).
@@ -288,11 +295,12 @@ def run_batch(
     group_size = len(devices)
     size = _common_size(todo)
     timing_lock = threading.Lock()
+    reading = {"depth_channel": depth_channel, "color_layer": color_layer, "sky_depth": sky_depth}
 
     def timed_load(job):
         began = time.perf_counter()
         try:
-            return _load(job, light, depth_channel)
+            return _load(job, light, reading)
         finally:
             with timing_lock:
                 report.read_s += time.perf_counter() - began
@@ -375,6 +383,8 @@ def run_batch(
                 elif frame_structure != structure:
                     fail(job, f"different passes ({_structure_text(loaded.buffers)}) than the run's first frame")
                     continue
+                if np.min(np.asarray(loaded.buffers.coverage)) >= 1.0:
+                    report.without_sky.append(job.input)
                 group.append(loaded)
                 if len(group) == group_size:
                     flush_group()

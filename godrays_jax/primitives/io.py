@@ -6,17 +6,28 @@ alternatives in brackets):
 
 | channels | Buffers field | notes |
 |---|---|---|
-| `R`, `G`, `B` | `color` `(H, W, 3)` | linear HDR; required |
-| `A` | `coverage` `(H, W)` | optional, see "Coverage" below |
-| `Z` [`depth.Z`, `depth`, or a name the caller gives] | `depth` `(H, W)` | linear distance along the camera ray, scene units; required |
+| `R`, `G`, `B` [`<layer>.R/G/B`] | `color` `(H, W, 3)` | linear HDR; required |
+| `A` [`<layer>.A`] | `coverage` `(H, W)` | optional, see "Coverage" below |
+| `Z` [`depth.Z`, `depth`, `<view layer>.Depth.Z`, or a name the caller gives] | `depth` `(H, W)` | linear distance along the camera ray, scene units; required |
 | `N.X`, `N.Y`, `N.Z` | `normal` `(H, W, 3)` | optional |
 | `object_id` | `object_id` `(H, W)` | optional; stored as float32, `-1` on sky |
 | `light.Y` [`lightpass`] | `light_pass` `(H, W)` | optional; the galaxy-engine VLS article's pass |
 | `glow.R`, `glow.G`, `glow.B`, `glow.A` | `glow_pass` `(H, W, 4)` | optional; the sun-overcasting article's pass |
 
-Sky: depth `+inf` means nothing was hit. Some renderers write a huge finite
-"far" value instead, so depth values `>= 1e30` (`SKY_DEPTH_SENTINEL`) are read
-as `+inf` too. `write_buffers` always writes `+inf`.
+Layers: compositors' files name channels `layer.channel`. Without a
+`color_layer`, colour is the plain `R, G, B` when the file has them, else the
+one layer with `.R`, `.G`, `.B` channels, preferring a layer named `Combined`
+(Blender's multilayer EXR: `ViewLayer.Combined.R/G/B/A`, `ViewLayer.Depth.Z`).
+Depth is the first of `Z`, `depth.Z` (Nuke), `depth`, then `<view
+layer>.Depth.Z` or `<layer>.Z` beside the colour layer, then the one channel
+named `*.Depth.Z` / `*.depth.Z`. Ambiguous files are refused with the
+candidates listed; `color_layer` / `depth_channel` choose.
+
+Sky: depth `+inf` means nothing was hit. Renderers write a finite "far" value
+instead (Blender 1e10, some `FLT_MAX`), so depth values `>= sky_depth`
+(default `SKY_DEPTH`, 1e9) are read as `+inf` too, and in a half-float depth
+channel so is its largest value, 65504. A renderer that writes its camera's
+far plane needs `sky_depth` set to it. `write_buffers` always writes `+inf`.
 
 Coverage: by default (`coverage="auto"`) coverage is the `A` channel, except
 when `A` is exactly 1 on every sky pixel: that alpha is an opaque background
@@ -60,8 +71,10 @@ from godrays_jax.primitives.buffers import Buffers, coverage_from_depth
 from godrays_jax.primitives.color import srgb_decode, srgb_encode
 from godrays_jax.primitives.files import atomic_write
 
-SKY_DEPTH_SENTINEL = 1e30
-"""Depth values at or above this are read as sky (`+inf`)."""
+SKY_DEPTH = 1e9
+"""Depth values at or above this are read as sky (`+inf`) by default: Blender writes 1e10, others inf or FLT_MAX."""
+
+_HALF_MAX = 65504.0
 
 _DEPTH_NAMES = ("Z", "depth.Z", "depth")
 _LIGHT_PASS_NAMES = ("light.Y", "lightpass")
@@ -114,63 +127,135 @@ def read_buffers(
     path: str | os.PathLike,
     *,
     depth_channel: str | None = None,
+    color_layer: str | None = None,
+    sky_depth: float = SKY_DEPTH,
     coverage: Literal["auto", "alpha", "depth"] = "auto",
 ) -> Buffers:
     """Read a frame (colour, depth, coverage and any optional passes).
 
     Args:
-        path: an EXR (or any format OpenImageIO reads) with channels `R, G, B`,
-            a depth channel and optionally `A` and the passes listed in the
+        path: an EXR (or any format OpenImageIO reads) with colour channels,
+            a depth channel and optionally alpha and the passes listed in the
             module docstring.
-        depth_channel: the depth channel's name; by default the first of `Z`,
-            `depth.Z`, `depth` that the file has.
-        coverage: where coverage comes from: `"alpha"` (the `A` channel),
-            `"depth"` (1 where depth is finite, 0 on sky) or `"auto"` (alpha
-            unless it is missing or 1 on every sky pixel; module docstring).
+        depth_channel: the depth channel's full name (`ViewLayer.Depth.Z`);
+            by default found as the module docstring's "Layers" says.
+        color_layer: the colour layer (`ViewLayer.Combined`: channels
+            `ViewLayer.Combined.R/G/B`, alpha `.A`); by default the plain
+            `R, G, B`, else the one layer that has them.
+        sky_depth: depth values at or above this (scene units, > 0) are sky,
+            `+inf`; default `SKY_DEPTH` (1e9).
+        coverage: where coverage comes from: `"alpha"` (the colour layer's
+            alpha), `"depth"` (1 where depth is finite, 0 on sky) or `"auto"`
+            (alpha unless it is missing or 1 on every sky pixel; module docstring).
 
     Returns:
         `Buffers` with float32 colour `(H, W, 3)` (linear, as stored), depth
-        `(H, W)` in scene units with `+inf` on sky (values `>= 1e30` become
-        `+inf`), coverage `(H, W)`.
+        `(H, W)` in scene units with `+inf` on sky, coverage `(H, W)`.
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file is not a readable image, lacks `R, G, B` or a depth
-            channel (the message lists the channels found), or holds invalid
-            values (see `check_buffers`).
+        ValueError: the file is not a readable image, has no colour or depth
+            channels or several candidates for them (the message lists the
+            channels found), holds invalid values (see `check_buffers`), or
+            `sky_depth` is not a positive number.
     """
     if coverage not in ("auto", "alpha", "depth"):
         raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
     pixels, spec = _read_pixels(path)
-    return _decode_buffers(path, pixels, spec, depth_channel=depth_channel, coverage=coverage)
+    return _decode_buffers(
+        path, pixels, spec, depth_channel=depth_channel, color_layer=color_layer, sky_depth=sky_depth, coverage=coverage
+    )[0]
 
 
-def _decode_buffers(path, pixels: np.ndarray, spec: oiio.ImageSpec, *, depth_channel, coverage) -> Buffers:
-    """`read_buffers` after the file was read: pick the channels, build and check the `Buffers`."""
+def _color_names(path, names: Sequence[str], color_layer: str | None) -> tuple[str, ...]:
+    """The colour channels' names, `(R, G, B, A)` or `(R, G, B)` of the chosen layer."""
+    found = set(names)
+    layers = [name[: -len(".R")] for name in names if name.endswith(".R")]
+    layers = [layer for layer in layers if {f"{layer}.G", f"{layer}.B"} <= found]
+    if color_layer is not None:
+        prefix = color_layer.rstrip(".")
+        chosen = [prefix] if (prefix and prefix in layers) or (not prefix and {"R", "G", "B"} <= found) else []
+        if not chosen:
+            raise ValueError(
+                f"image '{os.fspath(path)}' has no colour layer {color_layer!r} (no {prefix + '.' if prefix else ''}R, "
+                f"G, B); colour layers found: {_channels_text(layers + (['(plain R, G, B)'] if {'R', 'G', 'B'} <= found else []))}"
+            )
+    elif {"R", "G", "B"} <= found:
+        chosen = [""]
+    else:
+        combined = [layer for layer in layers if layer.rsplit(".", 1)[-1].lower() == "combined"]
+        chosen = combined if len(combined) == 1 else layers
+        if not chosen:
+            missing = [c for c in "RGB" if c not in found]
+            raise ValueError(
+                f"image '{os.fspath(path)}' has no {', '.join(missing)} colour channel (R, G, B or a layer's "
+                f".R, .G, .B are required); channels found: {_channels_text(names)}"
+            )
+        if len(chosen) > 1:
+            raise ValueError(
+                f"image '{os.fspath(path)}' has several colour layers ({', '.join(chosen)}): choose one with "
+                f"--color-layer (color_layer); channels found: {_channels_text(names)}"
+            )
+    dot = f"{chosen[0]}." if chosen[0] else ""
+    rgb = tuple(f"{dot}{c}" for c in "RGB")
+    return rgb + ((f"{dot}A",) if f"{dot}A" in found else ())
+
+
+def _depth_name(path, names: Sequence[str], depth_channel: str | None, color: Sequence[str]) -> str:
+    """The depth channel's name: the caller's, a conventional one, or the one beside the colour layer."""
+    if depth_channel is not None:
+        if depth_channel not in names:
+            raise ValueError(
+                f"image '{os.fspath(path)}' has no depth channel (looked for {depth_channel}); "
+                f"channels found: {_channels_text(names)}"
+            )
+        return depth_channel
+    layer = color[0][: -len(".R")] if "." in color[0] else ""
+    view_layer = layer.rsplit(".", 1)[0] if "." in layer else ""
+    beside = (f"{view_layer}.Depth.Z", f"{view_layer}.depth.Z") if view_layer else ()
+    beside += (f"{layer}.Z",) if layer else ()
+    for name in (*_DEPTH_NAMES, *beside):
+        if name in names:
+            return name
+    layered = [name for name in names if name.endswith((".Depth.Z", ".depth.Z"))]
+    if len(layered) == 1:
+        return layered[0]
+    if layered:
+        raise ValueError(
+            f"image '{os.fspath(path)}' has several depth channels ({', '.join(layered)}): choose one with "
+            f"--depth-channel (depth_channel); channels found: {_channels_text(names)}"
+        )
+    looked = ", ".join((*_DEPTH_NAMES, *beside, "*.Depth.Z"))
+    raise ValueError(
+        f"image '{os.fspath(path)}' has no depth channel (looked for {looked}); channels found: "
+        f"{_channels_text(names)} (--depth-channel names another)"
+    )
+
+
+def _decode_buffers(
+    path, pixels: np.ndarray, spec: oiio.ImageSpec, *, depth_channel, color_layer, sky_depth, coverage
+) -> tuple[Buffers, tuple[str, ...]]:
+    """`read_buffers` after the file was read: pick the channels, build and check the `Buffers`.
+
+    Also returns the colour channels' names (`R, G, B` of the layer read).
+    """
+    if not (isinstance(sky_depth, int | float) and sky_depth > 0):  # NaN fails too
+        raise ValueError(f"sky_depth must be a positive number of scene units, got {sky_depth!r}")
     names = tuple(spec.channelnames)
     index = {name: i for i, name in enumerate(names)}
 
     def channels(wanted: Sequence[str]) -> np.ndarray:
         return pixels[..., [index[n] for n in wanted]]
 
-    missing = [n for n in ("R", "G", "B") if n not in index]
-    if missing:
-        raise ValueError(
-            f"image '{os.fspath(path)}' has no {', '.join(missing)} colour channel "
-            f"(R, G, B are required); channels found: {_channels_text(names)}"
-        )
-    candidates = (depth_channel,) if depth_channel is not None else _DEPTH_NAMES
-    found = [n for n in candidates if n in index]
-    if not found:
-        raise ValueError(
-            f"image '{os.fspath(path)}' has no depth channel (looked for "
-            f"{', '.join(candidates)}); channels found: {_channels_text(names)}"
-        )
-    depth = pixels[..., index[found[0]]].copy()
-    depth[depth >= SKY_DEPTH_SENTINEL] = np.inf
+    color_names = _color_names(path, names, color_layer)
+    depth_name = _depth_name(path, names, depth_channel, color_names)
+    depth = pixels[..., index[depth_name]].copy()
+    if spec.channelformat(index[depth_name]) == oiio.TypeHalf:
+        sky_depth = min(sky_depth, _HALF_MAX)  # a half channel holds no larger distance: its maximum is "far"
+    depth[depth >= sky_depth] = np.inf
 
     sky = np.isposinf(depth)
-    alpha = pixels[..., index["A"]] if "A" in index else None
+    alpha = pixels[..., index[color_names[3]]] if len(color_names) == 4 else None
     if coverage == "alpha" and alpha is None:
         raise ValueError(
             f"image '{os.fspath(path)}' has no A channel for coverage='alpha'; "
@@ -186,7 +271,7 @@ def _decode_buffers(path, pixels: np.ndarray, spec: oiio.ImageSpec, *, depth_cha
     light_names = [n for n in _LIGHT_PASS_NAMES if n in index]
     object_id = optional((_OBJECT_ID_NAME,))
     buffers = Buffers(
-        color=jnp.asarray(channels(("R", "G", "B"))),
+        color=jnp.asarray(channels(color_names[:3])),
         depth=jnp.asarray(depth),
         coverage=jnp.asarray(alpha) if use_alpha else coverage_from_depth(jnp.asarray(depth)),
         normal=None if (n := optional(_NORMAL_NAMES)) is None else jnp.asarray(n),
@@ -195,7 +280,7 @@ def _decode_buffers(path, pixels: np.ndarray, spec: oiio.ImageSpec, *, depth_cha
         glow_pass=None if (g := optional(_GLOW_NAMES)) is None else jnp.asarray(g),
     )
     check_buffers(buffers, name=os.fspath(path))
-    return buffers
+    return buffers, color_names[:3]
 
 
 def _count_message(count: int, what: str) -> str:
@@ -512,18 +597,23 @@ class FrameFile:
 
     What `write_frame_like` needs to write a processed frame with the input's
     channels, per-channel formats (half / float), compression, tiling and
-    metadata. `pixels` is float32 `(H, W, C)` in the file's channel order.
+    metadata. `pixels` is float32 `(H, W, C)` in the file's channel order;
+    `color_channels` names the channels the colour was read from (and
+    `write_frame_like` replaces).
     """
 
     path: str
     pixels: np.ndarray
     spec: oiio.ImageSpec
+    color_channels: tuple[str, str, str] = ("R", "G", "B")
 
 
 def read_frame(
     path: str | os.PathLike,
     *,
     depth_channel: str | None = None,
+    color_layer: str | None = None,
+    sky_depth: float = SKY_DEPTH,
     coverage: Literal["auto", "alpha", "depth"] = "auto",
 ) -> tuple[Buffers, FrameFile]:
     """`read_buffers` that also returns the file as stored, reading it once.
@@ -538,12 +628,14 @@ def read_frame(
     if coverage not in ("auto", "alpha", "depth"):
         raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
     pixels, spec = _read_pixels(path)
-    buffers = _decode_buffers(path, pixels, spec, depth_channel=depth_channel, coverage=coverage)
-    return buffers, FrameFile(path=os.fspath(path), pixels=pixels, spec=spec)
+    buffers, color_channels = _decode_buffers(
+        path, pixels, spec, depth_channel=depth_channel, color_layer=color_layer, sky_depth=sky_depth, coverage=coverage
+    )
+    return buffers, FrameFile(path=os.fspath(path), pixels=pixels, spec=spec, color_channels=color_channels)
 
 
 def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], like: FrameFile) -> None:
-    """Write `color` in place of the `R, G, B` channels of `like`, keeping everything else.
+    """Write `color` in place of the colour channels of `like` (`like.color_channels`), keeping everything else.
 
     Every other channel (alpha, depth, passes, anything the renderer wrote),
     each channel's storage format (half stays half: values above 65504 become
@@ -560,7 +652,7 @@ def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], 
 
     Raises:
         ValueError: a different extension than the input, a wrong shape, or
-            `like` without `R, G, B` channels.
+            `like` without its colour channels.
         FileNotFoundError: the destination folder does not exist.
         OSError: OpenImageIO failed to write (nothing is left behind).
     """
@@ -573,11 +665,11 @@ def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], 
         )
     color = _host_float("color", color, (*like.pixels.shape[:2], 3))
     names = tuple(like.spec.channelnames)
-    missing = [n for n in ("R", "G", "B") if n not in names]
+    missing = [n for n in like.color_channels if n not in names]
     if missing:
         raise ValueError(f"'{like.path}' has no {', '.join(missing)} channel to replace; channels: {_channels_text(names)}")
     pixels = like.pixels.copy()
-    pixels[..., [names.index(n) for n in ("R", "G", "B")]] = color
+    pixels[..., [names.index(n) for n in like.color_channels]] = color
     _write_image_file(path, oiio.ImageSpec(like.spec), np.ascontiguousarray(pixels))
 
 

@@ -5,7 +5,13 @@ import sys
 
 import jax
 
-from godrays_jax.app.options import NO_SKY, effect_for_frame, effect_option, frame_reading, warn
+from godrays_jax.app.options import (
+    NO_SKY,
+    effect_for_frame,
+    effect_option,
+    frame_reading,
+    warn,
+)
 from godrays_jax.pipeline.batch import BatchError, describe_plan, plan_batch, run_batch
 from godrays_jax.pipeline.sequences import (
     METADATA,

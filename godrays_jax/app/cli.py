@@ -12,12 +12,17 @@ import re
 import sys
 from collections.abc import Callable
 
-from godrays_jax import __version__
-from godrays_jax.app.options import DEFAULT_PRESET, SKY_DEPTH_HELP, parse_light, parse_sky_depth
-from godrays_jax.primitives.io import SKY_DEPTH
+import godrays_jax
+from godrays_jax.app.options import (
+    DEFAULT_PRESET,
+    SKY_DEPTH_HELP,
+    parse_light,
+    parse_sky_depth,
+)
 from godrays_jax.effects.presets import PRESETS
 from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP
 from godrays_jax.primitives.checks import error_line
+from godrays_jax.primitives.io import SKY_DEPTH
 
 PROGRAM = "godrays-jax"
 
@@ -213,7 +218,7 @@ COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROGRAM, description="Differentiable screen-space light scattering (god rays, glow, flares).")
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {godrays_jax.__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     for add_command in COMMANDS:
         add_command(subparsers)

@@ -1,0 +1,71 @@
+"""How each preset's halo compares with a single-scattering reference when a box hides the sun.
+
+    python benchmarks/hidden_sun_halo.py [--size 160x90]
+
+The scene and the NumPy reference are `examples/hidden_sun.py` (the medium of
+the path-traced colonnade frame). For every preset, the layer's mean per
+angle about the light over open sky in a ring just outside the silhouette
+(1-1.25 and 1.25-1.6 times its largest radius), divided by its mean, is
+compared with the reference's: the RMS difference (0 = the same halo shape;
+spikes from the silhouette's corners raise it). `tests/test_presets_look.py`
+checks `physically_based` against the same measure.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import godrays_jax as gr
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+import hidden_sun  # noqa: E402
+
+RINGS = ((1.0, 1.25), (1.25, 1.6))
+
+
+def angular_profile(layer, light_xy, open_sky, inner, outer, bins=24):
+    height, width = layer.shape
+    y, x = np.mgrid[0:height, 0:width] + 0.5
+    radius = np.hypot(x - light_xy[0], y - light_xy[1])
+    angle = np.arctan2(y - light_xy[1], x - light_xy[0])
+    ring = (radius >= inner) & (radius < outer) & open_sky
+    index = ((angle[ring] + np.pi) / (2 * np.pi) * bins).astype(int) % bins
+    profile = np.bincount(index, layer[ring], bins) / np.bincount(index, None, bins)
+    return profile / profile.mean()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="160x90", help="WIDTHxHEIGHT")
+    width, height = (int(v) for v in parser.parse_args().size.split("x"))
+    scene, camera = hidden_sun.scene_and_camera(width, height)
+    buffers = gr.render(scene, camera, with_glow_pass=False)
+    light_xy = np.asarray(gr.light_pixel(scene, camera)[0])
+    open_sky = np.asarray(buffers.coverage) < 0.5
+    y, x = np.mgrid[0:height, 0:width] + 0.5
+    silhouette = np.hypot(x - light_xy[0], y - light_xy[1])[~open_sky].max()
+    reference = hidden_sun.single_scattering(camera)
+    expected = [angular_profile(reference, light_xy, open_sky, a * silhouette, b * silhouette) for a, b in RINGS]
+    print(f"{width}x{height}, reference profile std {expected[0].std():.3f} / {expected[1].std():.3f}")
+    print("| preset | RMS vs reference, 1-1.25 x silhouette | 1.25-1.6 x |")
+    print("|---|---|---|")
+    for name in sorted(gr.PRESETS):
+        effect = gr.preset(name)
+        if getattr(effect, "source", None) == "light_pass":
+            print(f"| {name} | (its light pass is black: the sun is hidden) | |")
+            continue
+        layer = np.asarray(eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, jnp.asarray(light_xy)))[..., :3].mean(-1)
+        if layer[open_sky].max() <= 0.0:
+            print(f"| {name} | (no light on the open sky) | |")
+            continue
+        errors = [np.sqrt(np.mean((angular_profile(layer, light_xy, open_sky, a * silhouette, b * silhouette) - e) ** 2))
+                  for (a, b), e in zip(RINGS, expected)]  # fmt: skip
+        print(f"| {name} | {errors[0]:.3f} | {errors[1]:.3f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -22,7 +22,7 @@ import numpy as np
 import godrays_jax as gr
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-import hidden_sun  # noqa: E402
+import hidden_sun  # after its folder joins the path
 
 RINGS = ((1.0, 1.25), (1.25, 1.6))
 
@@ -58,7 +58,8 @@ def main() -> None:
         if getattr(effect, "source", None) == "light_pass":
             print(f"| {name} | (its light pass is black: the sun is hidden) | |")
             continue
-        layer = np.asarray(eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, jnp.asarray(light_xy)))[..., :3].mean(-1)
+        layer = eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, jnp.asarray(light_xy))
+        layer = np.asarray(layer)[..., :3].mean(-1)
         if layer[open_sky].max() <= 0.0:
             print(f"| {name} | (no light on the open sky) | |")
             continue

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import equinox as eqx
 import jax.numpy as jnp
+from pictures import HERO_FRAME, contact_sheet, display, labelled, output_folder, resized, write_display
 
 import godrays_jax as gr
-from pictures import HERO_FRAME, contact_sheet, display, labelled, output_folder, resized, write_display
 
 COLUMNS = 3
 TILE_WIDTH = 480

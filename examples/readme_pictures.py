@@ -16,14 +16,14 @@ Into `out/readme/` (the gallery and seed pictures into `out/gallery/` and
 import argparse
 
 import equinox as eqx
+import hidden_sun
 import jax.numpy as jnp
 import numpy as np
-
-import godrays_jax as gr
-import hidden_sun
 from gallery import make_gallery
 from pictures import HERO_FRAME, contact_sheet, display, labelled, output_folder, write_display
 from render_seeds import make_seed_pictures
+
+import godrays_jax as gr
 
 HERO_PRESET = "gpu_gems"
 HIDDEN_SUN_SIZE = (320, 180)
@@ -38,7 +38,8 @@ def make_hero(folder) -> None:
     buffers = gr.read_buffers(HERO_FRAME)
     light_xy, in_front = gr.read_light(HERO_FRAME)
     after = _apply(gr.preset(HERO_PRESET), buffers, jnp.asarray(light_xy, jnp.float32), in_front)
-    tiles = [labelled(display(buffers.color), "before: the rendered frame"), labelled(display(after), f"after: --preset {HERO_PRESET}")]
+    tiles = [labelled(display(buffers.color), "before: the rendered frame"),
+             labelled(display(after), f"after: --preset {HERO_PRESET}")]  # fmt: skip
     write_display(folder / "hero.png", contact_sheet(tiles, 2))
 
 
@@ -61,7 +62,8 @@ def make_hidden_sun(folder) -> None:
     layers = {"single-scattering reference": hidden_sun.single_scattering(camera)}
     for name in ("physically_based", "gpu_gems"):
         effect = gr.preset(name)
-        layers[f"{name} (its layer)"] = np.asarray(eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, light_xy))[..., :3].mean(-1)
+        layer = eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, light_xy)
+        layers[f"{name} (its layer)"] = np.asarray(layer)[..., :3].mean(-1)
     tiles = [labelled(display(buffers.color), "the frame: a box hides the sun")]
     tiles += [labelled(display(_ring_normalised(layer, open_sky, np.asarray(light_xy))), name) for name, layer in layers.items()]
     write_display(folder / "hidden_sun.png", contact_sheet(tiles, 2))

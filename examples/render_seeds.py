@@ -12,9 +12,9 @@ import argparse
 
 import equinox as eqx
 import jax.numpy as jnp
+from pictures import ROOT, contact_sheet, display, labelled, output_folder, write_display
 
 import godrays_jax as gr
-from pictures import ROOT, contact_sheet, display, labelled, output_folder, write_display
 
 SCENES = ROOT / "examples" / "scenes"
 # scene file -> the preset of the article it reproduces
@@ -36,13 +36,15 @@ def make_seed_pictures(*, docs: bool = False) -> None:
         buffers = gr.render(scene, camera)
         light_xy, _, in_front = gr.light_pixel(scene, camera)
         effect = gr.preset(preset_name)
-        composed = eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=bool(in_front)))(effect, buffers, jnp.asarray(light_xy))
+        compose = eqx.filter_jit(lambda e, b, l, front: e(b, l, light_in_front=front))
+        composed = compose(effect, buffers, jnp.asarray(light_xy), bool(in_front))
         gr.write_image(folder / f"{name}_{preset_name}.png", composed)
         tiles.append(labelled(display(composed), f"{name}: {preset_name}"))
         if name == "solar_system_000":
             gr.write_image(folder / f"{name}_glow_pass.png", buffers.glow_pass)
             glow_pass = labelled(display(buffers.glow_pass), f"{name}: glow pass")
-        print(f"{name}: light at ({float(light_xy[0]):.1f}, {float(light_xy[1]):.1f}) px, wrote {folder}/{name}_*.png", flush=True)
+        light = f"({float(light_xy[0]):.1f}, {float(light_xy[1]):.1f})"
+        print(f"{name}: light at {light} px, wrote {folder}/{name}_*.png", flush=True)
     write_display(folder / "seed_scenes.png", contact_sheet(tiles + [glow_pass], 3))
 
 

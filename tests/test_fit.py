@@ -210,11 +210,14 @@ def test_fit_command_fits_two_frames_and_apply_reproduces(tmp_path, capsys):
     ])  # fmt: skip
     captured = capsys.readouterr()
     assert status == 0, captured.err
-    assert "loss before" in captured.out and "step" in captured.err
+    assert "loss before" in captured.out and "/30 [" in captured.err and "step/s" in captured.err  # tqdm: steps, ETA
+    metrics = next(line for line in captured.out.splitlines() if line.startswith("PSNR before"))
+    assert "SSIM before" in metrics and "skimage.metrics" in metrics and "mean over 2 frames" in metrics
+    assert "every fitted parameter is determined" in captured.out  # density, decay, exposure: the test's own set
     fitted = gr.load_effect(params)
     for name, value in TRUTH.items():
         np.testing.assert_allclose(getattr(fitted, name), value, rtol=0.02, err_msg=name)
-    assert report.exists() and gr.read_image(report).shape[:2] == (2 * HEIGHT, 2 * WIDTH)
+    assert report.exists() and gr.read_image(report).shape[:2] == (2 * (26 + 240) + 46, 2 * 320 + 8)  # enlarged x10
     assert main(["apply", paths[1][0], "--params", str(params), "-o", str(applied)]) == 0
     np.testing.assert_allclose(gr.read_image(applied)[..., :3], fitted(_frame(1), LIGHTS[1]), rtol=1e-5, atol=1e-6)
     assert json.loads(params.read_text())["effect"] == "GodRays"

@@ -456,6 +456,132 @@ def fit(
     )
 
 
+@eqx.filter_jit
+def _jacobian(problem, y, frame_data):
+    """The residuals' Jacobian in the unit-scaled unknowns, `(residuals, unknowns)`, one JVP per unknown."""
+    basis = jnp.eye(y.shape[0], dtype=y.dtype)
+    tangents = jax.vmap(lambda direction: jax.jvp(lambda flat: problem.residuals(flat, frame_data), (y,), (direction,))[1])
+    return tangents(basis).T
+
+
+@dataclasses.dataclass(frozen=True)
+class Determination:
+    """How well a fit's frames pin each fitted field down (`determination`).
+
+    Attributes:
+        sensitivity: field -> the RMS change of the compared image (in the
+            fit's space) when the field moves by `change` of its fitting range
+            and the other fitted fields move to offset it as well as they can;
+            for a vector field, its least determined component.
+        poorly_determined: the fields whose sensitivity is below `threshold`,
+            in fitting order.
+        offsets: for each poorly determined field, its step and the others'
+            offsetting steps, in the fields' own units: `{"num_samples":
+            {"num_samples": 6.3, "decay": -0.004, "weight": 0.05}}` (a vector
+            field's component as `name[k]`; offsets under 1 % of a field's
+            range are left out).
+        condition: the Jacobian's condition number (largest over smallest
+            singular value; `inf` when some combination leaves the image
+            unchanged).
+    """
+
+    sensitivity: dict[str, float]
+    poorly_determined: tuple[str, ...]
+    offsets: dict[str, dict[str, float]]
+    condition: float
+
+
+def determination(
+    effect: Effect,
+    buffers: Buffers | Sequence[Buffers],
+    light_xy: Float[ArrayLike, "2"] | Sequence[Float[ArrayLike, "2"]],
+    target: Float[ArrayLike, "H W C"] | Sequence[Float[ArrayLike, "H W C"]],
+    *,
+    fitted: Sequence[str],
+    space: Space = "display",
+    light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
+    change: float = 0.1,
+    threshold: float = 1e-3,
+) -> Determination:
+    """Which fitted fields the frames determine poorly, from the Jacobian at a fit's solution.
+
+    `J` is the Jacobian of the per-pixel differences (the residuals of the
+    MSE in `space`, scaled so that `|r|^2` is the mean squared error) with
+    respect to the fields in units of their fitting ranges (`fitted_bounds`).
+    Moving field `i` by `change` of its range while the others offset it
+    optimally (least squares) changes the image by `change / sqrt(inv(J^T
+    J)_ii)` RMS; the field is poorly determined when that is below
+    `threshold` (the default, 1e-3 in display space, is a quarter of an 8-bit
+    step: a change nobody sees). The answer depends on the frames: a field is
+    determined only as far as their pixels show it.
+
+    Args:
+        effect: the solution (e.g. `FitResult.effect`); values inside bounds.
+        buffers, light_xy, target, light_in_front: as for `fit`.
+        fitted: the fields to examine (e.g. `FitResult.fitted`).
+        space: `"display"` or `"linear"`, as the fit compared.
+        change: the step, a fraction of each field's range (> 0).
+        threshold: RMS image change below which a step goes unseen (> 0).
+
+    Raises:
+        ValueError: an unknown or static field in `fitted`, bad frames, or a
+            non-positive `change` / `threshold`.
+    """
+    if not (change > 0 and threshold > 0):
+        raise ValueError(f"change and threshold must be > 0, got {change!r} and {threshold!r}")
+    check_space(space)
+    effect = jax.tree.map(_strongly_typed, effect)
+    frames, lights, targets, in_front = _as_frames(buffers, light_xy, target, light_in_front)
+    every = parameter_bounds(effect)
+    if not fitted or not set(fitted) <= set(every):
+        raise ValueError(f"fitted must name fittable fields of {type(effect).__name__}, got {list(fitted)}")
+    bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
+    names = tuple(bounds)
+    total_pixels = sum(frame.height * frame.width for frame in frames)
+    problem = _Problem(
+        effect=effect,
+        names=names,
+        bounds=tuple(bounds[name] for name in names),
+        shapes=tuple(tuple(np.shape(getattr(effect, name))) for name in names),
+        frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
+        loss="mse",
+        space=space,
+    )
+    with jax.default_matmul_precision("highest"):
+        y = _start_point(problem, np.dtype(frames[0].color.dtype))
+        jacobian = np.asarray(_jacobian(problem, y, (frames, lights, targets, in_front)), np.float64)
+    owners, labels, spans = [], [], []
+    for name, shape in zip(names, problem.shapes):
+        size = math.prod(shape)
+        owners += [name] * size
+        labels += [name] if size == 1 and not shape else [f"{name}[{k}]" for k in range(size)]
+        spans += [bounds[name][1] - bounds[name][0]] * size
+    singular, vectors = np.linalg.svd(jacobian, full_matrices=False)[1:]
+    floor = singular.max() * 1e-12 + 1e-300
+    inverse_diagonal = ((vectors.T / np.maximum(singular, floor)) ** 2).sum(axis=1)
+    per_unknown = change / np.sqrt(inverse_diagonal)
+    sensitivity, worst = {}, {}
+    for index, name in enumerate(owners):
+        if name not in sensitivity or per_unknown[index] < sensitivity[name]:
+            sensitivity[name], worst[name] = float(per_unknown[index]), index
+    poorly = tuple(name for name in names if sensitivity[name] < threshold)
+    offsets = {}
+    for name in poorly:
+        index = worst[name]
+        others = [k for k in range(len(owners)) if k != index]
+        steps = np.linalg.lstsq(jacobian[:, others], -jacobian[:, index] * change, rcond=None)[0]
+        moves = {labels[index]: change * spans[index]}
+        moves |= {labels[k]: float(step * spans[k]) for k, step in zip(others, steps) if abs(step) >= 0.01}
+        offsets[name] = moves
+    smallest = singular.min()
+    return Determination(
+        sensitivity=sensitivity,
+        poorly_determined=poorly,
+        offsets=offsets,
+        condition=float(singular.max() / smallest) if smallest > 0 else math.inf,
+    )
+
+
 def default_fit_effect() -> Effect:
     """The model `godrays-jax fit` starts from without `--preset` / `--params`: `preset("participating_media")`.
 

@@ -1,0 +1,60 @@
+"""`determination`: which fitted fields the frames pin down, on the case that motivated it (issue 18): a GodRays fit
+whose sample count, decay and weight trade off against each other."""
+
+import dataclasses
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.pipeline.fit import determination
+
+SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
+TRUTH = gr.GodRays(num_samples=64.0, max_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.3, light_radius=20.0)
+
+
+@pytest.fixture(scope="module")
+def case():
+    frame = gr.read_buffers(SAMPLE)
+    light = jnp.asarray(gr.read_light(SAMPLE)[0])
+    return frame, light, TRUTH(frame, light)
+
+
+def rms_display(a, b):
+    return float(np.sqrt(np.mean((gr.display_map(np.asarray(a)) - gr.display_map(np.asarray(b))) ** 2)))
+
+
+def test_samples_decay_and_weight_trade_off_and_the_offsets_are_real(case):
+    frame, light, target = case
+    found = determination(TRUTH, frame, light, target, fitted=("density", "decay", "weight", "num_samples"))
+    assert found.poorly_determined == ("num_samples",)
+    assert found.sensitivity["density"] > 10 * found.sensitivity["num_samples"]
+    steps = found.offsets["num_samples"]
+    assert set(steps) == {"num_samples", "decay", "weight"} and steps["num_samples"] == pytest.approx(12.7)
+    assert steps["decay"] > 0 > steps["weight"]  # more samples: a slower decay, a smaller weight
+    moved = dataclasses.replace(TRUTH, **{name: float(getattr(TRUTH, name)) + step for name, step in steps.items()})
+    alone = dataclasses.replace(TRUTH, num_samples=64.0 + steps["num_samples"])
+    offset_change, alone_change = rms_display(moved(frame, light), target), rms_display(alone(frame, light), target)
+    assert offset_change < 1e-3  # the linear estimate holds: a step nobody sees
+    assert alone_change > 4 * offset_change  # the offsets are what hide it
+
+
+def test_a_lone_scale_is_determined_and_a_field_the_image_ignores_is_not(case):
+    frame, light, target = case
+    found = determination(TRUTH, frame, light, target, fitted=("exposure",))
+    assert found.poorly_determined == () and found.condition == pytest.approx(1.0) and found.offsets == {}
+    # On screen the off-screen fade changes nothing: its column of the Jacobian is zero.
+    found = determination(TRUTH, frame, light, target, fitted=("exposure", "offscreen_fade"))
+    assert found.poorly_determined == ("offscreen_fade",) and found.sensitivity["offscreen_fade"] < 1e-12
+    assert math.isinf(found.condition) and found.offsets["offscreen_fade"] == {"offscreen_fade": pytest.approx(0.999)}
+
+
+def test_bad_arguments_are_named(case):
+    frame, light, target = case
+    with pytest.raises(ValueError, match="fitted"):
+        determination(TRUTH, frame, light, target, fitted=("max_samples",))
+    with pytest.raises(ValueError, match="change and threshold"):
+        determination(TRUTH, frame, light, target, fitted=("exposure",), threshold=0.0)

@@ -6,28 +6,33 @@ the I/O functions build on them. This is the library: the command line and
 the tuner's server live in `godrays_jax.app` and are not imported here.
 """
 
+import importlib
 import importlib.metadata
 
-# Effects: parameter sets (equinox Modules), presets, serialisation.
-from godrays_jax.effects.base import Effect as Effect
-from godrays_jax.effects.base import light_visibility as light_visibility
-from godrays_jax.effects.base import parameter_bounds as parameter_bounds
-from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
-from godrays_jax.effects.glow import Bloom as Bloom
-from godrays_jax.effects.glow import LensDirt as LensDirt
-from godrays_jax.effects.glow import SunOvercast as SunOvercast
-from godrays_jax.effects.glow import SunSpot as SunSpot
-from godrays_jax.effects.presets import PRESETS as PRESETS
-from godrays_jax.effects.presets import preset as preset
-from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
-from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
-from godrays_jax.effects.serialization import load_effect as load_effect
-from godrays_jax.effects.serialization import save_effect as save_effect
-from godrays_jax.effects.shafts import FlareOuts as FlareOuts
-from godrays_jax.effects.shafts import GodRays as GodRays
-from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
+
+# Image primitives: sampling, resampling, colour, buffers, camera, I/O.
+from godrays_jax.primitives.buffers import Buffers as Buffers
+from godrays_jax.primitives.camera import Camera as Camera
+from godrays_jax.primitives.camera import project_point as project_point
+from godrays_jax.primitives.color import display_map as display_map
+from godrays_jax.primitives.color import srgb_decode as srgb_decode
+from godrays_jax.primitives.color import srgb_encode as srgb_encode
+from godrays_jax.primitives.io import check_buffers as check_buffers
+from godrays_jax.primitives.io import encode_png as encode_png
+from godrays_jax.primitives.io import read_buffers as read_buffers
+from godrays_jax.primitives.io import read_frame as read_frame
+from godrays_jax.primitives.io import read_image as read_image
+from godrays_jax.primitives.io import read_light as read_light
+from godrays_jax.primitives.io import write_buffers as write_buffers
+from godrays_jax.primitives.io import write_frame_like as write_frame_like
+from godrays_jax.primitives.io import write_image as write_image
+from godrays_jax.primitives.resample import box_pool as box_pool
+from godrays_jax.primitives.resample import downsample_box as downsample_box
+from godrays_jax.primitives.resample import upsample_bilinear as upsample_bilinear
+from godrays_jax.primitives.sampling import sample_bilinear as sample_bilinear
 
 # Kernels: pure functions, image first, options keyword-only.
+from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
 from godrays_jax.kernels.blur import bloom as bloom
 from godrays_jax.kernels.blur import gaussian_blur as gaussian_blur
 from godrays_jax.kernels.blur import poisson_blur as poisson_blur
@@ -69,50 +74,62 @@ from godrays_jax.kernels.rays import radial_rays as radial_rays
 from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
 from godrays_jax.kernels.rays import scaled_copies as scaled_copies
 
-# Pipeline: sequences and batches of frames, fitting and its report.
+# Effects: parameter sets (equinox Modules), presets, serialisation.
+from godrays_jax.effects.base import Effect as Effect
+from godrays_jax.effects.base import light_visibility as light_visibility
+from godrays_jax.effects.base import parameter_bounds as parameter_bounds
+from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
+from godrays_jax.effects.glow import Bloom as Bloom
+from godrays_jax.effects.glow import LensDirt as LensDirt
+from godrays_jax.effects.glow import SunOvercast as SunOvercast
+from godrays_jax.effects.glow import SunSpot as SunSpot
+from godrays_jax.effects.presets import PRESETS as PRESETS
+from godrays_jax.effects.presets import preset as preset
+from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
+from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
+from godrays_jax.effects.serialization import load_effect as load_effect
+from godrays_jax.effects.serialization import save_effect as save_effect
+from godrays_jax.effects.shafts import FlareOuts as FlareOuts
+from godrays_jax.effects.shafts import GodRays as GodRays
+
+# Pipeline: sequences and batches of frames (fitting loads on first use, below).
 from godrays_jax.pipeline.batch import plan_batch as plan_batch
 from godrays_jax.pipeline.batch import run_batch as run_batch
-from godrays_jax.pipeline.fit import FitResult as FitResult
-from godrays_jax.pipeline.fit import fit as fit
-from godrays_jax.pipeline.report import fit_report_image as fit_report_image
 from godrays_jax.pipeline.sequences import expand_frames as expand_frames
 from godrays_jax.pipeline.sequences import read_light_track as read_light_track
 
-# Image primitives: sampling, resampling, colour, buffers, camera, I/O.
-from godrays_jax.primitives.buffers import Buffers as Buffers
-from godrays_jax.primitives.camera import Camera as Camera
-from godrays_jax.primitives.camera import project_point as project_point
-from godrays_jax.primitives.color import display_map as display_map
-from godrays_jax.primitives.color import srgb_decode as srgb_decode
-from godrays_jax.primitives.color import srgb_encode as srgb_encode
-from godrays_jax.primitives.io import check_buffers as check_buffers
-from godrays_jax.primitives.io import encode_png as encode_png
-from godrays_jax.primitives.io import read_buffers as read_buffers
-from godrays_jax.primitives.io import read_frame as read_frame
-from godrays_jax.primitives.io import read_image as read_image
-from godrays_jax.primitives.io import read_light as read_light
-from godrays_jax.primitives.io import write_buffers as write_buffers
-from godrays_jax.primitives.io import write_frame_like as write_frame_like
-from godrays_jax.primitives.io import write_image as write_image
-from godrays_jax.primitives.resample import box_pool as box_pool
-from godrays_jax.primitives.resample import downsample_box as downsample_box
-from godrays_jax.primitives.resample import upsample_bilinear as upsample_bilinear
-from godrays_jax.primitives.sampling import sample_bilinear as sample_bilinear
+# Fitting (optimistix) and the rasterizer load on first use: `godrays-jax apply` and `batch` need neither.
+_ON_FIRST_USE = {
+    "fit": "godrays_jax.pipeline.fit",
+    "FitResult": "godrays_jax.pipeline.fit",
+    "fit_report_image": "godrays_jax.pipeline.report",
+    "DirectionalLight": "godrays_jax.raster",
+    "light_pixel": "godrays_jax.raster",
+    "load_obj": "godrays_jax.raster",
+    "load_scene": "godrays_jax.raster",
+    "Material": "godrays_jax.raster",
+    "Mesh": "godrays_jax.raster",
+    "plan_tile_capacity": "godrays_jax.raster",
+    "PointLight": "godrays_jax.raster",
+    "render": "godrays_jax.raster",
+    "Scene": "godrays_jax.raster",
+    "scene_from_dict": "godrays_jax.raster",
+    "Sky": "godrays_jax.raster",
+    "Sphere": "godrays_jax.raster",
+    "uv_sphere": "godrays_jax.raster",
+}
 
-# The rasterizer: scenes to Buffers.
-from godrays_jax.raster import DirectionalLight as DirectionalLight
-from godrays_jax.raster import Material as Material
-from godrays_jax.raster import Mesh as Mesh
-from godrays_jax.raster import PointLight as PointLight
-from godrays_jax.raster import Scene as Scene
-from godrays_jax.raster import Sky as Sky
-from godrays_jax.raster import Sphere as Sphere
-from godrays_jax.raster import light_pixel as light_pixel
-from godrays_jax.raster import load_obj as load_obj
-from godrays_jax.raster import load_scene as load_scene
-from godrays_jax.raster import plan_tile_capacity as plan_tile_capacity
-from godrays_jax.raster import render as render
-from godrays_jax.raster import scene_from_dict as scene_from_dict
-from godrays_jax.raster import uv_sphere as uv_sphere
+
+def __getattr__(name: str):
+    if name not in _ON_FIRST_USE:
+        raise AttributeError(f"module 'godrays_jax' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_ON_FIRST_USE[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_ON_FIRST_USE])
+
 
 __version__ = importlib.metadata.version("godrays_jax")

@@ -1,5 +1,6 @@
 """Shared fixtures: float64 mode for gradient checks, random generators; a compilation cache."""
 
+import os
 from pathlib import Path
 
 import jax
@@ -9,7 +10,10 @@ import pytest
 # Most of the suite's time is XLA compilation, and many tests compile the same
 # programs (same kernel, same shapes, another lambda): a persistent cache shared
 # by every test and pytest-xdist worker compiles each of them once.
-jax.config.update("jax_compilation_cache_dir", str(Path(__file__).resolve().parents[1] / ".jax_cache"))
+CACHE = Path(__file__).resolve().parents[1] / ".jax_cache"
+jax.config.update("jax_compilation_cache_dir", str(CACHE))
+# The command line, run in-process by the CLI tests, enables its own cache: the same folder, not the user's.
+os.environ.setdefault("GODRAYS_JAX_CACHE_DIR", str(CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 

@@ -2,7 +2,8 @@
 
 import os
 
-import jax.numpy as jnp
+import jax
+import numpy as np
 
 from godrays_jax.app.options import (
     NO_SKY,
@@ -14,6 +15,7 @@ from godrays_jax.app.options import (
     resolve_light,
     warn,
 )
+from godrays_jax.pipeline.batch import frames_function
 from godrays_jax.primitives.io import read_frame, write_frame_like, write_image
 
 
@@ -29,11 +31,10 @@ def run(args) -> int:
         warn("apply", f"{args.buffers} has {NO_SKY}")
     effect = effect_for_frame("apply", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
-    light = jnp.asarray(light_xy, jnp.float32)
-    if args.layer_only:
-        image = effect.layer(buffers, light, light_in_front=in_front)
-    else:
-        image = effect(buffers, light, light_in_front=in_front)
+    # The program `batch` runs, on a group of one frame: compiled once, and found in the persistent cache next time.
+    apply = frames_function(effect, layer_only=args.layer_only)
+    one_frame = jax.tree.map(lambda leaf: leaf[None], buffers)
+    image = apply(one_frame, np.asarray([light_xy], np.float32), np.asarray([in_front]))[0]
     if _is_exr(args.output) and _is_exr(args.buffers):
         # EXR to EXR: every other channel, each channel's format and the metadata as the frame had them.
         write_frame_like(args.output, image, frame_file)

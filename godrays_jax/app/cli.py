@@ -13,6 +13,7 @@ import sys
 from collections.abc import Callable
 
 import godrays_jax
+from godrays_jax.app import compile_cache
 from godrays_jax.app.options import (
     DEFAULT_PRESET,
     SKY_DEPTH_HELP,
@@ -46,6 +47,14 @@ class _Parser(argparse.ArgumentParser):
             else:
                 joined.append(arg)
         return super().parse_known_args(joined, namespace)
+
+
+def _add_cache_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--no-cache", action="store_true",
+        help=f"neither read nor write the compilation cache (default: {compile_cache.ENVIRONMENT_VARIABLE} or "
+        "~/.cache/godrays_jax; `godrays-jax cache` shows or clears it)",
+    )  # fmt: skip
 
 
 def _add_effect_options(parser: argparse.ArgumentParser) -> None:
@@ -87,6 +96,7 @@ def _add_apply(subparsers) -> None:
     _add_effect_options(parser)
     _add_frame_options(parser)
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
+    _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.apply_command:run")
 
 
@@ -129,6 +139,7 @@ def _add_batch(subparsers) -> None:
     parser.add_argument("--num-processes", type=int, metavar="N", help="with --distributed and --coordinator")
     parser.add_argument("--process-id", type=int, metavar="I", help="with --distributed and --coordinator: 0..N-1")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.batch_command:run")
 
 
@@ -155,6 +166,7 @@ def _add_tune(subparsers) -> None:
         "--preview-pixels", type=int, default=40_000, help="pixels at most in drag previews (default 40000)"
     )
     parser.add_argument("--fit-steps", type=int, default=20, help="solver steps at most per fit (default 20)")
+    _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.tune_command:run")
 
 
@@ -194,6 +206,7 @@ def _add_fit(subparsers) -> None:
         "--fractional-counts", action="store_true",
         help="save counts (num_samples, ...) as fitted; by default they are rounded to integers",
     )  # fmt: skip
+    _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.fit_command:run")
 
 
@@ -209,10 +222,37 @@ def _add_render(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, help="output frame (.exr)")
     parser.add_argument("--light", action="store_true", help="also print the light's pixel position")
     parser.add_argument("--no-glow", action="store_true", help="skip the glow pass (one rasterization instead of two)")
+    _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.render_command:run")
 
 
-COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_apply, _add_batch, _add_tune, _add_fit, _add_render]
+def _add_cache(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "cache",
+        help="show or clear the compilation cache",
+        description="Compiled effects are kept in a cache folder so later runs start without compiling: "
+        f"${compile_cache.ENVIRONMENT_VARIABLE}, else $XDG_CACHE_HOME/godrays_jax (~/.cache/godrays_jax), at most "
+        f"{compile_cache.MAX_BYTES >> 20} MiB (least recently used entries are dropped first).",
+    )
+    parser.add_argument("--clear", action="store_true", help="remove every cached program")
+    parser.set_defaults(handler="godrays_jax.app.cli:run_cache", no_cache=True)
+
+
+def run_cache(args) -> int:
+    """`godrays-jax cache`: where the compilation cache is, how large, and `--clear`."""
+    directory = compile_cache.cache_dir()
+    if args.clear:
+        compile_cache.clear(directory)
+        print(f"cleared {directory}")
+        return 0
+    files, size = compile_cache.cache_size(directory)
+    print(f"{directory}: {files} file(s), {size / (1 << 20):.1f} MiB (cap {compile_cache.MAX_BYTES >> 20} MiB)")
+    return 0
+
+
+COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
+    _add_apply, _add_batch, _add_tune, _add_fit, _add_render, _add_cache
+]
 """Functions that each add one subcommand (with `set_defaults(handler=...)`)."""
 
 
@@ -230,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if not args.no_cache:
+            compile_cache.enable()
         module, function = args.handler.split(":")
         # Only the chosen command's module is imported: `apply` never loads the rasterizer or the solver.
         return getattr(importlib.import_module(module), function)(args)

@@ -4,7 +4,6 @@ Masks are `(H, W)` planes in [0, 1] unless said otherwise; multiply them into an
 `(H, W, C)` image with `mask[..., None]`.
 """
 
-import equinox as eqx
 import jax.numpy as jnp
 from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
@@ -14,6 +13,7 @@ from godrays_jax.primitives.checks import (
     check_light,
     check_plane,
     check_scalar,
+    checked_range,
     is_static_int,
 )
 from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
@@ -143,8 +143,7 @@ def _morphology(mask, radius, max_radius, name):
         raise ValueError(f"max_radius must be a Python int >= 0, got {max_radius!r}")
     mask = jnp.asarray(mask)
     dtype = jnp.result_type(mask, jnp.float32)
-    radius = jnp.asarray(radius, dtype)
-    radius = eqx.error_if(radius, (radius < 0) | (radius > max_radius), f"radius must lie in [0, max_radius={max_radius}]")
+    radius = jnp.asarray(checked_range(radius, 0, max_radius, f"radius must lie in [0, max_radius={max_radius}]"), dtype)
     height, width = mask.shape
     padded = jnp.pad(mask.astype(dtype), max_radius, mode="edge")
     result = mask.astype(dtype)

@@ -229,12 +229,14 @@ _traces = collections.Counter()
 """How many times a run's effect was traced (compiled): `BatchReport.compilations` reads it."""
 
 
-def _frames_function(effect: Effect, layer_only: bool):
-    """The effect on a group of stacked frames, jitted with the effect's fields as constants.
+def frames_function(effect: Effect, *, layer_only: bool = False):
+    """The effect on a group of stacked frames `(G, H, W, ...)`, jitted with the effect's fields as constants.
 
     Known at trace time, the fields let kernels specialise (GodRays' disc
     emitter runs its rays only on the window around the light that can hold
-    any); one compilation per run and frame size.
+    any); one compilation per run and frame size, and one program for every
+    run of the same effect and size, so `apply` and `batch` share the entries
+    of JAX's persistent compilation cache when the command line enables it.
     """
 
     def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
@@ -289,7 +291,7 @@ def run_batch(
     bar = tqdm.tqdm(total=len(todo), unit="frame", file=progress, disable=progress is None, dynamic_ncols=True)
 
     traces_before = _traces["frames"]
-    apply_to_frames = _frames_function(effect, layer_only)
+    apply_to_frames = frames_function(effect, layer_only=layer_only)
     mesh = jax.sharding.Mesh(np.array(devices), ("frames",))
     frame_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("frames"))
     group_size = len(devices)

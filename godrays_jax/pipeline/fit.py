@@ -47,6 +47,7 @@ from godrays_jax.effects.base import Effect, parameter_bounds
 from godrays_jax.effects.presets import preset
 from godrays_jax.kernels.losses import LOSSES, Space, check_space, to_space
 from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import ranges_guaranteed
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
@@ -424,8 +425,14 @@ def fit(
     data = (problem, (frames, lights, targets, in_front))
     function = _residual_function if least_squares else _objective_function
 
+    for name, (low, high) in fitted_bounds(effect).items():
+        value = np.asarray(getattr(effect, name))
+        if np.any(value < low) or np.any(value > high):
+            raise ValueError(f"the start's {name} = {value.tolist()} lies outside [{low:g}, {high:g}]")
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
-    with jax.default_matmul_precision("highest"):
+    # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
+    # no run-time range check: without its host callback, JAX's persistent cache can store them.
+    with jax.default_matmul_precision("highest"), ranges_guaranteed():
         loss_before = float(_evaluate(effect, data))
         history = [loss_before]
         y = _start_point(problem, np.dtype(dtype))

@@ -1,9 +1,14 @@
 """Trace-time argument checks (each error names the argument), and the one line that reports any error."""
 
+import contextlib
+import contextvars
 import numbers
+from collections.abc import Iterator
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def check_image(image, name: str = "image") -> None:
@@ -56,10 +61,46 @@ def resolve_count(count, upper, name: str, upper_name: str, *, minimum: int = 1)
     return upper, True
 
 
+_RANGES_GUARANTEED = contextvars.ContextVar("ranges_guaranteed", default=False)
+
+
+@contextlib.contextmanager
+def ranges_guaranteed() -> Iterator[None]:
+    """Trace without run-time range checks: the caller keeps every traced value in range itself.
+
+    `fit` does (its unknowns are mapped into each field's bounds), and a
+    program without `equinox.error_if`'s host callback can be stored in JAX's
+    persistent compilation cache.
+    """
+    token = _RANGES_GUARANTEED.set(True)
+    try:
+        yield
+    finally:
+        _RANGES_GUARANTEED.reset(token)
+
+
+def checked_range(value, low: float, high: float, message: str):
+    """`value`, checked to lie in `[low, high]`: now if it is known (a `ValueError`), else when it is computed.
+
+    A known value (a constant closed over by a compiled function, as an
+    effect's fields are in `apply` and `batch`) is checked on the host, so the
+    compiled program needs no host callback and can be cached across
+    processes; a traced one with `equinox.error_if`, unless the caller
+    guarantees the range (`ranges_guaranteed`).
+    """
+    if not isinstance(value, jax.core.Tracer):
+        values = np.asarray(value)
+        if np.any(values < low) or np.any(values > high) or np.any(np.isnan(values)):
+            raise ValueError(message)
+        return value
+    if _RANGES_GUARANTEED.get():
+        return value
+    return eqx.error_if(value, (value < low) | (value > high), message)
+
+
 def checked_count(count, upper: int, name: str, upper_name: str, dtype):
-    """A relaxed count as a `dtype` scalar, with a runtime error if it is outside [0, upper]."""
-    count = jnp.asarray(count, dtype)
-    return eqx.error_if(count, (count < 0) | (count > upper), f"{name} must lie in [0, {upper_name}={upper}]")
+    """A relaxed count as a `dtype` scalar, checked to lie in [0, upper] (`checked_range`)."""
+    return jnp.asarray(checked_range(count, 0, upper, f"{name} must lie in [0, {upper_name}={upper}]"), dtype)
 
 
 def error_line(error: BaseException) -> str:

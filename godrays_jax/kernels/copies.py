@@ -5,8 +5,11 @@ image(light + (p - light) * scale_k)` with the image, the scales and the
 weights each computed from arguments by a function, so that its derivative
 loop can tell the few numbers that move the copies (a radial derivative sum
 each) from those that weight them (a copy sum each) and from the image's own
-(derivative images sampled like it); see `forward_mode`. Inputs of many
-numbers get a rematerialised tangent loop that reverse mode transposes.
+(derivative images sampled like it); see `forward_mode`. The image's own
+tangent goes through `copies_in_image`, a primitive linear in the image whose
+transpose (reverse mode) is `adjoint.copy_adjoint`, a gather like the copies.
+Per-copy scales and weights (vectors of many numbers) get a rematerialised
+tangent loop that reverse mode transposes.
 The CPU and other platforms sum the copies in different loops (`cpu_loop`,
 `gpu_loop`) with the same values.
 """
@@ -16,7 +19,10 @@ import functools
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 
+from godrays_jax.kernels.adjoint import copy_adjoint
 from godrays_jax.kernels.cpu_loop import copy_sums_cpu
 from godrays_jax.kernels.forward_mode import FEW_NUMBERS, differentiated, tangent_of
 from godrays_jax.kernels.gpu_loop import copy_sums_gpu
@@ -114,38 +120,93 @@ def _scaled_copies_jvp(image_fn, schedule, addressing, primals, tangents):
     if light_varies:
         tangent += jnp.tensordot(jnp.asarray(light_dot, dtype), jnp.stack(light_sums), 1, precision="highest")
 
-    # Inputs of many numbers: a tangent loop, rematerialised so that reverse
-    # mode recomputes each copy instead of storing one image per copy. The
-    # image's tangent is sampled like the image (reverse mode scatters whole
-    # rows); per-copy weight and scale tangents multiply the copy and its
-    # radial derivative (reverse mode reduces the cotangent against them).
+    # Per-copy weight and scale tangents (many numbers): a tangent loop,
+    # rematerialised so that reverse mode recomputes each copy instead of
+    # storing one image per copy; they multiply the copy and its radial
+    # derivative (reverse mode reduces the cotangent against them).
     image_dot, scales_dot, weights_dot = (
         tangent_of(function, part)
         for function, part in ((image_fn, image_part), (scales_fn, scale_part), (weights_fn, weight_part))
     )
-    if image_dot is not None or scales_dot is not None or weights_dot is not None:
-        tangent += _tangent_of_many(
-            planes, addressing, image, light_xy, scales, weights, image_dot, scales_dot, weights_dot
+    if scales_dot is not None or weights_dot is not None:
+        tangent += _tangent_of_many(planes, addressing, image, light_xy, scales, weights, scales_dot, weights_dot)
+    tangent = planes.image_from_columns(tangent)
+    # The image's tangent of many numbers is sampled like the image; reverse mode gathers its adjoint.
+    if image_dot is not None:
+        tangent += copies_in_image.bind(image_dot, light_xy, scales, weights, addressing=addressing)
+    return planes.image_from_columns(total), tangent
+
+
+def _copies_total(image, light_xy, scales, weights, *, addressing):
+    total, _, _, _, _ = copy_sums(addressing, False, image, None, light_xy, scales, weights, (None, None))
+    return Planes(image.shape).image_from_columns(total)
+
+
+copies_in_image = Primitive("scaled_copies_in_image")
+"""`copies_in_image.bind(image, light_xy, scales, weights, addressing=...)`: the sum of scaled copies, linear in `image`.
+
+A primitive, so that reverse mode transposes it by `adjoint.copy_adjoint`
+(gathers) instead of transposing the copies' gathers into scatters. Only the
+image may be a linear (tangent) input; the light, scales and weights are
+constants of the linear map. Its JVP in every input is `scaled_copies_of`'s.
+"""
+copies_in_image.def_impl(jax.jit(_copies_total, static_argnames="addressing"))
+copies_in_image.def_abstract_eval(lambda image, *_, addressing: jax.core.ShapedArray(image.shape, image.dtype))
+mlir.register_lowering(copies_in_image, mlir.lower_fun(_copies_total, multiple_results=False))
+
+
+def _identity(image):
+    return image
+
+
+def _copies_in_image_jvp(primals, tangents, *, addressing):
+    def of_all(image, light_xy, scales, weights):
+        return scaled_copies_of(_identity, (_identity, _identity), addressing, (image,), light_xy, ((scales,), (weights,)))
+
+    return jax.jvp(of_all, primals, [ad.instantiate_zeros(tangent) for tangent in tangents])
+
+
+def _copies_in_image_transpose(cotangent, image, light_xy, scales, weights, *, addressing):
+    if any(ad.is_undefined_primal(value) for value in (light_xy, scales, weights)):
+        raise NotImplementedError("copies_in_image is linear in its image only")
+    if type(cotangent) is ad.Zero:
+        return ad.Zero(image.aval), None, None, None
+    return copy_adjoint(addressing, cotangent, light_xy, scales, weights), None, None, None
+
+
+def _copies_in_image_batch(args, dims, *, addressing):
+    """A batch of images alone is summed as one image of more channels; anything else, one at a time."""
+    image, light_xy, scales, weights = args
+    if all(dim is batching.not_mapped for dim in dims[1:]):
+        moved = jnp.moveaxis(image, dims[0], -1)
+        height, width, channels, count = moved.shape
+        total = copies_in_image.bind(
+            moved.reshape(height, width, channels * count), light_xy, scales, weights, addressing=addressing
         )
-    return planes.image_from_columns(total), planes.image_from_columns(tangent)
+        return total.reshape(height, width, channels, count), 3
+    count = next(value.shape[dim] for value, dim in zip(args, dims) if dim is not batching.not_mapped)
+    leading = [
+        jnp.broadcast_to(value, (count,) + value.shape) if dim is batching.not_mapped else jnp.moveaxis(value, dim, 0)
+        for value, dim in zip(args, dims)
+    ]
+    return jax.lax.map(lambda values: copies_in_image.bind(*values, addressing=addressing), leading), 0
 
 
-def _tangent_of_many(planes, addressing, image, light_xy, scales, weights, image_dot, scales_dot, weights_dot):
-    """The copies' sum's tangent in the image's, scales' and weights' tangents (None: zero), in the column layout."""
+ad.primitive_jvps[copies_in_image] = _copies_in_image_jvp
+ad.primitive_transposes[copies_in_image] = _copies_in_image_transpose
+batching.primitive_batchers[copies_in_image] = _copies_in_image_batch
+
+
+def _tangent_of_many(planes, addressing, image, light_xy, scales, weights, scales_dot, weights_dot):
+    """The copies' sum's tangent in the scales' and weights' tangents (None: zero), in the column layout."""
     dtype = image.dtype
     by_rows = planes.by_rows(image)
     col_offsets, row_offsets = offsets(planes, light_xy, dtype)
-    if image_dot is not None:
-        image_dot_by_rows = planes.by_rows(image_dot)
 
     @jax.checkpoint
     def add_tangent(k, total_dot):
         (col_taps, col_slopes), (row_taps, row_slopes) = copy_taps(planes, light_xy, scales[k], addressing, dtype)
-        if image_dot is not None:
-            columns_dot = planes.rows_to_columns(k, planes.sample_rows(image_dot_by_rows, row_taps))
-            total_dot += weights[k] * lerp_rows(columns_dot, col_taps)
-        if scales_dot is not None or weights_dot is not None:
-            columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
+        columns = planes.rows_to_columns(k, planes.sample_rows(by_rows, row_taps))
         if weights_dot is not None:
             total_dot += weights_dot[k] * lerp_rows(columns, col_taps)
         if scales_dot is not None:

@@ -182,5 +182,5 @@ def test_band_covers_the_kernels_scales():
         (1 - jnp.arange(1, 129) * 0.5 / 128, (1100.0, 300.0)),
         (1.03 ** -jnp.arange(20.0), (-50.0, 700.0)),
     ):
-        fits, _ = adjoint._band((1080, 1920), jnp.asarray(light, jnp.float32), scales.astype(jnp.float32), "clamp")
+        fits, _ = adjoint.band_of_copies((1080, 1920), jnp.asarray(light, jnp.float32), scales.astype(jnp.float32), "clamp")
         assert int(np.sum(~np.asarray(fits))) <= 1, "at most the copy at exactly scale 1/2 may fall to the scatter"

@@ -110,7 +110,7 @@ def copy_adjoint_cpu(addressing, cotangent, light_xy, scales, weights):
     height, width, channels = planes.height, planes.width, planes.channels
     by_rows = planes.by_rows(cotangent)
     block = rows_per_block(height, width, channels)
-    band = _band(cotangent.shape, light_xy, scales, addressing)
+    band = band_of_copies(cotangent.shape, light_xy, scales, addressing)
 
     def adjoint_of_block(first_row):
         """Texel rows `first_row .. first_row + block` of every plane, in the column layout `(W, C * block)`."""
@@ -146,7 +146,7 @@ COPIES_PER_STEP = 8
 def copy_adjoint_gpu(addressing, cotangent, light_xy, scales, weights):
     """`copy_adjoint` for a GPU: per copy, a gather along the rows of the image, then along its columns."""
     height, width, _ = cotangent.shape
-    band = _band(cotangent.shape, light_xy, scales, addressing)
+    band = band_of_copies(cotangent.shape, light_xy, scales, addressing)
 
     def add_copy(k, total):
         scale = scales[k]
@@ -182,7 +182,7 @@ def copy_adjoint(addressing: Addressing, cotangent, light_xy, scales, weights):
     )  # fmt: skip
 
 
-def _band(shape, light_xy, scales, addressing: Addressing):
+def band_of_copies(shape, light_xy, scales, addressing: Addressing):
     """Per copy: whether its runs fit the band, and per axis (y, x) the walk positions where its band starts and ends."""
 
     def of_copy(scale):

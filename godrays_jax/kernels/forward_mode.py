@@ -3,8 +3,10 @@
 Differentiated inputs with at most `FEW_NUMBERS` numbers (density, decay, the
 light, an emitter's radius) are differentiated in forward mode inside the
 loop: it also sums, per number, the copies' derivative in it, so a gradient
-costs one such loop and one reduction per number. Inputs of many numbers (a
-whole image, a weight per copy) get a tangent loop instead (`copies`).
+costs one such loop and one reduction per number. Inputs of many numbers get
+no sums: a whole image's tangent is a sum of copies that reverse mode
+transposes by gathers (`copies.copies_in_image`, `adjoint`), a weight per copy
+a tangent loop (`copies`).
 """
 
 import jax
@@ -20,8 +22,9 @@ scales' and weights' together) are differentiated in forward mode inside the loo
 Their derivative images (of the copies' weights and scales, the light, or
 the few numbers an image is computed from) are accumulated alongside the
 copies, so reverse mode needs one reduction per number after the loop, and
-no scatter of the image's adjoint. Larger inputs (a whole image, a vector of
-weights per copy) get a tangent loop that reverse mode transposes.
+no adjoint of the image. Larger inputs get no sums: a whole image goes
+through `copies.copies_in_image` (its adjoint gathered, `adjoint`), a vector
+of weights per copy through a tangent loop that reverse mode transposes.
 """
 
 

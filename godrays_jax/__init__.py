@@ -100,6 +100,8 @@ from godrays_jax.pipeline.sequences import read_light_track as read_light_track
 
 # Fitting (optimistix) and the rasterizer load on first use: `godrays-jax apply` and `batch` need neither.
 _ON_FIRST_USE = {
+    "determination": "godrays_jax.pipeline.fit",
+    "Determination": "godrays_jax.pipeline.fit",
     "fit": "godrays_jax.pipeline.fit",
     "FitResult": "godrays_jax.pipeline.fit",
     "fit_report_image": "godrays_jax.pipeline.report",

@@ -81,9 +81,7 @@ def test_the_shell_commands_run_in_order(scratch):
         **os.environ,
         "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
         "PYTHONPATH": str(ROOT),
-        "JAX_PLATFORMS": "cpu",
-        "JAX_COMPILATION_CACHE_DIR": str(ROOT / ".jax_cache"),  # the suite's cache (conftest.py)
-        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+        "JAX_PLATFORMS": "cpu",  # the compilation cache: GODRAYS_JAX_CACHE_DIR, set by conftest.py
     }
     ran = commands()
     for command in ran:

@@ -67,6 +67,7 @@ from godrays_jax.effects.serialization import (
 )
 from godrays_jax.pipeline.fit import COUNT_FIELDS, fit, fitted_bounds
 from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import ranges_guaranteed
 from godrays_jax.primitives.color import display_map, to_srgb8
 from godrays_jax.primitives.io import encode_png
 from godrays_jax.primitives.resample import box_pool, downsample_box
@@ -392,7 +393,10 @@ class Tuner:
 
         def job():
             start = time.perf_counter()
-            pixels = np.asarray(_render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap))
+            # Values were checked against their bounds above (parse_effect): no run-time check, whose host
+            # callback would keep the compiled view out of the persistent cache (a second launch compiles again).
+            with ranges_guaranteed():
+                pixels = np.asarray(_render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap))
             rendered = time.perf_counter()
             png = encode_png(pixels)
             return {

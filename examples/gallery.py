@@ -1,9 +1,10 @@
 """Every preset applied to the hero frame: one PNG per preset and a labelled contact sheet.
 
-    python examples/gallery.py [--frame FRAME.exr] [--docs]
+    python examples/gallery.py [--frame FRAME.exr] [--docs | --out DIR]
 
-Writes `out/gallery/<preset>.png` and `out/gallery/gallery.png`; with `--docs`
-the contact sheet goes to `docs/images/gallery.png` (the README's picture).
+Writes `out/gallery/<preset>.png` and `out/gallery/gallery.png` (or into
+`--out DIR`); with `--docs` the contact sheet goes to `docs/images/gallery.png`
+(the README's picture).
 The default frame is `examples/data/forest_hero.exr` (rendered by
 `make_hero_frame.py`), which carries the light and glow passes the seed-004
 and seed-000 presets read. Runs from any directory.
@@ -22,12 +23,12 @@ COLUMNS = 3
 TILE_WIDTH = 480
 
 
-def make_gallery(frame: Path = HERO_FRAME, *, docs: bool = False) -> None:
-    """One PNG per preset in out/gallery/ and the labelled contact sheet (in docs/images/ with `docs`)."""
+def make_gallery(frame: Path = HERO_FRAME, *, docs: bool = False, out: Path | None = None) -> None:
+    """One PNG per preset in out/gallery/ (or `out`) and the labelled contact sheet (in docs/images/ with `docs`)."""
     buffers = gr.read_buffers(frame)
     light_xy, in_front = gr.read_light(frame)
     light = jnp.asarray(light_xy, jnp.float32)
-    folder = output_folder(False, "gallery")
+    folder = output_folder(False, "gallery", out)
     tiles = [labelled(resized(display(buffers.color), TILE_WIDTH), "input frame (no effect)")]
     for name in sorted(gr.PRESETS):
         effect = gr.preset(name)
@@ -38,15 +39,17 @@ def make_gallery(frame: Path = HERO_FRAME, *, docs: bool = False) -> None:
         gr.write_image(folder / f"{name}.png", image)
         print(f"wrote {folder / (name + '.png')}")
         tiles.append(labelled(resized(display(image), TILE_WIDTH), f"{name} ({type(effect).__name__})"))
-    write_display(output_folder(docs, "gallery") / "gallery.png", contact_sheet(tiles, COLUMNS))
+    write_display(output_folder(docs, "gallery", out) / "gallery.png", contact_sheet(tiles, COLUMNS))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frame", type=Path, default=HERO_FRAME, help="an EXR with colour, depth and the light's position")
-    parser.add_argument("--docs", action="store_true", help="write the contact sheet to docs/images/gallery.png")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--docs", action="store_true", help="write the contact sheet to docs/images/gallery.png")
+    where.add_argument("--out", type=Path, help="folder for the pictures (default out/gallery/ at the repository root)")
     args = parser.parse_args()
-    make_gallery(args.frame, docs=args.docs)
+    make_gallery(args.frame, docs=args.docs, out=args.out)
 
 
 if __name__ == "__main__":

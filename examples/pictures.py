@@ -2,7 +2,7 @@
 
 Every path is relative to this file, so the scripts run from any directory.
 Pictures go to `out/` at the repository root unless a script is given
-`--docs`, which writes the README's pictures in `docs/images/`.
+`--docs`, which writes the README's pictures in `docs/images/`, or `--out DIR`.
 """
 
 from pathlib import Path
@@ -17,9 +17,9 @@ LABEL_HEIGHT = 24
 LABEL_SIZE = 16
 
 
-def output_folder(docs: bool, name: str) -> Path:
-    """`docs/images/` with `--docs`, else `out/<name>/`; created if missing."""
-    folder = DOCS_IMAGES if docs else ROOT / "out" / name
+def output_folder(docs: bool, name: str, out: Path | None = None) -> Path:
+    """`docs/images/` with `--docs`, else `out` if given, else `out/<name>/` at the repository root; created if missing."""
+    folder = DOCS_IMAGES if docs else out if out is not None else ROOT / "out" / name
     folder.mkdir(parents=True, exist_ok=True)
     return folder
 

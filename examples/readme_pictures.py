@@ -1,6 +1,6 @@
 """Regenerate every picture in the README.
 
-    python examples/readme_pictures.py [--docs]
+    python examples/readme_pictures.py [--docs | --out DIR]
 
 - `hero.png`: the hero frame (examples/data/forest_hero.exr) before and after
   the `gpu_gems` preset, as the README's main command makes it;
@@ -10,10 +10,12 @@
   `seed_scenes.png` (each article's scene with its preset, `render_seeds.py`).
 
 Into `out/readme/` (the gallery and seed pictures into `out/gallery/` and
-`out/seeds/`), or `docs/images/` with `--docs`. Runs from any directory.
+`out/seeds/`), all into `--out DIR`, or into `docs/images/` with `--docs`.
+Runs from any directory.
 """
 
 import argparse
+from pathlib import Path
 
 import equinox as eqx
 import hidden_sun
@@ -71,13 +73,15 @@ def make_hidden_sun(folder) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--docs", action="store_true", help="write the pictures to docs/images/")
-    docs = parser.parse_args().docs
-    folder = output_folder(docs, "readme")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--docs", action="store_true", help="write the pictures to docs/images/")
+    where.add_argument("--out", type=Path, help="one folder for every picture (default out/<kind>/ at the repository root)")
+    args = parser.parse_args()
+    folder = output_folder(args.docs, "readme", args.out)
     make_hero(folder)
     make_hidden_sun(folder)
-    make_gallery(docs=docs)
-    make_seed_pictures(docs=docs)
+    make_gallery(docs=args.docs, out=args.out)
+    make_seed_pictures(docs=args.docs, out=args.out)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,15 @@
 """Render each source article's example scene and compose it with that article's preset.
 
-    python examples/render_seeds.py [--docs]
+    python examples/render_seeds.py [--docs | --out DIR]
 
 For every seed scene in examples/scenes/ it writes `<scene>_<preset>.png` (the
 render with the seed's effect), seed 000's glow pass, and `seed_scenes.png`, a
-labelled contact sheet of them; into `out/seeds/`, or `docs/images/` with
-`--docs` (the README's picture). Runs from any directory.
+labelled contact sheet of them; into `out/seeds/`, `--out DIR`, or
+`docs/images/` with `--docs` (the README's picture). Runs from any directory.
 """
 
 import argparse
+from pathlib import Path
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -27,9 +28,9 @@ PRESET_OF_SCENE = {
 }
 
 
-def make_seed_pictures(*, docs: bool = False) -> None:
+def make_seed_pictures(*, docs: bool = False, out: Path | None = None) -> None:
     """Every seed scene rendered and composed with its article's preset, and their contact sheet."""
-    folder = output_folder(docs, "seeds")
+    folder = output_folder(docs, "seeds", out)
     tiles = []
     for name, preset_name in PRESET_OF_SCENE.items():
         scene, camera = gr.load_scene(SCENES / f"{name}.json")
@@ -50,8 +51,11 @@ def make_seed_pictures(*, docs: bool = False) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--docs", action="store_true", help="write the pictures to docs/images/")
-    make_seed_pictures(docs=parser.parse_args().docs)
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--docs", action="store_true", help="write the pictures to docs/images/")
+    where.add_argument("--out", type=Path, help="folder for the pictures (default out/seeds/ at the repository root)")
+    args = parser.parse_args()
+    make_seed_pictures(docs=args.docs, out=args.out)
 
 
 if __name__ == "__main__":

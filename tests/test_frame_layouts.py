@@ -169,3 +169,14 @@ def test_light_pass_preset_falls_back_to_the_disc_on_the_shipped_frame(tmp_path,
     frame = gr.read_buffers(SAMPLE)
     difference = np.abs(np.asarray(gr.read_image(out)) - np.clip(np.asarray(frame.color), 0, 1))
     assert float(difference.max()) > 0.1
+
+
+def test_batch_of_a_light_pass_preset_falls_back_once_for_the_run(tmp_path, capsys):
+    (tmp_path / "in").mkdir()
+    for number in (1, 2):
+        (tmp_path / "in" / f"sample.{number:04d}.exr").write_bytes(SAMPLE.read_bytes())
+    status = main(["batch", str(tmp_path / "in" / "sample.#.exr"), "-o", str(tmp_path / "out"), "--preset", "galaxy_vls", "-q"])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    assert captured.err.count("\n") == 1 and "no light pass" in captured.err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["sample.0001.exr", "sample.0002.exr"]

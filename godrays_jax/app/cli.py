@@ -65,6 +65,9 @@ def _add_effect_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--params", metavar="FILE", help="effect parameters as JSON (from `fit` or save_effect)")
 
 
+FRAME_HELP = "the frame: EXR (or any OpenImageIO format) with colour and depth channels (plain, Nuke or Blender names)"
+
+
 def _add_frame_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--color-layer", metavar="LAYER",
@@ -85,7 +88,7 @@ def _add_apply(subparsers) -> None:
         help="apply an effect to a frame",
         description="Apply a light-scattering effect to a frame (colour + depth) and write the result.",
     )
-    parser.add_argument("buffers", help="the frame: EXR (or any OpenImageIO format) with R, G, B and a depth channel")
+    parser.add_argument("buffers", help=FRAME_HELP)
     parser.add_argument("-o", "--output", required=True, help="output image (.exr, .png, .tif, .jpg)")
     parser.add_argument(
         "--light",
@@ -150,7 +153,7 @@ def _add_tune(subparsers) -> None:
         description="Serve a page on 127.0.0.1 with a slider for every parameter of an effect, the light draggable "
         "on the frame, before/after and difference views, fit to a target, and save (the JSON `apply --params` reads).",
     )
-    parser.add_argument("buffers", help="the frame: EXR (or any OpenImageIO format) with R, G, B and a depth channel")
+    parser.add_argument("buffers", help=FRAME_HELP)
     parser.add_argument("--target", help="a reference image of the frame's size, for the difference view and fitting")
     parser.add_argument(
         "--light",
@@ -178,7 +181,7 @@ def _add_fit(subparsers) -> None:
         "write them as JSON for `apply --params`. Progress goes to stderr; the fitted parameters and the loss "
         "before/after to stdout.",
     )
-    parser.add_argument("buffers", help="the frame: EXR (or any OpenImageIO format) with R, G, B and a depth channel")
+    parser.add_argument("buffers", help=FRAME_HELP)
     parser.add_argument("target", help="the reference image of the same size (linear; EXR recommended)")
     parser.add_argument(
         "--frames", nargs=2, action="append", metavar=("BUFFERS", "TARGET"),

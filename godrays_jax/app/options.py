@@ -80,10 +80,10 @@ def parse_sky_depth(text: str) -> float:
 
 
 SKY_DEPTH_HELP = (
-    f"depth at or above this (scene units) is open sky (default {SKY_DEPTH:g}: Blender's 1e10 background, "
+    f"depth at or above this (scene units) is open sky (default {SKY_DEPTH:.0e}: Blender's 1e10 background, "
     "FLT_MAX and inf; in a half-float depth channel also 65504); set it to the far plane your renderer writes "
     "on the background, e.g. --sky-depth 1000"
-)
+).replace("e+0", "e")
 
 
 def frame_reading(args: argparse.Namespace) -> dict:

@@ -18,7 +18,12 @@ from godrays_jax.app.options import (
     warn,
 )
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
-from godrays_jax.pipeline.fit import default_fit_effect, determination, fit, render_compiled
+from godrays_jax.pipeline.fit import (
+    default_fit_effect,
+    determination,
+    fit,
+    render_compiled,
+)
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.io import read_buffers, read_image, write_image
 

@@ -10,7 +10,6 @@ from jaxtyping import ArrayLike, Float
 
 from godrays_jax.primitives.color import display_map, srgb_decode
 
-
 _PANEL_WIDTH = 320
 """Panels narrower than this are enlarged (nearest pixel, integer factor) so their labels stay legible."""
 

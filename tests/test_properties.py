@@ -300,6 +300,35 @@ def _effect_grad(effect_and_light, buffers, in_front):
     return jnp.sum(effect(buffers, light, light_in_front=in_front) ** 2)
 
 
+@st.composite
+def any_finite_lights(draw, height: int, width: int):
+    """Anywhere up to 1e30 px away on either axis, or exactly on the screen's edge (where the fade starts)."""
+    if draw(st.booleans()):
+        return jnp.asarray((draw(st.sampled_from([0.0, width])), draw(st.floats(-1e30, 1e30))), jnp.float32)
+
+    def coordinate():
+        return draw(st.sampled_from([-1.0, 1.0])) * 10.0 ** draw(st.floats(-2.0, 30.0))
+
+    return jnp.asarray((coordinate(), coordinate()), jnp.float32)
+
+
+@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@settings(SETTINGS, max_examples=6)
+@given(st.data())
+def test_every_preset_finite_values_and_gradients_for_any_finite_light(name, data):
+    """Far lights once overflowed float32 in squared pixel distances (offscreen fade, disc) and made gradients NaN."""
+    buffers = data.draw(frames())
+    light = data.draw(any_finite_lights(buffers.height, buffers.width))
+    effect = _small(name)
+    out = _apply_effect(effect, buffers, light, jnp.asarray(True))
+    assert out.shape == buffers.color.shape and _finite(out)
+    effect_grad, light_grad = _effect_grad((effect, light), buffers, jnp.asarray(True))
+    checked = [field for field in ("offscreen_fade", "light_radius") if hasattr(effect, field)]
+    for field in checked:
+        assert _finite(getattr(effect_grad, field)), (field, light)
+    assert _finite(light_grad) and _finite(effect_grad), light
+
+
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))
 def test_effects_vmap_over_frames_equals_loop(name):
     rng = np.random.default_rng(5)

@@ -143,12 +143,14 @@ def light_visibility(
     """
     check_light(light_xy)
     light_xy = jnp.asarray(light_xy, dtype)
-    outside_x = jnp.maximum(jnp.maximum(-light_xy[0], light_xy[0] - width), 0.0)
-    outside_y = jnp.maximum(jnp.maximum(-light_xy[1], light_xy[1] - height), 0.0)
+    reach = jnp.maximum(jnp.asarray(fade, dtype), 1e-6) * max(height, width)
+    # Clipped to the reach, then in units of it, before squaring: squares of far lights' pixel distances
+    # overflow float32 (beyond ~2e19 px), and a distance of 1 reach or more is t = 1 whatever the rest.
+    outside_x = jnp.minimum(jnp.maximum(jnp.maximum(-light_xy[0], light_xy[0] - width), 0.0), reach) / reach
+    outside_y = jnp.minimum(jnp.maximum(jnp.maximum(-light_xy[1], light_xy[1] - height), 0.0), reach) / reach
     squared = outside_x**2 + outside_y**2
     distance = jnp.where(squared > 0, jnp.sqrt(jnp.where(squared > 0, squared, 1.0)), 0.0)
-    reach = jnp.maximum(jnp.asarray(fade, dtype), 1e-6) * max(height, width)
-    t = jnp.clip(distance / reach, 0.0, 1.0)
+    t = jnp.minimum(distance, 1.0)
     return (1.0 - t * t * (3.0 - 2.0 * t)) * jnp.asarray(light_in_front, dtype)
 
 

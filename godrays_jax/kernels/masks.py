@@ -75,8 +75,11 @@ def light_source_mask(
     radius = jnp.maximum(jnp.asarray(radius, dtype), 1e-6)
     x, y = pixel_centres(height, width, dtype)
     if texture is None:
-        distance = jnp.sqrt((x - light_xy[0]) ** 2 + (y - light_xy[1]) ** 2 + 1e-12)
-        flare = jnp.clip(1.0 - distance / radius, 0.0, 1.0)[..., None]
+        # In radii, clipped before squaring: a far light's squared pixel distance overflows float32 (and its
+        # gradient turns NaN), and beyond 1.5 radii on either axis the flare is 0 whatever the exact distance.
+        dx = jnp.clip((x - light_xy[0]) / radius, -1.5, 1.5)
+        dy = jnp.clip((y - light_xy[1]) / radius, -1.5, 1.5)
+        flare = jnp.clip(1.0 - jnp.sqrt(dx**2 + dy**2 + 1e-12 / radius**2), 0.0, 1.0)[..., None]
     else:
         check_image(texture, "texture")
         tex_h, tex_w = texture.shape[0], texture.shape[1]

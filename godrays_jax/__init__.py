@@ -78,6 +78,7 @@ from godrays_jax.kernels.rays import scaled_copies as scaled_copies
 from godrays_jax.effects.base import Effect as Effect
 from godrays_jax.effects.base import light_visibility as light_visibility
 from godrays_jax.effects.base import parameter_bounds as parameter_bounds
+from godrays_jax.effects.base import STATIC_RANGES as STATIC_RANGES
 from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
 from godrays_jax.effects.glow import Bloom as Bloom
 from godrays_jax.effects.glow import LensDirt as LensDirt
@@ -88,6 +89,7 @@ from godrays_jax.effects.presets import preset as preset
 from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
 from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
 from godrays_jax.effects.serialization import load_effect as load_effect
+from godrays_jax.effects.serialization import MAX_EFFECT_FILE_BYTES as MAX_EFFECT_FILE_BYTES
 from godrays_jax.effects.serialization import save_effect as save_effect
 from godrays_jax.effects.shafts import FlareOuts as FlareOuts
 from godrays_jax.effects.shafts import GodRays as GodRays

@@ -419,3 +419,32 @@ def test_nan_and_inf_colour_reported_and_inf_depth_is_sky():
     depth[1, 1] = -1.0
     with pytest.raises(ValueError, match="'f7'.*color has 2 pixels with NaN or infinite.*depth has 1 pixel with negative"):
         gr.check_buffers(gr.Buffers(color=color, depth=depth, coverage=np.zeros((3, 4), np.float32)), name="f7")
+
+
+def test_every_integer_static_field_has_a_documented_range():
+    for cls in (gr.GodRays, gr.FlareOuts, gr.SunOvercast, gr.LensDirt, gr.SunSpot, gr.Bloom, gr.ScatteringFog):
+        for field in dataclasses.fields(cls):
+            if field.metadata.get("static") and field.type is int:
+                assert field.name in gr.STATIC_RANGES, f"{cls.__name__}.{field.name}: add it to STATIC_RANGES"
+                low, high = gr.STATIC_RANGES[field.name]
+                assert low <= field.default <= high
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda: gr.GodRays(density="0.5"), r"GodRays.density must be a number .*got '0.5'"),
+        (lambda: gr.GodRays(tint=[[1], [1, 2], 3]), r"GodRays.tint must be a number"),
+        (lambda: gr.GodRays(exposure=True), r"GodRays.exposure must be a number"),
+        (lambda: gr.GodRays(use_bright_pass="false"), r"GodRays.use_bright_pass must be true or false"),
+        (lambda: gr.GodRays(max_samples=10**8), r"GodRays.max_samples must lie in \[1, 4096\]"),
+        (lambda: gr.GodRays(num_samples=8.0, max_samples=8.0), r"GodRays.max_samples must be an integer, got 8.0"),
+        (lambda: gr.GodRays(source=["disc"]), r"GodRays.source must be one of disc, sky, light_pass"),
+        (lambda: gr.FlareOuts(max_iters=0), r"FlareOuts.max_iters must lie in \[1, 64\]"),
+        (lambda: gr.LensDirt(dirt_seed=-1), r"LensDirt.dirt_seed must lie in"),
+        (lambda: gr.Bloom(blend_mode=1), r"Bloom.blend_mode must be a string"),
+    ],
+)
+def test_constructors_refuse_values_of_the_wrong_type_or_range(make, message):
+    with pytest.raises(ValueError, match=message):
+        make()

@@ -17,6 +17,8 @@ unchanged). `Bloom` does not depend on the light and ignores both.
 
 import dataclasses
 import functools
+import reprlib
+import typing
 from typing import Literal
 
 import equinox as eqx
@@ -29,7 +31,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from godrays_jax.kernels.composite import BLEND_MODES, blend
 from godrays_jax.kernels.masks import coverage_mask, light_source_mask
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.primitives.checks import check_light
+from godrays_jax.primitives.checks import check_light, is_static_int
 
 Source = Literal["disc", "sky", "light_pass"]
 
@@ -37,8 +39,76 @@ Source = Literal["disc", "sky", "light_pass"]
 SOURCES: tuple[str, ...] = ("disc", "sky", "light_pass")
 
 
+STATIC_RANGES: dict[str, tuple[int, int]] = {
+    "max_samples": (1, 4096),
+    "max_iters": (1, 64),
+    "max_passes": (0, 8),
+    "max_morphology": (0, 64),
+    "blur_radius": (0, 1024),
+    "glow_radius": (0, 1024),
+    "radius": (0, 1024),
+    "gaussian_radius": (0, 1024),
+    "resolution_factor": (1, 64),
+    "dirt_seed": (0, 2**63 - 1),
+}
+"""Inclusive ranges of the integer static fields, checked by every effect's constructor (so also for params files).
+
+Loop lengths stop at the top of the fittable count they bound (`num_samples`
+<= 4096, `num_iters` <= 64, `passes` <= 8, `source_grow` / `occluder_shrink`
+<= 64 px): a longer loop renders the same image more slowly, and a huge one
+(`max_samples: 1e8`) hangs a render. Blur half-widths stop at 1024 px, three
+standard deviations of the widest Gaussian (`gaussian_sigma` <= 100 px) with
+room to spare; `resolution_factor` at 64 (a 4K frame is then 60 px wide);
+`dirt_seed` is any non-negative 64-bit seed.
+"""
+
+
+def _is_numbers(value) -> bool:
+    if isinstance(value, jax.core.Tracer):
+        return True
+    if isinstance(value, (jax.Array, np.ndarray, np.generic)):
+        return value.dtype.kind in "fiu"
+    if isinstance(value, bool) or not isinstance(value, (int, float, list, tuple)):
+        return False
+    try:
+        return np.asarray(value).dtype.kind in "fiu"  # ragged or too deep lists raise; huge ints are objects
+    except (ValueError, TypeError, OverflowError, RecursionError):
+        return False
+
+
 def _array(value) -> Array:
-    return jnp.asarray(value, dtype=jnp.result_type(float))
+    # Anything but numbers is kept as given, so that `__check_init__` names the field:
+    # a JSON "0.5" or true is not a number.
+    return jnp.asarray(value, dtype=jnp.result_type(float)) if _is_numbers(value) else value
+
+
+_SHOWN = reprlib.Repr()
+_SHOWN.maxlevel, _SHOWN.maxstring, _SHOWN.maxother = 3, 40, 40
+
+
+def _check_static(owner: str, name: str, annotation, value) -> None:
+    """A static field's value against its annotation (`bool`, `int` with `STATIC_RANGES`, `Literal`, `str`)."""
+    shown = _SHOWN.repr(value)
+    if annotation is bool:
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{owner}.{name} must be true or false (a boolean), got {shown}")
+    elif annotation is int:
+        if not is_static_int(value):
+            raise ValueError(f"{owner}.{name} must be an integer, got {shown}")
+        low, high = STATIC_RANGES.get(name, (0, 2**63 - 1))
+        if not low <= value <= high:
+            raise ValueError(f"{owner}.{name} must lie in [{low}, {high}] (STATIC_RANGES), got {value}")
+    elif typing.get_origin(annotation) is Literal:
+        if not isinstance(value, str) or value not in typing.get_args(annotation):
+            raise ValueError(f"{owner}.{name} must be one of {', '.join(typing.get_args(annotation))}; got {shown}")
+    elif annotation is str and not isinstance(value, str):
+        raise ValueError(f"{owner}.{name} must be a string, got {shown}")
+
+
+@functools.cache
+def _static_annotations(cls) -> dict[str, object]:
+    hints = typing.get_type_hints(cls)
+    return {field.name: hints[field.name] for field in dataclasses.fields(cls) if field.metadata.get("static")}
 
 
 def param(default, *, low: float, high: float):
@@ -81,6 +151,9 @@ class Effect(eqx.Module):
         _EFFECT_CLASSES[cls.__name__] = cls
 
     def __check_init__(self):
+        owner = type(self).__name__
+        for name, annotation in _static_annotations(type(self)).items():
+            _check_static(owner, name, annotation, getattr(self, name))
         mode = getattr(self, "blend_mode", "add")
         if mode not in BLEND_MODES:
             raise ValueError(f"blend_mode must be one of {', '.join(BLEND_MODES)}; got {mode!r}")
@@ -91,9 +164,12 @@ class Effect(eqx.Module):
             value = getattr(self, name)
             if isinstance(value, jax.core.Tracer):
                 continue  # built inside a traced function: the kernels check what they must at run time
+            if not isinstance(value, jax.Array):
+                shown = _SHOWN.repr(value)
+                raise ValueError(f"{owner}.{name} must be a number (a list of numbers for a vector), got {shown}")
             values = np.asarray(value)
             if not (np.all(np.isfinite(values)) and np.all(values >= low) and np.all(values <= high)):
-                raise ValueError(f"{type(self).__name__}.{name} must lie in [{low:g}, {high:g}], got {values.tolist()}")
+                raise ValueError(f"{owner}.{name} must lie in [{low:g}, {high:g}], got {values.tolist()}")
 
     def __repr__(self) -> str:
         """`GodRays(density=0.5, ...)`: every field with its value (equinox shows `f32[]` placeholders)."""

@@ -25,14 +25,29 @@ def effect_to_dict(effect: Effect) -> dict:
 
 
 def effect_from_dict(fields: dict) -> Effect:
-    """Rebuild an effect from `effect_to_dict`'s output; unknown keys or effects raise `ValueError`."""
+    """Rebuild an effect from `effect_to_dict`'s output, validated as the constructor validates its arguments.
+
+    Raises `ValueError` naming the field for an unknown effect or key, a value
+    of the wrong JSON type (`"0.5"` for a number, `"false"` for a boolean), a
+    vector of the wrong length, or a value out of its range (`parameter_bounds`,
+    `STATIC_RANGES`).
+    """
     fields = dict(fields)
     kind = fields.pop("effect", None)
+    if not isinstance(kind, str):
+        raise ValueError(f'the "effect" key must name an effect class, got {json.dumps(kind)}')
     cls = effect_class(kind)
     unknown = sorted(set(fields) - set(_field_names(cls)))
     if unknown:
         raise ValueError(f"unknown parameter(s) for {kind}: {', '.join(unknown)}")
-    return cls(**fields)
+    effect = cls(**fields)
+    for field in dataclasses.fields(cls):
+        expected = np.shape(field.default) if "bounds" in field.metadata else None
+        if field.name in fields and expected is not None and np.shape(getattr(effect, field.name)) != expected:
+            raise ValueError(
+                f"{kind}.{field.name} must have shape {list(expected)}, got {np.shape(getattr(effect, field.name))}"
+            )
+    return effect
 
 
 def save_effect(path: str | os.PathLike, effect: Effect) -> None:
@@ -43,15 +58,55 @@ def save_effect(path: str | os.PathLike, effect: Effect) -> None:
         stream.write(text)
 
 
+MAX_EFFECT_FILE_BYTES = 1 << 20
+"""`load_effect` refuses larger files: an effect's parameters take a few hundred bytes."""
+
+
 def load_effect(path: str | os.PathLike) -> Effect:
-    """Read parameters written by `save_effect` (or by `godrays-jax fit`)."""
-    with open(path) as stream:
-        try:
-            fields = json.load(stream)
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{os.fspath(path)} is not valid JSON: {error}") from None
-    if not isinstance(fields, dict):
-        raise ValueError(f"{os.fspath(path)} must hold a JSON object")
+    """Read parameters written by `save_effect` (or by `godrays-jax fit`); `ValueError` for anything else.
+
+    Every value is validated as `effect_from_dict` does; a file over
+    `MAX_EFFECT_FILE_BYTES`, not UTF-8, not JSON (also numbers of thousands
+    of digits, nesting too deep for the parser) or not a JSON object is refused.
+    """
+    path = os.fspath(path)
+    with open(path, "rb") as stream:
+        data = stream.read(MAX_EFFECT_FILE_BYTES + 1)
+    if len(data) > MAX_EFFECT_FILE_BYTES:
+        raise ValueError(f"{path} is not an effect's parameters: larger than {MAX_EFFECT_FILE_BYTES} bytes")
+    try:
+        fields = parse_json_object(data)
+    except ValueError as error:
+        raise ValueError(f"{path} {error}") from None
     return effect_from_dict(fields)
+
+
+MAX_INTEGER_DIGITS = 100
+"""`parse_json_object` refuses integers longer than this (no parameter needs more; Python's own limit is 4300)."""
+
+
+def _integer(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_INTEGER_DIGITS:
+        raise ValueError(f"an integer of {len(text.lstrip('-'))} digits (at most {MAX_INTEGER_DIGITS})")
+    return int(text)
+
+
+def parse_json_object(data: bytes | str) -> dict:
+    """A JSON object from UTF-8 bytes or text; for anything else `ValueError("is not ...: reason")`, one line.
+
+    Malformed JSON, bytes that are not UTF-8, nesting too deep for the parser,
+    integers of more than `MAX_INTEGER_DIGITS` digits and any value that is not
+    an object are refused.
+    """
+    try:
+        value = json.loads(data.decode("utf-8") if isinstance(data, bytes) else data, parse_int=_integer)
+    except RecursionError:
+        raise ValueError("is not valid JSON: nested too deeply") from None
+    except ValueError as error:  # malformed JSON, not UTF-8, an integer of too many digits
+        raise ValueError(f"is not valid JSON: {error}") from None
+    if not isinstance(value, dict):
+        kind = {list: "an array", str: "a string", bool: "a boolean", type(None): "null"}.get(type(value), "a number")
+        raise ValueError(f"is not a JSON object {{...}}: it is {kind}")
+    return value
 
 

@@ -57,6 +57,7 @@ partial output is ever left behind.
 """
 
 import dataclasses
+import math
 import os
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -337,6 +338,8 @@ def _parse_light_px(value: object, path: str) -> tuple[float, float]:
         raise ValueError(
             f"image '{path}': attribute {_LIGHT_PX_ATTR} must be two numbers, got {value!r}"
         ) from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"image '{path}': attribute {_LIGHT_PX_ATTR} must be finite, got ({x}, {y})")
     return x, y
 
 
@@ -352,7 +355,7 @@ def read_light(path: str | os.PathLike) -> tuple[tuple[float, float], bool] | No
     Raises:
         FileNotFoundError: the file does not exist.
         ValueError: the file is not a readable image, or `godrays:light_px`
-            is not two numbers.
+            is not two finite numbers.
     """
     path = os.fspath(path)
     if not os.path.exists(path):

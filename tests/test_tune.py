@@ -4,7 +4,11 @@ import base64
 import http.client
 import json
 import os
+import re
 import shutil
+import socket
+import stat
+import struct
 import threading
 import time
 
@@ -17,8 +21,10 @@ from selenium import webdriver
 
 import godrays_jax as gr
 from godrays_jax.primitives.buffers import Buffers
+import godrays_jax.app.server as server_module
+import godrays_jax.app.tuner as tuner_module
 from godrays_jax.app.cli import main
-from godrays_jax.app.server import HOST, TuneServer
+from godrays_jax.app.server import HOST, MAX_WORKERS, TOKEN_HEADER, TuneServer
 from godrays_jax.app.tuner import (
     PIXEL_FIELDS,
     RenderQueue,
@@ -192,21 +198,35 @@ def test_render_queue_hands_errors_back_and_keeps_working():
 
 
 class Client:
-    def __init__(self, port):
-        self.port = port
+    """The API over HTTP as the page uses it: JSON bodies with the server's token (or other headers, to probe)."""
 
-    def request(self, method, path, body=None, *, raw=None, host=None):
+    def __init__(self, server):
+        self.port, self.token = server.port, server.token
+
+    def request(self, method, path, body=None, *, raw=None, host=None, headers=None):
         connection = http.client.HTTPConnection(HOST, self.port, timeout=120)
         try:
             data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
-            headers = {"Content-Type": "application/json"}
+            sent = {"Content-Type": "application/json", TOKEN_HEADER: self.token}
             if host is not None:
-                headers["Host"] = host
-            connection.request(method, path, body=data, headers=headers)
+                sent["Host"] = host
+            sent.update(headers or {})
+            connection.request(method, path, body=data, headers={k: v for k, v in sent.items() if v is not None})
             response = connection.getresponse()
             return response.status, json.loads(response.read())
         finally:
             connection.close()
+
+    def fit(self, body):
+        """Start a fit and poll it until it ends: (status of the start, the final progress)."""
+        status, answer = self.request("POST", "/api/fit", body)
+        if status != 200:
+            return status, answer
+        deadline = time.monotonic() + 300
+        while answer["running"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+            answer = self.request("GET", "/api/fit")[1]
+        return status, answer
 
 
 @pytest.fixture(scope="module")
@@ -233,7 +253,7 @@ def test_server_listens_on_loopback_only(server):
 
 
 def test_state_lists_sliders_with_the_effects_bounds(server):
-    status, state = Client(server.port).request("GET", "/api/state")
+    status, state = Client(server).request("GET", "/api/state")
     assert status == 200
     assert (state["width"], state["height"], state["preview_factor"]) == (64, 36, 3)
     assert state["bounds"]["decay"] == list(gr.parameter_bounds(gr.GodRays)["decay"])
@@ -254,7 +274,7 @@ def test_page_is_self_contained(server):
 
 
 def test_render_returns_png_frames_at_both_qualities(server, tmp_path):
-    client = Client(server.port)
+    client = Client(server)
     status, full = client.request("POST", "/api/render", {"quality": "full", "params": {"exposure": 2.0}})
     assert status == 200, full
     assert (full["width"], full["height"], full["quality"]) == (64, 36, "full")
@@ -269,7 +289,7 @@ def test_render_returns_png_frames_at_both_qualities(server, tmp_path):
 
 
 def test_every_view_renders_and_views_differ(server):
-    client = Client(server.port)
+    client = Client(server)
     images = {}
     for view in ("after", "before", "layer", "difference", "target"):
         status, answer = client.request("POST", "/api/render", {"view": view, "quality": "preview"})
@@ -279,7 +299,7 @@ def test_every_view_renders_and_views_differ(server):
 
 
 def test_moving_a_parameter_or_the_light_changes_the_frame(server):
-    client = Client(server.port)
+    client = Client(server)
     frames = [
         client.request("POST", "/api/render", body)[1]["image"]
         for body in ({}, {"params": {"density": 0.9}}, {"light": [10.0, 3.0]}, {"light_in_front": False})
@@ -307,7 +327,7 @@ def test_moving_a_parameter_or_the_light_changes_the_frame(server):
     ],
 )
 def test_bad_render_requests_get_400_and_the_server_keeps_running(server, body, message):
-    client = Client(server.port)
+    client = Client(server)
     status, answer = client.request("POST", "/api/render", raw=json.dumps(body).encode())
     assert status == 400 and message in answer["error"], answer
     assert client.request("GET", "/api/state")[0] == 200
@@ -316,29 +336,139 @@ def test_bad_render_requests_get_400_and_the_server_keeps_running(server, body, 
 @pytest.mark.parametrize(
     ("path", "raw", "status", "message"),
     [
-        ("/api/render", b"{not json", 400, "malformed JSON"),
-        ("/api/render", b"[1, 2]", 400, "must be a JSON object"),
-        ("/api/render", b"\xff\xfe", 400, "malformed JSON"),
+        ("/api/render", b"{not json", 400, "is not valid JSON"),
+        ("/api/render", b"[1, 2]", 400, "is not a JSON object"),
+        ("/api/render", b"\xff\xfe", 400, "is not valid JSON"),
         ("/api/preset", b'{"name": "unreal_engine"}', 400, "unknown preset"),
         ("/api/preset", b'{"name": "galaxy_vls"}', 400, "cannot render this frame"),  # needs a light pass
         ("/api/nowhere", b"{}", 404, "no such endpoint"),
     ],
 )
 def test_malformed_requests(server, path, raw, status, message):
-    client = Client(server.port)
+    client = Client(server)
     got, answer = client.request("POST", path, raw=raw)
     assert got == status and message in answer["error"]
     assert client.request("POST", "/api/render", {"quality": "preview"})[0] == 200
 
 
 def test_requests_for_other_host_names_are_refused(server):
-    status, answer = Client(server.port).request("GET", "/api/state", host="evil.example:80")
+    status, answer = Client(server).request("GET", "/api/state", host="evil.example:80")
     assert status == 403 and "127.0.0.1" in answer["error"]
+
+
+def test_page_carries_the_launch_token_and_a_strict_policy(server):
+    connection = http.client.HTTPConnection(HOST, server.port, timeout=30)
+    connection.request("GET", "/")
+    response = connection.getresponse()
+    page = response.read().decode()
+    connection.close()
+    policy = response.getheader("Content-Security-Policy")
+    nonce = re.search(r"script-src 'nonce-([^']+)'", policy).group(1)
+    assert f'<meta name="godrays-token" content="{server.token}">' in page
+    assert page.count(f'nonce="{nonce}"') == 2  # the one <style> and the one <script>
+    assert "@GODRAYS_" not in page and len(server.token) >= 32
+    for directive in ("default-src 'none'", "connect-src 'self'", "img-src 'self' data:", "frame-ancestors 'none'"):
+        assert directive in policy
+    assert response.getheader("X-Frame-Options") == "DENY"
+    with TuneServer(Tuner(small_frame(), (1.0, 1.0), effect=small_effect())) as other:
+        assert other.token != server.token  # one per launch
+
+
+def test_answers_carry_the_frame_and_policy_headers(server):
+    connection = http.client.HTTPConnection(HOST, server.port, timeout=30)
+    connection.request("POST", "/api/render", body=b"{}", headers={"Content-Type": "text/plain"})
+    response = connection.getresponse()
+    response.read()
+    connection.close()
+    assert response.status == 403 and response.getheader("X-Frame-Options") == "DENY"
+    assert "frame-ancestors 'none'" in response.getheader("Content-Security-Policy")
+
+
+def test_the_pages_own_origin_may_post(server):
+    client = Client(server)
+    for origin in (f"http://127.0.0.1:{server.port}", f"http://localhost:{server.port}"):
+        status, answer = client.request("POST", "/api/render", {"quality": "preview"}, headers={"Origin": origin})
+        assert status == 200, answer
+
+
+@pytest.mark.parametrize(
+    ("headers", "status", "message"),
+    [
+        ({"Origin": "http://evil.example", "Content-Type": "text/plain", TOKEN_HEADER: None}, 403, "evil.example"),
+        ({"Content-Type": "text/plain"}, 415, "Content-Type must be application/json"),
+        ({TOKEN_HEADER: None}, 403, TOKEN_HEADER),
+        ({TOKEN_HEADER: "x" * 43}, 403, TOKEN_HEADER),
+    ],
+)
+def test_cross_site_requests_change_nothing(server, headers, status, message):
+    """What any web page the user has open can send: refused before the tuner acts, for every endpoint."""
+    client = Client(server)
+    saved = server.tuner.save_path
+    before = os.path.getmtime(saved) if os.path.exists(saved) else None
+    for path, body in (("/api/save", {"params": {"exposure": 4.0}}), ("/api/preset", {"name": "kbengine_flares"}),
+                       ("/api/fit", {}), ("/api/render", {}), ("/api/fit/cancel", {})):  # fmt: skip
+        got, answer = client.request("POST", path, body, headers=headers)
+        assert got == status and message in answer["error"], (path, answer)
+    assert (os.path.getmtime(saved) if os.path.exists(saved) else None) == before
+    assert isinstance(server.tuner.effect, gr.GodRays) and not server.tuner.fit_progress()["running"]
+
+
+def test_a_stalled_body_gets_408_and_sockets_time_out(server, monkeypatch):
+    monkeypatch.setattr(server_module._Handler, "timeout", 0.5)
+    with socket.create_connection((HOST, server.port), timeout=30) as connection:
+        connection.sendall(
+            f"POST /api/render HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+            f"{TOKEN_HEADER}: {server.token}\r\nContent-Length: 100\r\n\r\n{{".encode()
+        )  # fmt: skip
+        response = http.client.HTTPResponse(connection)
+        response.begin()
+        assert response.status == 408 and "did not arrive" in json.loads(response.read())["error"]
+    with socket.create_connection((HOST, server.port), timeout=30) as idle:  # sends nothing at all
+        started = time.monotonic()
+        assert idle.recv(1) == b""  # closed by the server
+        assert time.monotonic() - started < 10
+
+
+def test_many_concurrent_requests_are_all_answered(server):
+    """200 renders at once: no connection reset (listen backlog) and never more than MAX_WORKERS threads."""
+    client = Client(server)
+    statuses, errors = [], []
+    threads_seen = []
+
+    def send():
+        try:
+            statuses.append(client.request("POST", "/api/render", {"quality": "preview"})[0])
+        except Exception as error:  # noqa: BLE001 - collected and asserted on below
+            errors.append(repr(error))
+        threads_seen.append(sum(t.name.startswith("godrays-tune-http") for t in threading.enumerate()))
+
+    senders = [threading.Thread(target=send) for _ in range(200)]
+    for thread in senders:
+        thread.start()
+    for thread in senders:
+        thread.join(120)
+    assert errors == [] and len(statuses) == 200 and set(statuses) <= {200, 409} and 200 in statuses
+    assert max(threads_seen) <= MAX_WORKERS
+
+
+def test_client_disconnects_print_nothing(server, capfd):
+    body = json.dumps({"quality": "full"}).encode()
+    for _ in range(20):
+        with socket.create_connection((HOST, server.port), timeout=30) as connection:
+            connection.sendall(
+                f"POST /api/render HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                f"{TOKEN_HEADER}: {server.token}\r\nContent-Length: {len(body)}\r\n\r\n".encode() + body
+            )  # fmt: skip
+            connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # a reset on close
+    assert Client(server).request("GET", "/api/state")[0] == 200
+    time.sleep(1.0)
+    captured = capfd.readouterr()
+    assert "Traceback" not in captured.err and "Error" not in captured.err, captured.err
 
 
 def test_concurrent_renders_are_coalesced_over_http(server):
     """A burst of requests while one renders: the newest is rendered, the waiting ones get 409."""
-    client = Client(server.port)
+    client = Client(server)
     release = threading.Event()
     blocked = threading.Event()
 
@@ -366,8 +496,17 @@ def test_concurrent_renders_are_coalesced_over_http(server):
     assert statuses == {0.1: 409, 0.2: 409, 0.3: 200}
 
 
+def test_saved_params_get_the_users_normal_permissions(server):
+    previous = os.umask(0o027)
+    try:
+        status, answer = Client(server).request("POST", "/api/save", {"params": {}})
+    finally:
+        os.umask(previous)
+    assert status == 200 and stat.S_IMODE(os.stat(answer["path"]).st_mode) == 0o640
+
+
 def test_save_writes_what_apply_reads(server, tmp_path):
-    client = Client(server.port)
+    client = Client(server)
     status, answer = client.request("POST", "/api/save", {"params": {"exposure": 0.75, "tint": [1.0, 0.5, 0.25]}})
     assert status == 200, answer
     saved = gr.load_effect(answer["path"])
@@ -384,27 +523,55 @@ def test_save_writes_what_apply_reads(server, tmp_path):
 
 
 def test_fit_moves_the_free_parameters_toward_the_target(server):
-    client = Client(server.port)
+    client = Client(server)
     locked = [name for name in server.tuner.bounds() if name != "exposure"]
-    status, answer = client.request("POST", "/api/fit", {"params": {"exposure": 0.5}, "fixed": locked})
-    assert status == 200, answer
+    status, progress = client.fit({"params": {"exposure": 0.5}, "fixed": locked})
+    assert status == 200 and progress["error"] is None and not progress["cancelled"], progress
+    answer = progress["result"]
     assert answer["fitted"] == ["exposure"] and answer["loss_after"] < answer["loss_before"]
     assert abs(answer["effect"]["exposure"] - 1.2) < abs(0.5 - 1.2)
     assert answer["effect"]["light_radius"] == pytest.approx(6.0)  # locked, and scaled back to full resolution
     assert client.request("GET", "/api/fit")[1]["running"] is False
     status, answer = client.request("POST", "/api/fit", {"fixed": list(server.tuner.bounds())})
     assert status == 400 and "every parameter is locked" in answer["error"]
+    server.tuner.effect = small_effect()
+
+
+def test_fit_runs_off_the_request_thread_and_can_be_cancelled(server, monkeypatch):
+    """While a fit runs, renders are answered; a second fit is 409; cancelling stops it and keeps the effect."""
+    client = Client(server)
+    before = server.tuner.effect
+    stepping = threading.Event()
+
+    def endless_fit(*args, progress, **kwargs):  # a fit that only a cancel ends, one step per 50 ms
+        for step in range(1, 2000):
+            progress(step, 1.0 / step)
+            stepping.set()
+            time.sleep(0.05)
+        raise AssertionError("the fit was not cancelled")
+
+    monkeypatch.setattr(tuner_module, "fit", endless_fit)
+    status, started = client.request("POST", "/api/fit", {})
+    assert status == 200 and started["running"] is True
+    assert stepping.wait(30)
+    assert client.request("POST", "/api/render", {"quality": "preview"})[0] == 200
+    status, answer = client.request("POST", "/api/fit", {})
+    assert status == 409 and "already running" in answer["error"]
+    assert client.request("POST", "/api/fit/cancel", {})[0] == 200
+    progress = server.tuner.wait_fit(30)
+    assert progress["running"] is False and progress["cancelled"] is True and progress["result"] is None
+    assert progress["step"] >= 1 and server.tuner.effect is before
 
 
 def test_fit_without_a_target_is_a_400():
     tuner = Tuner(small_frame(), (32.0, 6.0), effect=small_effect())
     with TuneServer(tuner) as running:
-        status, answer = Client(running.port).request("POST", "/api/fit", {})
+        status, answer = Client(running).request("POST", "/api/fit", {})
     assert status == 400 and "--target" in answer["error"]
 
 
 def test_preset_replaces_the_effect(server):
-    client = Client(server.port)
+    client = Client(server)
     status, state = client.request("POST", "/api/preset", {"name": "kbengine_flares"})
     try:
         assert status == 200 and state["effect"]["effect"] == "FlareOuts"
@@ -444,6 +611,7 @@ def browser():
     options.binary_location = CHROMIUM
     for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1400,900"):
         options.add_argument(argument)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})  # CSP violations are reported there
     service = webdriver.ChromeService(executable_path=CHROMEDRIVER if os.path.exists(CHROMEDRIVER) else None)
     driver = webdriver.Chrome(options=options, service=service)
     try:
@@ -494,6 +662,8 @@ def test_page_end_to_end_in_chromium(browser, tmp_path):
         browser.save_screenshot(str(screenshot))
         shutil.copy(screenshot, SCREENSHOT_COPY)
         stats = browser.execute_script("return window.tuneStats")
+        console = [entry["message"] for entry in browser.get_log("browser")]
+    assert not [line for line in console if "Content Security Policy" in line or "403" in line], console
     assert oiio.ImageBuf(str(screenshot)).spec().width > 0
     print("browser timings:", json.dumps(stats))
 

@@ -11,8 +11,9 @@ The JSON API (every answer is JSON; errors are `{"error": message}`):
 | `GET /api/state` | | the frame's size, preview factor, light, effect (`effect_to_dict`), slider bounds, presets, views, tonemaps, save path, whether a target is loaded |
 | `POST /api/render` | `{"params", "light", "light_in_front", "quality", "view", "tonemap"}`, all optional | `{"image": "data:image/png;base64,...", "width", "height", "quality", "render_ms", "encode_ms"}` |
 | `POST /api/preset` | `{"name"}` | the new state (the effect becomes the preset) |
-| `POST /api/fit` | `{"params", "light", "light_in_front", "fixed"}` | `{"effect", "loss_before", "loss_after", "steps", "fitted"}` |
-| `GET /api/fit` | | the running fit's progress `{"running", "step", "loss"}` |
+| `POST /api/fit` | `{"params", "light", "light_in_front", "fixed"}` | starts a fit in the background and answers at once with its progress (409 if one is running) |
+| `GET /api/fit` | | the fit's progress `{"running", "step", "loss", "result", "error", "cancelled"}`; `result` is `{"effect", "loss_before", "loss_after", "steps", "fitted"}` once it is done |
+| `POST /api/fit/cancel` | `{}` | asks the running fit to stop after its current step; its progress |
 | `POST /api/save` | `{"params"}` | `{"path", "effect"}`: writes what `apply --params` reads |
 
 `params` maps fittable field names to numbers (lists for vectors such as
@@ -38,8 +39,10 @@ in display space, the reference being the target if one is loaded, else the
 input frame) and `target`.
 
 "Fit to target" runs `fit.fit` at the preview resolution (the target box-
-averaged the same way), at most `fit_steps` solver steps, and returns the
-fitted values at full resolution; fields named in `fixed` stay as they are.
+averaged the same way), at most `fit_steps` solver steps, on a thread of its
+own (requests go on being answered), and yields the fitted values at full
+resolution; fields named in `fixed` stay as they are. A cancelled fit keeps
+the effect as it was.
 """
 
 import base64
@@ -47,6 +50,7 @@ import dataclasses
 import json
 import math
 import os
+import reprlib
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -67,7 +71,7 @@ from godrays_jax.effects.serialization import (
 )
 from godrays_jax.pipeline.fit import COUNT_FIELDS, fit, fitted_bounds
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.primitives.checks import ranges_guaranteed
+from godrays_jax.primitives.checks import error_line, ranges_guaranteed
 from godrays_jax.primitives.color import display_map, to_srgb8
 from godrays_jax.primitives.io import encode_png
 from godrays_jax.primitives.resample import box_pool, downsample_box
@@ -98,7 +102,11 @@ class TuneRequestError(ValueError):
 
 
 class Superseded(Exception):
-    """A render request replaced by a newer one before it started: answered 409."""
+    """A render request replaced by a newer one before it started, or a fit while one runs: answered 409."""
+
+
+class FitCancelled(Exception):
+    """Raised inside a running fit (from its progress callback) when the page cancels it."""
 
 
 def preview_factor(height: int, width: int, *, max_pixels: int = 40_000) -> int:
@@ -240,16 +248,29 @@ class RenderQueue:
                 future.set_exception(error)
 
 
+def _shown(value: Any) -> str:
+    text = json.dumps(value) if not isinstance(value, (list, dict)) else _SHOWN.repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+_SHOWN = reprlib.Repr()
+_SHOWN.maxlevel, _SHOWN.maxlist = 3, 8
+
+
 def _number(value: Any, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise TuneRequestError(f"{name} must be a finite number, got {json.dumps(value)}")
+        raise TuneRequestError(f"{name} must be a finite number, got {_shown(value)}")
     return float(value)
+
+
+def _fit_state(*, running: bool) -> dict[str, Any]:
+    return {"running": running, "step": 0, "loss": None, "result": None, "error": None, "cancelled": False}
 
 
 def _choice(payload: Mapping, key: str, choices: tuple[str, ...], default: str) -> str:
     value = payload.get(key, default)
     if value not in choices:
-        raise TuneRequestError(f"{key} must be one of {', '.join(choices)}; got {json.dumps(value)}")
+        raise TuneRequestError(f"{key} must be one of {', '.join(choices)}; got {_shown(value)}")
     return value
 
 
@@ -300,9 +321,14 @@ class Tuner:
         self.queue = RenderQueue()
         self._lock = threading.Lock()
         self._fit_lock = threading.Lock()
-        self._fit_progress: dict[str, Any] = {"running": False, "step": 0, "loss": None}
+        self._fit_thread: threading.Thread | None = None
+        self._fit_cancel = threading.Event()
+        self._fit_progress: dict[str, Any] = _fit_state(running=False)
 
     def close(self) -> None:
+        """Cancel a running fit and wait for it, then stop the render worker."""
+        self._fit_cancel.set()
+        self.wait_fit()
         self.queue.close()
 
     def _check_renders(self, effect: Effect) -> None:
@@ -354,23 +380,28 @@ class Tuner:
             low, high = bounds[name]
             expected = np.shape(fields[name])
             values = value if isinstance(value, list) else [value]
-            if np.shape(value) != expected:
-                raise TuneRequestError(f"{name} must have shape {list(expected)}, got {json.dumps(value)}")
+            if len(expected) > 1 or any(isinstance(v, list) for v in values) or np.ndim(value) != len(expected) or (
+                expected and len(values) != expected[0]
+            ):  # checked without NumPy, which refuses ragged lists with an error of its own
+                raise TuneRequestError(f"{name} must have shape {list(expected)}, got {_shown(value)}")
             for element in values:
                 number = _number(element, name)
                 if not low <= number <= high:
                     raise TuneRequestError(f"{name} = {number} lies outside its range [{low}, {high}]")
             fields[name] = value
-        return effect_from_dict(fields)
+        try:
+            return effect_from_dict(fields)
+        except ValueError as error:
+            raise TuneRequestError(str(error)) from None
 
     def _light(self, payload: Mapping) -> tuple[Float[Array, "2"], bool]:
         light = payload.get("light", list(self.light_xy))
         if not (isinstance(light, list) and len(light) == 2):
-            raise TuneRequestError(f"light must be [x, y] in pixels, got {json.dumps(light)}")
+            raise TuneRequestError(f"light must be [x, y] in pixels, got {_shown(light)}")
         x, y = (_number(v, "light") for v in light)
         in_front = payload.get("light_in_front", self.light_in_front)
         if not isinstance(in_front, bool):
-            raise TuneRequestError(f"light_in_front must be true or false, got {json.dumps(in_front)}")
+            raise TuneRequestError(f"light_in_front must be true or false, got {_shown(in_front)}")
         return jnp.asarray([x, y], self.buffers.color.dtype), in_front
 
     # --------------------------------------------------------------- actions
@@ -413,8 +444,8 @@ class Tuner:
 
     def set_preset(self, payload: Mapping) -> dict:
         name = payload.get("name")
-        if name not in PRESETS:
-            raise TuneRequestError(f"unknown preset {json.dumps(name)}; choose one of: {', '.join(sorted(PRESETS))}")
+        if not isinstance(name, str) or name not in PRESETS:
+            raise TuneRequestError(f"unknown preset {_shown(name)}; choose one of: {', '.join(sorted(PRESETS))}")
         effect = preset(name)
         try:
             self._check_renders(effect)
@@ -432,31 +463,64 @@ class Tuner:
         return {"path": self.save_path, "effect": effect_to_dict(effect)}
 
     def fit_progress(self) -> dict:
-        return dict(self._fit_progress)
+        """The current or last fit: `{"running", "step", "loss", "result", "error", "cancelled"}`."""
+        with self._fit_lock:
+            return dict(self._fit_progress)
+
+    def cancel_fit(self, payload: Mapping | None = None) -> dict:
+        """Ask the running fit to stop after its current step (nothing happens if none runs); its progress."""
+        self._fit_cancel.set()
+        return self.fit_progress()
+
+    def wait_fit(self, timeout: float | None = None) -> dict:
+        """Wait until the running fit (if any) ends; its progress."""
+        thread = self._fit_thread
+        if thread is not None:
+            thread.join(timeout)
+        return self.fit_progress()
 
     def fit(self, payload: Mapping) -> dict:
-        """Fit the page's effect to the target at preview resolution; the answer holds full-resolution values."""
+        """Start fitting the page's effect to the target at preview resolution, on a thread of its own.
+
+        Validates the request here (`TuneRequestError`), raises `Superseded`
+        if a fit is running, and returns the progress at once; `fit_progress`
+        then reports the steps and, when done, the full-resolution result.
+        """
         if self.target is None:
             raise TuneRequestError("no target to fit to: start the tuner with --target TARGET")
         effect = self.parse_effect(payload.get("params"))
         light, in_front = self._light(payload)
         fixed = payload.get("fixed", [])
         bounds = self.bounds(effect)
-        if not (isinstance(fixed, list) and all(name in bounds for name in fixed)):
-            raise TuneRequestError(f"fixed must be a list of slider names ({', '.join(bounds)}), got {json.dumps(fixed)}")
+        if not (isinstance(fixed, list) and all(isinstance(name, str) and name in bounds for name in fixed)):
+            raise TuneRequestError(f"fixed must be a list of slider names ({', '.join(bounds)}), got {_shown(fixed)}")
         fractional = payload.get("fractional_counts", False)
         if not isinstance(fractional, bool):
-            raise TuneRequestError(f"fractional_counts must be true or false, got {json.dumps(fractional)}")
+            raise TuneRequestError(f"fractional_counts must be true or false, got {_shown(fractional)}")
         if len(fixed) == len(bounds):
             raise TuneRequestError("every parameter is locked: unlock at least one to fit")
-        if not self._fit_lock.acquire(blocking=False):
-            raise Superseded("a fit is already running")
+        with self._fit_lock:
+            if self._fit_progress["running"]:
+                raise Superseded("a fit is already running: wait for it or cancel it")
+            self._fit_cancel.clear()
+            self._fit_progress = _fit_state(running=True)
+            self._fit_thread = threading.Thread(
+                target=self._run_fit, args=(effect, light, in_front, fixed, bounds, fractional),
+                name="godrays-tune-fit", daemon=True,
+            )  # fmt: skip
+            self._fit_thread.start()
+            return dict(self._fit_progress)
+
+    def _run_fit(
+        self, effect: Effect, light, in_front: bool, fixed: list[str], bounds: Mapping, fractional: bool
+    ) -> None:
+        def progress(step, loss):
+            if self._fit_cancel.is_set():
+                raise FitCancelled
+            with self._fit_lock:
+                self._fit_progress.update(step=int(step), loss=float(loss))
+
         try:
-            self._fit_progress = {"running": True, "step": 0, "loss": None}
-
-            def progress(step, loss):
-                self._fit_progress = {"running": True, "step": int(step), "loss": float(loss)}
-
             start = scale_pixel_fields(effect, 1.0 / self.factor)
             result = fit(
                 start,
@@ -471,18 +535,21 @@ class Tuner:
             # Counts rounded, as `godrays-jax fit` saves them, unless the page asks for the relaxation's values.
             chosen = result.effect if fractional else result.rounded
             fitted = _clip_to_bounds(scale_pixel_fields(chosen, float(self.factor)), bounds)
-        finally:
-            self._fit_progress = {**self._fit_progress, "running": False}
-            self._fit_lock.release()
-        with self._lock:
-            self.effect = fitted
-        return {
-            "effect": effect_to_dict(fitted),
-            "loss_before": result.loss_before,
-            "loss_after": result.loss_after if fractional else result.loss_rounded,
-            "steps": result.steps,
-            "fitted": list(result.fitted),
-        }
+            with self._lock:
+                self.effect = fitted
+            outcome = {"result": {
+                "effect": effect_to_dict(fitted),
+                "loss_before": result.loss_before,
+                "loss_after": result.loss_after if fractional else result.loss_rounded,
+                "steps": result.steps,
+                "fitted": list(result.fitted),
+            }}  # fmt: skip
+        except FitCancelled:
+            outcome = {"cancelled": True}
+        except Exception as error:  # reported to the page, which shows it; the tuner goes on
+            outcome = {"error": error_line(error)}
+        with self._fit_lock:
+            self._fit_progress.update(running=False, **outcome)
 
 
 def _clip_to_bounds(effect: Effect, bounds: Mapping[str, tuple[float, float]]) -> Effect:

@@ -669,14 +669,16 @@ def test_page_end_to_end_in_chromium(browser, tmp_path):
 
 
 def test_fit_rounds_counts_as_the_cli_does_unless_fractional_counts_are_asked(server):
-    client = Client(server.port)
+    client = Client(server)
     locked = [name for name in server.tuner.bounds() if name not in ("exposure", "num_samples")]
     start = {"params": {"exposure": 0.5, "num_samples": 6.4}, "fixed": locked}
-    status, answer = client.request("POST", "/api/fit", start)
-    assert status == 200, answer
+    status, progress = client.fit(start)
+    assert status == 200 and progress["result"], progress
+    answer = progress["result"]
     assert answer["effect"]["num_samples"] == round(answer["effect"]["num_samples"])
-    status, answer = client.request("POST", "/api/fit", {**start, "fractional_counts": True})
-    assert status == 200, answer
+    status, progress = client.fit({**start, "fractional_counts": True})
+    assert status == 200 and progress["result"], progress
+    answer = progress["result"]
     assert answer["effect"]["num_samples"] != round(answer["effect"]["num_samples"])
     status, answer = client.request("POST", "/api/fit", {**start, "fractional_counts": "yes"})
     assert status == 400 and "fractional_counts" in answer["error"]

@@ -4,6 +4,8 @@ import dataclasses
 import json
 import os
 
+import numpy as np
+
 from godrays_jax.effects.base import Effect, effect_class, plain_value
 from godrays_jax.primitives.files import atomic_write
 

@@ -6,6 +6,7 @@ import os
 import re
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import time
@@ -20,6 +21,7 @@ import godrays_jax as gr
 from godrays_jax.pipeline import batch, sequences
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import DEFAULT_PRESET
+from godrays_jax.primitives import files
 from godrays_jax.primitives.io import read_frame, write_frame_like
 
 H, W = 16, 24
@@ -377,3 +379,108 @@ def test_distributed_processes_share_the_frames(tmp_path, capsys):
                              "--process-id", "2"], r"--process-id must be in 0\.\.1")]:  # fmt: skip
         assert main(["batch", pattern, "-o", str(tmp_path / "bad"), *extra]) != 0
         assert re.search(message, capsys.readouterr().err)
+
+
+# ----------------------------------------------------------------------------- overlapping runs
+
+
+def _hold(script: str) -> subprocess.Popen:
+    """A Python process that runs `script`, prints "ready" and then waits to be killed."""
+    process = subprocess.Popen([sys.executable, "-c", script + "\nprint('ready', flush=True)\nimport time\ntime.sleep(600)"],
+                               stdout=subprocess.PIPE, text=True, cwd=ROOT)  # fmt: skip
+    assert process.stdout.readline().strip() == "ready"
+    return process
+
+
+def test_a_claim_is_exclusive_between_processes_and_dropped_when_its_process_dies(tmp_path):
+    output = tmp_path / "frame.exr"
+    holder = _hold(f"from godrays_jax.primitives.files import claim\nheld = claim({str(output)!r})\nassert held")
+    try:
+        assert files.claim(output) is None
+    finally:
+        holder.kill()
+        holder.wait()
+    held = files.claim(output)
+    assert held is not None and files.claim(output) is None  # also exclusive within one process
+    files.release(held)
+    assert os.listdir(tmp_path) == []  # the lock file goes with the claim
+
+
+def test_stale_temporaries_are_those_of_dead_or_ancient_runs_and_are_cleaned_beside_done_frames(tmp_path):
+    done, todo = tmp_path / "shot.0001.exr", tmp_path / "shot.0002.exr"
+    done.write_bytes(b"finished frame")
+    live = _hold("import os")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    try:
+        host = files.temporary_path(done).split(".tmp-")[1].split("-")[0]
+        mine = files.temporary_path(todo)
+        of_live = tmp_path / f".shot.0002.tmp-{host}-{live.pid}-0123abcd.exr"
+        of_dead = tmp_path / f".shot.0002.tmp-{host}-{int(dead.stdout)}-0123abcd.exr"
+        beside_done = tmp_path / f".shot.0001.tmp-{host}-{int(dead.stdout)}-4567cdef.exr"
+        old_style = tmp_path / ".shot.0002.tmp-89abcdef.exr"  # as earlier versions named them: only age tells
+        other_host = tmp_path / f".shot.0002.tmp-elsewhere-{live.pid}-0123abcd.exr"
+        for path in (mine, of_live, of_dead, beside_done, old_style, other_host):
+            Path(path).write_bytes(b"partial")
+        assert not files.is_stale(old_style) and not files.is_stale(other_host)
+        ancient = time.time() - files.STALE_AGE_S - 60
+        os.utime(old_style, (ancient, ancient))
+        jobs = [batch.Job(str(done), str(done), done=True), batch.Job(str(todo), str(todo), done=False)]
+        removed = batch.remove_stale_temporaries(jobs)
+    finally:
+        live.kill()
+        live.wait()
+    assert sorted(removed) == sorted(map(str, (of_dead, beside_done, old_style)))
+    assert sorted(os.listdir(tmp_path)) == sorted(
+        p.name for p in map(Path, (done, mine, of_live, other_host))
+    )  # a live run's temporaries (this one's and another process's) are kept
+
+
+def test_a_write_that_must_not_replace_fails_if_the_output_appears_meanwhile(tmp_path):
+    output = tmp_path / "frame.exr"
+    with pytest.raises(FileExistsError, match="exists already"):
+        with files.atomic_write(output, replace=False) as temporary:
+            Path(temporary).write_bytes(b"mine")
+            output.write_bytes(b"another run's")  # e.g. a second run that started at the same moment
+    assert output.read_bytes() == b"another run's" and os.listdir(tmp_path) == ["frame.exr"]
+    with files.atomic_write(tmp_path / "new.exr", replace=False) as temporary:
+        Path(temporary).write_bytes(b"mine")
+    assert (tmp_path / "new.exr").read_bytes() == b"mine"
+
+
+def test_written_files_get_the_users_normal_permissions(tmp_path):
+    previous = os.umask(0o027)
+    try:
+        gr.save_effect(tmp_path / "params.json", gr.GodRays())
+        gr.write_image(tmp_path / "frame.exr", np.zeros((2, 2, 3), np.float32))
+    finally:
+        os.umask(previous)
+    for name in ("params.json", "frame.exr"):
+        assert stat.S_IMODE(os.stat(tmp_path / name).st_mode) == 0o640
+
+
+def test_two_runs_on_one_folder_share_the_frames_and_replace_nothing(tmp_path):
+    """Two processes started together on one output folder: each frame written once, by one of them, complete."""
+    count = 12
+    inputs = _sequence(tmp_path / "in", count, h=40, w=56)
+    heavy = tmp_path / "heavy.json"  # slow enough per frame that the two runs overlap
+    gr.save_effect(heavy, gr.GodRays(num_samples=512.0, max_samples=512))
+    pattern = str(tmp_path / "in" / "shot.####.exr")
+    out, reference = tmp_path / "out", tmp_path / "reference"
+    runs = [_cli(pattern, "-o", str(out), "--params", str(heavy), "--resume") for _ in range(2)]
+    answers = [run.communicate(timeout=600) for run in runs]
+    assert [run.returncode for run in runs] == [0, 0], answers
+    counts = [re.search(r"(\d+) written, (\d+) skipped", text).groups() for text, _ in answers]
+    left = [int(m.group(1)) if (m := re.search(r"(\d+) left to another run", text)) else 0 for text, _ in answers]
+    assert sum(int(written) for written, _ in counts) == count, answers  # every frame written exactly once
+    for (written, skipped), others in zip(counts, left):  # each run accounts for every frame
+        assert int(written) + int(skipped) + others == count, answers
+    assert sorted(os.listdir(out)) == [p.name for p in inputs]  # no temporaries, no lock files left
+    assert main(["batch", pattern, "-o", str(reference), "--params", str(heavy), "-q"]) == 0
+    for path in inputs:
+        assert (out / path.name).read_bytes() == (reference / path.name).read_bytes()
+    # A third run without --resume or --overwrite refuses with a clear message, and replaces nothing.
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    third = _cli(pattern, "-o", str(out), "--params", str(heavy))
+    _, err = third.communicate(timeout=600)
+    assert third.returncode == 1 and "exist already" in err and "--resume" in err
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before

@@ -13,10 +13,18 @@ which are already done) and then executed (`run_batch`):
 - Each output keeps its input's file name, channels, per-channel formats and
   metadata (`io.write_frame_like`: only `R, G, B` change) unless another
   extension is asked for (then `io.write_image` writes the colour alone).
-- Every output is written to a hidden temporary file that is renamed into
-  place, so an interrupted run leaves only complete frames; leftover temporary
-  files of a killed run are removed when the next run starts. `resume=True`
-  skips frames whose output exists.
+- Every output is written to a hidden temporary file that is synced to disk
+  and renamed into place, so an interrupted run leaves only complete frames.
+  A temporary's name carries its process (`files.temporary_path`); the next
+  run removes those whose process is gone (`files.is_stale`), also beside
+  frames already done, and never a live run's. `resume=True` skips frames
+  whose output exists.
+- Runs may overlap on one output folder (two shells, shards, a retry while
+  the first run goes on): each frame is claimed before it is read
+  (`files.claim`, a lock the OS drops when its process ends), so a frame is
+  computed by one run only; the others leave it (`BatchReport.held`). Outputs
+  are placed without replacing anything unless the plan says overwrite, so
+  an output that appears meanwhile is never replaced, whoever wrote it.
 - A frame that cannot be used (unreadable, a different size or different
   passes than the run's frames, no depth channel, NaN or infinite colour, no
   light, an effect result that is not finite) is reported and skipped; the
@@ -53,7 +61,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.pipeline.sequences import Light, LightSource, frame_number, light_for
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import error_line
-from godrays_jax.primitives.files import temporaries_of
+from godrays_jax.primitives.files import Claim, claim, release, remove_stale, temporaries_of
 from godrays_jax.primitives.io import (
     SKY_DEPTH,
     FrameFile,
@@ -74,6 +82,7 @@ class Job:
     input: str
     output: str
     done: bool
+    overwrite: bool = False
 
 
 def output_path(input_path: str, out_dir: str, ext: str | None = None) -> str:
@@ -138,7 +147,7 @@ def plan_batch(
         done = os.path.exists(out)
         if done and not (resume or overwrite):
             existing.append(out)
-        jobs.append(Job(input=path, output=out, done=done and resume))
+        jobs.append(Job(input=path, output=out, done=done and resume, overwrite=overwrite))
     if existing:
         raise BatchError(
             f"{len(existing)} output(s) exist already (first: {existing[0]}): pass --resume to skip them "
@@ -148,12 +157,16 @@ def plan_batch(
 
 
 def remove_stale_temporaries(jobs: Sequence[Job]) -> list[str]:
-    """Delete the hidden temporary files a killed run left for these jobs' outputs; returns them."""
+    """Delete the temporary files that dead runs left beside these jobs' outputs (done or not); returns them.
+
+    A live run's temporaries are kept (`files.is_stale`), and so are its
+    claims; lock files nobody holds any more are removed.
+    """
     removed = []
     for job in jobs:
-        for stale in temporaries_of(job.output):
-            os.remove(stale)
-            removed.append(stale)
+        removed += remove_stale(temporaries_of(job.output))
+        if job.done:  # a run killed after placing this frame but before letting it go left its lock file
+            release(claim(job.output))
     return removed
 
 
@@ -172,6 +185,7 @@ class BatchReport:
     written: list[str] = dataclasses.field(default_factory=list)
     without_sky: list[str] = dataclasses.field(default_factory=list)
     skipped: list[str] = dataclasses.field(default_factory=list)
+    held: list[str] = dataclasses.field(default_factory=list)
     failures: dict[str, str] = dataclasses.field(default_factory=dict)
     read_s: float = 0.0
     compute_s: float = 0.0
@@ -187,6 +201,8 @@ class BatchReport:
             f"{len(self.written)} written, {len(self.skipped)} skipped (already done), "
             f"{len(self.failures)} failed in {self.wall_s:.1f} s ({rate:.2f} frames/s on {self.devices} device(s))"
         ]
+        if self.held:
+            lines[0] += f"; {len(self.held)} left to another run (it holds them, or wrote them meanwhile)"
         lines += [f"  failed: {path}: {reason}" for path, reason in self.failures.items()]
         return "\n".join(lines)
 
@@ -287,7 +303,7 @@ def run_batch(
     todo = [job for job in jobs if not job.done]
     for folder in {os.path.dirname(os.path.abspath(job.output)) for job in todo}:
         os.makedirs(folder, exist_ok=True)
-    remove_stale_temporaries(todo)
+    remove_stale_temporaries(jobs)
     bar = tqdm.tqdm(total=len(todo), unit="frame", file=progress, disable=progress is None, dynamic_ncols=True)
 
     traces_before = _traces["frames"]
@@ -311,9 +327,9 @@ def run_batch(
         began = time.perf_counter()
         try:
             if os.path.splitext(job.output)[1].lower() == os.path.splitext(job.input)[1].lower():
-                write_frame_like(job.output, image, frame_file)
+                write_frame_like(job.output, image, frame_file, replace=job.overwrite)
             else:
-                write_image(job.output, image)
+                write_image(job.output, image, replace=job.overwrite)
         finally:
             with timing_lock:
                 report.write_s += time.perf_counter() - began
@@ -322,9 +338,23 @@ def run_batch(
     group: list[_Loaded] = []
     pending_writes: collections.deque = collections.deque()
 
+    claims: dict[str, Claim] = {}
+
     def fail(job: Job, reason: str) -> None:
         report.failures[job.input] = reason
+        release(claims.pop(job.output, None))
         bar.update()
+
+    def take(job: Job) -> bool:
+        """Claim the frame; False (and left to the other run) if another run holds it or placed it meanwhile."""
+        held = claim(job.output)
+        if held is not None and (job.overwrite or not os.path.exists(job.output)):
+            claims[job.output] = held
+            return True
+        release(held)
+        report.held.append(job.input)
+        bar.update()
+        return False
 
     def settle_writes(limit: int) -> None:
         while len(pending_writes) > limit:
@@ -332,6 +362,7 @@ def run_batch(
             try:
                 future.result()
                 report.written.append(job.input)
+                release(claims.pop(job.output, None))
                 bar.update()
             except Exception as error:
                 fail(job, error_line(error))
@@ -355,49 +386,54 @@ def run_batch(
         group.clear()
         settle_writes(limit=2 * group_size)
 
-    with (
-        concurrent.futures.ThreadPoolExecutor(io_threads, thread_name_prefix="godrays-read") as readers,
-        concurrent.futures.ThreadPoolExecutor(io_threads, thread_name_prefix="godrays-write") as writers,
-    ):
-        reads: collections.deque = collections.deque()
-        queue = iter(todo)
-        lookahead = max(2 * group_size, io_threads + 1)
-        try:
-            while True:
-                while len(reads) < lookahead and (job := next(queue, None)) is not None:
-                    reads.append((job, readers.submit(timed_load, job)))
-                if not reads:
-                    break
-                job, future = reads.popleft()
-                try:
-                    loaded = future.result()
-                except Exception as error:
-                    fail(job, error_line(error))
-                    continue
-                frame_size = (loaded.buffers.height, loaded.buffers.width)
-                size = size or frame_size
-                if frame_size != size:
-                    fail(job, f"wrong size {frame_size[1]}x{frame_size[0]} (the run's frames are {size[1]}x{size[0]})")
-                    continue
-                frame_structure = jax.tree.structure(loaded.buffers)
-                if structure is None:
-                    structure = frame_structure
-                elif frame_structure != structure:
-                    fail(job, f"different passes ({_structure_text(loaded.buffers)}) than the run's first frame")
-                    continue
-                if np.min(np.asarray(loaded.buffers.coverage)) >= 1.0:
-                    report.without_sky.append(job.input)
-                group.append(loaded)
-                if len(group) == group_size:
-                    flush_group()
-            flush_group()
-            settle_writes(limit=0)
-        except BaseException:
-            for _, future in reads:
-                future.cancel()
-            raise
-        finally:
-            bar.close()
+    try:
+        with (
+            concurrent.futures.ThreadPoolExecutor(io_threads, thread_name_prefix="godrays-read") as readers,
+            concurrent.futures.ThreadPoolExecutor(io_threads, thread_name_prefix="godrays-write") as writers,
+        ):
+            reads: collections.deque = collections.deque()
+            queue = iter(todo)
+            lookahead = max(2 * group_size, io_threads + 1)
+            try:
+                while True:
+                    while len(reads) < lookahead and (job := next(queue, None)) is not None:
+                        if take(job):
+                            reads.append((job, readers.submit(timed_load, job)))
+                    if not reads:
+                        break
+                    job, future = reads.popleft()
+                    try:
+                        loaded = future.result()
+                    except Exception as error:
+                        fail(job, error_line(error))
+                        continue
+                    frame_size = (loaded.buffers.height, loaded.buffers.width)
+                    size = size or frame_size
+                    if frame_size != size:
+                        fail(job, f"wrong size {frame_size[1]}x{frame_size[0]} (the run's frames are {size[1]}x{size[0]})")
+                        continue
+                    frame_structure = jax.tree.structure(loaded.buffers)
+                    if structure is None:
+                        structure = frame_structure
+                    elif frame_structure != structure:
+                        fail(job, f"different passes ({_structure_text(loaded.buffers)}) than the run's first frame")
+                        continue
+                    if np.min(np.asarray(loaded.buffers.coverage)) >= 1.0:
+                        report.without_sky.append(job.input)
+                    group.append(loaded)
+                    if len(group) == group_size:
+                        flush_group()
+                flush_group()
+                settle_writes(limit=0)
+            except BaseException:
+                for _, future in reads:
+                    future.cancel()
+                raise
+            finally:
+                bar.close()
+    finally:
+        for held in claims.values():  # frames an interruption left unfinished (written ones are released)
+            release(held)
     report.wall_s = time.perf_counter() - start
     report.compilations = _traces["frames"] - traces_before
     return report

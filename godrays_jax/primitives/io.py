@@ -416,10 +416,12 @@ def _set_attribute(spec: oiio.ImageSpec, name: str, value: object) -> None:
         )
 
 
-def _write_image_file(path: str | os.PathLike, spec: oiio.ImageSpec, pixels: np.ndarray) -> None:
+def _write_image_file(
+    path: str | os.PathLike, spec: oiio.ImageSpec, pixels: np.ndarray, *, replace: bool = True, sync: bool = True
+) -> None:
     """Write `pixels` with `spec` to `path`, whole or not at all (`atomic_write`)."""
     path = os.fspath(path)
-    with atomic_write(path) as temporary:
+    with atomic_write(path, replace=replace, sync=sync) as temporary:
         out = oiio.ImageOutput.create(temporary)
         if out is None:
             raise OSError(f"cannot write image '{path}': {oiio.geterror()}")
@@ -516,6 +518,7 @@ def write_image(
     dtype: Literal["float", "half"] | None = None,
     bit_depth: Literal[8, 16] | None = None,
     metadata: Mapping[str, object] | None = None,
+    replace: bool = True,
 ) -> None:
     """Write a linear image; the format follows the extension.
 
@@ -531,6 +534,8 @@ def write_image(
             kept linear, then rounded to the nearest code.
         metadata: header attributes, `name -> str | int | float | sequence of
             numbers` (formats other than EXR may keep only some).
+        replace: False: never replace an existing `path`, even one another
+            process creates meanwhile (`FileExistsError`).
 
     Raises:
         ValueError: an unknown extension, a wrong shape or channel count, an
@@ -588,7 +593,7 @@ def write_image(
         spec.attribute("jpeg:subsampling", "4:4:4")  # full-resolution colour
     for key, value in (metadata or {}).items():
         _set_attribute(spec, key, value)
-    _write_image_file(path, spec, np.ascontiguousarray(pixels))
+    _write_image_file(path, spec, np.ascontiguousarray(pixels), replace=replace)
 
 
 # ----------------------------------------------------------------------------- frames kept as stored
@@ -637,7 +642,9 @@ def read_frame(
     return buffers, FrameFile(path=os.fspath(path), pixels=pixels, spec=spec, color_channels=color_channels)
 
 
-def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], like: FrameFile) -> None:
+def write_frame_like(
+    path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], like: FrameFile, *, replace: bool = True
+) -> None:
     """Write `color` in place of the colour channels of `like` (`like.color_channels`), keeping everything else.
 
     Every other channel (alpha, depth, passes, anything the renderer wrote),
@@ -652,6 +659,8 @@ def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], 
             `write_image` to change format).
         color: linear `(H, W, 3)`, the size of `like`.
         like: the input frame, from `read_frame`.
+        replace: False: never replace an existing `path`, even one another
+            process creates meanwhile (`FileExistsError`).
 
     Raises:
         ValueError: a different extension than the input, a wrong shape, or
@@ -673,7 +682,7 @@ def write_frame_like(path: str | os.PathLike, color: Float[ArrayLike, "H W 3"], 
         raise ValueError(f"'{like.path}' has no {', '.join(missing)} channel to replace; channels: {_channels_text(names)}")
     pixels = like.pixels.copy()
     pixels[..., [names.index(n) for n in like.color_channels]] = color
-    _write_image_file(path, oiio.ImageSpec(like.spec), np.ascontiguousarray(pixels))
+    _write_image_file(path, oiio.ImageSpec(like.spec), np.ascontiguousarray(pixels), replace=replace)
 
 
 def encode_png(pixels: np.ndarray, *, compression: int = 1) -> bytes:
@@ -690,6 +699,6 @@ def encode_png(pixels: np.ndarray, *, compression: int = 1) -> bytes:
     spec.attribute("png:compressionLevel", int(compression))
     with tempfile.TemporaryDirectory(prefix="godrays-png-") as folder:
         path = os.path.join(folder, "frame.png")
-        _write_image_file(path, spec, pixels)
+        _write_image_file(path, spec, pixels, sync=False)  # a throwaway file: no need to wait for the disk
         with open(path, "rb") as stream:
             return stream.read()

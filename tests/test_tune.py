@@ -682,3 +682,36 @@ def test_fit_rounds_counts_as_the_cli_does_unless_fractional_counts_are_asked(se
     assert answer["effect"]["num_samples"] != round(answer["effect"]["num_samples"])
     status, answer = client.request("POST", "/api/fit", {**start, "fractional_counts": "yes"})
     assert status == 400 and "fractional_counts" in answer["error"]
+
+
+def test_page_fits_and_cancels_in_chromium(browser, monkeypatch):
+    """The page starts a fit, follows it to its result, and cancels one (the button becomes "cancel fit")."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    frame = small_frame()
+    truth = gr.GodRays(num_samples=8.0, max_samples=8, light_radius=6.0, exposure=1.2)
+    target = eqx.filter_jit(truth)(frame, jnp.asarray([32.0, 6.0]))
+    tuner = Tuner(frame, (32.0, 6.0), effect=small_effect(), target=target, max_preview_pixels=300, fit_steps=3)
+    with TuneServer(tuner) as running:
+        browser.get(running.url)
+        wait = WebDriverWait(browser, 300)
+        wait.until(lambda d: d.execute_script("return window.tuneStats.length") >= 1)
+        button = browser.find_element(By.ID, "fit")
+        button.click()
+        wait.until(lambda d: "fitted" in d.find_element(By.ID, "fit-status").text)
+        assert button.text == "fit to target" and browser.find_element(By.ID, "error").text == ""
+        assert browser.execute_script("return params.exposure") == pytest.approx(tuner.effect.exposure)
+
+        def endless_fit(*args, progress, **kwargs):
+            for step in range(1, 10_000):
+                progress(step, 1.0 / step)
+                time.sleep(0.05)
+
+        monkeypatch.setattr(tuner_module, "fit", endless_fit)
+        button.click()
+        wait.until(lambda d: d.find_element(By.ID, "fit").text == "cancel fit")
+        wait.until(lambda d: "step" in d.find_element(By.ID, "fit-status").text)
+        button.click()
+        wait.until(lambda d: "cancelled" in d.find_element(By.ID, "fit-status").text)
+        assert button.text == "fit to target" and not tuner.fit_progress()["running"]

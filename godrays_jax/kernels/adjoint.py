@@ -8,9 +8,10 @@ the weight `1 - f_i` if `floor(u_i) = j` and `f_i` if `floor(u_i) = j - 1`
 two runs: those with `u_i` in `[j, j + 1)` (weights `1 - f_i`) and in
 `[j - 1, j)` (weights `f_i`). The outputs are in order along the axis (in
 reverse order for a negative scale), so each run is a range of outputs whose
-bounds are closed-form (`ceil(c + (j - c) / s)`), of at most `BAND` outputs
-when `|s| >= 1 / BAND`. The adjoint of a copy is then a gather of `BAND`
-output rows per texel row and run, the same memory pattern as the copy
+bounds are closed-form (`ceil(c + (j - c) / s)`), of at most `n` outputs
+when `|s| >= 1 / n`. The adjoint of a copy is then a gather of `n` output
+rows per texel row and run (`n` the smallest of `BANDS` that holds the copy's
+longest run), the same memory pattern as the copy
 itself: rows, a transpose, rows again, in the CPU loop's blocks of rows; a GPU
 gathers along one axis of the image, then the other.
 
@@ -18,8 +19,8 @@ With clamp-to-edge addressing, the first and last texels also take every
 output clamped onto them, a run of unbounded length: its sum is read from
 prefix sums of the cotangent's rows and columns, computed only when some
 copy clamps (a light off screen, a scale above 1). A copy whose runs are
-longer than `BAND` (a scale near 0, where the whole image samples a few
-texels) is transposed by a scatter instead. Every case is exact up to
+longer than `BANDS` allows (a scale near 0, where the whole image samples a
+few texels) is transposed by a scatter instead. Every case is exact up to
 rounding, and an output on a run's boundary (`u_i` an integer) gives the
 same values in either run, so the bounds need not agree with `floor` to the
 last bit.
@@ -34,13 +35,14 @@ from godrays_jax.kernels.cpu_loop import rows_per_block
 from godrays_jax.kernels.planes import Planes
 from godrays_jax.primitives.sampling import Addressing, axis_taps
 
-BAND = 2
-"""Outputs a texel's run may hold for the banded gather: copies of scale magnitude at least `1 / BAND`, up to rounding.
+BANDS = (2, 4, 8)
+"""The outputs a texel's run may hold in the banded gather, per copy the smallest that holds its longest run.
 
-Each run costs one gather of rows per output it may hold; 2 covers the
-scales the kernels use (radial rays of density up to 1/2, flare-outs with a
-step above 1 over up to `log 2 / log step` copies) at the cost of the
-forward copy's two gathers. Copies with longer runs take the scatter.
+A run of at most `n` outputs (a scale of magnitude at least `1 / n`, up to
+rounding) costs `n` gathers of rows per run. 2 covers radial rays of density
+up to 1/2 and flare-outs whose copies shrink to half, at the cost of the
+forward copy's two gathers; 4 and 8 the copies of smaller scales (density up
+to 7/8) for less than a scatter costs. Copies with longer runs take the scatter.
 """
 
 
@@ -70,10 +72,10 @@ def _run_bounds(size: int, light, scale, texels, addressing: Addressing):
     return bounds.astype(jnp.int32)
 
 
-def _band_taps(size: int, light, scale, first, count: int, addressing: Addressing):
-    """The banded gather's taps for texels `first .. first + count - 1` along an axis of `size`.
+def _band_taps(size: int, light, scale, first, count: int, addressing: Addressing, band: int):
+    """The banded gather's taps for texels `first .. first + count - 1` along an axis of `size`, runs up to `band` long.
 
-    Returns `BAND` taps `(low, high)`, each `(outputs, weights)` for those
+    Returns `band` taps `(low, high)`, each `(outputs, weights)` for those
     texels: `low` reads texel `j`'s run (weights `1 - f`), `high` the run of
     `j - 1` (weights `f`), with weight 0 past a run's end.
     """
@@ -82,7 +84,7 @@ def _band_taps(size: int, light, scale, first, count: int, addressing: Addressin
     starts, ends = bounds[:-1], bounds[1:]
     runs = texels[:-1].astype(light.dtype)
     taps = []
-    for step in range(BAND):
+    for step in range(band):
         walk = starts + step
         outputs = jnp.clip(jnp.where(scale < 0, size - 1 - walk, walk), 0, size - 1)
         fraction = _positions(light, scale, outputs) - runs
@@ -117,15 +119,16 @@ def copy_adjoint_cpu(addressing, cotangent, light_xy, scales, weights):
 
         def add_copy(k, total):
             scale = scales[k]
-            row_taps = _band_taps(height, light_xy[1], scale, first_row, block, addressing)
-            col_taps = _band_taps(width, light_xy[0], scale, 0, width, addressing)
 
-            def add_band(total):
+            def add_band(total, width_of_band):
+                row_taps = _band_taps(height, light_xy[1], scale, first_row, block, addressing, width_of_band)
+                col_taps = _band_taps(width, light_xy[0], scale, 0, width, addressing, width_of_band)
                 rows = _gathered_rows(by_rows, row_taps, channels, height)
                 return total + weights[k] * _gathered_rows(planes.rows_to_columns(k, rows), col_taps, 1, width)
 
             # The conditional also keeps XLA from fusing the gathers with their operands' computation.
-            return jax.lax.cond(band[0][k], add_band, lambda total: total, total)
+            branches = [functools.partial(add_band, width_of_band=n) for n in BANDS] + [lambda total: total]
+            return jax.lax.switch(band[0][k], branches, total)
 
         return jax.lax.fori_loop(0, scales.shape[0], add_copy, jnp.zeros((width, channels * block), dtype))
 
@@ -150,17 +153,22 @@ def copy_adjoint_gpu(addressing, cotangent, light_xy, scales, weights):
 
     def add_copy(k, total):
         scale = scales[k]
-        row_taps = _band_taps(height, light_xy[1], scale, 0, height, addressing)
-        col_taps = _band_taps(width, light_xy[0], scale, 0, width, addressing)
-        rows = sum(
-            cotangent.at[outputs].get(mode="promise_in_bounds") * tap_weights[:, None, None]
-            for low_and_high in row_taps for outputs, tap_weights in low_and_high
-        )  # fmt: skip
-        copy = sum(
-            rows.at[:, outputs].get(mode="promise_in_bounds") * tap_weights[None, :, None]
-            for low_and_high in col_taps for outputs, tap_weights in low_and_high
-        )  # fmt: skip
-        return total + jnp.where(band[0][k], weights[k], 0.0) * copy
+
+        def add_band(total, width_of_band):
+            row_taps = _band_taps(height, light_xy[1], scale, 0, height, addressing, width_of_band)
+            col_taps = _band_taps(width, light_xy[0], scale, 0, width, addressing, width_of_band)
+            rows = sum(
+                cotangent.at[outputs].get(mode="promise_in_bounds") * tap_weights[:, None, None]
+                for low_and_high in row_taps for outputs, tap_weights in low_and_high
+            )  # fmt: skip
+            copy = sum(
+                rows.at[:, outputs].get(mode="promise_in_bounds") * tap_weights[None, :, None]
+                for low_and_high in col_taps for outputs, tap_weights in low_and_high
+            )  # fmt: skip
+            return total + weights[k] * copy
+
+        branches = [functools.partial(add_band, width_of_band=n) for n in BANDS] + [lambda total: total]
+        return jax.lax.switch(band[0][k], branches, total)
 
     count = scales.shape[0]
     total = jax.lax.fori_loop(
@@ -183,15 +191,16 @@ def copy_adjoint(addressing: Addressing, cotangent, light_xy, scales, weights):
 
 
 def band_of_copies(shape, light_xy, scales, addressing: Addressing):
-    """Per copy: whether its runs fit the band, and per axis (y, x) the walk positions where its band starts and ends."""
+    """Per copy: the index in `BANDS` of its band (`len(BANDS)`: none, the scatter), and per axis (y, x) the walk
+    positions where its band starts and ends."""
 
     def of_copy(scale):
-        fits, edges = True, []
+        longest, edges = 0, []
         for size, light in ((shape[0], light_xy[1]), (shape[1], light_xy[0])):
             bounds = _run_bounds(size, light, scale, jnp.arange(-1, size + 1), addressing)
-            fits = fits & (jnp.max(bounds[1:] - bounds[:-1]) <= BAND)
+            longest = jnp.maximum(longest, jnp.max(bounds[1:] - bounds[:-1]))
             edges.append((bounds[1], bounds[-2]))
-        return fits, edges
+        return jnp.sum(longest > jnp.asarray(BANDS)), edges
 
     return jax.vmap(of_copy)(scales)
 
@@ -212,7 +221,8 @@ def _with_runs_outside_band(addressing: Addressing, cotangent, light_xy, scales,
     """`banded` plus what the band leaves out: the clamped outputs' runs and the copies whose runs are too long."""
     height, width, channels = cotangent.shape
     dtype = cotangent.dtype
-    fits, ((first_y, end_y), (first_x, end_x)) = band
+    which, ((first_y, end_y), (first_x, end_x)) = band
+    fits = which < len(BANDS)
 
     def add_wide_copy(k, total):
         scale = scales[k]
@@ -277,8 +287,8 @@ def _edge_runs(cotangent, light_xy, scales, weights, band):
     def add_copy(k, sums):
         column_sums, row_sums = sums
         scale = scales[k]
-        fits, ((first_y, end_y), (first_x, end_x)) = jax.tree.map(lambda values: values[k], band)
-        weight = jnp.where(fits, weights[k], 0.0)
+        which, ((first_y, end_y), (first_x, end_x)) = jax.tree.map(lambda values: values[k], band)
+        weight = jnp.where(which < len(BANDS), weights[k], 0.0)
         ys, xs = jnp.arange(height), jnp.arange(width)
         walk_y = jnp.where(scale < 0, height - 1 - ys, ys)
         in_band_y = ((walk_y >= first_y) & (walk_y < end_y)).astype(dtype)

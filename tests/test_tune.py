@@ -414,7 +414,8 @@ def test_cross_site_requests_change_nothing(server, headers, status, message):
 
 
 def test_a_stalled_body_gets_408_and_sockets_time_out(server, monkeypatch):
-    monkeypatch.setattr(server_module._Handler, "timeout", 0.5)
+    monkeypatch.setattr(server_module, "SOCKET_TIMEOUT_S", 0.5)
+    monkeypatch.setattr(server_module, "KEEP_ALIVE_S", 0.5)
     with socket.create_connection((HOST, server.port), timeout=30) as connection:
         connection.sendall(
             f"POST /api/render HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
@@ -427,6 +428,19 @@ def test_a_stalled_body_gets_408_and_sockets_time_out(server, monkeypatch):
         started = time.monotonic()
         assert idle.recv(1) == b""  # closed by the server
         assert time.monotonic() - started < 10
+
+
+def test_idle_connections_beyond_the_pool_delay_a_request_only_until_they_time_out(server, monkeypatch):
+    """Tabs keep connections open between requests: idle ones are closed soon, so they never lock the page out."""
+    monkeypatch.setattr(server_module, "KEEP_ALIVE_S", 0.5)
+    idle = [socket.create_connection((HOST, server.port), timeout=30) for _ in range(MAX_WORKERS + 8)]
+    try:
+        started = time.monotonic()
+        assert Client(server).request("GET", "/api/state")[0] == 200
+        assert time.monotonic() - started < 10
+    finally:
+        for connection in idle:
+            connection.close()
 
 
 def test_many_concurrent_requests_are_all_answered(server):

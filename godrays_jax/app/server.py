@@ -23,11 +23,12 @@ served can drive it, not another web page the user has open:
 The body's size is checked before a byte of it is read: a `POST` without a
 `Content-Length` (411), with a malformed or negative one (400), or over
 `MAX_BODY_BYTES` (413) is answered at once, also for unknown endpoints, and
-the connection closed. Sockets time out after `SOCKET_TIMEOUT_S` (a body
-shorter than its `Content-Length` gets 408); at most `MAX_WORKERS` requests
-are handled at once (the others wait in the listen backlog of
-`LISTEN_BACKLOG`). Every malformed body or bad value is a 400 with a
-message; clients that disconnect are not reported.
+the connection closed. A stalled request times out after `SOCKET_TIMEOUT_S`
+(a body shorter than its `Content-Length` gets 408), an idle kept-alive
+connection after `KEEP_ALIVE_S`; at most `MAX_WORKERS` connections are
+served at once (the others wait in the listen backlog of `LISTEN_BACKLOG`).
+Every malformed body or bad value is a 400 with a message; clients that
+disconnect are not reported.
 """
 
 import functools
@@ -57,10 +58,13 @@ MAX_BODY_BYTES = 1 << 20
 """Request bodies larger than this are refused unread (the page's largest request, a render, is about 1 KiB)."""
 
 SOCKET_TIMEOUT_S = 15.0
-"""Seconds a connection may sit idle or send nothing while its request is read (also between keep-alive requests)."""
+"""Seconds a request may stall while its headers or body are read (then 408, or the connection is closed)."""
 
-MAX_WORKERS = 16
-"""Requests handled at once: renders are coalesced onto one worker, so more threads would only wait."""
+KEEP_ALIVE_S = 5.0
+"""Seconds a kept-alive connection may wait for its next request: an idle connection holds a worker."""
+
+MAX_WORKERS = 32
+"""Connections served at once (a browser keeps up to 6 open per tab); renders are coalesced onto one worker anyway."""
 
 LISTEN_BACKLOG = 128
 """Connections the OS queues while every worker is busy (a burst of slider events, many tabs)."""
@@ -98,6 +102,14 @@ class _Handler(http.server.BaseHTTPRequestHandler):
 
     def log_message(self, format, *args):  # the page polls; a line per request would flood the terminal
         pass
+
+    def handle_one_request(self):
+        self.connection.settimeout(KEEP_ALIVE_S)  # until the request line arrives
+        super().handle_one_request()
+
+    def parse_request(self):
+        self.connection.settimeout(SOCKET_TIMEOUT_S)  # the request has begun: its headers and body may take longer
+        return super().parse_request()
 
     def _send(self, status: int, body: bytes, content_type: str, *, nonce: str | None = None) -> None:
         self.send_response(status)

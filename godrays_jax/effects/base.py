@@ -1,11 +1,21 @@
 """What every effect shares: fittable fields, the `Effect` base class, the off-screen rule and the emitters.
 
-An effect is called as `effect(buffers, light_xy, *, light_in_front=True)` and
-returns the composited frame; `effect.layer(...)` returns the effect alone,
-before blending. Every array field is fittable (a JAX scalar or vector);
-static fields (`eqx.field(static=True)`) are Python values that select the
-algorithm. Sizes are in pixels, except `blur_power`, which is in UV units as
-in the sun-overcasting article.
+An effect is called as `effect(buffers, light_xy, *, light_in_front=True,
+light_depth=inf)` and returns the composited frame; `effect.layer(...)`
+returns the effect alone, before blending. `light_depth` is the light's
+distance from the camera in scene units (`+inf`, the default, for a light at
+infinity such as a directional sun); the XNA crepuscular-rays article's depth
+test and step clamp read it, other effects ignore it. Every array field with
+bounds is fittable (a JAX scalar or vector); static fields
+(`eqx.field(static=True)`) are Python values that select the algorithm.
+
+Sizes are in frame units, so a preset gives the same picture at any
+resolution: a flare's `flare_size` is in UV units as the articles write it
+(a half-extent of `flare_size * W` pixels across and `flare_size * H` down),
+every other size (blur sigmas and reaches, radii) is a fraction of the
+frame's larger side `max(W, H)`; `blur_power` is in UV units as in the
+sun-overcasting article. An effect built with `units="px"` takes its sizes
+in pixels instead (`size_fields` names them).
 
 Off-screen and behind-camera lights, the same rule for every effect that a
 light drives: the layer is multiplied by `light_visibility(light_xy, ...,
@@ -17,6 +27,7 @@ unchanged). `Bloom` does not depend on the light and ignores both.
 
 import dataclasses
 import functools
+import math
 import reprlib
 import typing
 from typing import Literal
@@ -29,7 +40,7 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.kernels.composite import BLEND_MODES, blend
-from godrays_jax.kernels.masks import coverage_mask, light_source_mask
+from godrays_jax.kernels.masks import coverage_mask, depth_test_mask, light_source_mask, procedural_flare, sky_mask
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, is_static_int
 
@@ -38,29 +49,37 @@ Source = Literal["disc", "sky", "light_pass"]
 
 SOURCES: tuple[str, ...] = ("disc", "sky", "light_pass")
 
+SceneMask = Literal["coverage", "sky", "depth"]
+SCENE_MASKS: tuple[str, ...] = ("coverage", "sky", "depth")
+"""What lets a flare emitter through: the antialiased open sky (`1 - coverage`), the hard sky test (kbEngine's
+`1 - sign(depth)`: depth `+inf`), or the XNA crepuscular-rays article's depth test (pixels nearer than the light
+blanked)."""
+
+Units = Literal["frame", "px"]
+UNITS: tuple[str, ...] = ("frame", "px")
+
 
 STATIC_RANGES: dict[str, tuple[int, int]] = {
     "max_samples": (1, 4096),
     "max_iters": (1, 64),
     "max_passes": (0, 8),
-    "max_morphology": (0, 64),
-    "blur_radius": (0, 1024),
-    "glow_radius": (0, 1024),
-    "radius": (0, 1024),
-    "gaussian_radius": (0, 1024),
     "resolution_factor": (1, 64),
+    "target_factor": (1, 64),
     "dirt_seed": (0, 2**63 - 1),
 }
 """Inclusive ranges of the integer static fields, checked by every effect's constructor (so also for params files).
 
 Loop lengths stop at the top of the fittable count they bound (`num_samples`
-<= 4096, `num_iters` <= 64, `passes` <= 8, `source_grow` / `occluder_shrink`
-<= 64 px): a longer loop renders the same image more slowly, and a huge one
-(`max_samples: 1e8`) hangs a render. Blur half-widths stop at 1024 px, three
-standard deviations of the widest Gaussian (`gaussian_sigma` <= 100 px) with
-room to spare; `resolution_factor` at 64 (a 4K frame is then 60 px wide);
-`dirt_seed` is any non-negative 64-bit seed.
+<= 4096, `num_iters` <= 64, `passes` <= 8): a longer loop renders the same
+image more slowly, and a huge one (`max_samples: 1e8`) hangs a render;
+`resolution_factor` and `target_factor` at 64 (a 4K frame is then 60 px
+wide); `dirt_seed` is any non-negative 64-bit seed. Static sizes (blur and
+morphology reaches, `size_reach`) are floats: at most `MAX_REACH` of their
+units.
 """
+
+MAX_REACH: dict[str, float] = {"frame": 1.0, "px": 4096.0}
+"""The largest static size (a blur's or a morphology's reach) per unit system: the whole frame, or 4096 pixels."""
 
 
 def _is_numbers(value) -> bool:
@@ -101,6 +120,9 @@ def _check_static(owner: str, name: str, annotation, value) -> None:
     elif typing.get_origin(annotation) is Literal:
         if not isinstance(value, str) or value not in typing.get_args(annotation):
             raise ValueError(f"{owner}.{name} must be one of {', '.join(typing.get_args(annotation))}; got {shown}")
+    elif annotation is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not np.isfinite(value):
+            raise ValueError(f"{owner}.{name} must be a finite number, got {shown}")
     elif annotation is str and not isinstance(value, str):
         raise ValueError(f"{owner}.{name} must be a string, got {shown}")
 
@@ -137,10 +159,71 @@ def plain_value(value):
     return np.array(shortest, dtype=object).reshape(array.shape).tolist()
 
 
+def _texture(value) -> Array | None:
+    if value is None:
+        return None
+    texture = jnp.asarray(value, dtype=jnp.result_type(float))
+    if texture.ndim == 2:
+        texture = texture[..., None]
+    if texture.ndim != 3 or min(texture.shape) < 1:
+        raise ValueError(f"flare_texture must have shape (h, w) or (h, w, C), got shape {texture.shape}")
+    return texture
+
+
+def texture_field():
+    """An optional texture (`(h, w)` or `(h, w, C)`, linear values): data the effect samples, not fitted."""
+    return eqx.field(default=None, converter=_texture)
+
+
+def size_param(default, *, low: float, high: float, px_high: float):
+    """A fittable size: in frame units within `[low, high]`, or in pixels within `[0, px_high]` under `units="px"`."""
+    return eqx.field(
+        converter=_array, default=default, metadata={"bounds": (low, high), "px_bounds": (0.0, px_high), "size": True}
+    )
+
+
+def size_reach(default: float):
+    """A static size (a blur's or a morphology's reach, in frame units or pixels as the effect's `units`)."""
+    return eqx.field(static=True, default=default, metadata={"size": True})
+
+
 def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, float]]:
-    """`{field name: (low, high)}` for every fittable field of an effect (instance or class)."""
+    """`{field name: (low, high)}` for every fittable field of an effect (instance or class).
+
+    Sizes have their frame-unit bounds, or their pixel bounds for an instance
+    built with `units="px"`.
+    """
     cls = effect if isinstance(effect, type) else type(effect)
-    return {field.name: field.metadata["bounds"] for field in dataclasses.fields(cls) if "bounds" in field.metadata}
+    pixels = not isinstance(effect, type) and getattr(effect, "units", "frame") == "px"
+    return {
+        field.name: field.metadata["px_bounds" if pixels and "px_bounds" in field.metadata else "bounds"]
+        for field in dataclasses.fields(cls)
+        if "bounds" in field.metadata
+    }
+
+
+def size_fields(effect: "Effect | type[Effect]") -> tuple[str, ...]:
+    """The fields holding sizes (fittable or static), in frame units or in pixels as the effect's `units` says."""
+    cls = effect if isinstance(effect, type) else type(effect)
+    return tuple(field.name for field in dataclasses.fields(cls) if field.metadata.get("size"))
+
+
+def pixels_per_unit(units: str, height: int, width: int) -> float:
+    """What one size unit is in pixels: the larger side `max(H, W)` for `"frame"`, 1 for `"px"`."""
+    return float(max(height, width)) if units == "frame" else 1.0
+
+
+def reach_taps(reach: float, units: str, height: int, width: int, *, level: int = 1) -> int:
+    """A static reach as a tap count on a `1/level` resolution image (at least 1)."""
+    return max(1, math.ceil(reach * pixels_per_unit(units, height, width) / level - 1e-9))
+
+
+def flare_radius_px(size, units: str, height: int, width: int, dtype) -> Float[Array, "2"]:
+    """A flare's half-extent `(rx, ry)` in pixels: UV units stretch with the frame (`(size * W, size * H)`)."""
+    size = jnp.asarray(size, dtype)
+    if units == "px":
+        return jnp.stack([size, size])
+    return jnp.stack([size * width, size * height])
 
 
 class Effect(eqx.Module):
@@ -160,6 +243,19 @@ class Effect(eqx.Module):
         source = getattr(self, "source", "disc")
         if source not in SOURCES:
             raise ValueError(f"source must be one of {', '.join(SOURCES)}; got {source!r}")
+        units = getattr(self, "units", "frame")
+        if units not in UNITS:
+            raise ValueError(f"units must be one of {', '.join(UNITS)}; got {units!r}")
+        scene_mask = getattr(self, "scene_mask", "coverage")
+        if scene_mask not in SCENE_MASKS:
+            raise ValueError(f"scene_mask must be one of {', '.join(SCENE_MASKS)}; got {scene_mask!r}")
+        static = _static_annotations(type(self))
+        for name in size_fields(self):
+            value = getattr(self, name)
+            if name in static and not 0 <= value <= MAX_REACH[units]:
+                raise ValueError(f"{owner}.{name} must lie in [0, {MAX_REACH[units]:g}] ({units} units), got {value!r}")
+            if isinstance(value, jax.Array) and not isinstance(value, jax.core.Tracer) and not float(np.min(value)) >= 0:
+                raise ValueError(f"{owner}.{name} must be >= 0, got {value!r}")
         for name, (low, high) in parameter_bounds(self).items():
             value = getattr(self, name)
             if isinstance(value, jax.core.Tracer):
@@ -177,15 +273,30 @@ class Effect(eqx.Module):
         return f"{type(self).__name__}({fields})"
 
     def layer(
-        self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True
+        self,
+        buffers: Buffers,
+        light_xy: Float[ArrayLike, "2"],
+        *,
+        light_in_front: Bool[ArrayLike, ""] | bool = True,
+        light_depth: Float[ArrayLike, ""] = math.inf,
     ) -> Float[Array, "H W L"]:
         raise NotImplementedError
 
     def __call__(
-        self, buffers: Buffers, light_xy: Float[ArrayLike, "2"], *, light_in_front: Bool[ArrayLike, ""] | bool = True
+        self,
+        buffers: Buffers,
+        light_xy: Float[ArrayLike, "2"],
+        *,
+        light_in_front: Bool[ArrayLike, ""] | bool = True,
+        light_depth: Float[ArrayLike, ""] = math.inf,
     ) -> Float[Array, "H W C"]:
-        """The frame with the effect blended on: `blend(buffers.color, layer, mode=blend_mode)`."""
-        return blend(buffers.color, self.layer(buffers, light_xy, light_in_front=light_in_front), mode=self.blend_mode)
+        """The frame with the effect blended on: `blend(buffers.color, layer, mode=blend_mode)`.
+
+        `light_depth`: the light's distance from the camera in scene units
+        (`+inf`: at infinity), as `render` stores it (`godrays:light_depth`).
+        """
+        layer = self.layer(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        return blend(buffers.color, layer, mode=self.blend_mode)
 
 
 _EFFECT_CLASSES: dict[str, type[Effect]] = {}
@@ -230,40 +341,81 @@ def light_visibility(
     return (1.0 - t * t * (3.0 - 2.0 * t)) * jnp.asarray(light_in_front, dtype)
 
 
+def scene_mask_of(kind: str, buffers: Buffers, light_depth, depth_bias) -> Float[Array, "H W"]:
+    """The scene mask `kind` (`SCENE_MASKS`): 1 where an emitter shows, 0 where the scene hides it.
+
+    `"depth"` blanks the pixels nearer than `light_depth * (1 - depth_bias)`
+    (scene units; `depth_bias` a fraction of the light's distance, so the
+    emitter's own surface in front of its centre is not blanked); with the
+    light at infinity only the sky passes.
+    """
+    dtype = buffers.color.dtype
+    if kind == "coverage":
+        return coverage_mask(buffers.coverage).astype(dtype)
+    if kind == "sky":
+        return sky_mask(buffers.depth).astype(dtype)
+    light_depth = jnp.asarray(light_depth, dtype)
+    return depth_test_mask(buffers.depth, light_depth=light_depth * (1 - jnp.asarray(depth_bias, dtype))).astype(dtype)
+
+
+@functools.lru_cache(maxsize=1)
+def default_flare() -> np.ndarray:
+    """The flare texture used when an effect is given none: `masks.procedural_flare()`."""
+    return procedural_flare()
+
+
 def _emitter(
     source: str,
+    scene_mask: str,
     buffers: Buffers,
     light_xy,
     radius,
+    texture,
     light_in_front,
     fade,
+    light_depth,
+    depth_bias,
 ) -> Float[Array, "H W C"]:
-    """What shines: a disc at the light seen through the sky, the sky's own colour, or the light pass."""
+    """What shines: a flare at the light through the scene mask, the sky's own colour, or the light pass."""
     dtype = buffers.color.dtype
     visible = light_visibility(
         light_xy, buffers.height, buffers.width, fade=fade, light_in_front=light_in_front, dtype=dtype
     )
-    open_sky = coverage_mask(buffers.coverage)[..., None]
+    if source == "light_pass":
+        if buffers.light_pass is None:
+            raise ValueError("source='light_pass' needs buffers.light_pass (render it, or use source='disc')")
+        return buffers.light_pass[..., None].astype(dtype) * visible
+    mask = scene_mask_of(scene_mask, buffers, light_depth, depth_bias)[..., None]
     if source == "disc":
-        disc = light_source_mask(buffers.height, buffers.width, light_xy, radius=radius, dtype=dtype)
-        return disc * open_sky * visible
-    if source == "sky":
-        colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
-        return colour * open_sky * visible
-    if buffers.light_pass is None:
-        raise ValueError("source='light_pass' needs buffers.light_pass (render it, or use source='disc')")
-    return buffers.light_pass[..., None].astype(dtype) * visible
+        flare = light_source_mask(buffers.height, buffers.width, light_xy, radius=radius, texture=texture, dtype=dtype)
+        return flare * mask * visible
+    colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
+    return colour * mask * visible
 
 
-def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front):
+def flare_texture_of(effect) -> Float[Array, "h w C"]:
+    """The effect's flare texture as the XNA article's sampler reads it (`coord = .5 - offset`: turned by 180 degrees).
+
+    The texture is data, not a fitted parameter: no gradient flows into it.
+    """
+    texture = default_flare() if effect.flare_texture is None else effect.flare_texture
+    return jax.lax.stop_gradient(jnp.asarray(texture)[::-1, ::-1])
+
+
+def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_depth):
     """`(function, arguments)` drawing the effect's emitter; the arguments hold only what that source depends on.
 
     The loops differentiate an emitter's few-number arguments in forward mode,
-    one sampled derivative image each, so an unused one (a sky's disc radius)
+    one sampled derivative image each, so an unused one (a sky's flare size)
     would cost a derivative image of zeros.
     """
-    radius = effect.light_radius if effect.source == "disc" else None
-    arguments = (buffers, light_xy, radius, light_in_front, effect.offscreen_fade)
-    return functools.partial(_emitter, effect.source), arguments
-
-
+    dtype = buffers.color.dtype
+    flare = effect.source == "disc"
+    radius = flare_radius_px(effect.flare_size, effect.units, buffers.height, buffers.width, dtype) if flare else None
+    texture = flare_texture_of(effect) if flare else None
+    depth_test = effect.source != "light_pass" and effect.scene_mask == "depth"
+    arguments = (
+        buffers, light_xy, radius, texture, light_in_front, effect.offscreen_fade,
+        light_depth if depth_test else None, effect.depth_bias if depth_test else None,
+    )  # fmt: skip
+    return functools.partial(_emitter, effect.source, effect.scene_mask), arguments

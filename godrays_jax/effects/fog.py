@@ -1,6 +1,7 @@
 """Participating media: `ScatteringFog`, a homogeneous medium in closed form with screen-space shaft shadowing."""
 
 import functools
+import math
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -77,12 +78,12 @@ class ScatteringFog(Effect):
             lit=self.lit(buffers, light_xy, light_in_front=light_in_front),
         )  # fmt: skip
 
-    def layer(self, buffers, light_xy, *, light_in_front=True):
+    def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The in-scattered light alone, `(H, W, 3)`."""
         options = self._fog_options(buffers, light_xy, light_in_front)
         return in_scattering(buffers.depth, light_xy, **options).astype(buffers.color.dtype)
 
-    def __call__(self, buffers, light_xy, *, light_in_front=True):
+    def __call__(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The fogged frame: `color * T + layer` on the colour channels, alpha unchanged."""
         options = self._fog_options(buffers, light_xy, light_in_front)
         return apply_fog(buffers.color, buffers.depth, light_xy, **options)

@@ -1,6 +1,7 @@
 """Glow effects: sun overcasting (`SunOvercast`) and the VBex engine's lens dirt, sun spot and bloom."""
 
 import functools
+import math
 from typing import Literal
 
 import equinox as eqx
@@ -9,7 +10,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from godrays_jax.effects.base import Effect, light_visibility, param
+from godrays_jax.effects.base import (
+    Effect,
+    Units,
+    light_visibility,
+    param,
+    pixels_per_unit,
+    reach_taps,
+    size_param,
+    size_reach,
+)
 from godrays_jax.kernels.blur import bloom, gaussian_blur, poisson_blur
 from godrays_jax.kernels.lens import (
     LENS_DIRT_ABERRATION,
@@ -30,27 +40,29 @@ class SunOvercast(Effect):
     The glow pass is `buffers.glow_pass` when the rasterizer rendered it (the
     source enlarged x1.3 in `glow_color`, occluders shrunk x0.8 in transparent
     black). For other buffers it is drawn in image space, the sun-overcasting article's two
-    object scalings becoming a fittable number of pixels: the light source's
-    coverage (`buffers.light_pass` if present, else a disc of `source_radius`
-    pixels at the light) dilated by `source_grow` pixels, in `glow_color`, with
-    the frame's geometry (its coverage) eroded by `occluder_shrink` pixels cut
-    out in transparent black, so the glow seeps into the occluders' outlines
-    (`masks.dilate` / `masks.erode`, reach `max_morphology` pixels; the disc is
-    grown analytically). The blurred RGBA is added as `rgb * alpha`, as XNA's
+    object scalings becoming fittable sizes (frame units: fractions of the
+    larger side; pixels under `units="px"`): the light source's coverage
+    (`buffers.light_pass` if present, else a disc of radius `source_radius` at
+    the light) dilated by `source_grow`, in `glow_color`, with the frame's
+    geometry (its coverage) eroded by `occluder_shrink` cut out in transparent
+    black, so the glow seeps into the occluders' outlines (`masks.dilate` /
+    `masks.erode`, reach `morphology_reach`; the disc is grown analytically).
+    `blur_power` is in UV units in either unit system, as the article writes it. The blurred RGBA is added as `rgb * alpha`, as XNA's
     additive sprite blend does.
     `passes` is fittable (relaxation of `poisson_blur`, loop length `max_passes`).
     """
 
     blur_power: Float[Array, ""] = param(0.015, low=0.0, high=0.2)
     glow_color: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65), low=0.0, high=10.0)
-    source_radius: Float[Array, ""] = param(30.0, low=0.0, high=500.0)
+    source_radius: Float[Array, ""] = size_param(0.1, low=0.0, high=2.0, px_high=4096.0)
     passes: Float[Array, ""] = param(2.0, low=0.0, high=8.0)
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    source_grow: Float[Array, ""] = param(0.0, low=0.0, high=64.0)
-    occluder_shrink: Float[Array, ""] = param(0.0, low=0.0, high=64.0)
+    source_grow: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0)
+    occluder_shrink: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0)
     max_passes: int = eqx.field(static=True, default=2)
-    max_morphology: int = eqx.field(static=True, default=4)
+    morphology_reach: float = size_reach(0.0125)
     blend_mode: str = eqx.field(static=True, default="add")
+    units: Units = eqx.field(static=True, default="frame")
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 4"]:
         """The unblurred glow pass (RGBA), rendered or drawn in image space."""
@@ -61,18 +73,21 @@ class SunOvercast(Effect):
         )
         if buffers.glow_pass is not None:
             return buffers.glow_pass.astype(dtype) * visible
+        scale = pixels_per_unit(self.units, buffers.height, buffers.width)
+        reach = reach_taps(self.morphology_reach, self.units, buffers.height, buffers.width)
+        grow, shrink = self.source_grow * scale, self.occluder_shrink * scale
         if buffers.light_pass is not None:
-            source = dilate(buffers.light_pass.astype(dtype), radius=self.source_grow, max_radius=self.max_morphology)
+            source = dilate(buffers.light_pass.astype(dtype), radius=grow, max_radius=reach)
         else:
             x, y = pixel_centres(buffers.height, buffers.width, dtype)
             light_xy = jnp.asarray(light_xy, dtype)
             distance = jnp.sqrt((x - light_xy[0]) ** 2 + (y - light_xy[1]) ** 2 + 1e-12)
-            source = jnp.clip(self.source_radius + self.source_grow - distance + 0.5, 0.0, 1.0)
-        occluders = erode(jnp.clip(buffers.coverage, 0.0, 1.0), radius=self.occluder_shrink, max_radius=self.max_morphology)
+            source = jnp.clip(self.source_radius * scale + grow - distance + 0.5, 0.0, 1.0)
+        occluders = erode(jnp.clip(buffers.coverage, 0.0, 1.0), radius=shrink, max_radius=reach)
         inside = (source * (1.0 - occluders) * visible)[..., None]
         return inside * self.glow_color.astype(dtype)
 
-    def layer(self, buffers, light_xy, *, light_in_front=True):
+    def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The blurred glow as added: `(H, W, 3)` = blurred rgb times blurred alpha."""
         glow = poisson_blur(
             self.glow(buffers, light_xy, light_in_front=light_in_front),
@@ -91,7 +106,14 @@ class LensDirt(Effect):
     `lens.lens_dirt`). Directions come from `fov_x_deg` (horizontal field of
     view, degrees); `far` (scene units) normalises depth to the VBex article's
     `LDepth`; `power` and `scale` are the VBex article's 20 and 2; `aberration` is the
-    per-channel UV offset (0.002); `sun_color` tints the dirt.
+    per-channel UV offset (0.002); `sun_color` tints the dirt. `depth_floor`
+    is the article's `.8` in `max(LDepth, .8)`: with `depth_in_power` false
+    (ours) it scales the intensity after the power, so geometry nearer than
+    `depth_floor * far` dims the dirt to `depth_floor` of the sky's and the
+    dirt fades smoothly toward far geometry; `depth_in_power` true is the
+    formula as printed, `pow(dot * max(LDepth, .8), 20)`, which dims near
+    geometry by `0.8 ** 20` and draws a hard line along every silhouette,
+    the horizon included (`lens.lens_dirt_intensity`).
     """
 
     power: Float[Array, ""] = param(20.0, low=1.0, high=200.0)
@@ -101,11 +123,13 @@ class LensDirt(Effect):
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     far: Float[Array, ""] = param(100.0, low=1e-3, high=1e6)
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
+    depth_floor: Float[Array, ""] = param(0.8, low=0.0, high=1.0)
     dirt_seed: int = eqx.field(static=True, default=0)
     view: ViewMode = eqx.field(static=True, default="pixel")
+    depth_in_power: bool = eqx.field(static=True, default=False)
     blend_mode: str = eqx.field(static=True, default="add")
 
-    def layer(self, buffers, light_xy, *, light_in_front=True):
+    def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The lit dirt alone, `(H, W, 3)`."""
         check_light(light_xy)
         dtype = buffers.color.dtype
@@ -113,6 +137,7 @@ class LensDirt(Effect):
         lit = lens_dirt(
             dirt, buffers.depth, light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
             power=self.power, scale=self.scale, aberration=self.aberration, light_in_front=light_in_front, view=self.view,
+            depth_floor=self.depth_floor, depth_in_power=self.depth_in_power,
         )  # fmt: skip
         visible = light_visibility(
             light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
@@ -131,8 +156,10 @@ class SunSpot(Effect):
     """The VBex article's sky sun spot, `lens.sun_spot` on the sky in `sun_color`, plus its glow.
 
     As in the VBex article the spot is also written to a glow target (`glow`), which
-    the bloom pyramid (`blur.bloom`, no threshold, `glow_weights`, `glow_sigma`
-    level pixels) spreads; the layer is `spot + glow_intensity * bloom(spot)`.
+    the bloom pyramid spreads (`blur.bloom`, no threshold, `glow_weights`;
+    `glow_sigma` and `glow_reach` as `Bloom.sigma` and `Bloom.reach`); the
+    layer is `spot + glow_intensity * bloom(spot)`, and the article adds the
+    glow at full strength (`glow_intensity = 1`).
     """
 
     sun_distance: Float[Array, ""] = param(1.0, low=0.01, high=100.0)
@@ -141,10 +168,11 @@ class SunSpot(Effect):
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     glow_intensity: Float[Array, ""] = param(1.0, low=0.0, high=10.0)
     glow_weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0)
-    glow_sigma: Float[Array, ""] = param(2.0, low=0.1, high=10.0)
+    glow_sigma: Float[Array, ""] = size_param(0.0125, low=1e-4, high=0.2, px_high=100.0)
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    glow_radius: int = eqx.field(static=True, default=6)
+    glow_reach: float = size_reach(0.0375)
     blend_mode: str = eqx.field(static=True, default="add")
+    units: Units = eqx.field(static=True, default="frame")
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 3"]:
         """The glow target: the coloured spot on sky pixels (the VBex article's `Out.glow`), unblurred."""
@@ -160,49 +188,103 @@ class SunSpot(Effect):
         sky = coverage_mask(buffers.coverage.astype(dtype))[..., None]
         return spot * sky * self.sun_color.astype(dtype) * visible
 
-    def layer(self, buffers, light_xy, *, light_in_front=True):
+    def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The spot and its bloom, `(H, W, 3)`."""
         spot = self.glow(buffers, light_xy, light_in_front=light_in_front)
-        glow = bloom(spot, threshold=0.0, weights=self.glow_weights, sigma=self.glow_sigma, radius=self.glow_radius)
+        glow = _pyramid(spot, self.glow_sigma, self.glow_reach, self.glow_weights, self.units)
         return spot + self.glow_intensity * glow
 
 
+def _pyramid(image, sigma, reach, weights, units):
+    """`blur.bloom` (no threshold) with a frame-unit `sigma` and `reach`: the same texels' blur at every level.
+
+    `sigma` and `reach` are those of the finest (1/2) level in frame units (or
+    full-resolution pixels under `units="px"`), that is `sigma * max(W, H) / 2`
+    texels of every level, as the article blurs each of its four targets with
+    one kernel.
+    """
+    height, width = image.shape[0], image.shape[1]
+    level_sigma = sigma * pixels_per_unit(units, height, width) / 2
+    taps = reach_taps(reach, units, height, width, level=2)
+    return bloom(image, threshold=0.0, weights=weights, sigma=level_sigma, radius=taps)
+
+
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+"""Rec. 709 luminance weights: the frame's bright pass keeps a pixel's hue."""
+
+
+def bright_part(colour: Float[Array, "H W C"], threshold) -> Float[Array, "H W C"]:
+    """What of a frame blooms: `colour * max(Y - threshold, 0) / Y`, `Y` its luminance (the value of a 1-channel image).
+
+    Thresholding luminance, not each channel, keeps the colour: a pixel of
+    `(1.57, 0.98, 0.40)` over a threshold of 1 blooms orange, not red.
+    """
+    dtype = colour.dtype
+    luminance = colour[..., 0] if colour.shape[-1] == 1 else jnp.tensordot(colour[..., :3], jnp.asarray(LUMINANCE, dtype), 1)
+    luminance = luminance[..., None]
+    positive = luminance > 0
+    excess = jnp.maximum(luminance - jnp.asarray(threshold, dtype), 0.0)
+    return jnp.where(positive, colour * excess / jnp.where(positive, luminance, 1.0), 0.0)
+
+
 BloomMethod = Literal["pyramid", "gaussian"]
+BloomSource = Literal["glow_target", "frame"]
 
 
 class Bloom(Effect):
-    """The VBex article's bright glow (`blur.bloom`): bright pass, blurs at 1/2 .. 1/16 resolution, summed, added.
+    """The VBex article's bright glow: what glows, blurred at 1/2 .. 1/16 resolution, summed, added.
 
-    `method="gaussian"` is the single large Gaussian the VBex article compares it with:
-    the same bright pass blurred once at full resolution with `gaussian_sigma`
-    pixels (`gaussian_radius` taps each side). The layer is `intensity` times
-    either. Bloom does not depend on the light: `light_xy` and
-    `light_in_front` are accepted and ignored.
+    What glows (`bloom_source`): `"glow_target"`, the article's glow target
+    (`buffers.glow_target`: the sky's sun spot, emissive night lights, the
+    atmosphere's shell, as the rasterizer renders them), or for buffers
+    without one (and for `"frame"`) the frame's bright part
+    (`bright_part(colour, threshold)`, luminance above `threshold`, hue kept).
+    `method="pyramid"` is the article's four targets (`blur.bloom`: box-reduced
+    to 1/2, 1/4, 1/8 and 1/16, each blurred by the same Gaussian of `sigma`
+    at the finest level, frame units, taps to `reach`; see `_pyramid`),
+    weighted by `weights` and summed; `method="gaussian"` is the single large
+    Gaussian the article compares it with, `gaussian_sigma` at full
+    resolution (taps to `gaussian_reach`). Sizes are fractions of the frame's
+    larger side (pixels under `units="px"`). The layer is `intensity` times
+    either. Bloom does not depend on the light: `light_xy`, `light_in_front`
+    and `light_depth` are accepted and ignored.
     """
 
     threshold: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
     intensity: Float[Array, ""] = param(0.25, low=0.0, high=10.0)
     weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0)
-    sigma: Float[Array, ""] = param(2.0, low=0.1, high=10.0)
-    gaussian_sigma: Float[Array, ""] = param(12.0, low=0.1, high=100.0)
-    radius: int = eqx.field(static=True, default=6)
-    gaussian_radius: int = eqx.field(static=True, default=36)
+    sigma: Float[Array, ""] = size_param(0.0125, low=1e-4, high=0.2, px_high=100.0)
+    gaussian_sigma: Float[Array, ""] = size_param(0.0375, low=1e-4, high=0.5, px_high=500.0)
+    reach: float = size_reach(0.0375)
+    gaussian_reach: float = size_reach(0.1125)
     method: BloomMethod = eqx.field(static=True, default="pyramid")
+    bloom_source: BloomSource = eqx.field(static=True, default="frame")
     blend_mode: str = eqx.field(static=True, default="add")
+    units: Units = eqx.field(static=True, default="frame")
 
     def __check_init__(self):
         if self.method not in ("pyramid", "gaussian"):
             raise ValueError(f"method must be 'pyramid' or 'gaussian'; got {self.method!r}")
+        if self.bloom_source not in ("glow_target", "frame"):
+            raise ValueError(f"bloom_source must be 'glow_target' or 'frame'; got {self.bloom_source!r}")
 
-    def layer(self, buffers, light_xy, *, light_in_front=True):
-        """The glow alone, same channels as `buffers.color` (an alpha channel is not bloomed)."""
-        check_light(light_xy)
+    def glowing(self, buffers: Buffers) -> Float[Array, "H W C"]:
+        """What blooms, unblurred: the glow target, or the frame's bright part (see the class docstring)."""
         colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
+        if self.bloom_source == "glow_target" and buffers.glow_target is not None:
+            return buffers.glow_target.astype(colour.dtype)
+        return bright_part(colour, self.threshold)
+
+    def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
+        """The glow alone, `(H, W, 3)` (1 channel for a 1-channel frame without a glow target)."""
+        check_light(light_xy)
+        glowing = self.glowing(buffers)
         if self.method == "pyramid":
-            glow = bloom(colour, threshold=self.threshold, weights=self.weights, sigma=self.sigma, radius=self.radius)
+            glow = _pyramid(glowing, self.sigma, self.reach, self.weights, self.units)
         else:
-            bright = jnp.maximum(colour - self.threshold.astype(colour.dtype), 0.0)
-            glow = gaussian_blur(bright, sigma=self.gaussian_sigma, radius=self.gaussian_radius)
-        return glow * self.intensity.astype(colour.dtype)
+            scale = pixels_per_unit(self.units, buffers.height, buffers.width)
+            taps = reach_taps(self.gaussian_reach, self.units, buffers.height, buffers.width)
+            glow = gaussian_blur(glowing, sigma=self.gaussian_sigma * scale, radius=taps)
+        return glow * self.intensity.astype(glow.dtype)
 
 

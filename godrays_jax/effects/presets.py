@@ -10,15 +10,16 @@ from godrays_jax.kernels.lens import LENS_DIRT_ABERRATION
 
 
 def _xna_crepuscular() -> GodRays:
-    """The XNA crepuscular-rays article: 128 samples, density .5, decay .95, weight 1, exposure .15, bright pass, additive."""
-    # The XNA crepuscular-rays article leaves the flare size (SunSize / z), the bright-pass threshold and
-    # the colour open: with decay .95 the shafts reach only ~8 % of the way to the
-    # light, so the disc must reach the occluders (120 px on a 320 px frame), and
-    # a warm tint below 1 keeps the saturated core from washing the silhouettes out.
+    """The XNA crepuscular-rays article's five passes: flare, depth test, rays (128 samples, density .5 with its
+    step clamp, decay .95, weight 1, exposure .15), bright pass, additive blend."""
+    # Ours, as the article leaves them open: the flare (its SunSize / z for our scenes, a
+    # glow texture with a small bright core: the rays' gain of about 3 saturates only that
+    # core), the bright-pass threshold (its slider) and a warm tint (the article's flare
+    # texture is coloured); the depth bias is a fraction of the light's distance.
     return GodRays(
-        density=0.5, decay=0.95, weight=1.0, exposure=0.15, threshold=0.25, num_samples=128.0,
-        max_samples=128, light_radius=120.0, tint=(0.8, 0.7, 0.5), source="disc", use_bright_pass=True,
-        blend_mode="add",
+        density=0.5, decay=0.95, weight=1.0, exposure=0.15, threshold=0.1, num_samples=128.0, max_samples=128,
+        flare_size=0.3, tint=(1.0, 0.85, 0.6), depth_bias=0.1, source="disc", scene_mask="depth", step_clamp=True,
+        use_bright_pass=True, blend_mode="add",
     )  # fmt: skip
 
 
@@ -31,38 +32,61 @@ def _galaxy_vls() -> GodRays:
 
 
 def _kbengine_flares() -> FlareOuts:
-    """KbEngine's article: kbEngine3's 20 flare-outs scaled x1.03 each, blurred against banding, added."""
-    return FlareOuts(scale_step=1.03, num_iters=20.0, max_iters=20, intensity=0.1, blur_sigma=2.0)
+    """KbEngine's article: a flare texture masked by `1 - sign(depth)`, kbEngine3's 20 flare-outs scaled x1.03 each
+    into a low-resolution target, blurred against banding, added."""
+    # Ours: the flare (procedural, 0.3 UV), the target at half resolution ("low-res"),
+    # the intensity and the blur (sigma 0.625 % of the frame's larger side).
+    return FlareOuts(
+        scale_step=1.03, num_iters=20.0, max_iters=20, intensity=0.1, flare_size=0.3, blur_sigma=0.00625,
+        blur_reach=0.01875, target_factor=2, scene_mask="sky",
+    )  # fmt: skip
 
 
 def _sun_overcast() -> SunOvercast:
     """The sun-overcasting article: orange (0.8, 0.5, 0, 0.65) glow, two Poisson-blur passes, additive."""
-    # The halo size and the occluders' shrink (x1.3 / x0.8 of objects in the seed) are
-    # open in image space: a 45 px halo and 2 px of seeping read as the article's picture.
+    # The halo size and the occluders' shrink (x1.3 / x0.8 of objects in the article) are
+    # open in image space (frames without the rendered glow pass): a halo of 14 % of the
+    # frame's larger side and 0.6 % of seeping read as the article's picture.
     return SunOvercast(
-        blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2, source_radius=45.0,
-        occluder_shrink=2.0,
+        blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2, source_radius=0.140625,
+        occluder_shrink=0.00625,
     )  # fmt: skip
 
 
 def _vbex_lens_dirt() -> LensDirt:
-    """The VBex article: power 20, scale 2, chromatic offset 0.002, warm sun colour, added."""
-    return LensDirt(power=20.0, scale=2.0, aberration=LENS_DIRT_ABERRATION, sun_color=(1.0, 0.8, 0.55))
+    """The VBex article: power 20, scale 2, chromatic offset 0.002, `max(LDepth, .8)`, warm sun colour, added."""
+    # Ours: the depth factor applied after the power (near geometry dims the dirt to 80 %,
+    # as max(LDepth, .8) reads; inside the power it would cut it 87-fold along a hard line).
+    return LensDirt(
+        power=20.0, scale=2.0, aberration=LENS_DIRT_ABERRATION, sun_color=(1.0, 0.8, 0.55), depth_floor=0.8,
+        depth_in_power=False,
+    )  # fmt: skip
 
 
 def _vbex_sun_spot() -> SunSpot:
     """The VBex article: `pow(dot, SunDistance * 2000) * SunSharpness * 30` on the sky, bloomed through the glow target."""
-    return SunSpot(sun_distance=1.0, sun_sharpness=1.0, sun_color=(1.0, 0.85, 0.6), glow_intensity=0.5)
+    return SunSpot(
+        sun_distance=1.0, sun_sharpness=1.0, sun_color=(1.0, 0.85, 0.6), glow_intensity=1.0, glow_sigma=0.0125,
+        glow_reach=0.0375,
+    )  # fmt: skip
 
 
 def _vbex_bloom() -> Bloom:
-    """The VBex article: bright pass, blurs at 1/2, 1/4, 1/8, 1/16 resolution added with equal weights."""
-    return Bloom(threshold=1.0, weights=(1.0, 1.0, 1.0, 1.0), intensity=0.25, method="pyramid")
+    """The VBex article: the glow target blurred at 1/2, 1/4, 1/8, 1/16 resolution, added with equal weights."""
+    # Ours: the blur (1.25 % of the frame's larger side at the finest level), the intensity,
+    # and for frames without a glow target, the luminance threshold.
+    return Bloom(
+        threshold=1.0, weights=(1.0, 1.0, 1.0, 1.0), intensity=0.25, sigma=0.0125, reach=0.0375, method="pyramid",
+        bloom_source="glow_target",
+    )  # fmt: skip
 
 
 def _gaussian_bloom() -> Bloom:
     """The single large Gaussian that the VBex article's pyramid replaces, for comparison."""
-    return Bloom(threshold=1.0, gaussian_sigma=12.0, gaussian_radius=36, intensity=1.0, method="gaussian")
+    return Bloom(
+        threshold=1.0, gaussian_sigma=0.0375, gaussian_reach=0.1125, intensity=1.0, method="gaussian",
+        bloom_source="glow_target",
+    )  # fmt: skip
 
 
 def _participating_media() -> ScatteringFog:

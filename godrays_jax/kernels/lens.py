@@ -104,6 +104,8 @@ def lens_dirt_intensity(
     scale: Float[ArrayLike, ""] = 2.0,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     view: ViewMode = "pixel",
+    depth_floor: Float[ArrayLike, ""] = 0.8,
+    depth_in_power: bool = True,
 ) -> Float[Array, "H W"]:
     """The VBex article's `pow(saturate(dot(view, -lightdir) * max(LDepth, 0.8)), power) * scale`.
 
@@ -113,12 +115,18 @@ def lens_dirt_intensity(
     texture brightens as the camera turns to the sun). `LDepth` is
     `linear_depth(depth, far)` (scene units), so occluders nearer than
     `0.8 * far` are dimmed by `0.8 ** power`. The VBex article: `power = 20`, `scale = 2`.
+
+    `depth_floor` is the `0.8`. `depth_in_power=False` applies the depth
+    factor after the power instead, `pow(saturate(dot), power) * scale *
+    max(LDepth, depth_floor)`: near geometry dims the dirt to `depth_floor`
+    of the sky's, with no hard line where the depth jumps (a silhouette, the
+    horizon).
     """
     if view not in ("pixel", "axis"):
         raise ValueError(f"view must be 'pixel' or 'axis', got {view!r}")
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
-    for name, value in (("far", far), ("power", power), ("scale", scale)):
+    for name, value in (("far", far), ("power", power), ("scale", scale), ("depth_floor", depth_floor)):
         check_scalar(value, name)
     height, width = depth.shape
     dtype = jnp.result_type(depth, jnp.float32)
@@ -127,8 +135,10 @@ def lens_dirt_intensity(
         cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_light, precision="highest")
     else:
         cosine = jnp.broadcast_to(toward_light[2], (height, width))
-    occlusion = jnp.maximum(linear_depth(depth.astype(dtype), far), 0.8)
-    return safe_power(jnp.clip(cosine * occlusion, 0.0, 1.0), power) * scale
+    occlusion = jnp.maximum(linear_depth(depth.astype(dtype), far), jnp.asarray(depth_floor, dtype))
+    if depth_in_power:
+        return safe_power(jnp.clip(cosine * occlusion, 0.0, 1.0), power) * scale
+    return safe_power(jnp.clip(cosine, 0.0, 1.0), power) * scale * occlusion
 
 
 def lens_dirt(
@@ -144,6 +154,8 @@ def lens_dirt(
     aberration: Float[ArrayLike, ""] = LENS_DIRT_ABERRATION,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     view: ViewMode = "pixel",
+    depth_floor: Float[ArrayLike, ""] = 0.8,
+    depth_in_power: bool = True,
 ) -> Float[Array, "H W 3"]:
     """The VBex article's lens dirt layer, to be added onto the frame: `dirt colour * lens_dirt_intensity`.
 
@@ -161,7 +173,8 @@ def lens_dirt(
     if np.shape(sun_color) != (3,):
         raise ValueError(f"sun_color must be an RGB triple, shape (3,), got shape {np.shape(sun_color)}")
     intensity = lens_dirt_intensity(
-        depth, light_xy, fov_x_deg=fov_x_deg, far=far, power=power, scale=scale, light_in_front=light_in_front, view=view
+        depth, light_xy, fov_x_deg=fov_x_deg, far=far, power=power, scale=scale, light_in_front=light_in_front, view=view,
+        depth_floor=depth_floor, depth_in_power=depth_in_power,
     )
     height, width = intensity.shape
     dtype = intensity.dtype

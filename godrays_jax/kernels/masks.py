@@ -5,6 +5,7 @@ Masks are `(H, W)` planes in [0, 1] unless said otherwise; multiply them into an
 """
 
 import jax.numpy as jnp
+import numpy as np
 from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
@@ -54,39 +55,65 @@ def light_source_mask(
     width: int,
     light_xy: Float[ArrayLike, "2"],
     *,
-    radius: Float[ArrayLike, ""],
+    radius: Float[ArrayLike, ""] | Float[ArrayLike, "2"],
     texture: Float[Array, "h w C"] | None = None,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "H W C"]:
     """The XNA crepuscular-rays article's light-source mask: a flare centred on the light, `2 * pow(flare, 2)`.
 
-    The flare covers the square `light +- radius` pixels (the XNA crepuscular-rays article sizes it as
-    `SunSize / clip-space z`; pass that size converted to pixels). With no
-    `texture` the flare is the analytic disc `saturate(1 - distance / radius)`,
-    one channel; a `texture` is stretched over the square and sampled
-    bilinearly with clamp-to-edge addressing, as the XNA crepuscular-rays article does. Off-screen
-    lights draw the part of the flare that overlaps the image. A light behind
-    the camera (`light_in_front` false) draws nothing.
+    The flare covers the rectangle `light +- radius` pixels: `radius` is one
+    number (a square) or `(rx, ry)` (the article's `SunSize / clip-space z`
+    is a half-extent in UV units, so on a `W x H` frame it is
+    `(size * W, size * H)` pixels: wider than tall on a landscape frame, as on
+    the GPU). With no `texture` the flare is the analytic cone
+    `saturate(1 - r)`, `r` the distance from the light in units of the
+    radius, one channel; a `texture` is stretched over the rectangle, its
+    texel `i` centred at `light - radius + (i + 0.5) * 2 * radius / w`, and
+    sampled bilinearly with clamp-to-edge addressing as the article's sampler
+    does (so a texture whose border is not black lights the whole frame).
+    `procedural_flare` makes a texture. Off-screen lights draw the part of
+    the flare that overlaps the image. A light behind the camera
+    (`light_in_front` false) draws nothing.
     """
     check_light(light_xy)
-    check_scalar(radius, "radius")
+    if jnp.shape(radius) not in ((), (2,)):
+        raise ValueError(f"radius must be a scalar or a pair (rx, ry), got shape {jnp.shape(radius)}")
     light_xy = jnp.asarray(light_xy, dtype)
-    radius = jnp.maximum(jnp.asarray(radius, dtype), 1e-6)
+    radius = jnp.maximum(jnp.broadcast_to(jnp.asarray(radius, dtype), (2,)), 1e-6)
     x, y = pixel_centres(height, width, dtype)
+    u = (x - light_xy[0]) / (2 * radius[0]) + 0.5
+    v = (y - light_xy[1]) / (2 * radius[1]) + 0.5
     if texture is None:
-        # In radii, clipped before squaring: a far light's squared pixel distance overflows float32 (and its
-        # gradient turns NaN), and beyond 1.5 radii on either axis the flare is 0 whatever the exact distance.
-        dx = jnp.clip((x - light_xy[0]) / radius, -1.5, 1.5)
-        dy = jnp.clip((y - light_xy[1]) / radius, -1.5, 1.5)
-        flare = jnp.clip(1.0 - jnp.sqrt(dx**2 + dy**2 + 1e-12 / radius**2), 0.0, 1.0)[..., None]
+        # Clipped before squaring: a far light's squared distance overflows float32 (and its gradient
+        # turns NaN), and beyond 1.5 radii on either axis the flare is 0 whatever the exact distance.
+        dx = jnp.clip(2 * u - 1, -1.5, 1.5)
+        dy = jnp.clip(2 * v - 1, -1.5, 1.5)
+        flare = jnp.clip(1.0 - jnp.sqrt(dx**2 + dy**2 + 1e-12), 0.0, 1.0)[..., None]
     else:
         check_image(texture, "texture")
         tex_h, tex_w = texture.shape[0], texture.shape[1]
-        u = (x - light_xy[0]) / (2 * radius) + 0.5
-        v = (y - light_xy[1]) / (2 * radius) + 0.5
         flare = sample_bilinear(texture.astype(dtype), u * tex_w, v * tex_h)
     return 2.0 * flare**2 * jnp.asarray(light_in_front, dtype)
+
+
+def procedural_flare(size: int = 256, *, halo: float = 0.5, core: float = 0.08) -> Float[np.ndarray, "size size 1"]:
+    """A sun-glow flare texture in [0, 1], one channel, black at its border: `halo * (1 - r)**2 + (1 - halo) * exp(-(r / core)**2)`.
+
+    `r` is the distance from the texture's centre in units of its half-side
+    (texel centres at `(i + 0.5) / size`), clipped to `r <= 1`. A small bright
+    core (`core`, same units) over a wide dim halo: through the XNA article's
+    `2 * pow(tex, 2)`, rays and bright pass only the core saturates, where a
+    flat disc would clip everywhere. Plain NumPy data (not fittable).
+    """
+    if not is_static_int(size) or size < 2:
+        raise ValueError(f"size must be a Python int >= 2, got {size!r}")
+    if not (0.0 <= halo <= 1.0 and core > 0.0):
+        raise ValueError(f"halo must lie in [0, 1] and core be > 0, got halo={halo!r}, core={core!r}")
+    centres = (np.arange(size) + 0.5) / size * 2 - 1
+    r = np.minimum(np.hypot(*np.meshgrid(centres, centres)), 1.0)
+    texture = halo * (1 - r) ** 2 + (1 - halo) * np.exp(-((r / core) ** 2))
+    return texture.astype(np.float32)[..., None]
 
 
 def depth_test_mask(

@@ -19,6 +19,9 @@ class Buffers(eqx.Module):
             `(H, W)`, if rendered.
         glow_pass: the sun-overcasting article's overcast pass (the source enlarged and tinted,
             occluders shrunk and transparent black), `(H, W, 4)` RGBA, if rendered.
+        glow_target: the VBex article's glow target, what the bloom spreads (the
+            sky's sun spot, emissive night lights, the atmosphere's glowing
+            shell), `(H, W, 3)` linear HDR, if rendered.
     """
 
     color: Float[Array, "H W C"]
@@ -28,6 +31,7 @@ class Buffers(eqx.Module):
     object_id: Int[Array, "H W"] | None = None
     light_pass: Float[Array, "H W"] | None = None
     glow_pass: Float[Array, "H W 4"] | None = None
+    glow_target: Float[Array, "H W 3"] | None = None
 
     def __check_init__(self):
         """Shapes and dtypes at construction, each error naming the field.
@@ -47,7 +51,7 @@ class Buffers(eqx.Module):
             raise ValueError(f"buffers.color must have a floating-point dtype, got {self.color.dtype}")
         plane = color_shape[:-1]
         expected = {"depth": plane, "coverage": plane, "normal": (*plane, 3), "object_id": plane,
-                    "light_pass": plane, "glow_pass": (*plane, 4)}  # fmt: skip
+                    "light_pass": plane, "glow_pass": (*plane, 4), "glow_target": (*plane, 3)}  # fmt: skip
         for name, shape in expected.items():
             value = getattr(self, name)
             actual = _shape_of(value)

@@ -142,11 +142,11 @@ def test_image_space_overcast_grows_into_occluders():
     coverage = jnp.zeros((24, 32)).at[:, 14:18].set(1.0)  # a pillar through the light
     buffers = gr.Buffers(color=jnp.zeros((24, 32, 3)), depth=jnp.where(coverage > 0, 5.0, jnp.inf), coverage=coverage)
     light = jnp.array([16.0, 12.0])
-    plain = gr.SunOvercast(source_radius=8.0).glow(buffers, light)
-    shrunk = gr.SunOvercast(source_radius=8.0, occluder_shrink=1.0).glow(buffers, light)
-    grown = gr.SunOvercast(source_radius=8.0, source_grow=3.0).glow(buffers, light)
+    plain = gr.SunOvercast(units="px", morphology_reach=4, source_radius=8.0).glow(buffers, light)
+    shrunk = gr.SunOvercast(units="px", morphology_reach=4, source_radius=8.0, occluder_shrink=1.0).glow(buffers, light)
+    grown = gr.SunOvercast(units="px", morphology_reach=4, source_radius=8.0, source_grow=3.0).glow(buffers, light)
     assert float(plain[12, 14, 3]) == 0.0 and float(shrunk[12, 14, 3]) > 0.3  # the glow seeps into the outline
     assert float(plain[12, 6, 3]) == 0.0 and float(grown[12, 6, 3]) > 0.3  # the source disc grew by 3 px
-    effect = gr.SunOvercast(source_radius=8.0, occluder_shrink=1.5, source_grow=1.5)
+    effect = gr.SunOvercast(units="px", morphology_reach=4, source_radius=8.0, occluder_shrink=1.5, source_grow=1.5)
     grads = jax.grad(lambda e: e.layer(buffers, light).sum())(effect)
     assert float(grads.occluder_shrink) > 0 and float(grads.source_grow) > 0

@@ -85,9 +85,10 @@ def test_light_behind_the_camera_leaves_the_frame_unchanged():
 
 def test_relaxed_sample_count_equals_integer_count_in_the_effect():
     frame = make_frame()
-    effect = gr.GodRays(num_samples=6.0, max_samples=10, source="disc", light_radius=5.0)
+    effect = gr.GodRays(num_samples=6.0, max_samples=10, source="disc", flare_size=5.0, units="px")
+    flare = gr.procedural_flare()[::-1, ::-1]  # the XNA article samples its flare at .5 - offset
     exact = gr.radial_rays(
-        gr.light_source_mask(HEIGHT, WIDTH, LIGHT, radius=5.0) * gr.coverage_mask(frame.coverage)[..., None],
+        gr.light_source_mask(HEIGHT, WIDTH, LIGHT, radius=5.0, texture=flare) * gr.coverage_mask(frame.coverage)[..., None],
         LIGHT, num_samples=6, density=0.5, decay=0.95, weight=1.0, exposure=0.15,
     )  # fmt: skip
     np.testing.assert_allclose(effect.layer(frame, LIGHT)[..., :1], exact, rtol=1e-5, atol=1e-7)
@@ -128,7 +129,7 @@ def test_godrays_disc_runs_near_the_light_with_the_same_result():
     buffers = gr.Buffers(color=jnp.asarray(rng.random((height, width, 3)), jnp.float32),
                          depth=jnp.where(jnp.asarray(rng.random((height, width))) < 0.7, jnp.inf, 5.0),
                          coverage=jnp.asarray(rng.random((height, width)) < 0.3, jnp.float32))  # fmt: skip
-    effect = eqx.tree_at(lambda e: e.light_radius, gr.preset("xna_crepuscular"), jnp.float32(8.0))
+    effect = eqx.tree_at(lambda e: e.flare_size, gr.preset("xna_crepuscular"), jnp.float32(8.0 / width))
     for light in ([120.3, 40.6], [-3.0, 60.0]):
         light = jnp.asarray(light, jnp.float32)
         near_light = jax.jit(lambda b, xy: effect(b, xy))(buffers, light)  # fields concrete: the windowed loop
@@ -142,11 +143,11 @@ def test_emitter_inputs_gradients_match_finite_differences(x64, effect_type):
     derivative images sampled in the loop (forward mode) give the true derivative, both modes."""
     frame = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), make_frame())
     counts = dict(num_samples=6.4, max_samples=8) if effect_type is gr.GodRays else dict(num_iters=4.6, max_iters=5)
-    base = effect_type(source="disc", **counts)
+    base = effect_type(source="disc", units="px", **counts)
 
     def layer(radius, light, fade, density_or_step):
         field = "density" if effect_type is gr.GodRays else "scale_step"
-        effect = eqx.tree_at(lambda e: (e.light_radius, e.offscreen_fade, getattr(e, field)), base,
+        effect = eqx.tree_at(lambda e: (e.flare_size, e.offscreen_fade, getattr(e, field)), base,
                              (radius, fade, density_or_step))  # fmt: skip
         return effect.layer(frame, light)
 

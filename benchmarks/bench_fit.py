@@ -110,7 +110,7 @@ def bench_fog(lines, fog_steps, additive_steps):
         "ScatteringFog from participating_media": (fog_start, FOG_FIXED, fog_steps),
         "GodRays source=sky from xna_crepuscular": (
             gr.GodRays(source="sky", density=0.5, decay=0.95, exposure=0.15, num_samples=32.0, max_samples=32),
-            ("tint", "threshold", "light_radius", "offscreen_fade", "num_samples"), additive_steps),
+            ("tint", "threshold", "flare_size", "offscreen_fade", "num_samples"), additive_steps),
         "FlareOuts from kbengine_flares": (gr.preset("kbengine_flares"), ("offscreen_fade", "num_iters"), additive_steps),
     }  # fmt: skip
     fitted = {}
@@ -155,12 +155,12 @@ def _with(effect, **changes):
 
 def _recovery_cases():
     """(name, truth, start, fixed, why): starts are the seeds' presets, truths other values of the same model."""
-    rays_fixed = ("weight", "light_radius", "threshold", "tint", "offscreen_fade", "num_samples")
+    rays_fixed = ("weight", "flare_size", "threshold", "tint", "offscreen_fade", "num_samples")
     why_rays = ("weight and tint scale the rays exactly like exposure; for a smooth source the sample loop is a "
                 "Riemann sum, so num_samples, decay and exposure trade off (only decay^(n/density) and "
                 "exposure n/density are identifiable): num_samples is kept; the disc size, threshold and fade are "
                 "scene choices")  # fmt: skip
-    xna = _with(gr.preset("xna_crepuscular"), light_radius=30.0, num_samples=48.0, max_samples=64)
+    xna = _with(gr.preset("xna_crepuscular"), flare_size=30.0 / 320, num_samples=48.0, max_samples=64)
     galaxy = _with(gr.preset("galaxy_vls"), num_samples=48.0, max_samples=64)
     flares = gr.preset("kbengine_flares")
     # A short reach: the unrolled morphology taps slow compilation, and both reaches are fixed here.
@@ -171,13 +171,13 @@ def _recovery_cases():
         ("seed 004 galaxy_vls (light pass)",
          _with(galaxy, density=0.7, decay=0.95, exposure=0.1), galaxy, rays_fixed, why_rays),
         ("seed 002 kbengine_flares (disc 40 px)",
-         _with(flares, scale_step=1.06, intensity=0.2, blur_sigma=3.0), flares,
-         ("copy_decay", "light_radius", "tint", "offscreen_fade", "num_iters"),
+         _with(flares, scale_step=1.06, intensity=0.2, blur_sigma=3.0 / 320), flares,
+         ("copy_decay", "flare_size", "tint", "offscreen_fade", "num_iters"),
          "on a smooth disc the copies blur into one glow whose reach is scale_step^num_iters and whose brightness "
          "is about intensity x num_iters, so the count trades off with both (measured: a fit from 20 copies to a "
          "14-copy truth stopped at 20 copies x1.041 with loss 4e-7); copy_decay likewise; tint scales like intensity"),
         ("seed 000 sun_overcast (image-space glow pass)",
-         _with(overcast, blur_power=0.025, source_radius=20.0, passes=3.0), overcast,
+         _with(overcast, blur_power=0.025, source_radius=20.0 / 320, passes=3.0), overcast,
          ("glow_color", "offscreen_fade", "source_grow", "occluder_shrink"),
          "the layer is rgb x alpha of the glow colour (only their product is identifiable); source_grow adds to "
          "source_radius; occluder_shrink is scene geometry"),
@@ -253,7 +253,7 @@ def bench_time(lines, repeats, height, width):
     print("\n".join(lines[-6:]), flush=True)
 
 
-FITTED_RAYS = ("density", "decay", "exposure", "num_samples", "weight", "light_radius")
+FITTED_RAYS = ("density", "decay", "exposure", "num_samples", "weight", "flare_size")
 
 
 def bench_gradient(lines, sizes):
@@ -264,7 +264,7 @@ def bench_gradient(lines, sizes):
               "temp MiB forward / reverse / forward-mode |", "|---|---|---|---|---|---|"]  # fmt: skip
     models = {
         "GodRays sky, 128 samples": (gr.GodRays(source="sky", num_samples=100.0, max_samples=128), FITTED_RAYS),
-        # The disc emitter depends on light_radius: its derivative image is a third plane sampled by every copy.
+        # The disc emitter depends on flare_size: its derivative image is a third plane sampled by every copy.
         "GodRays disc, 128 samples": (gr.GodRays(source="disc", num_samples=100.0, max_samples=128), FITTED_RAYS),
         "ScatteringFog, 32 samples": (gr.preset("participating_media"), SIX),
     }

@@ -52,7 +52,7 @@ def test_apply_writes_the_composited_frame(tmp_path):
 
 def test_apply_with_params_file_and_layer_only(tmp_path):
     params = tmp_path / "params.json"
-    effect = gr.GodRays(num_samples=16.0, max_samples=16, density=0.9, exposure=0.3, light_radius=12.0)
+    effect = gr.GodRays(num_samples=16.0, max_samples=16, density=0.9, exposure=0.3, flare_size=12.0, units="px")
     gr.save_effect(params, effect)
     assert json.loads(params.read_text())["effect"] == "GodRays"
     output = tmp_path / "layer.png"

@@ -206,8 +206,8 @@ def test_godrays_method_selects_the_fast_path(rng):
         coverage=jnp.zeros((24, 32), jnp.float32),
     )
     light = jnp.array([12.0, 9.0], jnp.float32)
-    exact = gr.GodRays(light_radius=6.0).layer(buffers, light)
-    quick = gr.GodRays(light_radius=6.0, method="fast").layer(buffers, light)
+    exact = gr.GodRays(flare_size=6.0, units="px").layer(buffers, light)
+    quick = gr.GodRays(flare_size=6.0, units="px", method="fast").layer(buffers, light)
     assert psnr(quick, exact) > 30
     assert gr.effect_from_dict(gr.effect_to_dict(gr.GodRays(method="fast"))).method == "fast"
     with pytest.raises(ValueError, match="method"):

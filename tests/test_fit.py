@@ -31,10 +31,10 @@ LIGHT = jnp.array([16.5, 5.0])
 
 
 def _rays(**values):
-    return gr.GodRays(**{"source": "disc", "light_radius": 6.0, "max_samples": 8, "num_samples": 8.0, **values})
+    return gr.GodRays(**{"source": "disc", "flare_size": 6.0, "units": "px", "max_samples": 8, "num_samples": 8.0, **values})
 
 
-FIXED_RAYS = ("weight", "light_radius", "threshold", "tint", "offscreen_fade", "num_samples")
+FIXED_RAYS = ("weight", "flare_size", "threshold", "tint", "offscreen_fade", "num_samples")
 
 
 TRUTH = dict(density=0.8, decay=0.85, exposure=0.3)
@@ -149,7 +149,7 @@ def test_minimiser_with_ssim_loss_improves_and_counts_round():
     frame = _frame()
     target = _rays(density=0.8, decay=0.9, exposure=0.3, num_samples=8.0)(frame, LIGHT)
     start = _rays(density=0.6, decay=0.95, exposure=0.2, num_samples=6.6)
-    fixed = ("weight", "light_radius", "threshold", "tint", "offscreen_fade")
+    fixed = ("weight", "flare_size", "threshold", "tint", "offscreen_fade")
     # BFGS backtracks its first, identity-Hessian step a few times before it accepts one.
     result = fit(start, frame, LIGHT, target, loss="ssim", solver="bfgs", fixed=fixed, max_steps=10)
     assert result.loss_after < result.loss_before

@@ -26,7 +26,7 @@ import godrays_jax.app.tuner as tuner_module
 from godrays_jax.app.cli import main
 from godrays_jax.app.server import HOST, MAX_WORKERS, TOKEN_HEADER, TuneServer
 from godrays_jax.app.tuner import (
-    PIXEL_FIELDS,
+    pixel_fields,
     RenderQueue,
     Superseded,
     Tuner,
@@ -56,7 +56,7 @@ def small_frame(height=36, width=64):
 
 def small_effect():
     """Seed 003's rays with 8 samples: cheap to compile and render in tests."""
-    return gr.GodRays(num_samples=8.0, max_samples=8, light_radius=6.0, exposure=0.5, source="disc")
+    return gr.GodRays(num_samples=8.0, max_samples=8, flare_size=6.0, units="px", exposure=0.5, source="disc")
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -124,17 +124,21 @@ def test_downsample_buffers_matches_block_loops():
 
 
 def test_scale_pixel_fields_scales_only_pixel_sizes():
-    effect = gr.preset("kbengine_flares")
+    framed = gr.preset("kbengine_flares")
+    assert scale_pixel_fields(framed, 0.25) is framed  # frame units: the same picture at any resolution
+    effect = gr.FlareOuts(units="px", flare_size=40.0, blur_sigma=2.0, blur_reach=6.0)
     scaled = scale_pixel_fields(effect, 0.25)
+    assert set(pixel_fields(effect)) == {"flare_size", "blur_sigma", "blur_reach"}
+    assert scaled.blur_reach == 1.5
     for name in gr.parameter_bounds(effect):
-        factor = 0.25 if name in PIXEL_FIELDS else 1.0
+        factor = 0.25 if name in pixel_fields(effect) else 1.0
         np.testing.assert_allclose(getattr(scaled, name), np.asarray(getattr(effect, name)) * factor)
 
 
 def test_preview_render_approximates_the_downsampled_full_render():
     """The preview scales the light and pixel sizes with the resolution, so it looks like the full frame, smaller."""
     frame = small_frame(48, 80)
-    effect = gr.GodRays(num_samples=8.0, max_samples=8, light_radius=12.0, exposure=0.5)
+    effect = gr.GodRays(num_samples=8.0, max_samples=8, flare_size=12.0, units="px", exposure=0.5)
     light = jnp.asarray([40.0, 8.0])
     layer = eqx.filter_jit(lambda effect, frame, light: effect.layer(frame, light))
     full = gr.downsample_box(layer(effect, frame, light), 4)
@@ -232,7 +236,7 @@ class Client:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     frame = small_frame()
-    truth = gr.GodRays(num_samples=8.0, max_samples=8, light_radius=6.0, exposure=1.2)
+    truth = gr.GodRays(num_samples=8.0, max_samples=8, flare_size=6.0, units="px", exposure=1.2)
     target = eqx.filter_jit(truth)(frame, jnp.asarray([32.0, 6.0]))
     save_path = tmp_path_factory.mktemp("tune") / "params.json"
     tuner = Tuner(frame, (32.0, 6.0), effect=small_effect(), target=target, save_path=save_path,
@@ -544,7 +548,7 @@ def test_fit_moves_the_free_parameters_toward_the_target(server):
     answer = progress["result"]
     assert answer["fitted"] == ["exposure"] and answer["loss_after"] < answer["loss_before"]
     assert abs(answer["effect"]["exposure"] - 1.2) < abs(0.5 - 1.2)
-    assert answer["effect"]["light_radius"] == pytest.approx(6.0)  # locked, and scaled back to full resolution
+    assert answer["effect"]["flare_size"] == pytest.approx(6.0)  # locked, and scaled back to full resolution
     assert client.request("GET", "/api/fit")[1]["running"] is False
     status, answer = client.request("POST", "/api/fit", {"fixed": list(server.tuner.bounds())})
     assert status == 400 and "every parameter is locked" in answer["error"]

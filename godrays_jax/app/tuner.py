@@ -27,8 +27,9 @@ Renders are coalesced, not queued: one worker thread renders the newest
 request; a request still waiting when a newer one arrives is answered 409
 ("superseded"), so a burst of slider events costs one render after the one in
 progress. `quality="preview"` renders at 1/`preview_factor` of the resolution
-(buffers box-averaged, depth min-pooled, the light and the pixel-sized fields
-in `PIXEL_FIELDS` divided by the factor); the page asks for previews while a
+(buffers box-averaged, depth min-pooled, the light divided by the factor; an
+effect's sizes are in frame units and need no change, unless it was built
+with `units="px"`: then its size fields are divided by the factor too); the page asks for previews while a
 slider or the light is dragged and for the full resolution on release.
 
 Frames are PNGs display-encoded with `tonemap="reinhard"` (`x / (1 + x)` per
@@ -62,7 +63,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
-from godrays_jax.effects.base import Effect
+from godrays_jax.effects.base import Effect, size_fields
 from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import (
     effect_from_dict,
@@ -76,12 +77,9 @@ from godrays_jax.primitives.color import display_map, to_srgb8
 from godrays_jax.primitives.io import encode_png
 from godrays_jax.primitives.resample import box_pool, downsample_box
 
-PIXEL_FIELDS: frozenset[str] = frozenset(
-    {"light_radius", "source_radius", "blur_sigma", "source_grow", "occluder_shrink", "gaussian_sigma", "sigma",
-     "glow_sigma"}
-)  # fmt: skip
-"""Fittable fields measured in pixels (bloom's `sigma`, `glow_sigma`: pixels of its pyramid levels, which
-shrink with the frame too): scaled with the resolution for previews and preview-resolution fits."""
+def pixel_fields(effect: Effect) -> tuple[str, ...]:
+    """The fields measured in pixels: an effect's sizes (`size_fields`) under `units="px"`, else none."""
+    return size_fields(effect) if getattr(effect, "units", "frame") == "px" else ()
 
 
 VIEWS: tuple[str, ...] = ("after", "before", "layer", "difference", "target")
@@ -144,15 +142,19 @@ def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
         object_id=None if buffers.object_id is None else buffers.object_id[::factor, ::factor],
         light_pass=plane(buffers.light_pass),
         glow_pass=box(buffers.glow_pass),
+        glow_target=box(buffers.glow_target),
     )
 
 
 def scale_pixel_fields(effect: Effect, scale: float) -> Effect:
-    """The effect with every field in `PIXEL_FIELDS` multiplied by `scale` (to render at another resolution)."""
-    names = [field.name for field in dataclasses.fields(effect) if field.name in PIXEL_FIELDS]
+    """The effect with every field in `pixel_fields` multiplied by `scale` (to render at another resolution).
+
+    Frame-unit sizes (the default) describe the same picture at any resolution and are left alone.
+    """
+    names = pixel_fields(effect)
     if not names or scale == 1:
         return effect
-    return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [getattr(effect, n) * scale for n in names])
+    return dataclasses.replace(effect, **{name: getattr(effect, name) * scale for name in names})
 
 
 def display_encode(
@@ -353,7 +355,7 @@ class Tuner:
             "light_in_front": self.light_in_front,
             "effect": effect_to_dict(effect),
             "bounds": {name: list(bounds) for name, bounds in self.bounds(effect).items()},
-            "pixel_fields": sorted(PIXEL_FIELDS),
+            "pixel_fields": sorted(pixel_fields(effect)),
             "count_fields": list(COUNT_FIELDS),
             "presets": sorted(PRESETS),
             "views": list(VIEWS) if self.target is not None else [v for v in VIEWS if v != "target"],

@@ -13,7 +13,9 @@ from godrays_jax.app.options import (
     frame_reading,
     has_sky,
     resolve_light,
+    resolve_light_depth,
     warn,
+    with_flare_texture,
 )
 from godrays_jax.pipeline.batch import frames_function
 from godrays_jax.primitives.io import read_frame, write_frame_like, write_image
@@ -25,14 +27,15 @@ def _is_exr(path: str) -> bool:
 
 def run(args) -> int:
     check_output_path(args.output, args.buffers)
-    effect = effect_option(args.preset, args.params)
+    effect = with_flare_texture(effect_option(args.preset, args.params), args.flare_texture)
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
     if not has_sky(buffers):
         warn("apply", f"{args.buffers} has {NO_SKY}")
     effect = effect_for_frame("apply", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
+    light_depth = resolve_light_depth(args.light_depth, args.buffers)
     # The program `batch` runs, on a group of one frame: compiled once, and found in the persistent cache next time.
-    apply = frames_function(effect, layer_only=args.layer_only)
+    apply = frames_function(effect, layer_only=args.layer_only, light_depth=light_depth)
     one_frame = jax.tree.map(lambda leaf: leaf[None], buffers)
     image = apply(one_frame, np.asarray([light_xy], np.float32), np.asarray([in_front]))[0]
     if _is_exr(args.output) and _is_exr(args.buffers):

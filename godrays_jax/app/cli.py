@@ -18,6 +18,7 @@ from godrays_jax.app.options import (
     DEFAULT_PRESET,
     SKY_DEPTH_HELP,
     parse_light,
+    parse_light_depth,
     parse_sky_depth,
 )
 from godrays_jax.effects.presets import PRESETS
@@ -96,8 +97,18 @@ def _add_apply(subparsers) -> None:
         metavar="X,Y",
         help="the light's pixel position (x right, y down; may be negative: --light -5,10); default: the frame's godrays:light_px metadata",
     )
+    parser.add_argument(
+        "--light-depth",
+        type=parse_light_depth,
+        metavar="D",
+        help="the light's distance from the camera in scene units, or inf (read by the XNA preset's depth test and "
+        "step clamp); default: the frame's godrays:light_depth metadata, else inf",
+    )
     _add_effect_options(parser)
     _add_frame_options(parser)
+    parser.add_argument(
+        "--flare-texture", metavar="IMAGE", help="the flare texture of a GodRays or FlareOuts effect (any image)"
+    )
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
     _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.apply_command:run")
@@ -219,11 +230,11 @@ def _add_render(subparsers) -> None:
         help="render a scene file to a frame",
         description="Render a scene (JSON or TOML) with the built-in rasterizer to an EXR frame: R, G, B, A (coverage), "
         "Z (distance along the camera ray), N.X/N.Y/N.Z, object_id, light.Y (the galaxy-engine VLS article's pass), glow.R/G/B/A (the sun-overcasting article's pass). "
-        "The light's pixel position is stored as godrays:light_px for apply/fit.",
+        "The light's pixel position is stored as godrays:light_px for apply/fit, its distance as godrays:light_depth.",
     )
     parser.add_argument("scene", help="scene file (.json or .toml)")
     parser.add_argument("-o", "--output", required=True, help="output frame (.exr)")
-    parser.add_argument("--light", action="store_true", help="also print the light's pixel position")
+    parser.add_argument("--light", action="store_true", help="also print the light's pixel position and distance")
     parser.add_argument("--no-glow", action="store_true", help="skip the glow pass (one rasterization instead of two)")
     _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.render_command:run")

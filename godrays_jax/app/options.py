@@ -13,7 +13,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.primitives.io import SKY_DEPTH, read_light
+from godrays_jax.primitives.io import SKY_DEPTH, read_image, read_light, read_light_depth
 
 DEFAULT_PRESET = "xna_crepuscular"
 """The effect `apply`, `batch` and `tune` use without `--preset` / `--params`."""
@@ -43,6 +43,34 @@ def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple
     if stored is None:
         raise CommandError(f"{buffers_path} stores no light position (godrays:light_px): pass --light X,Y")
     return stored
+
+
+def parse_light_depth(text: str) -> float:
+    """`"D"` -> the light's distance in scene units, a number >= 0 (`inf` allowed: a light at infinity)."""
+    try:
+        depth = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--light-depth must be a number >= 0 or inf, got {text!r}") from None
+    if math.isnan(depth) or depth < 0:
+        raise argparse.ArgumentTypeError(f"--light-depth must be a number >= 0 or inf, got {text!r}")
+    return depth
+
+
+def resolve_light_depth(light_depth: float | None, buffers_path: str) -> float:
+    """The `--light-depth` value, or the distance stored in the frame's metadata, or `inf` (a light at infinity)."""
+    if light_depth is not None:
+        return light_depth
+    stored = read_light_depth(buffers_path)
+    return math.inf if stored is None else stored
+
+
+def with_flare_texture(effect: Effect, texture_path: str | None) -> Effect:
+    """The effect with its flare texture read from `--flare-texture` (any image; linear values)."""
+    if texture_path is None:
+        return effect
+    if "flare_texture" not in {field.name for field in dataclasses.fields(effect)}:
+        raise CommandError(f"--flare-texture: {type(effect).__name__} draws no flare (use a GodRays or FlareOuts effect)")
+    return dataclasses.replace(effect, flare_texture=read_image(texture_path))
 
 
 def effect_option(

@@ -1,8 +1,8 @@
 """`godrays-jax render`: a scene file through the built-in rasterizer to an EXR frame."""
 
 from godrays_jax.app.options import check_output_path
-from godrays_jax.primitives.io import write_buffers
-from godrays_jax.raster import light_pixel, load_scene, render
+from godrays_jax.primitives.io import LIGHT_DEPTH_ATTR, write_buffers
+from godrays_jax.raster import light_distance, light_pixel, load_scene, render
 
 
 def run(args) -> int:
@@ -11,8 +11,12 @@ def run(args) -> int:
     buffers = render(scene, camera, with_glow_pass=not args.no_glow)
     xy, _, in_front = light_pixel(scene, camera)
     light_xy = (float(xy[0]), float(xy[1]))
-    write_buffers(args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front))
+    depth = light_distance(scene, camera)
+    write_buffers(
+        args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front), metadata={LIGHT_DEPTH_ATTR: depth}
+    )
     if args.light:
-        print(f"light {light_xy[0]:.4f},{light_xy[1]:.4f} {'in front' if in_front else 'behind the camera'}")
+        side = "in front" if in_front else "behind the camera"
+        print(f"light {light_xy[0]:.4f},{light_xy[1]:.4f} {side}, at distance {depth:.4f}")
     print(f"wrote {args.output}")
     return 0

@@ -245,8 +245,10 @@ _traces = collections.Counter()
 """How many times a run's effect was traced (compiled): `BatchReport.compilations` reads it."""
 
 
-def frames_function(effect: Effect, *, layer_only: bool = False):
+def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: float = math.inf):
     """The effect on a group of stacked frames `(G, H, W, ...)`, jitted with the effect's fields as constants.
+
+    `light_depth` is the light's distance (scene units) for every frame of the group (`Effect.layer`).
 
     Known at trace time, the fields let kernels specialise (GodRays' disc
     emitter runs its rays only on the window around the light that can hold
@@ -257,7 +259,7 @@ def frames_function(effect: Effect, *, layer_only: bool = False):
 
     def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
         call = effect.layer if layer_only else effect
-        return call(frame, light_xy, light_in_front=visible)
+        return call(frame, light_xy, light_in_front=visible, light_depth=light_depth)
 
     @jax.jit
     def apply(buffers: Buffers, lights: Float[Array, "G 2"], in_front: Bool[Array, " G"]) -> Float[Array, "G H W C"]:

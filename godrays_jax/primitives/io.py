@@ -84,6 +84,8 @@ _NORMAL_NAMES = ("N.X", "N.Y", "N.Z")
 _OBJECT_ID_NAME = "object_id"
 _LIGHT_PX_ATTR = "godrays:light_px"
 _LIGHT_IN_FRONT_ATTR = "godrays:light_in_front"
+LIGHT_DEPTH_ATTR = "godrays:light_depth"
+"""The light's distance from the camera in scene units (a float, `inf` for a light at infinity), as `render` writes it."""
 
 _EXR_EXTENSIONS = (".exr",)
 _DISPLAY_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
@@ -372,6 +374,38 @@ def read_light(path: str | os.PathLike) -> tuple[tuple[float, float], bool] | No
         return None
     in_front = spec.getattribute(_LIGHT_IN_FRONT_ATTR)
     return _parse_light_px(value, path), True if in_front is None else bool(int(in_front))
+
+
+def read_light_depth(path: str | os.PathLike) -> float | None:
+    """The light's distance from the camera stored in a frame's metadata (`godrays:light_depth`, scene units).
+
+    `inf` for a light at infinity (a directional sun); `None` when the file
+    does not say. Effects take it as `light_depth` (the XNA crepuscular-rays
+    article's depth test and step clamp).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is not a readable image, or the attribute is not a number.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
+    try:
+        value = inp.spec().getattribute(LIGHT_DEPTH_ATTR)
+    finally:
+        inp.close()
+    if value is None:
+        return None
+    try:
+        depth = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"image '{path}': attribute {LIGHT_DEPTH_ATTR} must be a number, got {value!r}") from None
+    if math.isnan(depth) or depth < 0:
+        raise ValueError(f"image '{path}': attribute {LIGHT_DEPTH_ATTR} must be >= 0, got {depth}")
+    return depth
 
 
 def read_image(path: str | os.PathLike) -> Float[Array, "H W C"]:

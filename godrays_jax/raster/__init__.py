@@ -22,6 +22,7 @@ from godrays_jax.raster.rasterizer import (
     GLOW_SOURCE_SCALE as GLOW_SOURCE_SCALE,
 )
 from godrays_jax.raster.rasterizer import (
+    light_distance as light_distance,
     light_pixel as light_pixel,
 )
 from godrays_jax.raster.rasterizer import (

@@ -34,6 +34,8 @@ How it works (all inside one `jit`):
    overlaps: everything else is transparent black, so the pass is zero there.
 """
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -830,3 +832,21 @@ def light_pixel(scene: Scene, camera: Camera) -> tuple[Float[Array, "2"], Float[
     else:
         point = scene.light.position
     return project_point(camera, point)
+
+
+def light_distance(scene: Scene, camera: Camera) -> float:
+    """The light's distance from the camera in scene units, as the depth buffer measures it (along the ray).
+
+    The sun object's centre (a mesh's translation), else a point light's
+    position; `inf` for a directional light without a sun object (a light at
+    infinity). `render` stores it with the frame (`godrays:light_depth`): the
+    XNA crepuscular-rays article's depth test and step clamp read it.
+    """
+    if scene.sun is not None:
+        sun = scene.objects[scene.sun]
+        point = sun.center if isinstance(sun, Sphere) else sun.translation
+    elif isinstance(scene.light, DirectionalLight):
+        return math.inf
+    else:
+        point = scene.light.position
+    return float(np.linalg.norm(np.asarray(point, np.float64) - np.asarray(camera.position, np.float64)))

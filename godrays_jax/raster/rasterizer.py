@@ -595,7 +595,18 @@ def _light_direction(scene: Scene, world_position: Float[Array, "3 P"]) -> Float
     return _unit_first(scene.light.position[:, None] - world_position)
 
 
-def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
+def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Array, "3 P"]):
+    """One layer's shading, the VBex planet shader's passes: `(opaque colour, shell, emissive, opaque)`.
+
+    The opaque sphere: albedo lit, emission, the atmosphere's colour from the
+    basic rim `1 - saturate(view . N)` (lit), night lights on the dark side;
+    where the rim sharpened for clipping, `min(1, 10 * rim ** (30 * sharpness))`,
+    reaches 1 the opaque pixel is discarded (only for materials with an
+    atmosphere). The transparent shell: the atmosphere's colour times that
+    sharpened rim, lit by `saturate(N . L)` in the shader (the article's glow
+    is not lit by the deferred pass). The emissive part (night lights) also
+    goes to the glow target.
+    """
     materials = _stack_materials(scene)
     obj = jnp.maximum(surface.object_id, 0)
     to_world = jnp.stack(camera.basis())
@@ -607,12 +618,16 @@ def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Arra
     rim = 1.0 - jnp.clip(-_dot(_unit_first(world_rays), normal), 0.0, 1.0 - 1e-6)
     sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
     dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
-    return (
+    atmosphere = materials.atmosphere_color[:, obj]
+    emissive = materials.night_color[:, obj] * (_city_pattern(normal) * dark_side)
+    opaque_colour = (
         materials.albedo[:, obj] * (scene.ambient[:, None] + scene.light.color[:, None] * lit)
         + materials.emission[:, obj]
-        + materials.atmosphere_color[:, obj] * (sharpened_rim * lit)
-        + materials.night_color[:, obj] * (_city_pattern(normal) * dark_side)
+        + atmosphere * (rim * lit)
+        + emissive
     )
+    clipped = jnp.any(atmosphere > 0, axis=0) & (sharpened_rim >= 1.0)
+    return opaque_colour, atmosphere * (sharpened_rim * lit), emissive, jnp.where(clipped, 0.0, 1.0)
 
 
 def _sun_direction(scene: Scene, camera: Camera) -> Float[Array, "3"]:
@@ -684,8 +699,11 @@ def render(
         (distance along the camera ray, `+inf` on sky), `coverage` in [0, 1]
         (antialiased), `normal` (world space, zero on sky), `object_id` (-1 on
         sky), `light_pass` (the sun object white, everything else black, plus
-        the sky's saturated sun spot where nothing covers it), and `glow_pass`
-        (H, W, 4). Geometry off-screen or outside [near, far] is not drawn.
+        the sky's saturated sun spot where nothing covers it), `glow_pass`
+        (H, W, 4) and `glow_target` (H, W, 3: the VBex article's glow target,
+        the sky's sun spot in `sky.sun_color`, night lights and the atmosphere's
+        shell, see `Material`). Geometry off-screen or outside [near, far] is
+        not drawn.
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"render: scene must be a Scene, got {type(scene).__name__}")
@@ -778,22 +796,31 @@ def _render(scene: Scene, camera: Camera, glow_source_scale, glow_occluder_scale
             return dict(
                 color=sky_color.T, depth=jnp.full(px.shape, jnp.inf), coverage=jnp.zeros(px.shape), normal=jnp.zeros((*px.shape, 3)),
                 object_id=jnp.full(px.shape, -1, jnp.int32), light_pass=light if scene.sun is None else jnp.zeros(px.shape),
+                glow_target=(scene.sky.sun_color[:, None] * sun_spot).T,
             )
-        front_color, behind_color = (_shade(scene, camera, layer, world_rays) for layer in (layers.front, layers.behind))
-        cf, cb = layers.front.coverage, layers.behind.coverage
-        coverage = _total_coverage(layers)
+        (front_color, front_shell, front_emissive, front_opaque), (behind_color, behind_shell, behind_emissive, behind_opaque) = (
+            _shade(scene, camera, layer, world_rays) for layer in (layers.front, layers.behind)
+        )
+        # The shell covers the whole outline; the opaque surface only where its rim is not clipped.
+        shell_f, shell_b = layers.front.coverage, layers.behind.coverage
+        cf, cb = shell_f * front_opaque, shell_b * behind_opaque
+        shell = shell_f * front_shell + (1.0 - shell_f) * shell_b * behind_shell
+        coverage = cf + (1.0 - cf) * cb
         hit = layers.hit
-        has_hit = hit.object_id >= 0
+        clipped_hit = (hit.object_id == layers.front.object_id) & (front_opaque == 0) & (cb == 0)
+        has_hit = (hit.object_id >= 0) & ~clipped_hit
         # Sky pixels' positions are placeholders: keep the norm's gradient finite there.
         position = jnp.where(has_hit, hit.position, 1.0)
         depth = jnp.where(has_hit, jnp.sqrt(_dot(position, position)), jnp.inf)
+        sky_glow = scene.sky.sun_color[:, None] * sun_spot
         return dict(
-            color=(cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color)).T,
+            color=(cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color) + shell).T,
             depth=depth,
             coverage=coverage,
             normal=jnp.where(has_hit, _times(hit.normal, to_world), 0.0).T,
-            object_id=hit.object_id,
+            object_id=jnp.where(has_hit, hit.object_id, -1),
             light_pass=(1.0 - coverage) * light if scene.sun is None else _object_weight(layers, scene.sun),
+            glow_target=(cf * front_emissive + (1.0 - cf) * (cb * behind_emissive + (1.0 - cb) * sky_glow) + shell).T,
         )
 
     def finish_glow(layers: _Layers | None, px, py) -> Float[Array, "P"]:

@@ -37,11 +37,19 @@ class Material(eqx.Module):
 
     Shaded colour = `albedo * (ambient + light_color * saturate(N.L))`
     `+ emission` (the sun: unlit, visible in the dark)
-    `+ atmosphere_color * min(1, 10 * rim ** (30 * atmosphere_sharpness)) * saturate(N.L)`
-    with `rim = 1 - saturate(view . N)` (the VBex article's planet rim, lit by N.L)
+    `+ atmosphere_color * rim * saturate(N.L)` with `rim = 1 - saturate(view . N)`
+    (the VBex planet shader's basic rim gives the atmosphere's colour)
     `+ night_color * city_pattern(N) * saturate(-N.L * night_sharpness)`
     (the VBex article's emissive night lights, only on the dark side; `city_pattern`
     is a fixed procedural stand-in for an emissive light map, in [0, 1]).
+
+    An object with an atmosphere (`atmosphere_color` non-zero) is also drawn
+    as the article's transparent glowing shell: `atmosphere_color * RimOfAtmos
+    * saturate(N.L)`, `RimOfAtmos = min(1, 10 * rim ** (30 * atmosphere_sharpness))`
+    (the rim sharpened for clipping), added to the colour and to the glow
+    target; its opaque pixels where `RimOfAtmos` reaches 1 are clipped, so
+    the outline is the shell's (larger `atmosphere_sharpness`: a thinner
+    shell). Night lights go to the glow target too.
     """
 
     albedo: Float[Array, "3"] = eqx.field(converter=_float, default=(0.8, 0.8, 0.8))

@@ -229,7 +229,7 @@ def _add_render(subparsers) -> None:
         "render",
         help="render a scene file to a frame",
         description="Render a scene (JSON or TOML) with the built-in rasterizer to an EXR frame: R, G, B, A (coverage), "
-        "Z (distance along the camera ray), N.X/N.Y/N.Z, object_id, light.Y (the galaxy-engine VLS article's pass), glow.R/G/B/A (the sun-overcasting article's pass). "
+        "Z (distance along the camera ray), N.X/N.Y/N.Z, object_id, light.Y (the galaxy-engine VLS article's pass), glow.R/G/B/A (the sun-overcasting article's pass), glowtarget.R/G/B (the VBex article's glow target). "
         "The light's pixel position is stored as godrays:light_px for apply/fit, its distance as godrays:light_depth.",
     )
     parser.add_argument("scene", help="scene file (.json or .toml)")

@@ -13,6 +13,7 @@ alternatives in brackets):
 | `object_id` | `object_id` `(H, W)` | optional; stored as float32, `-1` on sky |
 | `light.Y` [`lightpass`] | `light_pass` `(H, W)` | optional; the galaxy-engine VLS article's pass |
 | `glow.R`, `glow.G`, `glow.B`, `glow.A` | `glow_pass` `(H, W, 4)` | optional; the sun-overcasting article's pass |
+| `glowtarget.R`, `glowtarget.G`, `glowtarget.B` | `glow_target` `(H, W, 3)` | optional; the VBex article's glow target |
 
 Layers: compositors' files name channels `layer.channel`. Without a
 `color_layer`, colour is the plain `R, G, B` when the file has them, else the
@@ -80,6 +81,7 @@ _HALF_MAX = 65504.0
 _DEPTH_NAMES = ("Z", "depth.Z", "depth")
 _LIGHT_PASS_NAMES = ("light.Y", "lightpass")
 _GLOW_NAMES = ("glow.R", "glow.G", "glow.B", "glow.A")
+_GLOW_TARGET_NAMES = ("glowtarget.R", "glowtarget.G", "glowtarget.B")
 _NORMAL_NAMES = ("N.X", "N.Y", "N.Z")
 _OBJECT_ID_NAME = "object_id"
 _LIGHT_PX_ATTR = "godrays:light_px"
@@ -281,6 +283,7 @@ def _decode_buffers(
         object_id=None if object_id is None else jnp.asarray(np.rint(object_id[..., 0]).astype(np.int32)),
         light_pass=jnp.asarray(pixels[..., index[light_names[0]]]) if light_names else None,
         glow_pass=None if (g := optional(_GLOW_NAMES)) is None else jnp.asarray(g),
+        glow_target=None if (t := optional(_GLOW_TARGET_NAMES)) is None else jnp.asarray(t),
     )
     check_buffers(buffers, name=os.fspath(path))
     return buffers, color_names[:3]
@@ -527,6 +530,9 @@ def write_buffers(
     if buffers.glow_pass is not None:
         names += _GLOW_NAMES
         planes.append(_host_float("buffers.glow_pass", buffers.glow_pass, (*hw, 4)))
+    if buffers.glow_target is not None:
+        names += _GLOW_TARGET_NAMES
+        planes.append(_host_float("buffers.glow_target", buffers.glow_target, (*hw, 3)))
     pixels = np.ascontiguousarray(np.concatenate(planes, axis=-1))
 
     spec = oiio.ImageSpec(hw[1], hw[0], len(names), oiio.FLOAT)

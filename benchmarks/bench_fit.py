@@ -164,7 +164,7 @@ def _recovery_cases():
     galaxy = _with(gr.preset("galaxy_vls"), num_samples=48.0, max_samples=64)
     flares = gr.preset("kbengine_flares")
     # A short reach: the unrolled morphology taps slow compilation, and both reaches are fixed here.
-    overcast = _with(gr.preset("sun_overcast"), max_passes=3, max_morphology=2)
+    overcast = _with(gr.preset("sun_overcast"), max_passes=3, morphology_reach=2.0 / 320)
     return [
         ("seed 003 xna_crepuscular (disc 30 px, bright pass)",
          _with(xna, density=0.8, decay=0.9, exposure=0.3), xna, rays_fixed, why_rays),

@@ -65,7 +65,7 @@ def read_all(path):
 
 def params(tmp_path):
     path = tmp_path / "params.json"
-    gr.save_effect(path, gr.GodRays(num_samples=4.0, max_samples=4, light_radius=6.0, exposure=1.0))
+    gr.save_effect(path, gr.GodRays(num_samples=4.0, max_samples=4, flare_size=6.0, units="px", exposure=1.0))
     return str(path)
 
 

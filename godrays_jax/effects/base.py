@@ -58,6 +58,11 @@ blanked)."""
 Units = Literal["frame", "px"]
 UNITS: tuple[str, ...] = ("frame", "px")
 
+FlareShape = Literal["glow", "cone"]
+FLARE_SHAPES: tuple[str, ...] = ("glow", "cone")
+"""The flare drawn without a `flare_texture`: `masks.procedural_flare()` (a bright core in a dim halo), or the
+analytic cone `saturate(1 - r)` of `masks.light_source_mask` (bright out to its rim)."""
+
 
 STATIC_RANGES: dict[str, tuple[int, int]] = {
     "max_samples": (1, 4096),
@@ -246,6 +251,9 @@ class Effect(eqx.Module):
         units = getattr(self, "units", "frame")
         if units not in UNITS:
             raise ValueError(f"units must be one of {', '.join(UNITS)}; got {units!r}")
+        shape = getattr(self, "flare_shape", "glow")
+        if shape not in FLARE_SHAPES:
+            raise ValueError(f"flare_shape must be one of {', '.join(FLARE_SHAPES)}; got {shape!r}")
         scene_mask = getattr(self, "scene_mask", "coverage")
         if scene_mask not in SCENE_MASKS:
             raise ValueError(f"scene_mask must be one of {', '.join(SCENE_MASKS)}; got {scene_mask!r}")
@@ -393,11 +401,14 @@ def _emitter(
     return colour * mask * visible
 
 
-def flare_texture_of(effect) -> Float[Array, "h w C"]:
+def flare_texture_of(effect) -> Float[Array, "h w C"] | None:
     """The effect's flare texture as the XNA article's sampler reads it (`coord = .5 - offset`: turned by 180 degrees).
 
+    `None` for the analytic cone (`flare_shape="cone"` without a texture).
     The texture is data, not a fitted parameter: no gradient flows into it.
     """
+    if effect.flare_texture is None and effect.flare_shape == "cone":
+        return None
     texture = default_flare() if effect.flare_texture is None else effect.flare_texture
     return jax.lax.stop_gradient(jnp.asarray(texture)[::-1, ::-1])
 

@@ -11,6 +11,7 @@ from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import (
     Effect,
+    FlareShape,
     SceneMask,
     Source,
     Units,
@@ -57,7 +58,7 @@ def step_clamp(light_depth) -> Float[Array, ""] | float:
 def _flare_reach_px(effect, height: int, width: int) -> float | None:
     """How far from the light the default flare can be non-zero, in pixels, when known at trace time.
 
-    The procedural flare is black outside its inscribed ellipse; a user's
+    The procedural flare and the cone are black outside their inscribed ellipse; a user's
     texture may not be (clamp addressing repeats its border), so no promise.
     """
     size = effect.flare_size
@@ -75,7 +76,8 @@ class GodRays(Effect):
        `2 * pow(tex, 2)` of a flare texture centred on the light with
        half-extent `flare_size` (UV units, the article's `SunSize / z`: it
        stretches with the frame's aspect ratio as on the GPU; pixels under
-       `units="px"`), `flare_texture` or `masks.procedural_flare()`; `"sky"`,
+       `units="px"`): `flare_texture`, else by `flare_shape` the procedural
+       glow (`masks.procedural_flare()`) or the analytic cone; `"sky"`,
        the frame's own colour; `"light_pass"`, the galaxy-engine VLS article's
        white-light/black-occluder pass;
     2. the scene mask (`scene_mask`, not for `"light_pass"`): `"depth"`, the
@@ -115,6 +117,7 @@ class GodRays(Effect):
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     depth_bias: Float[Array, ""] = param(0.1, low=0.0, high=0.99)
     flare_texture: Float[Array, "h w C"] | None = texture_field()
+    flare_shape: FlareShape = eqx.field(static=True, default="glow")
     max_samples: int = eqx.field(static=True, default=128)
     source: Source = eqx.field(static=True, default="disc")
     scene_mask: SceneMask = eqx.field(static=True, default="coverage")
@@ -161,8 +164,8 @@ class GodRays(Effect):
 class FlareOuts(Effect):
     """kbEngine's screen-space god rays.
 
-    1. The masked flare: a flare texture (`flare_texture`, or
-       `masks.procedural_flare()`) centred on the light as in `GodRays`
+    1. The masked flare: a flare texture (`flare_texture`, else the
+       `flare_shape` of `GodRays`) centred on the light as in `GodRays`
        (half-extent `flare_size`, UV units), times the scene mask
        (`scene_mask`; kbEngine's `1 - sign(depth)` is `"sky"`);
     2. the flare-outs: the masked texture scaled about the light `num_iters`
@@ -186,6 +189,7 @@ class FlareOuts(Effect):
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     depth_bias: Float[Array, ""] = param(0.1, low=0.0, high=0.99)
     flare_texture: Float[Array, "h w C"] | None = texture_field()
+    flare_shape: FlareShape = eqx.field(static=True, default="glow")
     max_iters: int = eqx.field(static=True, default=20)
     blur_reach: float = size_reach(0.01875)
     target_factor: int = eqx.field(static=True, default=1)

@@ -60,8 +60,8 @@ _STATIC_CAPS = {
     "num_samples": "max_samples",
     "num_iters": "max_iters",
     "passes": "max_passes",
-    "source_grow": "max_morphology",
-    "occluder_shrink": "max_morphology",
+    "source_grow": "morphology_reach",
+    "occluder_shrink": "morphology_reach",
 }
 """Fittable field -> the static field that caps it (a kernel's loop length or reach)."""
 

@@ -63,6 +63,7 @@ from godrays_jax.kernels.masks import coverage_mask as coverage_mask
 from godrays_jax.kernels.masks import depth_test_mask as depth_test_mask
 from godrays_jax.kernels.masks import dilate as dilate
 from godrays_jax.kernels.masks import erode as erode
+from godrays_jax.kernels.masks import flare_image as flare_image
 from godrays_jax.kernels.masks import flare_mask as flare_mask
 from godrays_jax.kernels.masks import light_source_mask as light_source_mask
 from godrays_jax.kernels.masks import sky_mask as sky_mask

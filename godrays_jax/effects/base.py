@@ -40,7 +40,14 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.kernels.composite import BLEND_MODES, blend
-from godrays_jax.kernels.masks import coverage_mask, depth_test_mask, light_source_mask, procedural_flare, sky_mask
+from godrays_jax.kernels.masks import (
+    coverage_mask,
+    depth_test_mask,
+    flare_image,
+    light_source_mask,
+    procedural_flare,
+    sky_mask,
+)
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, is_static_int
 
@@ -375,6 +382,7 @@ def default_flare() -> np.ndarray:
 def _emitter(
     source: str,
     scene_mask: str,
+    squared: bool,
     buffers: Buffers,
     light_xy,
     radius,
@@ -384,7 +392,10 @@ def _emitter(
     light_depth,
     depth_bias,
 ) -> Float[Array, "H W C"]:
-    """What shines: a flare at the light through the scene mask, the sky's own colour, or the light pass."""
+    """What shines: a flare at the light through the scene mask, the sky's own colour, or the light pass.
+
+    The flare is the XNA article's `2 * pow(tex, 2)` when `squared`, else the texture as sampled (kbEngine's).
+    """
     dtype = buffers.color.dtype
     visible = light_visibility(
         light_xy, buffers.height, buffers.width, fade=fade, light_in_front=light_in_front, dtype=dtype
@@ -395,7 +406,8 @@ def _emitter(
         return buffers.light_pass[..., None].astype(dtype) * visible
     mask = scene_mask_of(scene_mask, buffers, light_depth, depth_bias)[..., None]
     if source == "disc":
-        flare = light_source_mask(buffers.height, buffers.width, light_xy, radius=radius, texture=texture, dtype=dtype)
+        draw = light_source_mask if squared else flare_image
+        flare = draw(buffers.height, buffers.width, light_xy, radius=radius, texture=texture, dtype=dtype)
         return flare * mask * visible
     colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
     return colour * mask * visible
@@ -429,4 +441,4 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
         buffers, light_xy, radius, texture, light_in_front, effect.offscreen_fade,
         light_depth if depth_test else None, effect.depth_bias if depth_test else None,
     )  # fmt: skip
-    return functools.partial(_emitter, effect.source, effect.scene_mask), arguments
+    return functools.partial(_emitter, effect.source, effect.scene_mask, effect.FLARE_SQUARED), arguments

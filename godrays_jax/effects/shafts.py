@@ -1,7 +1,7 @@
 """Light-shaft effects: radial rays (`GodRays`, GPU Gems 3 ch. 13) and kbEngine's flare-outs (`FlareOuts`)."""
 
 import math
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -106,6 +106,8 @@ class GodRays(Effect):
     resolution.
     """
 
+    FLARE_SQUARED: ClassVar[bool] = True
+
     density: Float[Array, ""] = param(0.5, low=0.0, high=2.0)
     decay: Float[Array, ""] = param(0.95, low=0.5, high=1.0)
     weight: Float[Array, ""] = param(1.0, low=0.0, high=10.0)
@@ -164,9 +166,10 @@ class GodRays(Effect):
 class FlareOuts(Effect):
     """kbEngine's screen-space god rays.
 
-    1. The masked flare: a flare texture (`flare_texture`, else the
-       `flare_shape` of `GodRays`) centred on the light as in `GodRays`
-       (half-extent `flare_size`, UV units), times the scene mask
+    1. The masked flare: a flare texture as sampled (`masks.flare_image`:
+       `flare_texture`, else the `flare_shape` of `GodRays`) centred on the
+       light as in `GodRays` (half-extent `flare_size`, UV units; the article
+       does not say where its base texture lies), times the scene mask
        (`scene_mask`; kbEngine's `1 - sign(depth)` is `"sky"`);
     2. the flare-outs: the masked texture scaled about the light `num_iters`
        times by `scale_step` each (`scale_iterated_flares`), added into a
@@ -178,6 +181,8 @@ class FlareOuts(Effect):
 
     `num_iters` is fittable (loop length `max_iters`).
     """
+
+    FLARE_SQUARED: ClassVar[bool] = False
 
     scale_step: Float[Array, ""] = param(1.03, low=0.8, high=1.5)
     intensity: Float[Array, ""] = param(0.1, low=0.0, high=10.0)

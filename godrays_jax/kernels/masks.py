@@ -50,7 +50,7 @@ def flare_mask(flare: Float[Array, "H W C"], sky: Float[Array, "H W"]) -> Float[
     return flare * sky[..., None]
 
 
-def light_source_mask(
+def flare_image(
     height: int,
     width: int,
     light_xy: Float[ArrayLike, "2"],
@@ -60,7 +60,7 @@ def light_source_mask(
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "H W C"]:
-    """The XNA crepuscular-rays article's light-source mask: a flare centred on the light, `2 * pow(flare, 2)`.
+    """A flare texture drawn centred on the light (kbEngine's base flare texture), as sampled: no squaring.
 
     The flare covers the rectangle `light +- radius` pixels: `radius` is one
     number (a square) or `(rx, ry)` (the article's `SunSize / clip-space z`
@@ -94,7 +94,25 @@ def light_source_mask(
         check_image(texture, "texture")
         tex_h, tex_w = texture.shape[0], texture.shape[1]
         flare = sample_bilinear(texture.astype(dtype), u * tex_w, v * tex_h)
-    return 2.0 * flare**2 * jnp.asarray(light_in_front, dtype)
+    return flare * jnp.asarray(light_in_front, dtype)
+
+
+def light_source_mask(
+    height: int,
+    width: int,
+    light_xy: Float[ArrayLike, "2"],
+    *,
+    radius: Float[ArrayLike, ""] | Float[ArrayLike, "2"],
+    texture: Float[Array, "h w C"] | None = None,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
+    dtype: DTypeLike = jnp.float32,
+) -> Float[Array, "H W C"]:
+    """The XNA crepuscular-rays article's light-source mask `2 * pow(tex2D(Flare, coord), 2)`: `2 * flare_image**2`.
+
+    See `flare_image` for the flare's placement, size, texture and sampling.
+    """
+    flare = flare_image(height, width, light_xy, radius=radius, texture=texture, light_in_front=light_in_front, dtype=dtype)
+    return 2.0 * flare**2
 
 
 def procedural_flare(size: int = 256, *, halo: float = 0.5, core: float = 0.08) -> Float[np.ndarray, "size size 1"]:

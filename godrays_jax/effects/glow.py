@@ -235,8 +235,8 @@ class Bloom(Effect):
     """The VBex article's bright glow: what glows, blurred at 1/2 .. 1/16 resolution, summed, added.
 
     What glows (`bloom_source`): `"glow_target"`, the article's glow target
-    (`buffers.glow_target`: the sky's sun spot, emissive night lights, the
-    atmosphere's shell, as the rasterizer renders them), or for buffers
+    (`buffers.glow_target`: the sky's sun spot, emissive surfaces and night
+    lights, the atmosphere's shell, as the rasterizer renders them), or for buffers
     without one (and for `"frame"`) the frame's bright part
     (`bright_part(colour, threshold)`, luminance above `threshold`, hue kept).
     `method="pyramid"` is the article's four targets (`blur.bloom`: box-reduced

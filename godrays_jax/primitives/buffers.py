@@ -20,8 +20,8 @@ class Buffers(eqx.Module):
         glow_pass: the sun-overcasting article's overcast pass (the source enlarged and tinted,
             occluders shrunk and transparent black), `(H, W, 4)` RGBA, if rendered.
         glow_target: the VBex article's glow target, what the bloom spreads (the
-            sky's sun spot, emissive night lights, the atmosphere's glowing
-            shell), `(H, W, 3)` linear HDR, if rendered.
+            sky's sun spot, emissive surfaces and night lights, the
+            atmosphere's glowing shell), `(H, W, 3)` linear HDR, if rendered.
     """
 
     color: Float[Array, "H W C"]

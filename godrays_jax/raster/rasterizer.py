@@ -604,8 +604,8 @@ def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Arra
     reaches 1 the opaque pixel is discarded (only for materials with an
     atmosphere). The transparent shell: the atmosphere's colour times that
     sharpened rim, lit by `saturate(N . L)` in the shader (the article's glow
-    is not lit by the deferred pass). The emissive part (night lights) also
-    goes to the glow target.
+    is not lit by the deferred pass). The emissive part (emission and night
+    lights: the engine's emissive light) also goes to the glow target.
     """
     materials = _stack_materials(scene)
     obj = jnp.maximum(surface.object_id, 0)
@@ -619,10 +619,9 @@ def _shade(scene: Scene, camera: Camera, surface: _Layer, world_rays: Float[Arra
     sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
     dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
     atmosphere = materials.atmosphere_color[:, obj]
-    emissive = materials.night_color[:, obj] * (_city_pattern(normal) * dark_side)
+    emissive = materials.emission[:, obj] + materials.night_color[:, obj] * (_city_pattern(normal) * dark_side)
     opaque_colour = (
         materials.albedo[:, obj] * (scene.ambient[:, None] + scene.light.color[:, None] * lit)
-        + materials.emission[:, obj]
         + atmosphere * (rim * lit)
         + emissive
     )
@@ -701,7 +700,7 @@ def render(
         sky), `light_pass` (the sun object white, everything else black, plus
         the sky's saturated sun spot where nothing covers it), `glow_pass`
         (H, W, 4) and `glow_target` (H, W, 3: the VBex article's glow target,
-        the sky's sun spot in `sky.sun_color`, night lights and the atmosphere's
+        the sky's sun spot in `sky.sun_color`, emission, night lights and the atmosphere's
         shell, see `Material`). Geometry off-screen or outside [near, far] is
         not drawn.
     """

@@ -49,7 +49,7 @@ class Material(eqx.Module):
     (the rim sharpened for clipping), added to the colour and to the glow
     target; its opaque pixels where `RimOfAtmos` reaches 1 are clipped, so
     the outline is the shell's (larger `atmosphere_sharpness`: a thinner
-    shell). Night lights go to the glow target too.
+    shell). Emission and night lights go to the glow target too.
     """
 
     albedo: Float[Array, "3"] = eqx.field(converter=_float, default=(0.8, 0.8, 0.8))

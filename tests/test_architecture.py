@@ -25,8 +25,8 @@ KERNELS = sorted(
     for name in dir(gr)
     if inspect.isfunction(getattr(gr, name)) and getattr(gr, name).__module__.startswith("godrays_jax.kernels.")
 )
-GENERATORS = {"dirt_texture", "interleaved_gradient_noise", "light_direction", "light_source_mask", "sun_spot",
-              "view_directions"}  # fmt: skip
+GENERATORS = {"dirt_texture", "flare_image", "interleaved_gradient_noise", "light_direction", "light_source_mask",
+              "procedural_flare", "sun_spot", "view_directions"}  # fmt: skip
 """Kernels that make an image of a given size: `height, width` come first instead of an image."""
 
 

@@ -138,7 +138,7 @@ def test_scale_pixel_fields_scales_only_pixel_sizes():
 def test_preview_render_approximates_the_downsampled_full_render():
     """The preview scales the light and pixel sizes with the resolution, so it looks like the full frame, smaller."""
     frame = small_frame(48, 80)
-    effect = gr.GodRays(num_samples=8.0, max_samples=8, flare_size=12.0, units="px", exposure=0.5)
+    effect = gr.GodRays(num_samples=8.0, max_samples=8, flare_size=12.0, units="px", flare_shape="cone", exposure=0.5)
     light = jnp.asarray([40.0, 8.0])
     layer = eqx.filter_jit(lambda effect, frame, light: effect.layer(frame, light))
     full = gr.downsample_box(layer(effect, frame, light), 4)

@@ -109,27 +109,32 @@ def light_source_mask(
 ) -> Float[Array, "H W C"]:
     """The XNA crepuscular-rays article's light-source mask `2 * pow(tex2D(Flare, coord), 2)`: `2 * flare_image**2`.
 
-    See `flare_image` for the flare's placement, size, texture and sampling.
+    `light_xy` and `radius` are in pixels; see `flare_image` for the flare's
+    placement, size, texture and sampling.
     """
     flare = flare_image(height, width, light_xy, radius=radius, texture=texture, light_in_front=light_in_front, dtype=dtype)
     return 2.0 * flare**2
 
 
-def procedural_flare(size: int = 256, *, halo: float = 0.5, core: float = 0.08) -> Float[np.ndarray, "size size 1"]:
+def procedural_flare(
+    height: int = 256, width: int = 256, *, halo: float = 0.5, core: float = 0.08
+) -> Float[np.ndarray, "H W 1"]:
     """A sun-glow flare texture in [0, 1], one channel, black at its border: `halo * (1 - r)**2 + (1 - halo) * exp(-(r / core)**2)`.
 
-    `r` is the distance from the texture's centre in units of its half-side
-    (texel centres at `(i + 0.5) / size`), clipped to `r <= 1`. A small bright
+    `r` is the distance from the texture's centre in units of its half-sides
+    (texel centres at `(i + 0.5) / size` on each axis), clipped to `r <= 1`. A small bright
     core (`core`, same units) over a wide dim halo: through the XNA article's
     `2 * pow(tex, 2)`, rays and bright pass only the core saturates, where a
     flat disc would clip everywhere. Plain NumPy data (not fittable).
     """
-    if not is_static_int(size) or size < 2:
-        raise ValueError(f"size must be a Python int >= 2, got {size!r}")
+    for name, value in (("height", height), ("width", width)):
+        if not is_static_int(value) or value < 2:
+            raise ValueError(f"{name} must be a Python int >= 2, got {value!r}")
     if not (0.0 <= halo <= 1.0 and core > 0.0):
         raise ValueError(f"halo must lie in [0, 1] and core be > 0, got halo={halo!r}, core={core!r}")
-    centres = (np.arange(size) + 0.5) / size * 2 - 1
-    r = np.minimum(np.hypot(*np.meshgrid(centres, centres)), 1.0)
+    across = (np.arange(width) + 0.5) / width * 2 - 1
+    down = (np.arange(height) + 0.5) / height * 2 - 1
+    r = np.minimum(np.hypot(*np.meshgrid(across, down)), 1.0)
     texture = halo * (1 - r) ** 2 + (1 - halo) * np.exp(-((r / core) ** 2))
     return texture.astype(np.float32)[..., None]
 

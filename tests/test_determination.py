@@ -13,7 +13,10 @@ import godrays_jax as gr
 from godrays_jax.pipeline.fit import determination
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
-TRUTH = gr.GodRays(num_samples=64.0, max_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.3, flare_size=20.0, units="px")
+TRUTH = gr.GodRays(
+    num_samples=64.0, max_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.3, flare_size=20.0, units="px",
+    flare_shape="cone",
+)
 
 
 @pytest.fixture(scope="module")

@@ -68,7 +68,7 @@ def test_xna_crepuscular_is_the_articles_five_passes(light_depth, textured):
         effect = dataclasses.replace(effect, flare_texture=flare)
     expected_frame, expected_layer = shaders.xna_crepuscular(
         frame["color"], frame["depth"], LIGHT_UV, light_depth, size=float(effect.flare_size), flare=flare,
-        bias=float(effect.depth_bias), threshold=float(effect.threshold), tint=np.asarray(effect.tint),
+        bias=effect.depth_bias, threshold=float(effect.threshold), tint=np.asarray(effect.tint),
         num_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.15,
     )  # fmt: skip
     layer = effect.layer(buffers, jnp.asarray(LIGHT), light_depth=light_depth)

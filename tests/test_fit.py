@@ -31,7 +31,8 @@ LIGHT = jnp.array([16.5, 5.0])
 
 
 def _rays(**values):
-    return gr.GodRays(**{"source": "disc", "flare_size": 6.0, "units": "px", "max_samples": 8, "num_samples": 8.0, **values})
+    return gr.GodRays(**{"source": "disc", "flare_size": 6.0, "units": "px", "flare_shape": "cone", "max_samples": 8,
+                         "num_samples": 8.0, **values})  # fmt: skip
 
 
 FIXED_RAYS = ("weight", "flare_size", "threshold", "tint", "offscreen_fade", "num_samples")

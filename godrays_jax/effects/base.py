@@ -264,6 +264,9 @@ class Effect(eqx.Module):
         scene_mask = getattr(self, "scene_mask", "coverage")
         if scene_mask not in SCENE_MASKS:
             raise ValueError(f"scene_mask must be one of {', '.join(SCENE_MASKS)}; got {scene_mask!r}")
+        bias = getattr(self, "depth_bias", 0.0)
+        if not (not isinstance(bias, bool) and isinstance(bias, (int, float)) and 0.0 <= bias < 1.0):
+            raise ValueError(f"{owner}.depth_bias must be a number in [0, 1), got {bias!r}")
         static = _static_annotations(type(self))
         for name in size_fields(self):
             value = getattr(self, name)
@@ -362,7 +365,8 @@ def scene_mask_of(kind: str, buffers: Buffers, light_depth, depth_bias) -> Float
     `"depth"` blanks the pixels nearer than `light_depth * (1 - depth_bias)`
     (scene units; `depth_bias` a fraction of the light's distance, so the
     emitter's own surface in front of its centre is not blanked); with the
-    light at infinity only the sky passes.
+    light at infinity only the sky passes. The test is a hard step: its
+    threshold has no gradient, so `depth_bias` is a static field.
     """
     dtype = buffers.color.dtype
     if kind == "coverage":
@@ -383,6 +387,7 @@ def _emitter(
     source: str,
     scene_mask: str,
     squared: bool,
+    depth_bias: float,
     buffers: Buffers,
     light_xy,
     radius,
@@ -390,7 +395,6 @@ def _emitter(
     light_in_front,
     fade,
     light_depth,
-    depth_bias,
 ) -> Float[Array, "H W C"]:
     """What shines: a flare at the light through the scene mask, the sky's own colour, or the light pass.
 
@@ -439,6 +443,7 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
     depth_test = effect.source != "light_pass" and effect.scene_mask == "depth"
     arguments = (
         buffers, light_xy, radius, texture, light_in_front, effect.offscreen_fade,
-        light_depth if depth_test else None, effect.depth_bias if depth_test else None,
+        light_depth if depth_test else None,
     )  # fmt: skip
-    return functools.partial(_emitter, effect.source, effect.scene_mask, effect.FLARE_SQUARED), arguments
+    static = (effect.source, effect.scene_mask, effect.FLARE_SQUARED, effect.depth_bias)
+    return functools.partial(_emitter, *static), arguments

@@ -23,6 +23,7 @@ from godrays_jax.primitives.io import read_buffers as read_buffers
 from godrays_jax.primitives.io import read_frame as read_frame
 from godrays_jax.primitives.io import read_image as read_image
 from godrays_jax.primitives.io import read_light as read_light
+from godrays_jax.primitives.io import read_light_depth as read_light_depth
 from godrays_jax.primitives.io import write_buffers as write_buffers
 from godrays_jax.primitives.io import write_frame_like as write_frame_like
 from godrays_jax.primitives.io import write_image as write_image
@@ -66,6 +67,7 @@ from godrays_jax.kernels.masks import erode as erode
 from godrays_jax.kernels.masks import flare_image as flare_image
 from godrays_jax.kernels.masks import flare_mask as flare_mask
 from godrays_jax.kernels.masks import light_source_mask as light_source_mask
+from godrays_jax.kernels.masks import procedural_flare as procedural_flare
 from godrays_jax.kernels.masks import sky_mask as sky_mask
 from godrays_jax.kernels.media import apply_fog as apply_fog
 from godrays_jax.kernels.media import henyey_greenstein as henyey_greenstein
@@ -79,6 +81,7 @@ from godrays_jax.kernels.rays import scaled_copies as scaled_copies
 from godrays_jax.effects.base import Effect as Effect
 from godrays_jax.effects.base import light_visibility as light_visibility
 from godrays_jax.effects.base import parameter_bounds as parameter_bounds
+from godrays_jax.effects.base import size_fields as size_fields
 from godrays_jax.effects.base import STATIC_RANGES as STATIC_RANGES
 from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
 from godrays_jax.effects.glow import Bloom as Bloom
@@ -94,6 +97,7 @@ from godrays_jax.effects.serialization import MAX_EFFECT_FILE_BYTES as MAX_EFFEC
 from godrays_jax.effects.serialization import save_effect as save_effect
 from godrays_jax.effects.shafts import FlareOuts as FlareOuts
 from godrays_jax.effects.shafts import GodRays as GodRays
+from godrays_jax.effects.shafts import step_clamp as step_clamp
 
 # Pipeline: sequences and batches of frames (fitting loads on first use, below).
 from godrays_jax.pipeline.batch import plan_batch as plan_batch

@@ -63,9 +63,11 @@ def main() -> None:
         if layer[open_sky].max() <= 0.0:
             print(f"| {name} | (no light on the open sky) | |")
             continue
-        errors = [np.sqrt(np.mean((angular_profile(layer, light_xy, open_sky, a * silhouette, b * silhouette) - e) ** 2))
-                  for (a, b), e in zip(RINGS, expected)]  # fmt: skip
-        print(f"| {name} | {errors[0]:.3f} | {errors[1]:.3f} |")
+        cells = []
+        for (a, b), e in zip(RINGS, expected):
+            profile = angular_profile(layer, light_xy, open_sky, a * silhouette, b * silhouette)
+            cells.append(f"{np.sqrt(np.mean((profile - e) ** 2)):.3f}" if np.isfinite(profile).all() else "(no light here)")
+        print(f"| {name} | {cells[0]} | {cells[1]} |")
 
 
 if __name__ == "__main__":

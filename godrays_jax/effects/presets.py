@@ -121,11 +121,11 @@ def _gpu_gems() -> GodRays:
 
     Ours, not Babylon's: the emitter and the pass count. Babylon draws a small sun billboard, which
     through occluders gives a halo; shafts need an emitter that occluders cut into wedges, so here the
-    open sky shines, brightest at the sun and fading to nothing half the frame's larger side away (the
-    cone flare, `2 * saturate(1 - r)**2` reaching a frame width sideways (`flare_size` 1 UV), times the
-    open sky; a uniformly bright sky
-    would wash the frame out), in a warm tint. Long steps band visibly: the multi-pass comb
-    (`method="multipass"`, 3 passes x 8 taps fitted to the same 100-sample weights) hides it.
+    open sky shines, brightest at the sun and fading to nothing a frame width sideways and a frame
+    height up and down (the cone flare `2 * saturate(1 - r)**2`, `flare_size` 1 UV, times the open
+    sky; a uniformly bright sky would wash the frame out), in a warm tint. Long steps band visibly:
+    the multi-pass comb (`method="multipass"`, 3 passes x 8 taps fitted to the same 100-sample
+    weights) hides it.
     """
     return GodRays(
         density=0.926, decay=0.96815, weight=0.58767, exposure=0.3 * BABYLON_SAMPLE_SCALE, num_samples=100.0,

@@ -554,7 +554,8 @@ def determination(
         loss="mse",
         space=space,
     )
-    with jax.default_matmul_precision("highest"):
+    # The unknowns map into the fields' bounds (as in `fit`): no run-time range check, so the cache keeps the Jacobian.
+    with jax.default_matmul_precision("highest"), ranges_guaranteed():
         y = _start_point(problem, np.dtype(frames[0].color.dtype))
         jacobian = np.asarray(_jacobian(problem, y, (frames, lights, targets, in_front)), np.float64)
     owners, labels, spans = [], [], []

@@ -84,7 +84,7 @@ def tune_server():
     depth = np.full((6, 8), np.inf, np.float32)
     depth[4:, :] = 3.0
     frame = gr.Buffers(color=color, depth=depth, coverage=np.isfinite(depth).astype(np.float32))
-    effect = gr.GodRays(num_samples=4.0, max_samples=4, light_radius=3.0)
+    effect = gr.GodRays(num_samples=4.0, max_samples=4, flare_size=3.0, units="px")
     with TuneServer(Tuner(frame, (4.0, 1.0), effect=effect, target=color), port=0) as server:
         yield server
 

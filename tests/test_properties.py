@@ -323,7 +323,7 @@ def test_every_preset_finite_values_and_gradients_for_any_finite_light(name, dat
     out = _apply_effect(effect, buffers, light, jnp.asarray(True))
     assert out.shape == buffers.color.shape and _finite(out)
     effect_grad, light_grad = _effect_grad((effect, light), buffers, jnp.asarray(True))
-    checked = [field for field in ("offscreen_fade", "light_radius") if hasattr(effect, field)]
+    checked = [field for field in ("offscreen_fade", "flare_size") if hasattr(effect, field)]
     for field in checked:
         assert _finite(getattr(effect_grad, field)), (field, light)
     assert _finite(light_grad) and _finite(effect_grad), light

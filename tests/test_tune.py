@@ -708,7 +708,7 @@ def test_page_fits_and_cancels_in_chromium(browser, monkeypatch):
     from selenium.webdriver.support.ui import WebDriverWait
 
     frame = small_frame()
-    truth = gr.GodRays(num_samples=8.0, max_samples=8, light_radius=6.0, exposure=1.2)
+    truth = gr.GodRays(num_samples=8.0, max_samples=8, flare_size=6.0, units="px", exposure=1.2)
     target = eqx.filter_jit(truth)(frame, jnp.asarray([32.0, 6.0]))
     tuner = Tuner(frame, (32.0, 6.0), effect=small_effect(), target=target, max_preview_pixels=300, fit_steps=3)
     with TuneServer(tuner) as running:

@@ -11,6 +11,7 @@ empties it; `--no-cache` on any command leaves it alone.
 
 import os
 import shutil
+import warnings
 
 import jax
 
@@ -37,6 +38,9 @@ def enable(directory: str | None = None) -> str:
     """
     directory = directory or cache_dir()
     os.makedirs(directory, exist_ok=True)
+    # The cache is best effort: processes sharing it (a farm, parallel shells) race on its bookkeeping files,
+    # and a failed read or write only means a compilation. Its warnings would break the one-line contract.
+    warnings.filterwarnings("ignore", message=r"Error (reading|writing) persistent compilation cache", category=UserWarning)
     jax.config.update("jax_compilation_cache_dir", directory)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

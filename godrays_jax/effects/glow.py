@@ -220,7 +220,11 @@ def bright_part(colour: Float[Array, "H W C"], threshold) -> Float[Array, "H W C
     `(1.57, 0.98, 0.40)` over a threshold of 1 blooms orange, not red.
     """
     dtype = colour.dtype
-    luminance = colour[..., 0] if colour.shape[-1] == 1 else jnp.tensordot(colour[..., :3], jnp.asarray(LUMINANCE, dtype), 1)
+    luminance = (
+        colour[..., 0]
+        if colour.shape[-1] == 1
+        else jnp.tensordot(colour[..., :3], jnp.asarray(LUMINANCE, dtype), 1, precision="highest")
+    )
     luminance = luminance[..., None]
     positive = luminance > 0
     excess = jnp.maximum(luminance - jnp.asarray(threshold, dtype), 0.0)

@@ -7,6 +7,8 @@ import jax
 import numpy as np
 import pytest
 
+from godrays_jax.pipeline import exported
+
 # Most of the suite's time is XLA compilation, and many tests compile the same
 # programs (same kernel, same shapes, another lambda): a persistent cache shared
 # by every test and pytest-xdist worker compiles each of them once.
@@ -16,6 +18,13 @@ jax.config.update("jax_compilation_cache_dir", str(CACHE))
 os.environ.setdefault("GODRAYS_JAX_CACHE_DIR", str(CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+@pytest.fixture(autouse=True)
+def _traced_as_the_library_does():
+    """The command line, run in-process, stores traced programs (`pipeline.exported`); the next test traces its own."""
+    yield
+    exported.use_directory(None)
 
 
 @pytest.fixture

@@ -52,6 +52,26 @@ def test_apply_stores_its_program_and_a_second_run_reuses_it(tmp_path):
     assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
 
 
+def test_a_repeated_fit_reads_its_traced_programs_back(tmp_path):
+    """`fit` stores its solver's programs traced (`pipeline.exported`); the next process traces and stores nothing."""
+    cache = tmp_path / "cache"
+    command = ["fit", SAMPLE, SAMPLE, "--preset", "xna_crepuscular", "--max-steps", "2"]
+    first = _cli(*command, "-o", tmp_path / "a.json", cache=cache)
+    assert first.returncode == 0, first.stderr
+    stored = sorted(p.name for p in (cache / compile_cache.EXPORTED_FOLDER).iterdir())
+    assert {name.rsplit("-", 1)[0] for name in stored} == {
+        "fit_loss", "fit_init", "fit_step", "determination_jacobian", "render"
+    }
+    programs = _programs(cache, "call")
+    assert len(programs) >= len(stored)
+    second = _cli(*command, "-o", tmp_path / "b.json", cache=cache)
+    assert second.returncode == 0, second.stderr
+    assert sorted(p.name for p in (cache / compile_cache.EXPORTED_FOLDER).iterdir()) == stored
+    assert _programs(cache, "call") == programs, "the second run compiled a stored program again"
+    assert (tmp_path / "a.json").read_bytes() == (tmp_path / "b.json").read_bytes()
+    assert second.stdout.replace("b.json", "a.json") == first.stdout
+
+
 def test_no_cache_writes_nothing_and_cache_clear_empties_it(tmp_path):
     cache = tmp_path / "cache"
     done = _cli("apply", SAMPLE, "--preset", "sun_overcast", "-o", tmp_path / "a.png", "--no-cache", cache=cache)

@@ -26,6 +26,7 @@ def test_metrics_are_scikit_images_in_display_space(rng):
     psnr, ssim = image_metrics(image, target)
     shown, truth = display_map(np.maximum(image, 0.0)), display_map(target)
     assert psnr == pytest.approx(10 * math.log10(1.0 / np.mean((shown - truth) ** 2)), rel=1e-9)
+    assert psnr == pytest.approx(skimage.metrics.peak_signal_noise_ratio(truth, shown, data_range=1.0), rel=1e-12)
     expected = skimage.metrics.structural_similarity(
         truth, shown, data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False
     )

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import godrays_jax
 from godrays_jax.app import compile_cache
+from godrays_jax.pipeline import exported
 from godrays_jax.app.options import (
     DEFAULT_PRESET,
     SKY_DEPTH_HELP,
@@ -246,7 +247,8 @@ def _add_cache(subparsers) -> None:
         help="show or clear the compilation cache",
         description="Compiled effects are kept in a cache folder so later runs start without compiling: "
         f"${compile_cache.ENVIRONMENT_VARIABLE}, else $XDG_CACHE_HOME/godrays_jax (~/.cache/godrays_jax), at most "
-        f"{compile_cache.MAX_BYTES >> 20} MiB (least recently used entries are dropped first).",
+        f"{compile_cache.MAX_BYTES >> 20} MiB of compiled programs and {exported.MAX_BYTES >> 20} MiB of "
+        f"traced ones in its {compile_cache.EXPORTED_FOLDER}/ folder (least recently used entries are dropped first).",
     )
     parser.add_argument("--clear", action="store_true", help="remove every cached program")
     parser.set_defaults(handler="godrays_jax.app.cli:run_cache", no_cache=True)
@@ -260,7 +262,8 @@ def run_cache(args) -> int:
         print(f"cleared {directory}")
         return 0
     files, size = compile_cache.cache_size(directory)
-    print(f"{directory}: {files} file(s), {size / (1 << 20):.1f} MiB (cap {compile_cache.MAX_BYTES >> 20} MiB)")
+    caps = f"{compile_cache.MAX_BYTES >> 20} MiB compiled + {exported.MAX_BYTES >> 20} MiB traced"
+    print(f"{directory}: {files} file(s), {size / (1 << 20):.1f} MiB (caps {caps})")
     return 0
 
 

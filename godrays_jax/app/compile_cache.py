@@ -2,7 +2,9 @@
 
 JAX's persistent cache stores each compiled program under a key of its
 program text, so a later `apply`, `batch`, `fit` or `tune` of the same effect
-on frames of the same size loads it instead of compiling. Where: the
+on frames of the same size loads it instead of compiling. The fit's programs
+are also stored traced (`pipeline.exported`, in the subfolder
+`EXPORTED_FOLDER`), so a later fit does not trace them again either. Where: the
 environment variable `GODRAYS_JAX_CACHE_DIR`, else `$XDG_CACHE_HOME/godrays_jax`
 (`~/.cache/godrays_jax`). Its size is capped (`MAX_BYTES`; least recently used
 entries go first); `godrays-jax cache` shows it and `godrays-jax cache --clear`
@@ -15,10 +17,15 @@ import warnings
 
 import jax
 
+from godrays_jax.pipeline import exported
+
 ENVIRONMENT_VARIABLE = "GODRAYS_JAX_CACHE_DIR"
 
 MAX_BYTES = 1 << 30
 """The cache's cap: JAX evicts the least recently used entries beyond it."""
+
+EXPORTED_FOLDER = "exported"
+"""The subfolder of traced programs (`pipeline.exported`, capped at its own `MAX_BYTES`)."""
 
 
 def cache_dir() -> str:
@@ -45,6 +52,8 @@ def enable(directory: str | None = None) -> str:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    # Programs whose tracing costs more than running them (a fit's solver step) are stored traced as well.
+    exported.use_directory(os.path.join(directory, EXPORTED_FOLDER))
     return directory
 
 

@@ -41,11 +41,12 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect, parameter_bounds
 from godrays_jax.effects.presets import preset
 from godrays_jax.kernels.losses import LOSSES, Space, check_space, to_space
+from godrays_jax.pipeline import exported
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
 
@@ -293,9 +294,30 @@ def _evaluate(candidate, data):
     return problem.objective(candidate, frame_data)
 
 
+def render_compiled(
+    effect: Effect, buffers: Buffers, light_xy: Float[ArrayLike, "2"], light_in_front: bool
+) -> Float[Array, "H W C"]:
+    """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own).
+
+    The effect's fields are checked against their bounds here, so that the
+    compiled render carries no run-time range check and can be stored
+    (`exported`). Raises `ValueError` naming a field outside them.
+    """
+    _check_inside_bounds(effect)
+    with ranges_guaranteed():
+        return exported.call("render", _render, effect, buffers, light_xy, light_in_front)
+
+
+def _check_inside_bounds(effect: Effect) -> None:
+    """`ValueError` naming the first fittable field outside its fitting range (`fitted_bounds`)."""
+    for name, (low, high) in fitted_bounds(effect).items():
+        value = np.asarray(getattr(effect, name))
+        if not np.all((value >= low) & (value <= high)):
+            raise ValueError(f"effect.{name} = {value.tolist()} lies outside its fitting range [{low:g}, {high:g}]")
+
+
 @eqx.filter_jit
-def render_compiled(effect, buffers, light_xy, light_in_front):
-    """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own)."""
+def _render(effect, buffers, light_xy, light_in_front):
     return effect(buffers, light_xy, light_in_front=light_in_front)
 
 
@@ -315,28 +337,38 @@ def _fitted_effects(problem, y):
     return effect, round_counts(effect)
 
 
+def _first_state(optimiser, function, y, data):
+    f_struct = jax.eval_shape(lambda: function(y, data)[0])
+    return optimiser.init(function, y, data, {}, f_struct, None, frozenset())
+
+
 @eqx.filter_jit
 def _init(optimiser, function, y, data):
-    """The solver's first state and whether it is done already.
+    """The solver's first state (its array leaves), whether it is done already and whether that is a success.
 
-    Under jit the state's static parts (a linearised operator's jaxpr,
-    compared by identity) come from the compilation cache, so a later fit
-    reuses `_step` too; the residuals' shape is found here, not by tracing
-    the effect again on every fit.
+    The residuals' shape is found here, not by tracing the effect again on
+    every fit. The state travels between steps as its leaves alone: its
+    static parts (a linearised operator's jaxpr, compared by identity) would
+    make every step trace again in a later fit, and no stored program
+    (`exported`) could take them.
     """
-    f_struct = jax.eval_shape(lambda: function(y, data)[0])
-    state = optimiser.init(function, y, data, {}, f_struct, None, frozenset())
+    state = _first_state(optimiser, function, y, data)
     done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
-    return state, done, result
+    return jax.tree.leaves(eqx.filter(state, eqx.is_array)), done, result == optx.RESULTS.successful
 
 
 @eqx.filter_jit
-def _step(optimiser, function, y, state, data, least_squares):
-    """One solver step: the new unknowns and state, whether it is done, and the loss at its last accepted point."""
+def _step(optimiser, function, y, state_leaves, data, least_squares):
+    """One solver step from the state's leaves: the new unknowns and leaves, whether it is done (and a success), and
+    the loss at its last accepted point."""
+    template = eqx.filter_eval_shape(_first_state, optimiser, function, y, data)
+    shapes, static = eqx.partition(template, lambda leaf: isinstance(leaf, jax.ShapeDtypeStruct))
+    state = eqx.combine(jax.tree.unflatten(jax.tree.structure(shapes), state_leaves), static)
     y, state, _ = optimiser.step(function, y, data, {}, state, frozenset())
     done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
     accepted_loss = jnp.sum(state.f_info.residual**2) if least_squares else state.f_info.f
-    return y, state, done, result, accepted_loss
+    state_leaves = jax.tree.leaves(eqx.filter(state, eqx.is_array))
+    return y, state_leaves, done, result == optx.RESULTS.successful, accepted_loss
 
 
 def _strongly_typed(leaf):
@@ -407,10 +439,7 @@ def fit(
     frames, lights, targets, in_front = _as_frames(buffers, light_xy, target, light_in_front)
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
-    for name, (low, high) in bounds.items():
-        value = np.asarray(getattr(effect, name))
-        if np.any(value < low) or np.any(value > high):
-            raise ValueError(f"effect.{name} = {value.tolist()} lies outside its fitting range [{low}, {high}]")
+    _check_inside_bounds(effect)
     dtype = frames[0].color.dtype
     total_pixels = sum(frame.height * frame.width for frame in frames)
     problem = _Problem(
@@ -424,22 +453,19 @@ def fit(
     )
     data = (problem, (frames, lights, targets, in_front))
     function = _residual_function if least_squares else _objective_function
-
-    for name, (low, high) in fitted_bounds(effect).items():
-        value = np.asarray(getattr(effect, name))
-        if np.any(value < low) or np.any(value > high):
-            raise ValueError(f"the start's {name} = {value.tolist()} lies outside [{low:g}, {high:g}]")
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
     # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
-        loss_before = float(_evaluate(effect, data))
+        loss_before = float(exported.call("fit_loss", _evaluate, effect, data))
         history = [loss_before]
         y = _start_point(problem, np.dtype(dtype))
-        state, done, result = _init(optimiser, function, y, data)
+        state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, data)
         steps = 0
         while steps < max_steps and not bool(done):
-            y, state, done, result, accepted_loss = _step(optimiser, function, y, state, data, least_squares)
+            y, state, done, succeeded, accepted_loss = exported.call(
+                "fit_step", _step, optimiser, function, y, state, data, least_squares
+            )
             steps += 1
             if steps > 1:  # after the first step the state holds the start's loss, already recorded
                 history.append(float(accepted_loss))
@@ -448,8 +474,8 @@ def fit(
         fitted_effect, rounded = _fitted_effects(problem, y)
         if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
-        loss_after = float(_evaluate(fitted_effect, data))
-        loss_rounded = float(_evaluate(rounded, data))
+        loss_after = float(exported.call("fit_loss", _evaluate, fitted_effect, data))
+        loss_rounded = float(exported.call("fit_loss", _evaluate, rounded, data))
     return FitResult(
         effect=fitted_effect,
         rounded=rounded,
@@ -459,7 +485,7 @@ def fit(
         loss_rounded=loss_rounded,
         fitted=names,
         steps=steps,
-        converged=bool(done) and bool(result == optx.RESULTS.successful),
+        converged=bool(done) and bool(succeeded),
     )
 
 
@@ -542,6 +568,7 @@ def determination(
     every = parameter_bounds(effect)
     if not fitted or not set(fitted) <= set(every):
         raise ValueError(f"fitted must name fittable fields of {type(effect).__name__}, got {list(fitted)}")
+    _check_inside_bounds(effect)
     bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
     names = tuple(bounds)
     total_pixels = sum(frame.height * frame.width for frame in frames)
@@ -557,13 +584,19 @@ def determination(
     # The unknowns map into the fields' bounds (as in `fit`): no run-time range check, so the cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         y = _start_point(problem, np.dtype(frames[0].color.dtype))
-        jacobian = np.asarray(_jacobian(problem, y, (frames, lights, targets, in_front)), np.float64)
+        frame_data = (frames, lights, targets, in_front)
+        jacobian = np.asarray(exported.call("determination_jacobian", _jacobian, problem, y, frame_data), np.float64)
     owners, labels, spans = [], [], []
     for name, shape in zip(names, problem.shapes):
         size = math.prod(shape)
         owners += [name] * size
         labels += [name] if size == 1 and not shape else [f"{name}[{k}]" for k in range(size)]
         spans += [bounds[name][1] - bounds[name][0]] * size
+    # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares offset below
+    # are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
+    # The cut-off below which `lstsq` treats singular values as zero stays the Jacobian's (it scales with the rows).
+    cutoff = np.finfo(np.float64).eps * max(jacobian.shape)
+    jacobian = np.linalg.qr(jacobian, mode="r")
     singular, vectors = np.linalg.svd(jacobian, full_matrices=False)[1:]
     floor = singular.max() * 1e-12 + 1e-300
     inverse_diagonal = ((vectors.T / np.maximum(singular, floor)) ** 2).sum(axis=1)
@@ -577,7 +610,7 @@ def determination(
     for name in poorly:
         index = worst[name]
         others = [k for k in range(len(owners)) if k != index]
-        steps = np.linalg.lstsq(jacobian[:, others], -jacobian[:, index] * change, rcond=None)[0]
+        steps = np.linalg.lstsq(jacobian[:, others], -jacobian[:, index] * change, rcond=cutoff)[0]
         moves = {labels[index]: change * spans[index]}
         moves |= {labels[k]: float(step * spans[k]) for k, step in zip(others, steps) if abs(step) >= 0.01}
         offsets[name] = moves

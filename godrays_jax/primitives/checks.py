@@ -79,6 +79,11 @@ def ranges_guaranteed() -> Iterator[None]:
         _RANGES_GUARANTEED.reset(token)
 
 
+def ranges_are_guaranteed() -> bool:
+    """Whether the caller traces inside `ranges_guaranteed()`: part of what a stored program's trace depends on."""
+    return _RANGES_GUARANTEED.get()
+
+
 def checked_range(value, low: float, high: float, message: str):
     """`value`, checked to lie in `[low, high]`: now if it is known (a `ValueError`), else when it is computed.
 

@@ -1,0 +1,217 @@
+"""Programs traced once and kept across processes (`jax.export`): a later fit runs without tracing its solver again.
+
+JAX's persistent compilation cache (the command line turns it on, `app.compile_cache`)
+spares compiling a program twice, but every process still traces each program
+in Python before it can look it up. For a fit that tracing (the loss, the
+solver's first state and step, the Jacobian of `determination`, the render)
+costs more than the solver's steps on a small frame; `benchmarks/README.md`
+("Command start-up") has the figures.
+
+`call(name, function, *args)` runs `function(*args)` (an `equinox.filter_jit`
+function: arrays are traced, everything else is static) from an exported
+program stored in `use_directory`'s folder, exported the first time and read
+back by later processes instead of tracing. A program is stored under a key of
+everything its trace depends on:
+
+- every static argument, described value by value (numbers, strings, the
+  fields of Modules, the names of functions and classes);
+- the arrays' shapes, dtypes and weak types;
+- the JAX settings that change a trace (`jax_enable_x64`, the default matmul
+  precision, ...) and whether range checks are left out (`ranges_guaranteed`);
+- the installed versions of JAX, jaxlib, Equinox, Optimistix, Lineax and
+  NumPy, the backend and its device kind, and a digest of this package's
+  source files.
+
+An argument that cannot be described exactly (a closure or lambda, a class
+or function from a package outside that list) is never stored: `call` then
+runs `function(*args)` as it is. So is a program whose output JAX cannot
+serialise, and everything when no folder is set (the library's default).
+A file that cannot be read back is exported again. The folder is kept under
+`MAX_BYTES`, least recently used programs first.
+"""
+
+import dataclasses
+import functools
+import hashlib
+import importlib.metadata
+import os
+import types
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from godrays_jax.primitives.checks import ranges_are_guaranteed
+from godrays_jax.primitives.files import atomic_write
+
+MAX_BYTES = 64 << 20
+"""The folder's cap: storing a program beyond it removes the least recently used ones."""
+
+_VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")
+"""The distributions whose installed versions are part of every key."""
+
+_DESCRIBED_PACKAGES = frozenset({"godrays_jax", "builtins", *_VERSIONED})
+"""Packages whose classes and functions a key may name: this package by its source digest, the others by version."""
+
+_SETTINGS = (
+    "jax_enable_x64",
+    "jax_default_matmul_precision",
+    "jax_numpy_dtype_promotion",
+    "jax_numpy_rank_promotion",
+)
+"""JAX settings read while tracing: part of every key."""
+
+_SUFFIX = ".jaxexport"
+
+_directory: Path | None = None
+_programs: dict[str, Callable[..., Any] | None] = {}
+"""This process's programs by key, called with the arguments' arrays; None marks a program that cannot be stored
+(its plain call is used)."""
+
+
+def use_directory(directory: str | os.PathLike | None) -> None:
+    """Store exported programs in `directory` and read them from there; None (the default) stores nothing."""
+    global _directory
+    _directory = None if directory is None else Path(directory)
+    _programs.clear()
+
+
+def call(name: str, function: Callable[..., Any], *args: Any) -> Any:
+    """`function(*args)`, from the program stored for these arguments when there is one, storing it when not.
+
+    `name` names the program's file (with its key); the result is the same
+    pytree of arrays `function` returns.
+    """
+    if _directory is None:
+        return function(*args)
+    try:
+        key = _key(name, args)
+    except _NotDescribable:
+        return function(*args)
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, tree = jax.tree.flatten(dynamic)
+    if key not in _programs:
+        program = _read(name, key) or _exported(name, key, function, static, tree, leaves)
+        # Under `jit` a call dispatches like any compiled function; a bare `Exported.call` goes through Python.
+        _programs[key] = None if program is None else jax.jit(program.call)
+    program = _programs[key]
+    return function(*args) if program is None else program(*leaves)
+
+
+class _NotDescribable(Exception):
+    """A static argument that no key can describe exactly."""
+
+
+def _key(name: str, args) -> str:
+    text = "\n".join([name, _describe(args), _environment(), _settings(), f"ranges_guaranteed={ranges_are_guaranteed()}"])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _describe(value) -> str:
+    """A text that two values share only if a trace cannot tell them apart (arrays by shape and dtype)."""
+    if eqx.is_array(value):
+        weak = " weak" if getattr(value, "weak_type", False) else ""
+        return f"array({value.dtype}{list(np.shape(value))}{weak})"
+    if value is None or isinstance(value, (bool, int, float, complex, str, bytes, np.generic, np.dtype)):
+        return f"{type(value).__name__}({value!r})"
+    if isinstance(value, (tuple, list)):
+        kind = type(value).__name__ if type(value) in (tuple, list) else _named(type(value))
+        return f"{kind}[{', '.join(map(_describe, value))}]"
+    if isinstance(value, dict):
+        return f"dict{{{', '.join(sorted(f'{_describe(k)}: {_describe(v)}' for k, v in value.items()))}}}"
+    if isinstance(value, (set, frozenset)):
+        return f"{type(value).__name__}{{{', '.join(sorted(map(_describe, value)))}}}"
+    if isinstance(value, functools.partial):
+        return f"partial({_describe(value.func)}, {_describe(value.args)}, {_describe(value.keywords)})"
+    if isinstance(value, (type, types.FunctionType, types.BuiltinFunctionType)):
+        return _named(value)
+    if dataclasses.is_dataclass(value):
+        fields = ", ".join(f"{f.name}={_describe(getattr(value, f.name))}" for f in dataclasses.fields(value))
+        return f"{_named(type(value))}({fields})"
+    raise _NotDescribable(type(value))
+
+
+def _named(thing) -> str:
+    """`module.qualname` of a class or function defined at the top of a module of a described package."""
+    module, name = getattr(thing, "__module__", None), getattr(thing, "__qualname__", None)
+    if not (module and name) or "<" in name or module.partition(".")[0] not in _DESCRIBED_PACKAGES:
+        raise _NotDescribable(thing)
+    return f"{module}.{name}"
+
+
+@functools.cache
+def _environment() -> str:
+    """The versions, settings, backend and source digest that every key holds (settings read at each call)."""
+    versions = " ".join(f"{dist}={importlib.metadata.version(dist)}" for dist in _VERSIONED)
+    device = jax.devices()[0]
+    return f"{versions} {device.platform} {device.device_kind} source={_source_digest()}"
+
+
+def _source_digest() -> str:
+    package = Path(__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")):
+        digest.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+def _settings() -> str:
+    return " ".join(f"{setting}={getattr(jax.config, setting)}" for setting in _SETTINGS)
+
+
+def _path(name: str, key: str) -> Path:
+    return _directory / f"{name}-{key[:40]}{_SUFFIX}"
+
+
+def _read(name: str, key: str) -> jax.export.Exported | None:
+    path = _path(name, key)
+    try:
+        program = jax.export.deserialize(bytearray(path.read_bytes()))
+    except FileNotFoundError:
+        return None
+    except Exception:  # noqa: BLE001 - a truncated or foreign file: export the program again
+        path.unlink(missing_ok=True)
+        return None
+    os.utime(path)
+    return program
+
+
+def _exported(name, key, function, static, tree, leaves) -> jax.export.Exported | None:
+    """Trace `function` for these arguments, export it and store it; None if JAX cannot export or serialise it."""
+
+    def of_leaves(*leaves):
+        return function(*eqx.combine(jax.tree.unflatten(tree, leaves), static))
+
+    shapes = [jax.ShapeDtypeStruct(np.shape(x), x.dtype, weak_type=getattr(x, "weak_type", False)) for x in leaves]
+    try:
+        data = jax.export.export(jax.jit(of_leaves))(*shapes).serialize()
+    except Exception:  # noqa: BLE001 - e.g. a host callback, or an output pytree JAX cannot serialise
+        return None
+    _directory.mkdir(parents=True, exist_ok=True)
+    with atomic_write(_path(name, key), sync=False) as temporary:
+        Path(temporary).write_bytes(data)
+    _evict()
+    # Run what later processes will read: its compiled program is then in JAX's cache for them.
+    return jax.export.deserialize(bytearray(data))
+
+
+def _evict() -> None:
+    """Remove the least recently used programs until the folder holds at most `MAX_BYTES`."""
+    stored = []
+    for path in _directory.glob(f"*{_SUFFIX}"):
+        if path.name.startswith("."):  # another process's file in progress
+            continue
+        try:
+            stat = path.stat()
+        except FileNotFoundError:  # removed by another process meanwhile
+            continue
+        stored.append((stat.st_mtime, stat.st_size, path))
+    total = sum(size for _, size, _ in stored)
+    for _, size, path in sorted(stored):
+        if total <= MAX_BYTES:
+            break
+        path.unlink(missing_ok=True)
+        total -= size

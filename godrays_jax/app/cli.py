@@ -14,7 +14,6 @@ from collections.abc import Callable
 
 import godrays_jax
 from godrays_jax.app import compile_cache
-from godrays_jax.pipeline import exported
 from godrays_jax.app.options import (
     DEFAULT_PRESET,
     SKY_DEPTH_HELP,
@@ -23,6 +22,7 @@ from godrays_jax.app.options import (
     parse_sky_depth,
 )
 from godrays_jax.effects.presets import PRESETS
+from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP
 from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.io import SKY_DEPTH

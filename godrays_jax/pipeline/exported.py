@@ -106,7 +106,9 @@ class _NotDescribable(Exception):
 
 
 def _key(name: str, args) -> str:
-    text = "\n".join([name, _describe(args), _environment(), _settings(), f"ranges_guaranteed={ranges_are_guaranteed()}"])
+    text = "\n".join(
+        [name, _describe(args), _environment(), _settings(), f"ranges_guaranteed={ranges_are_guaranteed()}"]
+    )
     return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -175,3 +175,16 @@ def test_render_compiled_names_a_field_outside_its_range():
     wild = eqx.tree_at(lambda e: e.density, effect, jnp.asarray(7.0, jnp.float32))  # tree_at skips the Module's checks
     with pytest.raises(ValueError, match=r"effect.density = 7.0 lies outside its fitting range"):
         render_compiled(wild, frame, light, True)
+
+
+def test_render_compiled_inside_jit_checks_traced_fields_when_run():
+    effect, frame, light, _ = _problem()
+
+    @jax.jit
+    def rendered(count):
+        return render_compiled(eqx.tree_at(lambda e: e.num_samples, effect, count), frame, light, True)
+
+    expected = render_compiled(eqx.tree_at(lambda e: e.num_samples, effect, jnp.float32(5.0)), frame, light, True)
+    np.testing.assert_allclose(rendered(jnp.float32(5.0)), expected, rtol=1e-6)
+    with pytest.raises(Exception, match=r"num_samples must lie in \[0, max_samples=7\]"):
+        jax.block_until_ready(rendered(jnp.float32(20.0)))

@@ -299,13 +299,15 @@ def render_compiled(
 ) -> Float[Array, "H W C"]:
     """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own).
 
-    The effect's fields are checked against their bounds here, so that the
-    compiled render carries no run-time range check and can be stored
-    (`exported`). Raises `ValueError` naming a field outside them.
+    Known fields are checked against their bounds here, so that the compiled
+    render carries no run-time range check and can be stored (`exported`):
+    `ValueError` naming a field outside them. Traced fields (a call inside
+    `jit`) are checked by the kernels when the program runs.
     """
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(effect)):
+        return _render(effect, buffers, light_xy, light_in_front, True)  # traced fields: checked when run
     _check_inside_bounds(effect)
-    with ranges_guaranteed():
-        return exported.call("render", _render, effect, buffers, light_xy, light_in_front)
+    return exported.call("render", _render, effect, buffers, light_xy, light_in_front, False)
 
 
 def _check_inside_bounds(effect: Effect) -> None:
@@ -317,8 +319,12 @@ def _check_inside_bounds(effect: Effect) -> None:
 
 
 @eqx.filter_jit
-def _render(effect, buffers, light_xy, light_in_front):
-    return effect(buffers, light_xy, light_in_front=light_in_front)
+def _render(effect, buffers, light_xy, light_in_front, checked):
+    """`checked` is static: a render traced without range checks is never reused for one that needs them."""
+    if checked:
+        return effect(buffers, light_xy, light_in_front=light_in_front)
+    with ranges_guaranteed():
+        return effect(buffers, light_xy, light_in_front=light_in_front)
 
 
 @eqx.filter_jit

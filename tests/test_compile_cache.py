@@ -36,20 +36,23 @@ def test_cache_folder_follows_the_environment(monkeypatch, tmp_path):
 
 
 def test_apply_stores_its_program_and_a_second_run_reuses_it(tmp_path):
-    """The effect's compiled program is stored (no host callback keeps it out) and found by the next process."""
+    """The effect's program is stored traced and compiled (no host callback keeps it out) and found by the next
+    process, which neither traces nor compiles it."""
     cache = tmp_path / "cache"
     first = _cli("apply", SAMPLE, "--preset", "kbengine_flares", "-o", tmp_path / "a.png", cache=cache)
     assert first.returncode == 0, first.stderr
-    stored = _programs(cache, "apply")
-    assert len(stored) == 1
-    files = sorted(p.name for p in cache.iterdir())
+    stored = sorted(p.name for p in (cache / compile_cache.EXPORTED_FOLDER).iterdir())
+    assert [name.rsplit("-", 1)[0] for name in stored] == ["frames"]
+    files = sorted(p.name for p in cache.iterdir() if not p.name.endswith("-atime"))
+    assert _programs(cache, "call")
     second = _cli("apply", SAMPLE, "--preset", "kbengine_flares", "-o", tmp_path / "b.png", cache=cache)
     assert second.returncode == 0, second.stderr
-    assert _programs(cache, "apply") == stored, "the second run compiled the effect again"
-    assert sorted(p.name for p in cache.iterdir() if not p.name.endswith("-atime")) == [
-        name for name in files if not name.endswith("-atime")
-    ]
+    assert sorted(p.name for p in cache.iterdir() if not p.name.endswith("-atime")) == files, "compiled again"
+    assert sorted(p.name for p in (cache / compile_cache.EXPORTED_FOLDER).iterdir()) == stored, "traced again"
     assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+    plain = _cli("apply", SAMPLE, "--preset", "kbengine_flares", "-o", tmp_path / "c.png", "--no-cache", cache=cache)
+    assert plain.returncode == 0, plain.stderr
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "c.png").read_bytes()
 
 
 def test_a_repeated_fit_reads_its_traced_programs_back(tmp_path):

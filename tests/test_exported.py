@@ -63,6 +63,22 @@ def test_static_values_shapes_dtypes_and_settings_each_get_their_own_program(fol
     assert len(_stored(folder, "scaled")) == len(cases) + 2
 
 
+def test_what_a_program_closes_over_keys_it_by_value(folder):
+    x = jnp.arange(3.0)
+
+    def closing_over(weights):
+        return jax.jit(lambda x: x * weights)
+
+    for weights in (jnp.asarray([1.0, 2.0, 3.0]), jnp.asarray([1.0, 2.0, 4.0])):
+        result = exported.call("closing", closing_over(weights), x, closed_over=weights)
+        np.testing.assert_array_equal(result, x * weights)
+    assert len(_stored(folder, "closing")) == 2
+    exported.use_directory(folder)
+    np.testing.assert_array_equal(
+        exported.call("closing", jax.jit(_never_traced), x, closed_over=jnp.asarray([1.0, 2.0, 4.0])), [0.0, 2.0, 8.0]
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class _Elsewhere:
     """A class outside the packages a key versions: its code can change under the same name."""

@@ -34,8 +34,8 @@ def run(args) -> int:
     effect = effect_for_frame("apply", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
     light_depth = resolve_light_depth(args.light_depth, args.buffers)
-    # The program `batch` runs, on a group of one frame: compiled once, and found in the persistent cache next time.
-    apply = frames_function(effect, layer_only=args.layer_only, light_depth=light_depth)
+    # The program `batch` runs, on a group of one frame, stored traced: a later `apply` neither traces nor compiles it.
+    apply = frames_function(effect, layer_only=args.layer_only, light_depth=light_depth, stored=True)
     one_frame = jax.tree.map(lambda leaf: leaf[None], buffers)
     image = apply(one_frame, np.asarray([light_xy], np.float32), np.asarray([in_front]))[0]
     if _is_exr(args.output) and _is_exr(args.buffers):

@@ -2,9 +2,9 @@
 
 JAX's persistent cache stores each compiled program under a key of its
 program text, so a later `apply`, `batch`, `fit` or `tune` of the same effect
-on frames of the same size loads it instead of compiling. The fit's programs
-are also stored traced (`pipeline.exported`, in the subfolder
-`EXPORTED_FOLDER`), so a later fit does not trace them again either. Where: the
+on frames of the same size loads it instead of compiling. The programs of
+`apply` and `fit` are also stored traced (`pipeline.exported`, in the
+subfolder `EXPORTED_FOLDER`), so a later run does not trace them again either. Where: the
 environment variable `GODRAYS_JAX_CACHE_DIR`, else `$XDG_CACHE_HOME/godrays_jax`
 (`~/.cache/godrays_jax`). Its size is capped (`MAX_BYTES`; least recently used
 entries go first); `godrays-jax cache` shows it and `godrays-jax cache --clear`
@@ -52,7 +52,7 @@ def enable(directory: str | None = None) -> str:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
-    # Programs whose tracing costs more than running them (a fit's solver step) are stored traced as well.
+    # Programs whose tracing costs as much as running them (a fit's solver step, apply's frame) are stored traced.
     exported.use_directory(os.path.join(directory, EXPORTED_FOLDER))
     return directory
 

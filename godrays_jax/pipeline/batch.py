@@ -58,6 +58,7 @@ import tqdm
 from jaxtyping import Array, Bool, Float
 
 from godrays_jax.effects.base import Effect
+from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.sequences import Light, LightSource, frame_number, light_for
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import error_line
@@ -245,7 +246,7 @@ _traces = collections.Counter()
 """How many times a run's effect was traced (compiled): `BatchReport.compilations` reads it."""
 
 
-def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: float = math.inf):
+def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: float = math.inf, stored: bool = False):
     """The effect on a group of stacked frames `(G, H, W, ...)`, jitted with the effect's fields as constants.
 
     `light_depth` is the light's distance (scene units) for every frame of the group (`Effect.layer`).
@@ -253,8 +254,11 @@ def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: fl
     Known at trace time, the fields let kernels specialise (GodRays' disc
     emitter runs its rays only on the window around the light that can hold
     any); one compilation per run and frame size, and one program for every
-    run of the same effect and size, so `apply` and `batch` share the entries
-    of JAX's persistent compilation cache when the command line enables it.
+    run of the same effect and size, found in JAX's persistent compilation
+    cache when the command line enables it. `stored`: run it from a program
+    traced once and kept by `exported` (keyed by the effect's values too), so
+    a later process does not trace it either; for arrays on one device (a
+    batch spreads its groups over devices and runs the program as traced).
     """
 
     def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
@@ -266,7 +270,10 @@ def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: fl
         _traces["frames"] += 1
         return jax.vmap(one_frame)(buffers, lights, in_front)
 
-    return apply
+    if not stored:
+        return apply
+    closed_over = (effect, layer_only, light_depth)
+    return lambda *args: exported.call("frames", apply, *args, closed_over=closed_over)
 
 
 def run_batch(

@@ -4,8 +4,8 @@ JAX's persistent compilation cache (the command line turns it on, `app.compile_c
 spares compiling a program twice, but every process still traces each program
 in Python before it can look it up. For a fit that tracing (the loss, the
 solver's first state and step, the Jacobian of `determination`, the render)
-costs more than the solver's steps on a small frame; `benchmarks/README.md`
-("Command start-up") has the figures.
+costs more than the solver's steps on a small frame, and it is a good part of
+an `apply`; `benchmarks/README.md` ("Command start-up") has the figures.
 
 `call(name, function, *args)` runs `function(*args)` (an `equinox.filter_jit`
 function: arrays are traced, everything else is static) from an exported
@@ -79,16 +79,19 @@ def use_directory(directory: str | os.PathLike | None) -> None:
     _programs.clear()
 
 
-def call(name: str, function: Callable[..., Any], *args: Any) -> Any:
+def call(name: str, function: Callable[..., Any], *args: Any, closed_over: Any = None) -> Any:
     """`function(*args)`, from the program stored for these arguments when there is one, storing it when not.
 
     `name` names the program's file (with its key); the result is the same
-    pytree of arrays `function` returns.
+    pytree of arrays `function` returns. `closed_over` holds what `function`
+    closes over (compiled into it as constants, such as an effect whose known
+    fields let kernels specialise): it is described in the key by value,
+    arrays by a digest of their bytes.
     """
     if _directory is None:
         return function(*args)
     try:
-        key = _key(name, args)
+        key = _key(name, args, closed_over)
     except _NotDescribable:
         return function(*args)
     dynamic, static = eqx.partition(args, eqx.is_array)
@@ -105,33 +108,37 @@ class _NotDescribable(Exception):
     """A static argument that no key can describe exactly."""
 
 
-def _key(name: str, args) -> str:
-    text = "\n".join(
-        [name, _describe(args), _environment(), _settings(), f"ranges_guaranteed={ranges_are_guaranteed()}"]
-    )
+def _key(name: str, args, closed_over) -> str:
+    text = "\n".join([
+        name, _describe(args), _describe(closed_over, by_value=True), _environment(), _settings(),
+        f"ranges_guaranteed={ranges_are_guaranteed()}",
+    ])  # fmt: skip
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _describe(value) -> str:
-    """A text that two values share only if a trace cannot tell them apart (arrays by shape and dtype)."""
+def _describe(value, by_value: bool = False) -> str:
+    """A text that two values share only if a trace cannot tell them apart (arrays by shape and dtype, or also by
+    their bytes `by_value`)."""
+    describe = functools.partial(_describe, by_value=by_value)
     if eqx.is_array(value):
         weak = " weak" if getattr(value, "weak_type", False) else ""
-        return f"array({value.dtype}{list(np.shape(value))}{weak})"
+        digest = f" {hashlib.sha256(np.asarray(value).tobytes()).hexdigest()}" if by_value else ""
+        return f"array({value.dtype}{list(np.shape(value))}{weak}{digest})"
     if value is None or isinstance(value, (bool, int, float, complex, str, bytes, np.generic, np.dtype)):
         return f"{type(value).__name__}({value!r})"
     if isinstance(value, (tuple, list)):
         kind = type(value).__name__ if type(value) in (tuple, list) else _named(type(value))
-        return f"{kind}[{', '.join(map(_describe, value))}]"
+        return f"{kind}[{', '.join(map(describe, value))}]"
     if isinstance(value, dict):
-        return f"dict{{{', '.join(sorted(f'{_describe(k)}: {_describe(v)}' for k, v in value.items()))}}}"
+        return f"dict{{{', '.join(sorted(f'{describe(k)}: {describe(v)}' for k, v in value.items()))}}}"
     if isinstance(value, (set, frozenset)):
-        return f"{type(value).__name__}{{{', '.join(sorted(map(_describe, value)))}}}"
+        return f"{type(value).__name__}{{{', '.join(sorted(map(describe, value)))}}}"
     if isinstance(value, functools.partial):
-        return f"partial({_describe(value.func)}, {_describe(value.args)}, {_describe(value.keywords)})"
+        return f"partial({describe(value.func)}, {describe(value.args)}, {describe(value.keywords)})"
     if isinstance(value, (type, types.FunctionType, types.BuiltinFunctionType)):
         return _named(value)
     if dataclasses.is_dataclass(value):
-        fields = ", ".join(f"{f.name}={_describe(getattr(value, f.name))}" for f in dataclasses.fields(value))
+        fields = ", ".join(f"{f.name}={describe(getattr(value, f.name))}" for f in dataclasses.fields(value))
         return f"{_named(type(value))}({fields})"
     raise _NotDescribable(type(value))
 

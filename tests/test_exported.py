@@ -204,3 +204,12 @@ def test_render_compiled_inside_jit_checks_traced_fields_when_run():
     np.testing.assert_allclose(rendered(jnp.float32(5.0)), expected, rtol=1e-6)
     with pytest.raises(Exception, match=r"num_samples must lie in \[0, max_samples=7\]"):
         jax.block_until_ready(rendered(jnp.float32(20.0)))
+
+
+def test_a_folder_that_cannot_be_written_only_means_nothing_is_stored(folder, monkeypatch):
+    def refused(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(exported, "atomic_write", refused)
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, jnp.arange(3.0), 2.0), [0.0, 2.0, 4.0])
+    assert not _stored(folder, "scaled")

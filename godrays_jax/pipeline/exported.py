@@ -26,10 +26,12 @@ An argument that cannot be described exactly (a closure or lambda, a class
 or function from a package outside that list) is never stored: `call` then
 runs `function(*args)` as it is. So is a program whose output JAX cannot
 serialise, and everything when no folder is set (the library's default).
-A file that cannot be read back is exported again. The folder is kept under
+A file that cannot be read back is exported again; a folder that cannot be
+written to only means the program is not stored. The folder is kept under
 `MAX_BYTES`, least recently used programs first.
 """
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -184,7 +186,8 @@ def _read(name: str, key: str) -> jax.export.Exported | None:
     except Exception:  # noqa: BLE001 - a truncated or foreign file: export the program again
         path.unlink(missing_ok=True)
         return None
-    os.utime(path)
+    with contextlib.suppress(OSError):  # its use only orders eviction
+        os.utime(path)
     return program
 
 
@@ -199,10 +202,13 @@ def _exported(name, key, function, static, tree, leaves) -> jax.export.Exported 
         data = jax.export.export(jax.jit(of_leaves))(*shapes).serialize()
     except Exception:  # noqa: BLE001 - e.g. a host callback, or an output pytree JAX cannot serialise
         return None
-    _directory.mkdir(parents=True, exist_ok=True)
-    with atomic_write(_path(name, key), sync=False) as temporary:
-        Path(temporary).write_bytes(data)
-    _evict()
+    try:
+        _directory.mkdir(parents=True, exist_ok=True)
+        with atomic_write(_path(name, key), sync=False) as temporary:
+            Path(temporary).write_bytes(data)
+        _evict()
+    except OSError:  # a full or read-only folder: the program runs, unstored, as the cache is best effort
+        pass
     # Run what later processes will read: its compiled program is then in JAX's cache for them.
     return jax.export.deserialize(bytearray(data))
 

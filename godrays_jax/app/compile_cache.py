@@ -4,9 +4,9 @@ JAX's persistent cache stores each compiled program under a key of its
 program text, so a later `apply`, `batch`, `fit` or `tune` of the same effect
 on frames of the same size loads it instead of compiling. The programs of
 `apply` and `fit` are also stored traced (`pipeline.exported`, in the
-subfolder `EXPORTED_FOLDER`), so a later run does not trace them again either. Where: the
-environment variable `GODRAYS_JAX_CACHE_DIR`, else `$XDG_CACHE_HOME/godrays_jax`
-(`~/.cache/godrays_jax`). Its size is capped (`MAX_BYTES`; least recently used
+subfolder `EXPORTED_FOLDER`), so a later run does not trace them again
+either. Where: the environment variable `GODRAYS_JAX_CACHE_DIR`, else
+`$XDG_CACHE_HOME/godrays_jax` (`~/.cache/godrays_jax`). Its size is capped (`MAX_BYTES`; least recently used
 entries go first); `godrays-jax cache` shows it and `godrays-jax cache --clear`
 empties it; `--no-cache` on any command leaves it alone.
 """

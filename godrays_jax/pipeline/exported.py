@@ -155,7 +155,8 @@ def _named(thing) -> str:
 
 @functools.cache
 def _environment() -> str:
-    """The versions, settings, backend and source digest that every key holds (settings read at each call)."""
+    """The versions, backend and source digest that every key holds, found once per process (`_settings` are read
+    at every call: a `with jax.default_matmul_precision(...)` changes them)."""
     versions = " ".join(f"{dist}={importlib.metadata.version(dist)}" for dist in _VERSIONED)
     device = jax.devices()[0]
     return f"{versions} {device.platform} {device.device_kind} source={_source_digest()}"

@@ -159,7 +159,7 @@ def fit_report_image(
 
 
 def image_metrics(image: Float[ArrayLike, "H W C"], target: Float[ArrayLike, "H W C"]) -> tuple[float, float]:
-    """`(PSNR in dB, SSIM)` of `image` against `target` in display space, by scikit-image.
+    """`(PSNR in dB, SSIM)` of `image` against `target` in display space, SSIM by scikit-image.
 
     Both are linear HDR; their first `min(C, 3)` channels are clipped at 0 and
     mapped by `x / (1 + x)` into [0, 1) (`data_range=1`), then compared by
@@ -173,7 +173,7 @@ def image_metrics(image: Float[ArrayLike, "H W C"], target: Float[ArrayLike, "H 
     ours, theirs = (display_map(np.maximum(a[..., :channels], 0.0)) for a in (image, target))
     if np.array_equal(ours, theirs):
         return math.inf, 1.0
-    # PSNR by its formula: skimage's `peak_signal_noise_ratio` imports scipy.stats, a large share of a repeated `fit`'s start-up.
+    # By its formula: skimage's `peak_signal_noise_ratio` imports scipy.stats, a large share of a repeated fit's start-up.
     psnr = 10.0 * math.log10(1.0 / np.mean((theirs - ours) ** 2))
     ssim = skimage.metrics.structural_similarity(
         theirs, ours, data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False

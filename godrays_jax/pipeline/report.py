@@ -173,7 +173,7 @@ def image_metrics(image: Float[ArrayLike, "H W C"], target: Float[ArrayLike, "H 
     ours, theirs = (display_map(np.maximum(a[..., :channels], 0.0)) for a in (image, target))
     if np.array_equal(ours, theirs):
         return math.inf, 1.0
-    # By its formula: skimage's `peak_signal_noise_ratio` imports scipy.stats, a large share of a repeated fit's start-up.
+    # By its formula: skimage's `peak_signal_noise_ratio` imports scipy.stats, much of a repeated fit's start-up.
     psnr = 10.0 * math.log10(1.0 / np.mean((theirs - ours) ** 2))
     ssim = skimage.metrics.structural_similarity(
         theirs, ours, data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False

@@ -146,6 +146,38 @@ def test_gradient_in_the_image_eager_jit_vmap(rng):
         assert_close(batched, expected[i], 1e-5)
 
 
+KERNELS_OF_AN_IMAGE = {
+    "radial_rays": lambda image, light: gr.radial_rays(image, light, num_samples=6, density=0.9, decay=0.9, weight=1.0,
+                                                       exposure=0.3),
+    "scale_iterated_flares": lambda image, light: gr.scale_iterated_flares(image, light, num_iters=5, scale_step=1.2,
+                                                                           decay=0.9),
+}
+
+
+@pytest.mark.parametrize("kernel", KERNELS_OF_AN_IMAGE)
+@pytest.mark.parametrize("compiled", [False, True])
+def test_gradient_of_a_batch(kernel, compiled, rng):
+    """`grad` of a loss over `vmap` (a training loop's first step) equals the per-example gradients.
+
+    The batching rule of the image's adjoint primitive runs here: one light for the batch (the images summed as more
+    channels) and a light per image (one at a time).
+    """
+    kernel = KERNELS_OF_AN_IMAGE[kernel]
+    images = jnp.asarray(rng.uniform(size=(3, HEIGHT, WIDTH, 2)), jnp.float32)
+    lights = jnp.asarray([LIGHTS["on_screen"], LIGHTS["off_screen"], LIGHTS["pixel_centre"]], jnp.float32)
+    transform = jax.jit if compiled else (lambda function: function)
+
+    def example_loss(image, light):
+        return jnp.sum(kernel(image, light) ** 2)
+
+    per_light = transform(jax.grad(lambda images: jnp.sum(jax.vmap(example_loss)(images, lights))))(images)
+    one_light = transform(jax.grad(lambda images: jnp.sum(jax.vmap(example_loss, in_axes=(0, None))(images, lights[0]))))
+    one_light = one_light(images)
+    for i in range(3):
+        assert_close(per_light[i], jax.grad(example_loss)(images[i], lights[i]), 1e-5)
+        assert_close(one_light[i], jax.grad(example_loss)(images[i], lights[0]), 1e-5)
+
+
 def test_second_derivatives_through_the_adjoint(x64, rng):
     """The primitive's own JVP (the copies' derivative in the light) serves forward-over-reverse, e.g. a Hessian."""
     image = jnp.asarray(rng.uniform(size=(HEIGHT, WIDTH, 1)))

@@ -175,18 +175,21 @@ def _copies_in_image_transpose(cotangent, image, light_xy, scales, weights, *, a
 
 
 def _copies_in_image_batch(args, dims, *, addressing):
-    """A batch of images alone is summed as one image of more channels; anything else, one at a time."""
+    """A batch of images alone is summed as one image of more channels; anything else, one at a time.
+
+    The batching protocol marks an operand without a batch axis by `None`.
+    """
     image, light_xy, scales, weights = args
-    if all(dim is batching.not_mapped for dim in dims[1:]):
+    if all(dim is None for dim in dims[1:]):
         moved = jnp.moveaxis(image, dims[0], -1)
         height, width, channels, count = moved.shape
         total = copies_in_image.bind(
             moved.reshape(height, width, channels * count), light_xy, scales, weights, addressing=addressing
         )
         return total.reshape(height, width, channels, count), 3
-    count = next(value.shape[dim] for value, dim in zip(args, dims) if dim is not batching.not_mapped)
+    count = next(value.shape[dim] for value, dim in zip(args, dims) if dim is not None)
     leading = [
-        jnp.broadcast_to(value, (count,) + value.shape) if dim is batching.not_mapped else jnp.moveaxis(value, dim, 0)
+        jnp.broadcast_to(value, (count,) + value.shape) if dim is None else jnp.moveaxis(value, dim, 0)
         for value, dim in zip(args, dims)
     ]
     return jax.lax.map(lambda values: copies_in_image.bind(*values, addressing=addressing), leading), 0

@@ -365,7 +365,10 @@ def scene_mask_of(kind: str, buffers: Buffers, light_depth, depth_bias) -> Float
     `"depth"` blanks the pixels nearer than `light_depth * (1 - depth_bias)`
     (scene units; `depth_bias` a fraction of the light's distance, so the
     emitter's own surface in front of its centre is not blanked); with the
-    light at infinity only the sky passes. The test is a hard step: its
+    light at infinity only the sky passes (`emitter_inputs` then asks for
+    `"sky"`). Depth is the frame's distance along the ray (`Buffers.ray_depth`:
+    planar depth is refused, the effect having no field of view to convert
+    it with; the app converts it when it reads the frame). The test is a hard step: its
     threshold has no gradient, so `depth_bias` is a static field.
     """
     dtype = buffers.color.dtype
@@ -373,8 +376,9 @@ def scene_mask_of(kind: str, buffers: Buffers, light_depth, depth_bias) -> Float
         return coverage_mask(buffers.coverage).astype(dtype)
     if kind == "sky":
         return sky_mask(buffers.depth).astype(dtype)
+    depth = buffers.ray_depth()
     light_depth = jnp.asarray(light_depth, dtype)
-    return depth_test_mask(buffers.depth, light_depth=light_depth * (1 - jnp.asarray(depth_bias, dtype))).astype(dtype)
+    return depth_test_mask(depth, light_depth=light_depth * (1 - jnp.asarray(depth_bias, dtype))).astype(dtype)
 
 
 @functools.lru_cache(maxsize=1)
@@ -441,9 +445,13 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
     radius = flare_radius_px(effect.flare_size, effect.units, buffers.height, buffers.width, dtype) if flare else None
     texture = flare_texture_of(effect) if flare else None
     depth_test = effect.source != "light_pass" and effect.scene_mask == "depth"
+    scene_mask = effect.scene_mask
+    if depth_test and not isinstance(light_depth, jax.core.Tracer) and math.isinf(float(np.asarray(light_depth))):
+        # With the light at infinity the depth test passes the sky alone, whatever the depth measures.
+        depth_test, scene_mask = False, "sky"
     arguments = (
         buffers, light_xy, radius, texture, light_in_front, effect.offscreen_fade,
         light_depth if depth_test else None,
     )  # fmt: skip
-    static = (effect.source, effect.scene_mask, effect.FLARE_SQUARED, effect.depth_bias)
+    static = (effect.source, scene_mask, effect.FLARE_SQUARED, effect.depth_bias)
     return functools.partial(_emitter, *static), arguments

@@ -21,7 +21,8 @@ class ScatteringFog(Effect):
     The frame becomes `color * T + (1 - T) * (ambient + sun_irradiance * p(theta) * lit)`
     (`media.apply_fog`, single scattering in closed form): `T = exp(-extinction *
     min(depth, max_distance))` with `depth` the distance along the camera ray in
-    scene units (sky: `max_distance`), `extinction` per scene unit, `p` the
+    scene units (`buffers.ray_depth(fov_x_deg)`: planar depth converted with
+    the effect's field of view; sky: `max_distance`), `extinction` per scene unit, `p` the
     Henyey-Greenstein phase function (per steradian) of `anisotropy` at the
     angle between each pixel's view ray and the sun (from `fov_x_deg`, the
     horizontal field of view in degrees), `ambient` and `sun_irradiance` RGB
@@ -81,11 +82,11 @@ class ScatteringFog(Effect):
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The in-scattered light alone, `(H, W, 3)`."""
         options = self._fog_options(buffers, light_xy, light_in_front)
-        return in_scattering(buffers.depth, light_xy, **options).astype(buffers.color.dtype)
+        return in_scattering(buffers.ray_depth(self.fov_x_deg), light_xy, **options).astype(buffers.color.dtype)
 
     def __call__(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The fogged frame: `color * T + layer` on the colour channels, alpha unchanged."""
         options = self._fog_options(buffers, light_xy, light_in_front)
-        return apply_fog(buffers.color, buffers.depth, light_xy, **options)
+        return apply_fog(buffers.color, buffers.ray_depth(self.fov_x_deg), light_xy, **options)
 
 

@@ -135,7 +135,7 @@ class LensDirt(Effect):
         dtype = buffers.color.dtype
         dirt = jnp.asarray(_cached_dirt(buffers.height, buffers.width, self.dirt_seed), dtype)
         lit = lens_dirt(
-            dirt, buffers.depth, light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
+            dirt, buffers.ray_depth(self.fov_x_deg), light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
             power=self.power, scale=self.scale, aberration=self.aberration, light_in_front=light_in_front, view=self.view,
             depth_floor=self.depth_floor, depth_in_power=self.depth_in_power,
         )  # fmt: skip

@@ -2,7 +2,9 @@
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from godrays_jax.primitives.camera import DEPTH_KINDS, DepthKind, planar_to_ray_depth
 
 
 class Buffers(eqx.Module):
@@ -10,8 +12,10 @@ class Buffers(eqx.Module):
 
     Attributes:
         color: linear HDR colour, `(H, W, C)` with C = 1, 3 or 4.
-        depth: linear distance along the camera ray in scene units, `(H, W)`;
-            `+inf` where nothing was hit (sky).
+        depth: linear depth in scene units, `(H, W)`; `+inf` where nothing
+            was hit (sky). Distance along each pixel's camera ray, or along
+            the camera's axis when `depth_kind` is `"planar"`; effects read
+            it through `ray_depth`.
         coverage: fraction of each pixel covered by geometry, `(H, W)` in [0, 1].
         normal: world-space unit normals `(H, W, 3)`, zero on sky, if rendered.
         object_id: index of the object seen in each pixel, `-1` on sky, if rendered.
@@ -22,6 +26,8 @@ class Buffers(eqx.Module):
         glow_target: the VBex article's glow target, what the bloom spreads (the
             sky's sun spot, emissive surfaces and night lights, the
             atmosphere's glowing shell), `(H, W, 3)` linear HDR, if rendered.
+        depth_kind: `"ray"` (the default; `render`, Mitsuba) or `"planar"`
+            (Blender's Cycles `Z` pass; `camera.DEPTH_KINDS`), static.
     """
 
     color: Float[Array, "H W C"]
@@ -32,6 +38,7 @@ class Buffers(eqx.Module):
     light_pass: Float[Array, "H W"] | None = None
     glow_pass: Float[Array, "H W 4"] | None = None
     glow_target: Float[Array, "H W 3"] | None = None
+    depth_kind: DepthKind = eqx.field(static=True, default="ray")
 
     def __check_init__(self):
         """Shapes and dtypes at construction, each error naming the field.
@@ -40,6 +47,8 @@ class Buffers(eqx.Module):
         as every field has the same ones. Values are not checked here (they may
         be traced); `io.check_buffers` checks them on the host.
         """
+        if self.depth_kind not in DEPTH_KINDS:
+            raise ValueError(f"buffers.depth_kind must be one of {', '.join(DEPTH_KINDS)}, got {self.depth_kind!r}")
         color_shape = _shape_of(self.color)
         if color_shape is None:
             return  # a filter spec or other non-array pytree (e.g. for eqx.partition)
@@ -61,6 +70,23 @@ class Buffers(eqx.Module):
             if actual is not None and not jnp.issubdtype(value.dtype, kind):
                 kind_text = "an integer" if kind is jnp.integer else "a floating-point"
                 raise ValueError(f"buffers.{name} must have {kind_text} dtype, got {value.dtype}")
+
+    def ray_depth(self, fov_x_deg: Float[ArrayLike, ""] | None = None) -> Float[Array, "H W"]:
+        """Depth as distance along each pixel's camera ray (scene units, `+inf` on sky), what effects read.
+
+        Ray depth is returned as stored. Planar depth is converted with the
+        horizontal field of view `fov_x_deg` (degrees; an effect passes its
+        own, so a fitted field of view converts consistently), which it then
+        needs (`ValueError` naming it otherwise). Differentiable in `fov_x_deg`.
+        """
+        if self.depth_kind == "ray":
+            return self.depth
+        if fov_x_deg is None:
+            raise ValueError(
+                "fov_x_deg: this frame's depth is planar (along the camera's axis) and converting it to distance "
+                "along the ray needs the field of view (give the frame's, e.g. apply --fov-x-deg)"
+            )
+        return planar_to_ray_depth(self.depth, fov_x_deg=fov_x_deg)
 
     @property
     def height(self) -> int:

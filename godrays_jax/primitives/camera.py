@@ -4,7 +4,16 @@ Conventions (shared by the rasterizer and every effect): right-handed world,
 pixel x to the right, y down, pixel centres at `i + 0.5`, square pixels; the
 horizontal field of view fixes the focal length `f = (width / 2) / tan(fov_x / 2)`
 in pixels.
+
+Depth kinds (`DEPTH_KINDS`): renderers write a pixel's depth either as the
+distance along its camera ray (`"ray"`: Mitsuba, `render`) or as the distance
+along the camera's axis (`"planar"`, view-space z: Blender's Cycles `Z` pass,
+hardware depth buffers). The two differ by the length of the pixel's
+direction `((x - W/2) / f, (H/2 - y) / f, 1)`: 1 at the centre, growing toward
+the corners (`ray_depth_scale`).
 """
+
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -12,6 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
+
+from godrays_jax.primitives.sampling import pixel_centres
 
 # Points this close to the camera plane (in scene units) are projected as if
 # they were this far, so that projection stays finite.
@@ -21,6 +32,40 @@ _MIN_PROJECTION_DEPTH = 1e-6
 def focal_length_px(width: int, fov_x_deg: Float[ArrayLike, ""], dtype: DTypeLike = jnp.float32) -> Float[Array, ""]:
     """The pinhole focal length in pixels of a frame `width` pixels wide: `(W / 2) / tan(fov_x / 2)`."""
     return 0.5 * width / jnp.tan(jnp.deg2rad(jnp.asarray(fov_x_deg, dtype)) / 2)
+
+
+DepthKind = Literal["ray", "planar"]
+DEPTH_KINDS: tuple[str, ...] = ("ray", "planar")
+"""How a depth buffer measures distance: along each pixel's camera ray, or along the camera's axis (view-space z)."""
+
+
+def ray_depth_scale(
+    height: int, width: int, *, fov_x_deg: Float[ArrayLike, ""], dtype: DTypeLike = jnp.float32
+) -> Float[Array, "H W"]:
+    """Distance along each pixel-centre ray per unit of distance along the camera's axis, `(H, W)`, >= 1.
+
+    `sqrt(1 + ((x - W/2) / f)^2 + ((H/2 - y) / f)^2)` with `f` the focal
+    length in pixels of the horizontal field of view `fov_x_deg` (degrees, in
+    (0, 180)). Differentiable in `fov_x_deg`.
+    """
+    focal = focal_length_px(width, fov_x_deg, dtype)
+    x, y = pixel_centres(height, width, dtype)
+    return jnp.sqrt(1.0 + ((x - 0.5 * width) / focal) ** 2 + ((0.5 * height - y) / focal) ** 2)
+
+
+def planar_to_ray_depth(depth: Float[ArrayLike, "H W"], *, fov_x_deg: Float[ArrayLike, ""]) -> Float[Array, "H W"]:
+    """Planar depth (along the camera's axis, scene units) as distance along each pixel's ray.
+
+    `depth * ray_depth_scale(...)`; `+inf` (sky) stays `+inf`. Differentiable
+    in `depth` and `fov_x_deg` (finite gradients on sky too).
+    """
+    depth = jnp.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
+    dtype = jnp.result_type(depth, jnp.float32)
+    scale = ray_depth_scale(depth.shape[0], depth.shape[1], fov_x_deg=fov_x_deg, dtype=dtype)
+    sky = jnp.isposinf(depth)
+    return jnp.where(sky, jnp.inf, jnp.where(sky, 0.0, depth) * scale)
 
 
 def unit_vectors(vectors: Float[Array, "*S"], *, axis: int = -1) -> Float[Array, "*S"]:

@@ -13,6 +13,7 @@ from godrays_jax.pipeline import exported
 # programs (same kernel, same shapes, another lambda): a persistent cache shared
 # by every test and pytest-xdist worker compiles each of them once.
 CACHE = Path(__file__).resolve().parents[1] / ".jax_cache"
+CACHE.mkdir(mode=0o700, exist_ok=True)  # the command line uses only a cache folder that no other user can write
 jax.config.update("jax_compilation_cache_dir", str(CACHE))
 # The command line, run in-process by the CLI tests, enables its own cache: the same folder, not the user's.
 os.environ.setdefault("GODRAYS_JAX_CACHE_DIR", str(CACHE))

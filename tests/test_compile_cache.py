@@ -7,14 +7,18 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import godrays_jax as gr
 from godrays_jax.app import compile_cache
+from godrays_jax.app.cli import main
+from godrays_jax.pipeline import exported
 from godrays_jax.primitives.checks import checked_count, ranges_guaranteed
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLE = ROOT / "examples" / "data" / "sample_frame.exr"
+CONFTEST_CACHE = jax.config.jax_compilation_cache_dir
 
 
 def _cli(*args, cache: Path):
@@ -98,3 +102,128 @@ def test_known_counts_are_checked_on_the_host_and_traced_ones_at_run_time():
         jax.block_until_ready(traced(5.0))
     with ranges_guaranteed():
         assert float(jax.jit(lambda n: checked_count(n, 4, "n", "m", jnp.float32))(2.0)) == 2.0
+
+
+JAX_ENTRY = "jit_call-" + "0" * 64
+
+
+def _filled(cache: Path) -> list[Path]:
+    """A cache folder with entries of JAX and of `pipeline.exported`; returns them."""
+    (cache / compile_cache.EXPORTED_FOLDER).mkdir(parents=True)
+    entries = [cache / f"{JAX_ENTRY}-cache", cache / f"{JAX_ENTRY}-atime", cache / ".lockfile",
+               cache / compile_cache.EXPORTED_FOLDER / "frames-abc.jaxexport"]  # fmt: skip
+    for entry in entries:
+        entry.write_bytes(b"x")
+    return entries
+
+
+def test_clear_removes_only_what_the_library_wrote(tmp_path, capsys, monkeypatch):
+    """Pointed at a folder that holds other things, `cache --clear` removes its entries and nothing else."""
+    cache = tmp_path / "project"
+    entries = _filled(cache)
+    kept = [cache / "notes.txt", cache / "scene-cache", cache / "shots" / f"{JAX_ENTRY}-cache",
+            cache / compile_cache.EXPORTED_FOLDER / "readme.txt"]  # fmt: skip
+    for path in kept:
+        path.parent.mkdir(exist_ok=True)
+        path.write_text("mine")
+    outside = tmp_path / "precious.txt"
+    outside.write_text("mine")
+    linked = cache / f"{'jit_f-' + '1' * 64}-cache"
+    linked.symlink_to(outside)
+    monkeypatch.setenv(compile_cache.ENVIRONMENT_VARIABLE, str(cache))
+    assert main(["cache", "--clear"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1 and "kept" in out and "5 cached program file(s)" in out, out
+    assert not any(os.path.lexists(p) for p in [*entries, linked])
+    assert all(p.read_text() == "mine" for p in [*kept, outside])
+    assert compile_cache.cache_size(str(cache)) == (0, 0)
+    (cache / compile_cache.EXPORTED_FOLDER / "readme.txt").unlink()
+    (cache / compile_cache.EXPORTED_FOLDER).rmdir()
+    (cache / compile_cache.EXPORTED_FOLDER).symlink_to(tmp_path / "elsewhere")
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "report.jaxexport").write_text("mine")
+    compile_cache.clear(str(cache))  # a link where the programs' folder should be is not followed
+    assert (tmp_path / "elsewhere" / "report.jaxexport").read_text() == "mine"
+
+
+def test_clear_through_a_linked_folder_clears_its_target_and_keeps_the_link(tmp_path):
+    target = tmp_path / "target"
+    entries = _filled(target)
+    cache = tmp_path / "cache"
+    cache.symlink_to(target)
+    assert compile_cache.cache_size(str(cache))[0] == len(entries)
+    assert compile_cache.clear(str(cache)) == (len(entries), False)
+    assert not any(os.path.lexists(p) for p in entries) and cache.is_symlink() and target.is_dir()
+
+
+def _small_frame(path: Path) -> Path:
+    depth = np.full((4, 6), np.inf, np.float32)
+    depth[3:] = 3.0
+    frame = gr.Buffers(color=np.full((4, 6, 3), 0.2, np.float32), depth=depth, coverage=np.isfinite(depth) * 1.0)
+    gr.write_buffers(path, frame, light_xy=(3.0, 2.0))
+    return path
+
+
+def _apply_warns_and_runs(cache: Path, tmp_path: Path, capsys, monkeypatch, reason: str):
+    """`apply` with the cache at `cache`: one warning line naming `reason`, exit 0, and nothing stored there."""
+    monkeypatch.setenv(compile_cache.ENVIRONMENT_VARIABLE, str(cache))
+    frame = _small_frame(tmp_path / "frame.exr")
+    before = jax.config.jax_compilation_cache_dir
+    assert main(["apply", str(frame), "--preset", "kbengine_flares", "-o", str(tmp_path / "out.png")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "warning" in err and reason in err and "without a cache" in err, err
+    assert jax.config.jax_compilation_cache_dir == before
+    assert (tmp_path / "out.png").exists()
+
+
+def test_a_folder_other_users_can_write_is_not_used(tmp_path, capsys, monkeypatch):
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o777)
+    _apply_warns_and_runs(shared, tmp_path, capsys, monkeypatch, "other users can write to it")
+    assert not list(shared.iterdir())
+    with pytest.raises(compile_cache.CacheUnavailable, match="mode 777"):
+        compile_cache.enable(str(shared))
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="giving a folder away takes root")
+def test_a_folder_of_another_user_is_not_used(tmp_path, capsys, monkeypatch):
+    theirs = tmp_path / "theirs"
+    theirs.mkdir(mode=0o700)
+    os.chown(theirs, 65534, 65534)
+    _apply_warns_and_runs(theirs, tmp_path, capsys, monkeypatch, "belongs to another user")
+
+
+def test_the_folder_is_created_private(tmp_path):
+    old = os.umask(0o002)  # a umask that lets the group write
+    try:
+        compile_cache.enable(str(tmp_path / "new" / "cache"))
+    finally:
+        os.umask(old)
+        exported.use_directory(None)
+        jax.config.update("jax_compilation_cache_dir", CONFTEST_CACHE)
+    for folder in (tmp_path / "new" / "cache", tmp_path / "new" / "cache" / compile_cache.EXPORTED_FOLDER):
+        assert folder.stat().st_mode & 0o777 == 0o700
+
+
+@pytest.mark.parametrize("where", ["a file", "under a file"])
+def test_a_path_that_cannot_be_a_folder_means_no_cache(where, tmp_path, capsys, monkeypatch):
+    (tmp_path / "file").write_text("mine")
+    cache = tmp_path / "file" if where == "a file" else tmp_path / "file" / "cache"
+    _apply_warns_and_runs(cache, tmp_path, capsys, monkeypatch, "not used")
+    assert (tmp_path / "file").read_text() == "mine"
+
+
+def test_a_read_only_parent_means_no_cache(tmp_path, capsys, monkeypatch):
+    """Root writes anywhere, so the refusal of a read-only parent is what `os.makedirs` is made to raise."""
+    parent = tmp_path / "read_only"
+    parent.mkdir()
+    makedirs = os.makedirs
+
+    def refused(path, *args, **kwargs):
+        if str(path).startswith(str(parent)):
+            raise PermissionError(13, "Permission denied", str(path))
+        return makedirs(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "makedirs", refused)
+    _apply_warns_and_runs(parent / "cache", tmp_path, capsys, monkeypatch, "Permission denied")

@@ -1,6 +1,8 @@
 """Programs traced once and stored (`pipeline.exported`): read back without tracing, keyed by all a trace sees."""
 
 import dataclasses
+import os
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -213,3 +215,53 @@ def test_a_folder_that_cannot_be_written_only_means_nothing_is_stored(folder, mo
     monkeypatch.setattr(exported, "atomic_write", refused)
     np.testing.assert_array_equal(exported.call("scaled", _scaled, jnp.arange(3.0), 2.0), [0.0, 2.0, 4.0])
     assert not _stored(folder, "scaled")
+
+
+@eqx.filter_jit
+def _sevens(x, factor):
+    return jnp.full_like(x, 7.0)
+
+
+def _planted(folder) -> Path:
+    """The program stored for `_scaled(arange(3.0), 2.0)`, replaced by one of the same signature that returns 7s."""
+    x = jnp.arange(3.0)
+    exported.call("scaled", _scaled, x, 2.0)
+    (stored,) = folder.glob("scaled-*.jaxexport")
+    exported.use_directory(folder)
+    exported.call("sevens", _sevens, x, 2.0)
+    (planted,) = folder.glob("sevens-*.jaxexport")
+    os.replace(planted, stored)
+    return stored
+
+
+def test_programs_are_never_read_from_a_folder_other_users_can_write(folder):
+    _planted(folder)
+    os.chmod(folder, 0o777)
+    with pytest.raises(PermissionError, match="other users can write to it"):
+        exported.use_directory(folder)
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, jnp.arange(3.0), 2.0), [0.0, 2.0, 4.0])
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="giving a file away takes root")
+def test_a_program_another_user_owns_is_never_read(folder):
+    stored = _planted(folder)
+    os.chown(stored, 65534, 65534)
+    exported.use_directory(folder)
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, jnp.arange(3.0), 2.0), [0.0, 2.0, 4.0])
+
+
+def test_a_link_in_the_folder_is_never_followed(folder, tmp_path_factory):
+    stored = _planted(folder)
+    elsewhere = tmp_path_factory.mktemp("elsewhere") / "program.jaxexport"
+    os.replace(stored, elsewhere)
+    stored.symlink_to(elsewhere)
+    exported.use_directory(folder)
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, jnp.arange(3.0), 2.0), [0.0, 2.0, 4.0])
+    assert elsewhere.exists()
+
+
+def test_the_folder_is_created_for_its_user_alone(tmp_path):
+    exported.use_directory(tmp_path / "new" / "programs")
+    assert (tmp_path / "new" / "programs").stat().st_mode & 0o777 == 0o700
+    exported.call("scaled", _scaled, jnp.arange(3.0), 2.0)
+    assert all(p.stat().st_mode & 0o077 == 0 for p in (tmp_path / "new" / "programs").iterdir())

@@ -8,6 +8,7 @@ is `run(args)` in `godrays_jax.app.<command>_command`.
 
 import argparse
 import importlib
+import os
 import re
 import sys
 from collections.abc import Callable
@@ -20,6 +21,7 @@ from godrays_jax.app.options import (
     parse_light,
     parse_light_depth,
     parse_sky_depth,
+    warn,
 )
 from godrays_jax.effects.presets import PRESETS
 from godrays_jax.pipeline import exported
@@ -250,7 +252,10 @@ def _add_cache(subparsers) -> None:
         f"{compile_cache.MAX_BYTES >> 20} MiB of compiled programs and {exported.MAX_BYTES >> 20} MiB of "
         f"traced ones in its {compile_cache.EXPORTED_FOLDER}/ folder (least recently used entries are dropped first).",
     )
-    parser.add_argument("--clear", action="store_true", help="remove every cached program")
+    parser.add_argument(
+        "--clear", action="store_true",
+        help="remove every cached program (only the entries the library wrote: the folder's other files stay)",
+    )  # fmt: skip
     parser.set_defaults(handler="godrays_jax.app.cli:run_cache", no_cache=True)
 
 
@@ -258,8 +263,9 @@ def run_cache(args) -> int:
     """`godrays-jax cache`: where the compilation cache is, how large, and `--clear`."""
     directory = compile_cache.cache_dir()
     if args.clear:
-        compile_cache.clear(directory)
-        print(f"cleared {directory}")
+        removed, gone = compile_cache.clear(directory)
+        kept = "" if gone or not os.listdir(directory) else f"; kept {directory}: it holds other files"
+        print(f"cleared {removed} cached program file(s) from {directory}{kept}")
         return 0
     files, size = compile_cache.cache_size(directory)
     caps = f"{compile_cache.MAX_BYTES >> 20} MiB compiled + {exported.MAX_BYTES >> 20} MiB traced"
@@ -288,7 +294,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         if not args.no_cache:
-            compile_cache.enable()
+            try:
+                compile_cache.enable()
+            except compile_cache.CacheUnavailable as error:
+                warn(args.command, f"{error}; running without a cache")
         module, function = args.handler.split(":")
         # Only the chosen command's module is imported: `apply` never loads the rasterizer or the solver.
         return getattr(importlib.import_module(module), function)(args)

@@ -8,16 +8,24 @@ subfolder `EXPORTED_FOLDER`), so a later run does not trace them again
 either. Where: the environment variable `GODRAYS_JAX_CACHE_DIR`, else
 `$XDG_CACHE_HOME/godrays_jax` (`~/.cache/godrays_jax`). Its size is capped (`MAX_BYTES`; least recently used
 entries go first); `godrays-jax cache` shows it and `godrays-jax cache --clear`
-empties it; `--no-cache` on any command leaves it alone.
+removes the entries the library wrote; `--no-cache` on any command leaves it alone.
+
+The entries are programs (JAX's hold machine code) that later runs execute,
+so the cache is used only from a folder that this user alone can write to
+(`primitives.files.private_folder`): it is created 0700, and one that belongs
+to another user or that its group or others may write to is refused, as is a
+path that cannot be a folder; the command then runs without a cache
+(`enable` raises `CacheUnavailable`, the command line warns in one line).
 """
 
 import os
-import shutil
+import re
 import warnings
 
 import jax
 
 from godrays_jax.pipeline import exported
+from godrays_jax.primitives.files import private_folder
 
 ENVIRONMENT_VARIABLE = "GODRAYS_JAX_CACHE_DIR"
 
@@ -37,14 +45,28 @@ def cache_dir() -> str:
     return os.path.join(base, "godrays_jax")
 
 
+class CacheUnavailable(Exception):
+    """The cache folder cannot be used (the message says why); the command runs without it."""
+
+
 def enable(directory: str | None = None) -> str:
     """Store and reuse every compiled program in `directory` (default `cache_dir()`); returns the folder.
 
     Every program is stored, however quick its compilation: the command line
     compiles a handful of programs per run and each saved one is saved start-up.
+
+    Raises:
+        CacheUnavailable: the folder cannot be created or written to, or
+            other users can write to it (nothing is changed then).
     """
     directory = directory or cache_dir()
-    os.makedirs(directory, exist_ok=True)
+    stored = os.path.join(directory, EXPORTED_FOLDER)
+    try:
+        private_folder(directory)
+        private_folder(stored)
+    except OSError as error:
+        reason = error.strerror or str(error)
+        raise CacheUnavailable(f"cache folder {error.filename or directory} not used: {reason}") from None
     # The cache is best effort: processes sharing it (a farm, parallel shells) race on its bookkeeping files,
     # and a failed read or write only means a compilation. Its warnings would break the one-line contract.
     warnings.filterwarnings("ignore", message=r"Error (reading|writing) persistent compilation cache", category=UserWarning)
@@ -53,20 +75,57 @@ def enable(directory: str | None = None) -> str:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     # Programs whose tracing costs as much as running them (a fit's solver step, apply's frame) are stored traced.
-    exported.use_directory(os.path.join(directory, EXPORTED_FOLDER))
+    exported.use_directory(stored)
     return directory
 
 
+_COMPILED = re.compile(r"[^/]+-[0-9a-f]{64}-(?:cache|atime)|\.lockfile")
+"""The names of JAX's cache entries (`NAME-KEY-cache`, its access time `NAME-KEY-atime`) and of its lock file."""
+
+_STORED = re.compile(r"[^/]+\.jaxexport")
+"""The names of stored traced programs, and of their temporaries (`pipeline.exported`)."""
+
+
+def _entries(directory: str) -> list[os.DirEntry]:
+    """The library's entries in the cache folder and in its `EXPORTED_FOLDER`, without following links inside."""
+    found = []
+    for folder, pattern in ((directory, _COMPILED), (os.path.join(directory, EXPORTED_FOLDER), _STORED)):
+        if folder != directory and os.path.islink(folder):
+            continue  # the stored programs' folder is the library's own: a link there leads elsewhere
+        try:
+            with os.scandir(folder) as listing:
+                found += [e for e in listing if pattern.fullmatch(e.name) and not e.is_dir(follow_symlinks=False)]
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+    return found
+
+
 def cache_size(directory: str | None = None) -> tuple[int, int]:
-    """`(files, bytes)` the cache holds now."""
-    files = total = 0
-    for folder, _, names in os.walk(directory or cache_dir()):
-        for name in names:
-            files += 1
-            total += os.path.getsize(os.path.join(folder, name))
-    return files, total
+    """`(files, bytes)` of the library's entries in the cache now (links counted, not what they lead to)."""
+    entries = _entries(directory or cache_dir())
+    return len(entries), sum(entry.stat(follow_symlinks=False).st_size for entry in entries)
 
 
-def clear(directory: str | None = None) -> None:
-    """Remove the cache folder and everything in it."""
-    shutil.rmtree(directory or cache_dir(), ignore_errors=True)
+def clear(directory: str | None = None) -> tuple[int, bool]:
+    """Remove the entries the library wrote: JAX's compiled programs and the stored traced ones.
+
+    Nothing else in the folder is touched, and a link among the entries is
+    removed itself, never what it leads to. The folders go too once empty,
+    unless the cache folder is a link. Returns `(entries removed, whether the
+    folder is gone)`.
+    """
+    directory = directory or cache_dir()
+    removed = 0
+    for entry in _entries(directory):
+        try:
+            os.unlink(entry.path)
+            removed += 1
+        except FileNotFoundError:  # removed meanwhile by JAX's eviction in another process
+            pass
+    if not os.path.islink(directory):
+        for folder in (os.path.join(directory, EXPORTED_FOLDER), directory):
+            try:
+                os.rmdir(folder)
+            except OSError:  # not empty (it holds what the library did not write), a link, or gone
+                pass
+    return removed, not os.path.lexists(directory)

@@ -29,6 +29,11 @@ serialise, and everything when no folder is set (the library's default).
 A file that cannot be read back is exported again; a folder that cannot be
 written to only means the program is not stored. The folder is kept under
 `MAX_BYTES`, least recently used programs first.
+
+A stored program is code the process runs, so the folder must be this
+user's alone (`primitives.files.private_folder`: created 0700, refused when
+another user owns it or may write to it), and a file in it is read only if
+this user owns it and nobody else may write to it (a link is never followed).
 """
 
 import contextlib
@@ -47,7 +52,7 @@ import jax
 import numpy as np
 
 from godrays_jax.primitives.checks import ranges_are_guaranteed
-from godrays_jax.primitives.files import atomic_write
+from godrays_jax.primitives.files import atomic_write, owned_privately, private_folder, private_folder_problem
 
 MAX_BYTES = 64 << 20
 """The folder's cap: storing a program beyond it removes the least recently used ones."""
@@ -75,10 +80,20 @@ _programs: dict[str, Callable[..., Any] | None] = {}
 
 
 def use_directory(directory: str | os.PathLike | None) -> None:
-    """Store exported programs in `directory` and read them from there; None (the default) stores nothing."""
+    """Store exported programs in `directory` and read them from there; None (the default) stores nothing.
+
+    The folder is created for this user alone (0700) if missing.
+
+    Raises:
+        PermissionError: another user owns the folder or may write to it
+            (nothing is stored or read then).
+        OSError: the folder cannot be created.
+    """
     global _directory
-    _directory = None if directory is None else Path(directory)
+    _directory = None
     _programs.clear()
+    if directory is not None:
+        _directory = Path(private_folder(directory))
 
 
 def call(name: str, function: Callable[..., Any], *args: Any, closed_over: Any = None) -> Any:
@@ -180,10 +195,18 @@ def _path(name: str, key: str) -> Path:
 
 def _read(name: str, key: str) -> jax.export.Exported | None:
     path = _path(name, key)
-    try:
-        program = jax.export.deserialize(bytearray(path.read_bytes()))
-    except FileNotFoundError:
+    if private_folder_problem(_directory) is not None:  # the folder was replaced since `use_directory`
         return None
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except OSError:  # missing, or a link
+        return None
+    with open(fd, "rb") as stream:
+        if not owned_privately(os.fstat(fd)):
+            return None  # a file another user could have written: never run, and not ours to remove
+        data = stream.read()
+    try:
+        program = jax.export.deserialize(bytearray(data))
     except Exception:  # noqa: BLE001 - a truncated or foreign file: export the program again
         path.unlink(missing_ok=True)
         return None
@@ -204,8 +227,7 @@ def _exported(name, key, function, static, tree, leaves) -> jax.export.Exported 
     except Exception:  # noqa: BLE001 - e.g. a host callback, or an output pytree JAX cannot serialise
         return None
     try:
-        _directory.mkdir(parents=True, exist_ok=True)
-        with atomic_write(_path(name, key), sync=False) as temporary:
+        with atomic_write(_path(name, key), sync=False, mode=0o600) as temporary:
             Path(temporary).write_bytes(data)
         _evict()
     except OSError:  # a full or read-only folder: the program runs, unstored, as the cache is best effort

@@ -15,6 +15,7 @@ import os
 import re
 import secrets
 import socket
+import stat
 import time
 from collections.abc import Iterator
 
@@ -89,6 +90,52 @@ def remove_stale(paths) -> list[str]:
     return removed
 
 
+def private_folder_problem(folder: str | os.PathLike) -> str | None:
+    """Why no user but this one can be trusted to have written what `folder` holds, or None if so.
+
+    Trusted: a folder (a link to one is followed) that belongs to this user
+    and that neither its group nor other users may write to.
+    """
+    try:
+        info = os.stat(folder)
+    except OSError as error:
+        return error.strerror.lower() if error.strerror else str(error)
+    if not stat.S_ISDIR(info.st_mode):
+        return "not a folder"
+    owner = getattr(os, "geteuid", None)
+    if owner is not None and info.st_uid != owner():
+        return f"it belongs to another user (uid {info.st_uid})"
+    if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"other users can write to it (mode {stat.S_IMODE(info.st_mode):o})"
+    return None
+
+
+def private_folder(folder: str | os.PathLike) -> str:
+    """`folder`, created if missing with permissions for this user alone (0700); returns its path.
+
+    Raises:
+        PermissionError: it exists but other users can write to it or it
+            belongs to another user (`private_folder_problem` says which).
+        OSError: it cannot be created (a file stands in its path, a parent is
+            read-only), or cannot be written to.
+    """
+    folder = os.fspath(folder)
+    os.makedirs(folder, mode=0o700, exist_ok=True)
+    problem = private_folder_problem(folder)
+    if problem is not None:
+        raise PermissionError(errno.EACCES, problem, folder)
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(errno.EACCES, "cannot write to it", folder)
+    return folder
+
+
+def owned_privately(info: os.stat_result) -> bool:
+    """Whether a file's `os.stat` result says this user owns it and nobody else may write to it."""
+    owner = getattr(os, "geteuid", None)
+    mine = owner is None or info.st_uid == owner()
+    return mine and stat.S_ISREG(info.st_mode) and not info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+
+
 def _fsync_folder(folder: str) -> None:
     fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     try:
@@ -120,7 +167,9 @@ def _place_without_replacing(temporary: str, path: str) -> None:
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike, *, replace: bool = True, sync: bool = True) -> Iterator[str]:
+def atomic_write(
+    path: str | os.PathLike, *, replace: bool = True, sync: bool = True, mode: int = 0o666
+) -> Iterator[str]:
     """A temporary path to write to; flushed to disk and renamed onto `path` when the block ends, removed if it raises.
 
     A reader of `path` sees the old file or the whole new one, never a part,
@@ -137,7 +186,7 @@ def atomic_write(path: str | os.PathLike, *, replace: bool = True, sync: bool = 
     if not os.path.isdir(folder):
         raise FileNotFoundError(f"cannot write '{path}': folder '{folder}' does not exist")
     temporary = temporary_path(path)
-    os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+    os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode))
     try:
         yield temporary
         if sync:

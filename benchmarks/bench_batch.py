@@ -39,7 +39,7 @@ import numpy as np
 import godrays_jax as gr
 from godrays_jax.pipeline import batch, sequences
 from godrays_jax.app.options import DEFAULT_PRESET
-from godrays_jax.primitives.io import read_frame, write_frame_like
+from godrays_jax.primitives.frame_files import read_frame, write_frame_like
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
 

@@ -22,7 +22,7 @@ from godrays_jax.pipeline import batch, sequences
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import DEFAULT_PRESET
 from godrays_jax.primitives import files
-from godrays_jax.primitives.io import read_frame, write_frame_like
+from godrays_jax.primitives.frame_files import read_frame, write_frame_like
 
 H, W = 16, 24
 ROOT = Path(__file__).resolve().parents[1]

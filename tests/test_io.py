@@ -1,4 +1,4 @@
-"""Tests for godrays_jax.primitives.io: round trips, channel names, metadata, errors, atomic writes."""
+"""Tests for the frame and image files (godrays_jax.primitives: frame_reading, frame_files, images, light_metadata): round trips, channel names, metadata, errors, atomic writes."""
 
 import os
 from pathlib import Path
@@ -8,7 +8,6 @@ import OpenImageIO as oiio
 import pytest
 
 from godrays_jax import Buffers, check_buffers, read_buffers, read_image, read_light, srgb_decode, srgb_encode, write_buffers, write_image
-from godrays_jax.primitives import io as gio
 
 COLONNADE = Path(__file__).resolve().parent / "data" / "colonnade_buffers.exr"  # tests/data/README.md
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
@@ -339,7 +338,7 @@ class _FailingOutput:
 @pytest.mark.parametrize("target", ["img.exr", "img.png", "frame.exr"])
 def test_failed_write_leaves_nothing(tmp_path, monkeypatch, target):
     (tmp_path / "keep.txt").write_text("x")
-    monkeypatch.setattr(gio.oiio, "ImageOutput", _FailingOutput)
+    monkeypatch.setattr(oiio, "ImageOutput", _FailingOutput)
     with pytest.raises(RuntimeError, match="disk full"):
         if target == "frame.exr":
             write_buffers(tmp_path / target, _frame())
@@ -352,7 +351,7 @@ def test_failed_write_keeps_existing_file(tmp_path, monkeypatch):
     path = tmp_path / "img.exr"
     write_image(path, np.ones((2, 2, 3), np.float32))
     before = path.read_bytes()
-    monkeypatch.setattr(gio.oiio, "ImageOutput", _FailingOutput)
+    monkeypatch.setattr(oiio, "ImageOutput", _FailingOutput)
     with pytest.raises(RuntimeError):
         write_image(path, np.zeros((2, 2, 3), np.float32))
     assert path.read_bytes() == before and os.listdir(tmp_path) == ["img.exr"]

@@ -35,7 +35,7 @@ from godrays_jax.app.tuner import (
     preview_factor,
     scale_pixel_fields,
 )
-from godrays_jax.primitives.io import encode_png
+from godrays_jax.primitives.images import encode_png
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
 CHROMIUM = "/usr/bin/chromium"

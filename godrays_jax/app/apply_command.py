@@ -18,7 +18,8 @@ from godrays_jax.app.options import (
     with_flare_texture,
 )
 from godrays_jax.pipeline.batch import frames_function
-from godrays_jax.primitives.io import read_frame, write_frame_like, write_image
+from godrays_jax.primitives.frame_files import read_frame, write_frame_like
+from godrays_jax.primitives.images import write_image
 
 
 def _is_exr(path: str) -> bool:

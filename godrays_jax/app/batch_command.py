@@ -19,7 +19,7 @@ from godrays_jax.pipeline.sequences import (
     expand_frames,
     read_light_track,
 )
-from godrays_jax.primitives.io import read_buffers
+from godrays_jax.primitives.frame_reading import read_buffers
 
 
 def parse_frame_range(text: str) -> tuple[int, int]:

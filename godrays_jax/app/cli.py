@@ -27,7 +27,7 @@ from godrays_jax.effects.presets import PRESETS
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP
 from godrays_jax.primitives.checks import error_line
-from godrays_jax.primitives.io import SKY_DEPTH
+from godrays_jax.primitives.frame_reading import SKY_DEPTH
 
 PROGRAM = "godrays-jax"
 

@@ -25,7 +25,8 @@ from godrays_jax.pipeline.fit import (
     render_compiled,
 )
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
-from godrays_jax.primitives.io import read_buffers, read_image, write_image
+from godrays_jax.primitives.frame_reading import read_buffers
+from godrays_jax.primitives.images import read_image, write_image
 
 
 def run(args) -> int:

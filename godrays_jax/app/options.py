@@ -13,7 +13,9 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.primitives.io import SKY_DEPTH, read_image, read_light, read_light_depth
+from godrays_jax.primitives.frame_reading import SKY_DEPTH
+from godrays_jax.primitives.images import read_image
+from godrays_jax.primitives.light_metadata import read_light, read_light_depth
 
 DEFAULT_PRESET = "xna_crepuscular"
 """The effect `apply`, `batch` and `tune` use without `--preset` / `--params`."""

@@ -1,7 +1,8 @@
 """`godrays-jax render`: a scene file through the built-in rasterizer to an EXR frame."""
 
 from godrays_jax.app.options import check_output_path
-from godrays_jax.primitives.io import LIGHT_DEPTH_ATTR, write_buffers
+from godrays_jax.primitives.frame_files import write_buffers
+from godrays_jax.primitives.light_metadata import LIGHT_DEPTH_ATTR
 from godrays_jax.raster import light_distance, light_pixel, load_scene, render
 
 

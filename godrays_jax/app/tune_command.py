@@ -13,7 +13,8 @@ from godrays_jax.app.options import (
 )
 from godrays_jax.app.server import HOST, TuneServer
 from godrays_jax.app.tuner import Tuner
-from godrays_jax.primitives.io import read_buffers, read_image
+from godrays_jax.primitives.frame_reading import read_buffers
+from godrays_jax.primitives.images import read_image
 
 
 def run(args) -> int:

@@ -74,7 +74,7 @@ from godrays_jax.pipeline.fit import COUNT_FIELDS, fit, fitted_bounds
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import error_line, ranges_guaranteed
 from godrays_jax.primitives.color import display_map, to_srgb8
-from godrays_jax.primitives.io import encode_png
+from godrays_jax.primitives.images import encode_png
 from godrays_jax.primitives.resample import box_pool, downsample_box
 
 def pixel_fields(effect: Effect) -> tuple[str, ...]:

@@ -11,8 +11,8 @@ which are already done) and then executed (`run_batch`):
   devices along the frame axis (`jax.sharding.NamedSharding`) and mapped with
   `jax.vmap`; the last group is padded by repeating a frame.
 - Each output keeps its input's file name, channels, per-channel formats and
-  metadata (`io.write_frame_like`: only `R, G, B` change) unless another
-  extension is asked for (then `io.write_image` writes the colour alone).
+  metadata (`write_frame_like`: only `R, G, B` change) unless another
+  extension is asked for (then `write_image` writes the colour alone).
 - Every output is written to a hidden temporary file that is synced to disk
   and renamed into place, so an interrupted run leaves only complete frames.
   A temporary's name carries its process (`files.temporary_path`); the next
@@ -63,13 +63,9 @@ from godrays_jax.pipeline.sequences import Light, LightSource, frame_number, lig
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.files import Claim, claim, release, remove_stale, temporaries_of
-from godrays_jax.primitives.io import (
-    SKY_DEPTH,
-    FrameFile,
-    read_frame,
-    write_frame_like,
-    write_image,
-)
+from godrays_jax.primitives.frame_files import FrameFile, read_frame, write_frame_like
+from godrays_jax.primitives.frame_reading import SKY_DEPTH
+from godrays_jax.primitives.images import write_image
 
 
 class BatchError(ValueError):
@@ -297,7 +293,7 @@ def run_batch(
         effect: the effect, applied with the same parameters to every frame.
         light: each frame's light (`LightSource`).
         layer_only: write the effect alone instead of the composited frame.
-        depth_channel, color_layer, sky_depth: how frames are read (`io.read_frame`).
+        depth_channel, color_layer, sky_depth: how frames are read (`read_frame`).
         devices: devices to spread the frames over (default: `jax.local_devices()`).
         io_threads: threads for reading and, separately, for writing.
         progress: a stream for the progress bar (frames done, frames/s, ETA; None: no bar).

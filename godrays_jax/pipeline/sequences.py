@@ -9,7 +9,7 @@ import os
 import re
 from collections.abc import Mapping, Sequence
 
-from godrays_jax.primitives.io import read_light
+from godrays_jax.primitives.light_metadata import read_light
 
 Light = tuple[tuple[float, float], bool]
 """A light for one frame: `((x, y) pixels, in front of the camera)`."""

@@ -45,7 +45,7 @@ class Buffers(eqx.Module):
 
         Leading batch axes are allowed (stacked frames for `jax.vmap`) as long
         as every field has the same ones. Values are not checked here (they may
-        be traced); `io.check_buffers` checks them on the host.
+        be traced); `check_buffers` checks them on the host.
         """
         if self.depth_kind not in DEPTH_KINDS:
             raise ValueError(f"buffers.depth_kind must be one of {', '.join(DEPTH_KINDS)}, got {self.depth_kind!r}")

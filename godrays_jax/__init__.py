@@ -13,6 +13,7 @@ import importlib.metadata
 # Image primitives: sampling, resampling, colour, buffers, camera, I/O.
 from godrays_jax.primitives.buffers import Buffers as Buffers
 from godrays_jax.primitives.camera import Camera as Camera
+from godrays_jax.primitives.camera import planar_to_ray_depth as planar_to_ray_depth
 from godrays_jax.primitives.camera import project_point as project_point
 from godrays_jax.primitives.color import display_map as display_map
 from godrays_jax.primitives.color import srgb_decode as srgb_decode
@@ -60,6 +61,7 @@ from godrays_jax.kernels.losses import mse_loss as mse_loss
 from godrays_jax.kernels.losses import ssim as ssim
 from godrays_jax.kernels.losses import ssim_loss as ssim_loss
 from godrays_jax.kernels.masks import bright_pass as bright_pass
+from godrays_jax.kernels.masks import bright_sky as bright_sky
 from godrays_jax.kernels.masks import coverage_mask as coverage_mask
 from godrays_jax.kernels.masks import depth_test_mask as depth_test_mask
 from godrays_jax.kernels.masks import dilate as dilate
@@ -80,6 +82,7 @@ from godrays_jax.kernels.rays import scaled_copies as scaled_copies
 # Effects: parameter sets (equinox Modules), presets, serialisation.
 from godrays_jax.effects.base import Effect as Effect
 from godrays_jax.effects.base import light_visibility as light_visibility
+from godrays_jax.effects.base import needs_depth as needs_depth
 from godrays_jax.effects.base import parameter_bounds as parameter_bounds
 from godrays_jax.effects.base import size_fields as size_fields
 from godrays_jax.effects.base import STATIC_RANGES as STATIC_RANGES
@@ -89,7 +92,9 @@ from godrays_jax.effects.glow import LensDirt as LensDirt
 from godrays_jax.effects.glow import SunOvercast as SunOvercast
 from godrays_jax.effects.glow import SunSpot as SunSpot
 from godrays_jax.effects.presets import PRESETS as PRESETS
+from godrays_jax.effects.plates import buffers_without_depth as buffers_without_depth
 from godrays_jax.effects.presets import preset as preset
+from godrays_jax.effects.presets import presets_without_depth as presets_without_depth
 from godrays_jax.effects.serialization import effect_from_dict as effect_from_dict
 from godrays_jax.effects.serialization import effect_to_dict as effect_to_dict
 from godrays_jax.effects.serialization import load_effect as load_effect

@@ -136,13 +136,14 @@ def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
 
     return Buffers(
         color=box(buffers.color),
-        depth=box_pool(buffers.depth, factor, pooling="min"),
+        depth=None if buffers.depth is None else box_pool(buffers.depth, factor, pooling="min"),
         coverage=plane(buffers.coverage),
         normal=None if buffers.normal is None else buffers.normal[::factor, ::factor],
         object_id=None if buffers.object_id is None else buffers.object_id[::factor, ::factor],
         light_pass=plane(buffers.light_pass),
         glow_pass=box(buffers.glow_pass),
         glow_target=box(buffers.glow_target),
+        depth_kind=buffers.depth_kind,
     )
 
 

@@ -239,7 +239,13 @@ def flare_radius_px(size, units: str, height: int, width: int, dtype) -> Float[A
 
 
 class Effect(eqx.Module):
-    """Base class: subclasses define `layer` and a static `blend_mode` field."""
+    """Base class: subclasses define `layer` and a static `blend_mode` field.
+
+    `NEEDS_DEPTH` (a class constant) says whether the effect measures
+    distance in the frame's depth (`needs_depth`).
+    """
+
+    NEEDS_DEPTH: typing.ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -320,6 +326,29 @@ class Effect(eqx.Module):
 _EFFECT_CLASSES: dict[str, type[Effect]] = {}
 
 
+def needs_depth(effect: "Effect | type[Effect]") -> bool:
+    """Whether the effect measures distance in the frame's depth, and so cannot run on a frame without it.
+
+    The shaft and glow effects find the open sky in the frame's coverage,
+    which a frame without depth draws from its bright parts
+    (`plates.buffers_without_depth`); a medium's extinction and the lens
+    dirt's depth factor need the distances themselves.
+    """
+    cls = effect if isinstance(effect, type) else type(effect)
+    return cls.NEEDS_DEPTH
+
+
+def frame_ray_depth(effect: "Effect", buffers: Buffers) -> Float[Array, "H W"]:
+    """`buffers.ray_depth(effect.fov_x_deg)`, or a `ValueError` naming the effects that run without depth."""
+    if buffers.depth is None:
+        without = sorted(name for name, cls in _EFFECT_CLASSES.items() if not cls.NEEDS_DEPTH)
+        raise ValueError(
+            f"buffers.depth: {type(effect).__name__} needs the frame's depth and this frame has none; "
+            f"effects that run without depth: {', '.join(without)}"
+        )
+    return buffers.ray_depth(getattr(effect, "fov_x_deg", None))
+
+
 def effect_class(name: str) -> type[Effect]:
     """The effect class of that name (every subclass of `Effect` registers itself); `ValueError` if none."""
     if name not in _EFFECT_CLASSES:
@@ -368,11 +397,13 @@ def scene_mask_of(kind: str, buffers: Buffers, light_depth, depth_bias) -> Float
     light at infinity only the sky passes (`emitter_inputs` then asks for
     `"sky"`). Depth is the frame's distance along the ray (`Buffers.ray_depth`:
     planar depth is refused, the effect having no field of view to convert
-    it with; the app converts it when it reads the frame). The test is a hard step: its
+    it with; the app converts it when it reads the frame). A frame without
+    depth gives the coverage mask for every kind: its coverage says what is
+    open sky (`plates.buffers_without_depth`). The test is a hard step: its
     threshold has no gradient, so `depth_bias` is a static field.
     """
     dtype = buffers.color.dtype
-    if kind == "coverage":
+    if kind == "coverage" or buffers.depth is None:
         return coverage_mask(buffers.coverage).astype(dtype)
     if kind == "sky":
         return sky_mask(buffers.depth).astype(dtype)
@@ -444,7 +475,7 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
     flare = effect.source == "disc"
     radius = flare_radius_px(effect.flare_size, effect.units, buffers.height, buffers.width, dtype) if flare else None
     texture = flare_texture_of(effect) if flare else None
-    depth_test = effect.source != "light_pass" and effect.scene_mask == "depth"
+    depth_test = effect.source != "light_pass" and effect.scene_mask == "depth" and buffers.depth is not None
     scene_mask = effect.scene_mask
     if depth_test and not isinstance(light_depth, jax.core.Tracer) and math.isinf(float(np.asarray(light_depth))):
         # With the light at infinity the depth test passes the sky alone, whatever the depth measures.

@@ -2,12 +2,13 @@
 
 import functools
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from godrays_jax.effects.base import Effect, light_visibility, param
+from godrays_jax.effects.base import Effect, frame_ray_depth, light_visibility, param
 from godrays_jax.kernels.masks import coverage_mask
 from godrays_jax.kernels.media import apply_fog, in_scattering
 from godrays_jax.kernels.rays import radial_rays
@@ -55,6 +56,8 @@ class ScatteringFog(Effect):
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     max_samples: int = eqx.field(static=True, default=32)
 
+    NEEDS_DEPTH: ClassVar[bool] = True
+
     def lit(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W"]:
         """The fraction of each camera ray the sun reaches, in [0, 1] (1 without occluders)."""
         check_light(light_xy)
@@ -82,11 +85,11 @@ class ScatteringFog(Effect):
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The in-scattered light alone, `(H, W, 3)`."""
         options = self._fog_options(buffers, light_xy, light_in_front)
-        return in_scattering(buffers.ray_depth(self.fov_x_deg), light_xy, **options).astype(buffers.color.dtype)
+        return in_scattering(frame_ray_depth(self, buffers), light_xy, **options).astype(buffers.color.dtype)
 
     def __call__(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The fogged frame: `color * T + layer` on the colour channels, alpha unchanged."""
         options = self._fog_options(buffers, light_xy, light_in_front)
-        return apply_fog(buffers.color, buffers.ray_depth(self.fov_x_deg), light_xy, **options)
+        return apply_fog(buffers.color, frame_ray_depth(self, buffers), light_xy, **options)
 
 

@@ -2,7 +2,7 @@
 
 import functools
 import math
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -12,6 +12,7 @@ from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import (
     Effect,
+    frame_ray_depth,
     Units,
     light_visibility,
     param,
@@ -129,13 +130,15 @@ class LensDirt(Effect):
     depth_in_power: bool = eqx.field(static=True, default=False)
     blend_mode: str = eqx.field(static=True, default="add")
 
+    NEEDS_DEPTH: ClassVar[bool] = True
+
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The lit dirt alone, `(H, W, 3)`."""
         check_light(light_xy)
         dtype = buffers.color.dtype
         dirt = jnp.asarray(_cached_dirt(buffers.height, buffers.width, self.dirt_seed), dtype)
         lit = lens_dirt(
-            dirt, buffers.ray_depth(self.fov_x_deg), light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
+            dirt, frame_ray_depth(self, buffers), light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
             power=self.power, scale=self.scale, aberration=self.aberration, light_in_front=light_in_front, view=self.view,
             depth_floor=self.depth_floor, depth_in_power=self.depth_in_power,
         )  # fmt: skip

@@ -2,7 +2,7 @@
 
 from typing import Any
 
-from godrays_jax.effects.base import Effect
+from godrays_jax.effects.base import Effect, needs_depth
 from godrays_jax.effects.fog import ScatteringFog
 from godrays_jax.effects.glow import Bloom, LensDirt, SunOvercast, SunSpot
 from godrays_jax.effects.shafts import FlareOuts, GodRays
@@ -178,3 +178,8 @@ def preset(name: str) -> Effect:
     return PRESETS[name]()
 
 
+
+
+def presets_without_depth() -> tuple[str, ...]:
+    """The presets that run on a frame without depth (their effect does not measure distance: `base.needs_depth`)."""
+    return tuple(sorted(name for name, make in PRESETS.items() if not needs_depth(make())))

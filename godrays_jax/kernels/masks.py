@@ -208,3 +208,52 @@ def _morphology(mask, radius, max_radius, name):
             shifted = padded[max_radius + dy : max_radius + dy + height, max_radius + dx : max_radius + dx + width]
             result = jnp.maximum(result, shifted * jnp.clip(radius + 0.5 - distance, 0.0, 1.0))
     return result
+
+
+
+def bright_sky(
+    luminance: Float[Array, "H W"],
+    light_xy: Float[ArrayLike, "2"],
+    *,
+    threshold: Float[ArrayLike, ""] = 0.5,
+    softness: Float[ArrayLike, ""] = 0.2,
+    window: float = 0.15,
+) -> Float[Array, "H W"]:
+    """The open sky of a frame without depth: its bright parts, relative to the frame around the light.
+
+    What Blender's Sun Beams node and Nuke's GodRays leave to the user's key,
+    drawn from the frame itself. Around the light (the pixels within `window`,
+    a fraction of the frame's larger side, of the light's position clamped
+    onto the frame, so an off-screen light reads the edge nearest it) the
+    dark end `lo` (5th percentile of `luminance`) and the bright end `hi`
+    (90th: the open sky, not a sun that fills a tenth of the window) are
+    found, `lo` kept between `hi / 1000` and `hi / 16` (a window of open sky
+    alone still has a span). A pixel's place between them on a
+    log scale, `u = log(Y / lo) / log(hi / lo)`, is open sky by `smoothstep`
+    over `threshold -+ softness / 2`: with the default 0.5, brighter than
+    the geometric mean of the two ends. Returns `(H, W)` in [0, 1], 1 on open
+    sky, 0 on what is darker (the occluders); a black window gives no sky.
+    Not differentiated (it prepares an input).
+    """
+    if jnp.ndim(luminance) != 2:
+        raise ValueError(f"luminance must have shape (H, W), got shape {jnp.shape(luminance)}")
+    check_light(light_xy)
+    if not window > 0.0:
+        raise ValueError(f"window must be > 0 (a fraction of the frame's larger side), got {window!r}")
+    height, width = luminance.shape
+    dtype = jnp.result_type(luminance, jnp.float32)
+    luminance = luminance.astype(dtype)
+    x, y = pixel_centres(height, width, dtype)
+    light_xy = jnp.asarray(light_xy, dtype)
+    centre_x = jnp.clip(light_xy[0], 0.5, width - 0.5)
+    centre_y = jnp.clip(light_xy[1], 0.5, height - 0.5)
+    near = (x - centre_x) ** 2 + (y - centre_y) ** 2 <= (window * max(height, width)) ** 2
+    low, high = jnp.nanquantile(jnp.where(near, luminance, jnp.nan), jnp.asarray([0.05, 0.9], dtype))
+    low = jnp.clip(low, high / 1000.0, high / 16.0)
+    positive = (high > 0) & (luminance > 0)
+    place = jnp.log(jnp.where(positive, luminance, 1.0) / jnp.where(high > 0, low, 1.0)) / jnp.log(
+        jnp.where(high > 0, high / low, 16.0)
+    )
+    softness = jnp.maximum(jnp.asarray(softness, dtype), 1e-6)
+    t = jnp.clip((place - (threshold - softness / 2)) / softness, 0.0, 1.0)
+    return jnp.where(positive, t * t * (3.0 - 2.0 * t), 0.0)

@@ -15,7 +15,8 @@ class Buffers(eqx.Module):
         depth: linear depth in scene units, `(H, W)`; `+inf` where nothing
             was hit (sky). Distance along each pixel's camera ray, or along
             the camera's axis when `depth_kind` is `"planar"`; effects read
-            it through `ray_depth`.
+            it through `ray_depth`. `None` for a frame without depth (a
+            photograph, a plate): coverage then says what is open sky.
         coverage: fraction of each pixel covered by geometry, `(H, W)` in [0, 1].
         normal: world-space unit normals `(H, W, 3)`, zero on sky, if rendered.
         object_id: index of the object seen in each pixel, `-1` on sky, if rendered.
@@ -31,7 +32,7 @@ class Buffers(eqx.Module):
     """
 
     color: Float[Array, "H W C"]
-    depth: Float[Array, "H W"]
+    depth: Float[Array, "H W"] | None
     coverage: Float[Array, "H W"]
     normal: Float[Array, "H W 3"] | None = None
     object_id: Int[Array, "H W"] | None = None
@@ -79,6 +80,11 @@ class Buffers(eqx.Module):
         own, so a fitted field of view converts consistently), which it then
         needs (`ValueError` naming it otherwise). Differentiable in `fov_x_deg`.
         """
+        if self.depth is None:
+            raise ValueError(
+                "buffers.depth: this frame has no depth (a photograph or plate); an effect that measures distance "
+                "cannot run on it"
+            )
         if self.depth_kind == "ray":
             return self.depth
         if fov_x_deg is None:

@@ -1,0 +1,286 @@
+"""Every public kernel through what research code does with it, in the manner of dm-pix's variants and kornia's tests.
+
+One table (`CASES`) holds a call of each kernel on one example's array inputs (images, depths, lights and one
+fittable scalar or more); each test checks one property over the whole table: eager equals `jit`, `vmap` equals a
+loop, `grad` of a loss over `vmap` equals the per-example gradients (eager and under `jit`), `vmap` of `grad` too,
+the gradients are finite, the dtype is kept, NumPy input is accepted. A kernel added to the package without a row
+fails `test_every_public_kernel_has_a_case`.
+"""
+
+import dataclasses
+import inspect
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+
+HEIGHT, WIDTH = 11, 14  # SSIM needs 11x11
+BATCH = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    """`call(*inputs)` on one example; `inputs(rng, dtype)` draws that example's arrays (every one differentiated)."""
+
+    call: Callable
+    inputs: Callable
+
+
+def _image(rng, dtype, channels=3):
+    return rng.uniform(0.0, 2.0, size=(HEIGHT, WIDTH, channels)).astype(dtype)
+
+
+def _plane(rng, dtype, low=0.0, high=1.0):
+    return rng.uniform(low, high, size=(HEIGHT, WIDTH)).astype(dtype)
+
+
+def _light(rng, dtype):
+    # Off pixel centres and inside the frame, where every kernel is smooth in the light.
+    return np.asarray([rng.uniform(2.1, WIDTH - 2.1), rng.uniform(2.1, HEIGHT - 2.1)], dtype)
+
+
+def _scalar(rng, dtype, low, high):
+    return np.asarray(rng.uniform(low, high), dtype)
+
+
+def _depth(rng, dtype):
+    return _plane(rng, dtype, 1.0, 40.0)
+
+
+RAYS = dict(num_samples=6, weight=1.0, exposure=0.3)
+
+CASES = {
+    "add": Case(gr.add, lambda r, t: (_image(r, t), _image(r, t))),
+    "alpha_over": Case(gr.alpha_over, lambda r, t: (_image(r, t), _image(r, t, 4) / 2)),
+    "apply_fog": Case(
+        lambda image, depth, light, extinction: gr.apply_fog(
+            image, depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0,
+            ambient=(0.1, 0.1, 0.1), sun_irradiance=(1.0, 0.9, 0.8), anisotropy=0.7),
+        lambda r, t: (_image(r, t), _depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
+    ),  # fmt: skip
+    "at_reduced_resolution": Case(
+        lambda image, light, decay: gr.at_reduced_resolution(
+            image, light, kernel=gr.radial_rays, factor=2, density=0.8, decay=decay, **RAYS),
+        lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
+    ),  # fmt: skip
+    "blend": Case(lambda scene, layer: gr.blend(scene, layer, mode="screen"), lambda r, t: (_image(r, t), _image(r, t) / 2)),
+    "bloom": Case(
+        lambda image, threshold: gr.bloom(image, threshold=threshold, sigma=1.0, radius=3),
+        lambda r, t: (_image(r, t), _scalar(r, t, 0.5, 1.0)),
+    ),
+    "bright_pass": Case(
+        lambda image, threshold: gr.bright_pass(image, threshold=threshold),
+        lambda r, t: (_image(r, t), _scalar(r, t, 0.1, 0.5)),
+    ),
+    "charbonnier_loss": Case(gr.charbonnier_loss, lambda r, t: (_image(r, t), _image(r, t))),
+    "coverage_mask": Case(gr.coverage_mask, lambda r, t: (_plane(r, t),)),
+    "depth_test_mask": Case(
+        lambda depth, light_depth: gr.depth_test_mask(depth, light_depth=light_depth, bias=0.5),
+        lambda r, t: (_depth(r, t), _scalar(r, t, 10.0, 30.0)),
+    ),
+    "dilate": Case(
+        lambda mask, radius: gr.dilate(mask, radius=radius, max_radius=3), lambda r, t: (_plane(r, t), _scalar(r, t, 0.5, 2.5))
+    ),
+    "erode": Case(
+        lambda mask, radius: gr.erode(mask, radius=radius, max_radius=3), lambda r, t: (_plane(r, t), _scalar(r, t, 0.5, 2.5))
+    ),
+    "fast_radial_rays": Case(
+        lambda image, light, decay: gr.fast_radial_rays(image, light, density=0.8, decay=decay, **RAYS),
+        lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
+    ),
+    "flare_image": Case(
+        lambda light, size: gr.flare_image(HEIGHT, WIDTH, light, radius=size, dtype=size.dtype),
+        lambda r, t: (_light(r, t), _scalar(r, t, 2.0, 4.0)),
+    ),
+    "flare_mask": Case(gr.flare_mask, lambda r, t: (_image(r, t), _plane(r, t))),
+    "gaussian_blur": Case(
+        lambda image, sigma: gr.gaussian_blur(image, sigma=sigma, radius=3), lambda r, t: (_image(r, t), _scalar(r, t, 0.7, 1.5))
+    ),
+    "henyey_greenstein": Case(
+        lambda cosine, anisotropy: gr.henyey_greenstein(cosine, anisotropy=anisotropy),
+        lambda r, t: (_plane(r, t, -1.0, 1.0), _scalar(r, t, -0.5, 0.8)),
+    ),
+    "in_scattering": Case(
+        lambda depth, light, extinction: gr.in_scattering(
+            depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, ambient=(0.1, 0.1, 0.1),
+            sun_irradiance=(1.0, 0.9, 0.8), anisotropy=0.7),
+        lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
+    ),  # fmt: skip
+    "l1_loss": Case(gr.l1_loss, lambda r, t: (_image(r, t), _image(r, t))),
+    "lens_dirt": Case(
+        lambda dirt, depth, light, fov: gr.lens_dirt(dirt, depth, light, fov_x_deg=fov, far=50.0, power=4.0),
+        lambda r, t: (_image(r, t, 1), _depth(r, t), _light(r, t), _scalar(r, t, 40.0, 70.0)),
+    ),
+    "lens_dirt_intensity": Case(
+        lambda depth, light, fov: gr.lens_dirt_intensity(depth, light, fov_x_deg=fov, far=50.0, power=4.0),
+        lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 40.0, 70.0)),
+    ),
+    "light_direction": Case(
+        lambda light, fov: gr.light_direction(light, HEIGHT, WIDTH, fov_x_deg=fov, dtype=fov.dtype),
+        lambda r, t: (_light(r, t), _scalar(r, t, 40.0, 70.0)),
+    ),
+    "light_source_mask": Case(
+        lambda light, size: gr.light_source_mask(HEIGHT, WIDTH, light, radius=size, dtype=size.dtype),
+        lambda r, t: (_light(r, t), _scalar(r, t, 2.0, 4.0)),
+    ),
+    "mse_loss": Case(gr.mse_loss, lambda r, t: (_image(r, t), _image(r, t))),
+    "multiply": Case(gr.multiply, lambda r, t: (_image(r, t), _image(r, t))),
+    "poisson_blur": Case(
+        lambda image, power: gr.poisson_blur(image, blur_power=power, passes=2),
+        lambda r, t: (_image(r, t), _scalar(r, t, 0.02, 0.08)),
+    ),
+    "radial_rays": Case(
+        lambda image, light, decay: gr.radial_rays(image, light, density=0.8, decay=decay, **RAYS),
+        lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
+    ),
+    "radial_rays_jittered": Case(
+        lambda image, light, decay: gr.radial_rays_jittered(image, light, density=0.8, decay=decay, **RAYS),
+        lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
+    ),
+    "radial_rays_multipass": Case(
+        lambda image, light, decay: gr.radial_rays_multipass(image, light, density=0.8, decay=decay, passes=2, taps=3,
+                                                             **RAYS),
+        lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
+    ),  # fmt: skip
+    "scale_iterated_flares": Case(
+        lambda image, light, step: gr.scale_iterated_flares(image, light, num_iters=4, scale_step=step, decay=0.9),
+        lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 1.05, 1.3)),
+    ),
+    "scaled_copies": Case(
+        gr.scaled_copies,
+        lambda r, t: (_image(r, t), _light(r, t), r.uniform(0.5, 1.2, 3).astype(t), r.uniform(0.2, 1.0, 3).astype(t)),
+    ),
+    "screen": Case(gr.screen, lambda r, t: (_image(r, t) / 2, _image(r, t) / 2)),
+    "sky_mask": Case(lambda depth, far: gr.sky_mask(depth, far=far), lambda r, t: (_depth(r, t), _scalar(r, t, 20.0, 30.0))),
+    "ssim": Case(gr.ssim, lambda r, t: (_image(r, t), _image(r, t))),
+    "ssim_loss": Case(gr.ssim_loss, lambda r, t: (_image(r, t), _image(r, t))),
+    "sun_spot": Case(
+        lambda light, fov: gr.sun_spot(HEIGHT, WIDTH, light, fov_x_deg=fov, sun_distance=0.002, sun_sharpness=1.0,
+                                       dtype=fov.dtype),
+        lambda r, t: (_light(r, t), _scalar(r, t, 40.0, 70.0)),
+    ),  # fmt: skip
+    "transmittance": Case(
+        lambda depth, extinction: gr.transmittance(depth, extinction=extinction, max_distance=30.0),
+        lambda r, t: (_depth(r, t), _scalar(r, t, 0.01, 0.05)),
+    ),
+    "view_directions": Case(
+        lambda fov: gr.view_directions(HEIGHT, WIDTH, fov_x_deg=fov, dtype=fov.dtype), lambda r, t: (_scalar(r, t, 40.0, 70.0),)
+    ),
+}
+
+WITHOUT_ARRAY_INPUTS = {"dirt_texture", "procedural_flare"}
+"""Kernels that take only a size and static options (nothing to batch or differentiate): `test_texture_generators`."""
+
+PUBLIC_KERNELS = sorted(
+    name
+    for name in dir(gr)
+    if inspect.isfunction(getattr(gr, name)) and getattr(gr, name).__module__.startswith("godrays_jax.kernels.")
+)
+
+
+def _example(name, seed, dtype=np.float32):
+    return CASES[name].inputs(np.random.default_rng(seed), dtype)
+
+
+def _batch(name, dtype=np.float32):
+    examples = [_example(name, seed, dtype) for seed in range(BATCH)]
+    return examples, tuple(jnp.stack(column) for column in zip(*examples))
+
+
+def _assert_close(actual, expected, rtol=2e-4):
+    for a, e in zip(jax.tree_util.tree_leaves(actual), jax.tree_util.tree_leaves(expected)):
+        a, e = np.asarray(a), np.asarray(e)
+        assert a.shape == e.shape, (a.shape, e.shape)
+        assert np.all(np.isfinite(a)), "non-finite values"
+        scale = max(float(np.max(np.abs(e))), 1e-6)
+        assert np.max(np.abs(a - e)) <= rtol * scale, (np.max(np.abs(a - e)), scale)
+
+
+def _loss_of(call):
+    """A scalar of one example's output against a fixed cotangent (every output element weighted differently)."""
+
+    def loss(cotangent, *inputs):
+        return jnp.sum(cotangent * call(*inputs))
+
+    return loss
+
+
+def _cotangent(name, inputs, seed):
+    shape = jax.eval_shape(CASES[name].call, *inputs).shape
+    return jnp.asarray(np.random.default_rng(100 + seed).normal(size=shape), jnp.float32)
+
+
+def test_every_public_kernel_has_a_case():
+    assert sorted([*CASES, *WITHOUT_ARRAY_INPUTS]) == PUBLIC_KERNELS
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_jit_equals_eager(name):
+    inputs = _example(name, 0)
+    _assert_close(jax.jit(CASES[name].call)(*inputs), CASES[name].call(*inputs))
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_vmap_equals_a_loop(name):
+    examples, batched = _batch(name)
+    looped = jnp.stack([CASES[name].call(*example) for example in examples])
+    _assert_close(jax.vmap(CASES[name].call)(*batched), looped)
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "jit"])
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_grad_of_vmap_equals_per_example_gradients(name, compiled):
+    """A training loop's step: the gradient of a batched loss in every input equals each example's own gradient."""
+    examples, batched = _batch(name)
+    cotangents = jnp.stack([_cotangent(name, example, seed) for seed, example in enumerate(examples)])
+    loss = _loss_of(CASES[name].call)
+    argnums = tuple(range(1, len(examples[0]) + 1))
+
+    def batch_loss(cotangents, *inputs):
+        return jnp.sum(jax.vmap(loss)(cotangents, *inputs))
+
+    gradient = jax.grad(batch_loss, argnums=argnums)
+    batched_gradients = (jax.jit(gradient) if compiled else gradient)(cotangents, *batched)
+    per_example = jax.jit(jax.grad(loss, argnums=argnums))  # eager equals jit: test_jit_equals_eager
+    for i, example in enumerate(examples):
+        _assert_close([g[i] for g in batched_gradients], per_example(cotangents[i], *example))
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_vmap_of_grad_equals_per_example_gradients(name):
+    examples, batched = _batch(name)
+    cotangents = jnp.stack([_cotangent(name, example, seed) for seed, example in enumerate(examples)])
+    argnums = tuple(range(1, len(examples[0]) + 1))
+    gradient = jax.grad(_loss_of(CASES[name].call), argnums=argnums)
+    batched_gradients = jax.jit(jax.vmap(gradient))(cotangents, *batched)
+    per_example = jax.jit(gradient)
+    for i, example in enumerate(examples):
+        _assert_close([g[i] for g in batched_gradients], per_example(cotangents[i], *example))
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_dtype_is_kept(name, x64):
+    for dtype in (np.float32, np.float64):
+        inputs = _example(name, 0, dtype)
+        assert CASES[name].call(*inputs).dtype == dtype, dtype
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_numpy_input_is_accepted(name):
+    inputs = _example(name, 0)
+    _assert_close(CASES[name].call(*inputs), CASES[name].call(*map(jnp.asarray, inputs)), rtol=1e-6)
+
+
+def test_texture_generators():
+    """The kernels without array inputs: deterministic, jit-compatible where they are JAX, the dtype asked for."""
+    dirt = gr.dirt_texture(HEIGHT, WIDTH, seed=3)
+    assert dirt.dtype == jnp.float32 and dirt.shape == (HEIGHT, WIDTH, 1)
+    _assert_close(jax.jit(gr.dirt_texture, static_argnums=(0, 1), static_argnames="seed")(HEIGHT, WIDTH, seed=3), dirt)
+    assert not np.allclose(gr.dirt_texture(HEIGHT, WIDTH, seed=4), dirt)
+    flare = gr.procedural_flare(HEIGHT, WIDTH)
+    assert flare.shape == (HEIGHT, WIDTH, 1) and np.all(np.isfinite(flare))
+    np.testing.assert_array_equal(gr.procedural_flare(HEIGHT, WIDTH), flare)

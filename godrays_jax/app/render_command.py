@@ -1,6 +1,7 @@
 """`godrays-jax render`: a scene file through the built-in rasterizer to an EXR frame."""
 
 from godrays_jax.app.options import check_output_path
+from godrays_jax.primitives.camera_metadata import FOV_X_ATTR
 from godrays_jax.primitives.frame_files import write_buffers
 from godrays_jax.primitives.light_metadata import LIGHT_DEPTH_ATTR
 from godrays_jax.raster import light_distance, light_pixel, load_scene, render
@@ -13,9 +14,8 @@ def run(args) -> int:
     xy, _, in_front = light_pixel(scene, camera)
     light_xy = (float(xy[0]), float(xy[1]))
     depth = light_distance(scene, camera)
-    write_buffers(
-        args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front), metadata={LIGHT_DEPTH_ATTR: depth}
-    )
+    metadata = {LIGHT_DEPTH_ATTR: depth, FOV_X_ATTR: float(camera.fov_x_deg)}
+    write_buffers(args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front), metadata=metadata)
     if args.light:
         side = "in front" if in_front else "behind the camera"
         print(f"light {light_xy[0]:.4f},{light_xy[1]:.4f} {side}, at distance {depth:.4f}")

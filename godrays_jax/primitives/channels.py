@@ -51,8 +51,13 @@ def color_channel_names(path, names: Sequence[str], color_layer: str | None) -> 
     return rgb + ((f"{dot}A",) if f"{dot}A" in found else ())
 
 
-def depth_channel_name(path, names: Sequence[str], depth_channel: str | None, color: Sequence[str]) -> str:
-    """The depth channel's name: the caller's, a conventional one, or the one beside the colour layer."""
+def depth_channel_name(
+    path, names: Sequence[str], depth_channel: str | None, color: Sequence[str], *, required: bool = True
+) -> str | None:
+    """The depth channel's name: the caller's, a conventional one, or the one beside the colour layer.
+
+    None when the file has no depth channel and none is `required` (a frame without depth).
+    """
     if depth_channel is not None:
         if depth_channel not in names:
             raise ValueError(
@@ -75,6 +80,8 @@ def depth_channel_name(path, names: Sequence[str], depth_channel: str | None, co
             f"image '{os.fspath(path)}' has several depth channels ({', '.join(layered)}): choose one with "
             f"--depth-channel (depth_channel); channels found: {channels_text(names)}"
         )
+    if not required:
+        return None
     looked = ", ".join((*DEPTH_NAMES, *beside, "*.Depth.Z"))
     raise ValueError(
         f"image '{os.fspath(path)}' has no depth channel (looked for {looked}); channels found: "

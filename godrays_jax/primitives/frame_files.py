@@ -18,7 +18,7 @@ from godrays_jax.primitives.channels import (
     OBJECT_ID_NAME,
     channels_text,
 )
-from godrays_jax.primitives.frame_reading import SKY_DEPTH, decode_buffers
+from godrays_jax.primitives.frame_reading import SKY_DEPTH, DepthKindOption, decode_buffers, reads_straight_alpha
 from godrays_jax.primitives.image_files import EXR_EXTENSIONS, read_pixels, set_attribute, write_pixels
 from godrays_jax.primitives.light_metadata import LIGHT_IN_FRONT_ATTR, LIGHT_PX_ATTR
 
@@ -127,6 +127,9 @@ def read_frame(
     color_layer: str | None = None,
     sky_depth: float = SKY_DEPTH,
     coverage: Literal["auto", "alpha", "depth"] = "auto",
+    depth_kind: DepthKindOption = "auto",
+    fov_x_deg: float | None = None,
+    without_depth: bool = False,
 ) -> tuple[Buffers, FrameFile]:
     """`read_buffers` that also returns the file as stored, reading it once.
 
@@ -137,12 +140,11 @@ def read_frame(
     Raises:
         As `read_buffers`.
     """
-    if coverage not in ("auto", "alpha", "depth"):
-        raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
-    pixels, spec = read_pixels(path)
+    pixels, spec = read_pixels(path, straight_alpha=reads_straight_alpha(path))
     buffers, color_channels = decode_buffers(
-        path, pixels, spec, depth_channel=depth_channel, color_layer=color_layer, sky_depth=sky_depth, coverage=coverage
-    )
+        path, pixels, spec, depth_channel=depth_channel, color_layer=color_layer, sky_depth=sky_depth, coverage=coverage,
+        depth_kind=depth_kind, fov_x_deg=fov_x_deg, without_depth=without_depth,
+    )  # fmt: skip
     return buffers, FrameFile(path=os.fspath(path), pixels=pixels, spec=spec, color_channels=color_channels)
 
 

@@ -10,6 +10,8 @@ import OpenImageIO as oiio
 from jaxtyping import ArrayLike
 
 from godrays_jax.primitives.buffers import Buffers, coverage_from_depth
+from godrays_jax.primitives.camera import DEPTH_KINDS, planar_to_ray_depth
+from godrays_jax.primitives.camera_metadata import camera_from_header
 from godrays_jax.primitives.channels import (
     GLOW_NAMES,
     GLOW_TARGET_NAMES,
@@ -20,12 +22,20 @@ from godrays_jax.primitives.channels import (
     color_channel_names,
     depth_channel_name,
 )
+from godrays_jax.primitives.color import srgb_decode
 from godrays_jax.primitives.image_files import read_pixels
 
 SKY_DEPTH = 1e9
 """Depth values at or above this are read as sky (`+inf`) by default: Blender writes 1e10, others inf or FLT_MAX."""
 
 _HALF_MAX = 65504.0
+
+DepthKindOption = Literal["auto", "ray", "planar"]
+
+
+def reads_straight_alpha(path: str | os.PathLike) -> bool:
+    """PNG and JPEG store straight alpha and display-encoded colour: read as stored, premultiplied after decoding."""
+    return os.path.splitext(os.fspath(path))[1].lower() in (".png", ".jpg", ".jpeg")
 
 
 def read_buffers(
@@ -35,6 +45,9 @@ def read_buffers(
     color_layer: str | None = None,
     sky_depth: float = SKY_DEPTH,
     coverage: Literal["auto", "alpha", "depth"] = "auto",
+    depth_kind: DepthKindOption = "auto",
+    fov_x_deg: float | None = None,
+    without_depth: bool = False,
 ) -> Buffers:
     """Read a frame (colour, depth, coverage and any optional passes).
 
@@ -52,10 +65,23 @@ def read_buffers(
         coverage: where coverage comes from: `"alpha"` (the colour layer's
             alpha), `"depth"` (1 where depth is finite, 0 on sky) or `"auto"`
             (alpha unless it is missing or 1 on every sky pixel; docs/file_formats.md).
+        depth_kind: how the depth channel measures distance: `"ray"` (along
+            each camera ray), `"planar"` (along the camera's axis), or
+            `"auto"`: planar for Blender's files, else ray
+            (`camera_metadata`).
+        fov_x_deg: the camera's horizontal field of view in degrees; by
+            default the one the header carries (`camera_metadata`). Planar
+            depth is converted to ray depth with it; without one it stays
+            planar (`Buffers.depth_kind`) and effects convert it with their own.
+        without_depth: read a file without a depth channel (a photograph, a
+            plate; PNG, JPEG and TIFF are sRGB-decoded) as a frame without
+            depth: `depth` None, coverage its alpha or 1 (see
+            `plates.buffers_without_depth` for its open sky).
 
     Returns:
         `Buffers` with float32 colour `(H, W, 3)` (linear, as stored), depth
-        `(H, W)` in scene units with `+inf` on sky, coverage `(H, W)`.
+        `(H, W)` in scene units with `+inf` on sky (distance along the ray,
+        or `depth_kind="planar"` when no field of view was known), coverage `(H, W)`.
 
     Raises:
         FileNotFoundError: the file does not exist.
@@ -64,20 +90,47 @@ def read_buffers(
             channels found), holds invalid values (see `check_buffers`), or
             `sky_depth` is not a positive number.
     """
-    if coverage not in ("auto", "alpha", "depth"):
-        raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
-    pixels, spec = read_pixels(path)
+    pixels, spec = read_pixels(path, straight_alpha=reads_straight_alpha(path))
     return decode_buffers(
-        path, pixels, spec, depth_channel=depth_channel, color_layer=color_layer, sky_depth=sky_depth, coverage=coverage
-    )[0]
+        path, pixels, spec, depth_channel=depth_channel, color_layer=color_layer, sky_depth=sky_depth, coverage=coverage,
+        depth_kind=depth_kind, fov_x_deg=fov_x_deg, without_depth=without_depth,
+    )[0]  # fmt: skip
+
+def _display_decoded(path, pixels: np.ndarray, spec: oiio.ImageSpec, color_names: Sequence[str]) -> np.ndarray:
+    """An integer (display-encoded) file's pixels as linear premultiplied values, as `read_image` reads them."""
+    if spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE):
+        return pixels
+    names = tuple(spec.channelnames)
+    colour = np.array([name in color_names[:3] for name in names])
+    decoded = np.where(colour, srgb_decode(pixels), pixels)
+    if len(color_names) == 4 and reads_straight_alpha(path):
+        decoded = np.where(colour, decoded * pixels[..., names.index(color_names[3]), None], decoded)
+    return decoded.astype(np.float32)
+
 
 def decode_buffers(
-    path, pixels: np.ndarray, spec: oiio.ImageSpec, *, depth_channel, color_layer, sky_depth, coverage
+    path,
+    pixels: np.ndarray,
+    spec: oiio.ImageSpec,
+    *,
+    depth_channel,
+    color_layer,
+    sky_depth,
+    coverage,
+    depth_kind: DepthKindOption = "auto",
+    fov_x_deg: float | None = None,
+    without_depth: bool = False,
 ) -> tuple[Buffers, tuple[str, ...]]:
     """`read_buffers` after the file was read: pick the channels, build and check the `Buffers`.
 
     Also returns the colour channels' names (`R, G, B` of the layer read).
     """
+    if coverage not in ("auto", "alpha", "depth"):
+        raise ValueError(f"coverage must be 'auto', 'alpha' or 'depth', got {coverage!r}")
+    if depth_kind not in ("auto", *DEPTH_KINDS):
+        raise ValueError(f"depth_kind must be 'auto', 'ray' or 'planar', got {depth_kind!r}")
+    if fov_x_deg is not None and not (isinstance(fov_x_deg, int | float) and 0 < fov_x_deg < 180):
+        raise ValueError(f"fov_x_deg must be a number of degrees in (0, 180), got {fov_x_deg!r}")
     if not (isinstance(sky_depth, int | float) and sky_depth > 0):  # NaN fails too
         raise ValueError(f"sky_depth must be a positive number of scene units, got {sky_depth!r}")
     names = tuple(spec.channelnames)
@@ -87,11 +140,19 @@ def decode_buffers(
         return pixels[..., [index[n] for n in wanted]]
 
     color_names = color_channel_names(path, names, color_layer)
-    depth_name = depth_channel_name(path, names, depth_channel, color_names)
+    depth_name = depth_channel_name(path, names, depth_channel, color_names, required=not without_depth)
+    if depth_name is None:
+        return _without_depth(path, _display_decoded(path, pixels, spec, color_names), names, color_names), color_names[:3]
+    header = camera_from_header(spec)
+    kind = header.depth_kind if depth_kind == "auto" else depth_kind
+    fov = header.fov_x_deg if fov_x_deg is None else fov_x_deg
     depth = pixels[..., index[depth_name]].copy()
     if spec.channelformat(index[depth_name]) == oiio.TypeHalf:
         sky_depth = min(sky_depth, _HALF_MAX)  # a half channel holds no larger distance: its maximum is "far"
     depth[depth >= sky_depth] = np.inf
+    if kind == "planar" and fov is not None:
+        depth = np.asarray(planar_to_ray_depth(depth, fov_x_deg=fov), np.float32)
+        kind = "ray"
 
     sky = np.isposinf(depth)
     alpha = pixels[..., index[color_names[3]]] if len(color_names) == 4 else None
@@ -118,9 +179,20 @@ def decode_buffers(
         light_pass=jnp.asarray(pixels[..., index[light_names[0]]]) if light_names else None,
         glow_pass=None if (g := optional(GLOW_NAMES)) is None else jnp.asarray(g),
         glow_target=None if (t := optional(GLOW_TARGET_NAMES)) is None else jnp.asarray(t),
+        depth_kind=kind,
     )
     check_buffers(buffers, name=os.fspath(path))
     return buffers, color_names[:3]
+
+
+def _without_depth(path, pixels: np.ndarray, names: Sequence[str], color_names: Sequence[str]) -> Buffers:
+    """A frame without depth: colour, and its alpha as coverage (1 without alpha)."""
+    index = {name: i for i, name in enumerate(names)}
+    color = pixels[..., [index[n] for n in color_names[:3]]]
+    alpha = pixels[..., index[color_names[3]]] if len(color_names) == 4 else np.ones(color.shape[:2], np.float32)
+    buffers = Buffers(color=jnp.asarray(color), depth=None, coverage=jnp.asarray(np.clip(alpha, 0.0, 1.0)))
+    check_buffers(buffers, name=os.fspath(path))
+    return buffers
 
 
 def _count_message(count: int, what: str) -> str:
@@ -149,7 +221,7 @@ def check_buffers(buffers: Buffers, *, name: str) -> None:
             problems.append(f"{label} has {_count_message(count, 'with NaN or infinite values')}")
 
     nonfinite("color", buffers.color)
-    depth = np.asarray(buffers.depth)
+    depth = np.zeros(0) if buffers.depth is None else np.asarray(buffers.depth)
     if (count := int(np.isnan(depth).sum())) > 0:
         problems.append(f"depth has {_count_message(count, 'with NaN')}")
     if (count := int((depth < 0).sum())) > 0:

@@ -53,7 +53,6 @@ from typing import TextIO
 
 import jax
 import numpy as np
-import OpenImageIO as oiio
 import tqdm
 from jaxtyping import Array, Bool, Float
 
@@ -65,6 +64,7 @@ from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.files import Claim, claim, release, remove_stale, temporaries_of
 from godrays_jax.primitives.frame_files import FrameFile, read_frame, write_frame_like
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
+from godrays_jax.primitives.image_files import read_header
 from godrays_jax.primitives.images import write_image
 
 
@@ -218,14 +218,11 @@ def _load(job: Job, light: LightSource, reading: dict) -> _Loaded:
 
 
 def _header_size(path: str) -> tuple[int, int] | None:
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        oiio.geterror()  # clear it: reading the frame reports the error
-        return None
     try:
-        return inp.spec().height, inp.spec().width
-    finally:
-        inp.close()
+        spec = read_header(path)
+    except (FileNotFoundError, ValueError):
+        return None  # reading the frame reports the error
+    return spec.height, spec.width
 
 
 def _common_size(jobs: Sequence[Job]) -> tuple[int, int] | None:

@@ -12,21 +12,44 @@ EXR_EXTENSIONS = (".exr",)
 """Extensions written linear, as stored (every other format is display-encoded)."""
 
 
+def _open(path: str, config: oiio.ImageSpec | None = None) -> oiio.ImageInput:
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    inp = oiio.ImageInput.open(path) if config is None else oiio.ImageInput.open(path, config)
+    if inp is None:
+        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
+    return inp
+
+
+def read_header(path: str | os.PathLike) -> oiio.ImageSpec:
+    """The header of the first subimage (size, channels, metadata), without reading the pixels.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is not a readable image.
+    """
+    inp = _open(os.fspath(path))
+    try:
+        return inp.spec()
+    finally:
+        inp.close()
+
+
 def read_pixels(path: str | os.PathLike, *, straight_alpha: bool = False) -> tuple[np.ndarray, oiio.ImageSpec]:
     """All channels of the first subimage as float32 `(H, W, C)`, and its spec.
 
     `straight_alpha`: return straight-alpha files (PNG, TIFF) as stored instead
     of letting OpenImageIO premultiply them.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is not a readable image.
     """
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"image file '{path}' does not exist")
     config = oiio.ImageSpec()
     if straight_alpha:
         config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(path, config)
-    if inp is None:
-        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
+    inp = _open(path, config)
     try:
         spec = inp.spec()
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)

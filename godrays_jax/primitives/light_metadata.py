@@ -4,7 +4,7 @@ import math
 import os
 from collections.abc import Sequence
 
-import OpenImageIO as oiio
+from godrays_jax.primitives.image_files import read_header
 
 LIGHT_PX_ATTR = "godrays:light_px"
 LIGHT_IN_FRONT_ATTR = "godrays:light_in_front"
@@ -43,15 +43,7 @@ def read_light(path: str | os.PathLike) -> tuple[tuple[float, float], bool] | No
             is not two finite numbers.
     """
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"image file '{path}' does not exist")
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
-    try:
-        spec = inp.spec()
-    finally:
-        inp.close()
+    spec = read_header(path)
     value = spec.getattribute(LIGHT_PX_ATTR)
     if value is None:
         return None
@@ -71,15 +63,7 @@ def read_light_depth(path: str | os.PathLike) -> float | None:
         ValueError: the file is not a readable image, or the attribute is not a number.
     """
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"image file '{path}' does not exist")
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
-    try:
-        value = inp.spec().getattribute(LIGHT_DEPTH_ATTR)
-    finally:
-        inp.close()
+    value = read_header(path).getattribute(LIGHT_DEPTH_ATTR)
     if value is None:
         return None
     try:

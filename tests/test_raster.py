@@ -16,7 +16,7 @@ import pytest
 
 from godrays_jax.primitives.camera import Camera, project_point
 from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sky, Sphere, load_obj, load_scene, render
-from godrays_jax.raster import rasterizer as R
+from godrays_jax.raster import geometry, glow_pass, shading, tile_loop, visibility
 
 WIDTH, HEIGHT, FOV = 32, 24, 60.0
 CAPACITY = 4
@@ -209,11 +209,11 @@ def _layers(scene, camera, *, tile_mask=None, scales=None):
 
     def finish(layers, px, py):
         if layers is None:
-            return R._Layers(*(R._Layer(jnp.full(px.shape, -1, jnp.int32), jnp.zeros(px.shape), jnp.zeros((*px.shape, 3)), jnp.zeros((*px.shape, 3))),) * 3)
+            return visibility.Layers(*(visibility.Layer(jnp.full(px.shape, -1, jnp.int32), jnp.zeros(px.shape), jnp.zeros((*px.shape, 3)), jnp.zeros((*px.shape, 3))),) * 3)
         # Images want the pixel axis first.
         return jax.tree_util.tree_map(lambda a: a.T if a.ndim == 2 else a, layers)
 
-    rasterize = lambda scene, camera, mask: R._rasterize(R._flatten(scene, camera, scales), camera, finish, tile_size=16, capacity=CAPACITY, tile_mask=mask)
+    rasterize = lambda scene, camera, mask: tile_loop.rasterize(geometry.flatten(scene, camera, scales), camera, finish, tile_size=16, capacity=CAPACITY, tile_mask=mask)
     return eqx.filter_jit(rasterize)(scene, camera, tile_mask)
 
 
@@ -222,7 +222,7 @@ def test_every_bucket_size_gives_the_same_layers(monkeypatch):
     # smallest bucket that holds it, against every tile padded to the capacity.
     scene = _scene(other_center=(-1.0, -0.3, -5.0), triangle_offset=(-1.2, 0.9, -2.0))
     bucketed = _layers(scene, _camera())
-    monkeypatch.setattr(R, "_bucket_sizes", lambda limit: (0, limit))
+    monkeypatch.setattr(tile_loop, "_bucket_sizes", lambda limit: (0, limit))
     padded = _layers(scene, _camera())
     for got, want in zip(jax.tree_util.tree_leaves(bucketed), jax.tree_util.tree_leaves(padded)):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
@@ -230,23 +230,23 @@ def test_every_bucket_size_gives_the_same_layers(monkeypatch):
 
 
 def _glow_scales(scene):
-    return tuple(R.GLOW_SOURCE_SCALE if i == scene.sun else R.GLOW_OCCLUDER_SCALE for i in range(len(scene.objects)))
+    return glow_pass.glow_scales(scene, glow_pass.GLOW_SOURCE_SCALE, glow_pass.GLOW_OCCLUDER_SCALE)
 
 
 def _sky_light(scene, camera):
     rows, columns = np.mgrid[0:HEIGHT, 0:WIDTH] + 0.5
-    rays = R._world_rays(camera, jnp.asarray(columns.reshape(-1), jnp.float32), jnp.asarray(rows.reshape(-1), jnp.float32))
-    return jnp.clip(R._sky(scene, camera, rays)[1], 0.0, 1.0).reshape(HEIGHT, WIDTH)
+    rays = shading.world_rays(camera, jnp.asarray(columns.reshape(-1), jnp.float32), jnp.asarray(rows.reshape(-1), jnp.float32))
+    return jnp.clip(shading.sky(scene, camera, rays)[1], 0.0, 1.0).reshape(HEIGHT, WIDTH)
 
 
 def _full_glow_pass(scene, camera):
     """The glow pass rasterized in every tile (no restriction to the source's tiles)."""
     layers = _layers(scene, camera, scales=_glow_scales(scene))
     if scene.sun is not None:
-        weight = R._object_weight(layers, scene.sun)
+        weight = visibility.object_weight(layers, scene.sun)
     else:
-        weight = (1.0 - R._total_coverage(layers)) * _sky_light(scene, camera)
-    return np.asarray(weight[..., None] * jnp.asarray(R.GLOW_COLOR))
+        weight = (1.0 - visibility.total_coverage(layers)) * _sky_light(scene, camera)
+    return np.asarray(weight[..., None] * jnp.asarray(glow_pass.GLOW_COLOR))
 
 
 @pytest.mark.parametrize("sun", [0, 2, None])
@@ -264,7 +264,7 @@ def test_glow_pass_near_the_source_equals_the_full_glow_pass(sun):
         return  # the enlarged triangle (the source) reaches every visible tile
     assert glow[:16, :16, 3].sum() == pytest.approx(glow[..., 3].sum())
     # Only the top-left of the visible tiles is rasterized again.
-    tiles = R._glow_tiles(scene, _camera(), R._flatten(scene, _camera(), _glow_scales(scene)), _sky_light(scene, _camera()), 16)
+    tiles = glow_pass.glow_tiles(scene, _camera(), geometry.flatten(scene, _camera(), _glow_scales(scene)), _sky_light(scene, _camera()), 16)
     assert np.flatnonzero(np.asarray(tiles)).tolist() == [0]
 
 def _scene_file(tmp_path, **changes):

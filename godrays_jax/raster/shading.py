@@ -1,0 +1,129 @@
+"""Shading: the VBex planet shader's passes (lit albedo, atmosphere rim and shell, night lights) and the sky with its sun spot."""
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from godrays_jax.kernels.lens import sun_spot_intensity
+from godrays_jax.primitives.camera import Camera
+from godrays_jax.raster.scene import DirectionalLight, Scene
+from godrays_jax.raster.vectors import dot, times, unit_first
+from godrays_jax.raster.visibility import Layer, Layers, object_weight
+
+
+def world_rays(camera: Camera, px: Float[Array, "P"], py: Float[Array, "P"]) -> Float[Array, "3 P"]:
+    """World directions through pixel positions, scaled to unit view depth, component first."""
+    right, up, forward = (v[:, None] for v in camera.basis())
+    f = camera.focal_px
+    return ((px - 0.5 * camera.width) / f) * right + ((0.5 * camera.height - py) / f) * up + forward
+
+
+def _city_pattern(normal: Float[Array, "3 *P"]) -> Float[Array, "*P"]:
+    """Procedural stand-in for an emissive night-light map: scattered bright cells."""
+    x, y, z = normal[0], normal[1], normal[2]
+    waves = jnp.sin(83.0 * x + 3.0 * jnp.sin(11.0 * y)) * jnp.sin(89.0 * y + 2.0 * jnp.sin(13.0 * z)) * jnp.sin(97.0 * z + 2.5 * jnp.sin(7.0 * x))
+    return jnp.clip(8.0 * (waves - 0.45), 0.0, 1.0)
+
+
+def _stack_materials(scene: Scene):
+    """Every material field stacked over objects, colours component-first `(3, objects)`."""
+    materials = [obj.material for obj in scene.objects]
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves, axis=-1), *materials)
+
+
+def _light_direction(scene: Scene, world_position: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
+    if isinstance(scene.light, DirectionalLight):
+        return jnp.broadcast_to(unit_first(scene.light.direction)[:, None], world_position.shape)
+    return unit_first(scene.light.position[:, None] - world_position)
+
+
+def shade(scene: Scene, camera: Camera, surface: Layer, world_rays: Float[Array, "3 P"]):
+    """One layer's shading, the VBex planet shader's passes: `(opaque colour, shell, emissive, opaque)`.
+
+    The opaque sphere: albedo lit, emission, the atmosphere's colour from the
+    basic rim `1 - saturate(view . N)` (lit), night lights on the dark side;
+    where the rim sharpened for clipping, `min(1, 10 * rim ** (30 * sharpness))`,
+    reaches 1 the opaque pixel is discarded (only for materials with an
+    atmosphere). The transparent shell: the atmosphere's colour times that
+    sharpened rim, lit by `saturate(N . L)` in the shader (the article's glow
+    is not lit by the deferred pass). The emissive part (emission and night
+    lights: the engine's emissive light) also goes to the glow target.
+    """
+    materials = _stack_materials(scene)
+    obj = jnp.maximum(surface.object_id, 0)
+    to_world = jnp.stack(camera.basis())
+    normal = times(surface.normal, to_world)
+    to_light = _light_direction(scene, camera.position[:, None] + times(surface.position, to_world))
+    n_dot_l = dot(normal, to_light)
+    lit = jnp.clip(n_dot_l, 0.0, 1.0)
+    # Kept off 0 so that rim ** p has finite gradients for any p > 0.
+    rim = 1.0 - jnp.clip(-dot(unit_first(world_rays), normal), 0.0, 1.0 - 1e-6)
+    sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
+    dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
+    atmosphere = materials.atmosphere_color[:, obj]
+    emissive = materials.emission[:, obj] + materials.night_color[:, obj] * (_city_pattern(normal) * dark_side)
+    opaque_colour = (
+        materials.albedo[:, obj] * (scene.ambient[:, None] + scene.light.color[:, None] * lit)
+        + atmosphere * (rim * lit)
+        + emissive
+    )
+    clipped = jnp.any(atmosphere > 0, axis=0) & (sharpened_rim >= 1.0)
+    return opaque_colour, atmosphere * (sharpened_rim * lit), emissive, jnp.where(clipped, 0.0, 1.0)
+
+
+def _sun_direction(scene: Scene, camera: Camera) -> Float[Array, "3"]:
+    if isinstance(scene.light, DirectionalLight):
+        direction = scene.light.direction
+    else:
+        direction = scene.light.position - camera.position
+    return direction / jnp.linalg.norm(direction)
+
+
+def sky(scene: Scene, camera: Camera, world_rays: Float[Array, "3 P"]) -> tuple[Float[Array, "3 P"], Float[Array, "P"]]:
+    """Sky colour and the sun spot's intensity (the VBex article)."""
+    unit = unit_first(world_rays)
+    height = jnp.clip(dot(unit, (camera.up / jnp.linalg.norm(camera.up))[:, None]), 0.0, 1.0)
+    sky = scene.sky
+    cosine = dot(unit, _sun_direction(scene, camera)[:, None])
+    spot = sun_spot_intensity(cosine, sun_distance=sky.sun_distance, sun_sharpness=sky.sun_sharpness)
+    color = sky.horizon_color[:, None] + (sky.zenith_color - sky.horizon_color)[:, None] * height + sky.sun_color[:, None] * spot
+    return color, spot
+
+
+def shade_pixels(scene: Scene, camera: Camera, layers: Layers | None, px: Float[Array, "P"], py: Float[Array, "P"]) -> dict:
+    """Every buffer but the glow pass, for P pixels at positions `px`, `py`: the two layers shaded and composited
+    over the sky (`layers` None: sky alone); what `rasterize` calls for each batch of tiles."""
+    to_world = jnp.stack(camera.basis())
+    rays = world_rays(camera, px, py)
+    sky_color, sun_spot = sky(scene, camera, rays)
+    light = jnp.clip(sun_spot, 0.0, 1.0)
+    if layers is None:
+        return dict(
+            color=sky_color.T, depth=jnp.full(px.shape, jnp.inf), coverage=jnp.zeros(px.shape), normal=jnp.zeros((*px.shape, 3)),
+            object_id=jnp.full(px.shape, -1, jnp.int32), light_pass=light if scene.sun is None else jnp.zeros(px.shape),
+            glow_target=(scene.sky.sun_color[:, None] * sun_spot).T,
+        )
+    (front_color, front_shell, front_emissive, front_opaque), (behind_color, behind_shell, behind_emissive, behind_opaque) = (
+        shade(scene, camera, layer, rays) for layer in (layers.front, layers.behind)
+    )
+    # The shell covers the whole outline; the opaque surface only where its rim is not clipped.
+    shell_f, shell_b = layers.front.coverage, layers.behind.coverage
+    cf, cb = shell_f * front_opaque, shell_b * behind_opaque
+    shell = shell_f * front_shell + (1.0 - shell_f) * shell_b * behind_shell
+    coverage = cf + (1.0 - cf) * cb
+    hit = layers.hit
+    clipped_hit = (hit.object_id == layers.front.object_id) & (front_opaque == 0) & (cb == 0)
+    has_hit = (hit.object_id >= 0) & ~clipped_hit
+    # Sky pixels' positions are placeholders: keep the norm's gradient finite there.
+    position = jnp.where(has_hit, hit.position, 1.0)
+    depth = jnp.where(has_hit, jnp.sqrt(dot(position, position)), jnp.inf)
+    sky_glow = scene.sky.sun_color[:, None] * sun_spot
+    return dict(
+        color=(cf * front_color + (1.0 - cf) * (cb * behind_color + (1.0 - cb) * sky_color) + shell).T,
+        depth=depth,
+        coverage=coverage,
+        normal=jnp.where(has_hit, times(hit.normal, to_world), 0.0).T,
+        object_id=jnp.where(has_hit, hit.object_id, -1),
+        light_pass=(1.0 - coverage) * light if scene.sun is None else object_weight(layers, scene.sun),
+        glow_target=(cf * front_emissive + (1.0 - cf) * (cb * behind_emissive + (1.0 - cb) * sky_glow) + shell).T,
+    )

@@ -24,6 +24,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from godrays_jax.primitives.camera import DepthKind
+from godrays_jax.primitives.image_files import read_header
 
 FOV_X_ATTR = "godrays:fov_x_deg"
 """The camera's horizontal field of view in degrees (a float), as `render` writes it."""
@@ -109,13 +110,4 @@ def read_frame_camera(path: str | os.PathLike) -> FrameCamera:
         FileNotFoundError: the file does not exist.
         ValueError: the file is not a readable image.
     """
-    path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"image file '{path}' does not exist")
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
-    try:
-        return camera_from_header(inp.spec())
-    finally:
-        inp.close()
+    return camera_from_header(read_header(path))

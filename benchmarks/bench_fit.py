@@ -177,14 +177,14 @@ def _recovery_cases():
          "is about intensity x num_iters, so the count trades off with both (measured: a fit from 20 copies to a "
          "14-copy truth stopped at 20 copies x1.041 with loss 4e-7); copy_decay likewise; tint scales like intensity"),
         ("seed 000 sun_overcast (image-space glow pass)",
-         _with(overcast, blur_power=0.025, source_radius=20.0 / 320, passes=3.0), overcast,
-         ("glow_color", "offscreen_fade", "source_grow", "occluder_shrink"),
-         "the layer is rgb x alpha of the glow colour (only their product is identifiable); source_grow adds to "
+         _with(overcast, blur_power=0.025, source_radius=20.0 / 320, num_passes=3.0), overcast,
+         ("tint", "offscreen_fade", "source_grow", "occluder_shrink"),
+         "the layer is rgb x alpha of the tint (only their product is identifiable); source_grow adds to "
          "source_radius; occluder_shrink is scene geometry"),
     ]  # fmt: skip
 
 
-COUNTS = ("num_samples", "num_iters", "passes")
+COUNTS = ("num_samples", "num_iters", "num_passes")
 
 
 def bench_recovery(lines, steps):
@@ -219,8 +219,8 @@ def bench_recovery(lines, steps):
     print(lines[-2], flush=True)
 
 
-SIX = ("extinction", "max_distance", "anisotropy", "sun_irradiance")
-"""Six unknowns (sun_irradiance is RGB). The shaft fields (density, decay, shaft_strength) are left out of the
+SIX = ("extinction", "max_distance", "anisotropy", "light_color")
+"""Six unknowns (light_color is RGB). The shaft fields (density, decay, shadow_strength) are left out of the
 timing fit: they change few pixels and made 50 Levenberg-Marquardt steps end unconverged (23 % off)."""
 
 
@@ -228,8 +228,8 @@ def bench_time(lines, repeats, height, width):
     """A 6-parameter ScatteringFog fit at `width`x`height` to a frame rendered with known parameters."""
     frame, _, light, fov = colonnade()
     frame, light = resized(frame, height, width), light * jnp.array([width / 320, height / 180])
-    truth = gr.ScatteringFog(extinction=0.015, max_distance=60.0, anisotropy=0.85, shaft_strength=0.7, density=0.8,
-                             decay=0.95, fov_x_deg=fov, ambient=(0.05, 0.03, 0.02), sun_irradiance=(0.6, 0.45, 0.27))  # fmt: skip
+    truth = gr.ScatteringFog(extinction=0.015, max_distance=60.0, anisotropy=0.85, shadow_strength=0.7, density=0.8,
+                             decay=0.95, fov_x_deg=fov, ambient_color=(0.05, 0.03, 0.02), light_color=(0.6, 0.45, 0.27))  # fmt: skip
     start = eqx.tree_at(lambda e: [getattr(e, n) for n in SIX], truth,
                         [jnp.asarray(v) for v in (0.01, 100.0, 0.76, (1.0, 0.9, 0.75))])  # fmt: skip
     target = truth(frame, light)

@@ -287,11 +287,11 @@ def main(argv=None):
     add("rays", "jax exact loop (radial_rays)", runner, peak, exact)
     variants = {
         "jax fast_radial_rays (1/2 res, 3x8) *": lambda i, l: fast.fast_radial_rays(i, l, **RAYS),
-        "jax fast_radial_rays (1/4 res, 3x8)": lambda i, l: fast.fast_radial_rays(i, l, factor=4, **RAYS),
+        "jax fast_radial_rays (1/4 res, 3x8)": lambda i, l: fast.fast_radial_rays(i, l, resolution_factor=4, **RAYS),
         "jax radial_rays_multipass (full, 3x8)": lambda i, l: fast.radial_rays_multipass(i, l, **RAYS),
-        "jax exact loop at 1/2 res": lambda i, l: fast.at_reduced_resolution(i, l, kernel=gr.radial_rays, factor=2, **RAYS),
+        "jax exact loop at 1/2 res": lambda i, l: fast.at_reduced_resolution(i, l, kernel=gr.radial_rays, resolution_factor=2, **RAYS),
         "jax jittered, 16 samples, 1/2 res": lambda i, l: fast.at_reduced_resolution(
-            i, l, kernel=fast.radial_rays_jittered, factor=2, **{**RAYS, "num_samples": 16}
+            i, l, kernel=fast.radial_rays_jittered, resolution_factor=2, **{**RAYS, "num_samples": 16}
         ),
         "jax exact loop, 16 samples": lambda i, l: gr.radial_rays(i, l, **{**RAYS, "num_samples": 16}),
     }
@@ -336,7 +336,7 @@ def main(argv=None):
     exact_flares = np.asarray(runner())
     add("flares", "jax scale_iterated_flares", runner, peak, exact_flares)
     add("flares", "jax flares at 1/2 res", *jax_case(
-        lambda m, l: fast.at_reduced_resolution(m, l, kernel=gr.scale_iterated_flares, factor=2, **FLARES), image_jax, light_jax
+        lambda m, l: fast.at_reduced_resolution(m, l, kernel=gr.scale_iterated_flares, resolution_factor=2, **FLARES), image_jax, light_jax
     ), exact_flares)  # fmt: skip
     for name, (_, flares, _) in peers.items():
         if flares is not None:

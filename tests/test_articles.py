@@ -115,7 +115,7 @@ def test_kbengine_flares_are_the_articles_low_resolution_flare_outs(textured):
     if textured:
         flare = asymmetric_texture()
         effect = dataclasses.replace(effect, flare_texture=flare)
-    factor = effect.target_factor
+    factor = effect.resolution_factor
     assert factor > 1  # the article's low-resolution target
     side = max(HEIGHT, WIDTH)
     expected_frame, expected_layer = shaders.kbengine_flares(
@@ -149,15 +149,15 @@ def test_vbex_lens_dirt_is_the_articles_shader(in_power):
     effect = dataclasses.replace(gr.preset("vbex_lens_dirt"), depth_in_power=in_power, power=4.0)
     dirt = np.asarray(gr.dirt_texture(HEIGHT, WIDTH, seed=effect.dirt_seed), np.float64)
     expected = shaders.lens_dirt(
-        dirt, frame["depth"], _to_light(50.0), 50.0, float(effect.far), np.asarray(effect.sun_color), power=4.0,
+        dirt, frame["depth"], _to_light(50.0), 50.0, float(effect.far_plane), np.asarray(effect.tint), power=4.0,
         scale=2.0, offset=0.002, depth_in_power=in_power, floor=0.8,
     )  # fmt: skip
     np.testing.assert_allclose(effect.layer(buffers, jnp.asarray(LIGHT)), expected, atol=1e-5)
     open_sky = shaders.lens_dirt(
-        dirt, np.full_like(frame["depth"], np.inf), _to_light(50.0), 50.0, float(effect.far),
-        np.asarray(effect.sun_color), power=4.0, scale=2.0, offset=0.002, depth_in_power=in_power, floor=0.8,
+        dirt, np.full_like(frame["depth"], np.inf), _to_light(50.0), 50.0, float(effect.far_plane),
+        np.asarray(effect.tint), power=4.0, scale=2.0, offset=0.002, depth_in_power=in_power, floor=0.8,
     )  # fmt: skip
-    pillar = (20, 22)  # nearer than 0.8 * far: dimmed to 0.8 after the power, 0.8 ** power inside it
+    pillar = (20, 22)  # nearer than 0.8 * far_plane: dimmed to 0.8 after the power, 0.8 ** power inside it
     ratio = expected[pillar].sum() / open_sky[pillar].sum()
     assert ratio == pytest.approx(0.8 ** (4.0 if in_power else 1.0), rel=1e-6)
 
@@ -165,11 +165,11 @@ def test_vbex_lens_dirt_is_the_articles_shader(in_power):
 def test_vbex_sun_spot_adds_its_glow_at_full_strength():
     buffers, frame = article_frame(), host(article_frame())
     effect = gr.preset("vbex_sun_spot")
-    assert float(effect.glow_intensity) == 1.0
+    assert float(effect.bloom_intensity) == 1.0
     spot = shaders.sun_spot(HEIGHT, WIDTH, _to_light(50.0), 50.0, 1.0, 1.0)
-    spot = spot[..., None] * (frame["coverage"] == 0)[..., None] * np.asarray(effect.sun_color)
+    spot = spot[..., None] * (frame["coverage"] == 0)[..., None] * np.asarray(effect.tint)
     side = max(HEIGHT, WIDTH)
-    glow = shaders.bright_glow(spot, float(effect.glow_sigma) * side / 2, math.ceil(effect.glow_reach * side / 2 - 1e-9))
+    glow = shaders.bright_glow(spot, float(effect.bloom_blur_sigma) * side / 2, math.ceil(effect.bloom_blur_reach * side / 2 - 1e-9))
     np.testing.assert_allclose(effect.layer(buffers, jnp.asarray(LIGHT)), spot + glow, rtol=1e-4, atol=1e-4)
 
 
@@ -179,11 +179,11 @@ def test_vbex_bloom_blurs_the_glow_target(name):
     effect = gr.preset(name)
     side = max(HEIGHT, WIDTH)
     if effect.method == "pyramid":
-        radius = math.ceil(effect.reach * side / 2 - 1e-9)
-        glow = shaders.bright_glow(frame["glow_target"], float(effect.sigma) * side / 2, radius)
+        radius = math.ceil(effect.blur_reach * side / 2 - 1e-9)
+        glow = shaders.bright_glow(frame["glow_target"], float(effect.blur_sigma) * side / 2, radius)
     else:
         glow = shaders.gaussian_blur(
-            frame["glow_target"], float(effect.gaussian_sigma) * side, math.ceil(effect.gaussian_reach * side - 1e-9)
+            frame["glow_target"], float(effect.wide_blur_sigma) * side, math.ceil(effect.wide_blur_reach * side - 1e-9)
         )
     np.testing.assert_allclose(effect.layer(buffers, jnp.asarray(LIGHT)), float(effect.intensity) * glow, atol=1e-5)
 

@@ -76,7 +76,7 @@ def hdr(rng):
 def test_bloom_matches_numpy_loop_eager_jit_vmap(hdr):
     weights = (1.0, 0.5, 0.25, 2.0)
     expected = _reference_bloom(hdr, 0.8, np.array(weights), 1.5, 3)
-    options = dict(threshold=0.8, weights=weights, sigma=1.5, radius=3)
+    options = dict(threshold=0.8, weights=weights, sigma=1.5, reach=3)
     np.testing.assert_allclose(gr.bloom(jnp.asarray(hdr, jnp.float32), **options), expected, rtol=1e-4, atol=1e-5)
     jitted = jax.jit(lambda image: gr.bloom(image, **options))(jnp.asarray(hdr, jnp.float32))
     np.testing.assert_allclose(jitted, expected, rtol=1e-4, atol=1e-5)
@@ -86,11 +86,11 @@ def test_bloom_matches_numpy_loop_eager_jit_vmap(hdr):
 
 
 def test_bloom_of_a_constant_is_the_weighted_bright_pass_and_spreads_far():
-    bloom = jax.jit(lambda image: gr.bloom(image, threshold=1.0, weights=(1.0, 2.0, 0.5, 0.25), radius=3))
+    bloom = jax.jit(lambda image: gr.bloom(image, threshold=1.0, weights=(1.0, 2.0, 0.5, 0.25), reach=3))
     constant = bloom(jnp.full((13, 21, 3), 3.0))
     np.testing.assert_allclose(constant, np.full((13, 21, 3), 2.0 * 3.75), rtol=1e-5)
     image = jnp.zeros((32, 32, 1)).at[15:17, 15:17].set(5.0)
-    glow = jax.jit(lambda image: gr.bloom(image, threshold=1.0, sigma=2.0, radius=6))(image)
+    glow = jax.jit(lambda image: gr.bloom(image, threshold=1.0, sigma=2.0, reach=6))(image)
     assert float(glow[0, 16, 0]) > 0.01  # the 1/16 level carries the glow 15 px away
     np.testing.assert_allclose(gr.downsample_box(jnp.ones((5, 7, 2)), 4), np.ones((2, 2, 2)))
 
@@ -109,7 +109,7 @@ def test_bloom_gradients(x64, hdr):
 
     @jax.jit
     def glow(threshold, weights, sigma):
-        return gr.bloom(image, threshold=threshold, weights=weights, sigma=sigma, radius=2)
+        return gr.bloom(image, threshold=threshold, weights=weights, sigma=sigma, reach=2)
 
     check_grads(glow, (0.5, jnp.array([1.0, 0.5, 0.3, 0.2]), 1.2), order=1, modes=["rev"], eps=1e-5)
     flat = gr.bloom(jnp.zeros((4, 4, 1)), threshold=1.0)  # nothing passes: zero glow, finite gradients

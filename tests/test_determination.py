@@ -66,8 +66,8 @@ def test_bad_arguments_are_named(case):
 
 FOG_SOLUTION = {
     "effect": "ScatteringFog", "extinction": 5.543232e-05, "max_distance": 238.63605, "anisotropy": 0.9499991,
-    "ambient": [0.00047683716, 0.00086634967, 0.016395919], "sun_irradiance": [1.6154666, 1.4604614, 1.1586595],
-    "fov_x_deg": 55.907333, "shaft_strength": 0.9961381, "density": 1.009448, "decay": 0.97105277,
+    "ambient_color": [0.00047683716, 0.00086634967, 0.016395919], "light_color": [1.6154666, 1.4604614, 1.1586595],
+    "fov_x_deg": 55.907333, "shadow_strength": 0.9961381, "density": 1.009448, "decay": 0.97105277,
     "num_samples": 32.0, "offscreen_fade": 0.5, "max_samples": 32,
 }  # fmt: skip
 """`godrays-jax fit` of the sample frame against `xna_crepuscular` applied to it (the default model, 36 steps)."""
@@ -82,5 +82,5 @@ def test_offsets_are_cut_off_at_the_jacobians_own_tolerance(case):
     found = determination(fog, frame, light, target, fitted=tuple(gr.parameter_bounds(fog)))
     assert "fov_x_deg" in found.poorly_determined
     steps = found.offsets["fov_x_deg"]
-    assert set(steps) == {"fov_x_deg", "sun_irradiance[0]", "sun_irradiance[1]"}, steps
+    assert set(steps) == {"fov_x_deg", "light_color[0]", "light_color[1]"}, steps
     assert steps["fov_x_deg"] == pytest.approx(16.9, abs=0.1)

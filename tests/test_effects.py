@@ -88,7 +88,7 @@ def test_relaxed_sample_count_equals_integer_count_in_the_effect():
     effect = gr.GodRays(num_samples=6.0, max_samples=10, source="disc", flare_size=5.0, units="px")
     flare = gr.procedural_flare()[::-1, ::-1]  # the XNA article samples its flare at .5 - offset
     exact = gr.radial_rays(
-        gr.light_source_mask(HEIGHT, WIDTH, LIGHT, radius=5.0, texture=flare) * gr.coverage_mask(frame.coverage)[..., None],
+        gr.light_source_mask(HEIGHT, WIDTH, LIGHT, flare_size=5.0, texture=flare) * gr.coverage_mask(frame.coverage)[..., None],
         LIGHT, num_samples=6, density=0.5, decay=0.95, weight=1.0, exposure=0.15,
     )  # fmt: skip
     np.testing.assert_allclose(effect.layer(frame, LIGHT)[..., :1], exact, rtol=1e-5, atol=1e-7)

@@ -69,7 +69,7 @@ def test_multipass_matches_exact_loop(light):
     batched = jax.vmap(kernel, in_axes=(0, None))(jnp.stack([image, 2 * image]), light)
     np.testing.assert_allclose(batched[1], 2 * eager, rtol=1e-5, atol=1e-6)
     # One pass of one tap is a single comb sample: far worse than 3 x 8.
-    single = fast.radial_rays_multipass(image, light, num_samples=128, passes=1, taps=1, **RAYS)
+    single = fast.radial_rays_multipass(image, light, num_samples=128, num_passes=1, num_taps=1, **RAYS)
     assert psnr(single, exact) < psnr(eager, exact) - 10
 
 
@@ -77,7 +77,7 @@ def test_multipass_total_weight_is_exact_at_zero_density(x64, rng):
     image = jnp.asarray(rng.random((5, 6, 1)))
     options = dict(RAYS, density=0.0)
     exact = gr.radial_rays(image, jnp.array([2.0, 2.0]), num_samples=20, **options)
-    approx = fast.radial_rays_multipass(image, jnp.array([2.0, 2.0]), num_samples=20, passes=2, taps=3, **options)
+    approx = fast.radial_rays_multipass(image, jnp.array([2.0, 2.0]), num_samples=20, num_passes=2, num_taps=3, **options)
     np.testing.assert_allclose(approx, exact, rtol=1e-9)
 
 
@@ -87,10 +87,10 @@ def test_fast_path_quality_and_resolution(rng):
     light = jnp.asarray(light, jnp.float32)
     exact = gr.radial_rays(image, light, num_samples=128, **RAYS)
     assert psnr(fast.fast_radial_rays(image, light, num_samples=128, **RAYS), exact) > 35
-    half = fast.at_reduced_resolution(image, light, kernel=gr.radial_rays, factor=2, num_samples=128, **RAYS)
+    half = fast.at_reduced_resolution(image, light, kernel=gr.radial_rays, resolution_factor=2, num_samples=128, **RAYS)
     assert half.shape == image.shape and psnr(half, exact) > 30
     np.testing.assert_array_equal(
-        fast.at_reduced_resolution(image, light, kernel=gr.radial_rays, factor=1, num_samples=8, **RAYS),
+        fast.at_reduced_resolution(image, light, kernel=gr.radial_rays, resolution_factor=1, num_samples=8, **RAYS),
         gr.radial_rays(image, light, num_samples=8, **RAYS),
     )
 
@@ -101,7 +101,7 @@ def test_upsample_bilinear_matches_loop_and_keeps_constants(x64, rng):
     expected = np.array([[reference.bilinear(small, (c + 0.5) / 2, (r + 0.5) / 2) for c in range(7)] for r in range(5)])
     np.testing.assert_allclose(up, expected, rtol=1e-12)
     constant = jnp.full((9, 11, 3), 0.7)
-    np.testing.assert_allclose(fast.at_reduced_resolution(constant, jnp.zeros(2), kernel=lambda i, l: i, factor=4), constant)
+    np.testing.assert_allclose(fast.at_reduced_resolution(constant, jnp.zeros(2), kernel=lambda i, l: i, resolution_factor=4), constant)
 
 
 def test_jittered_rays_match_loop(x64, rng):
@@ -159,7 +159,7 @@ def test_flare_and_fast_path_gradients_float64(x64, rng):
     light = jnp.array([2.2, 4.1])
     flares = lambda m, l, step, decay, n: gr.scale_iterated_flares(m, l, num_iters=n, max_iters=5, scale_step=step, decay=decay)
     check_grads(flares, (masked, light, 1.13, 0.9, 3.4), order=1, modes=("rev", "fwd"), eps=1e-6)
-    rays = lambda i, l, d, dec, n: fast.fast_radial_rays(i, l, num_samples=n, density=d, decay=dec, weight=1.0, exposure=0.5, passes=2, taps=3)
+    rays = lambda i, l, d, dec, n: fast.fast_radial_rays(i, l, num_samples=n, density=d, decay=dec, weight=1.0, exposure=0.5, num_passes=2, num_taps=3)
     check_grads(rays, (masked, light, 0.4, 0.92, 7.3), order=1, modes=("rev",), eps=1e-6)
 
 
@@ -168,7 +168,7 @@ def test_degenerate_inputs_give_finite_values_and_gradients(rng):
 
     def total(image, light, density, decay, count):
         exact = gr.radial_rays(image, light, num_samples=count, max_samples=4, density=density, decay=decay, weight=1.0, exposure=1.0)
-        multipass = fast.radial_rays_multipass(image, light, num_samples=count, density=density, decay=decay, weight=1.0, exposure=1.0, passes=2, taps=2)
+        multipass = fast.radial_rays_multipass(image, light, num_samples=count, density=density, decay=decay, weight=1.0, exposure=1.0, num_passes=2, num_taps=2)
         return jnp.sum(exact) + jnp.sum(multipass)
 
     grad = jax.grad(total, argnums=(0, 1, 2, 3, 4))
@@ -216,9 +216,9 @@ def test_godrays_method_selects_the_fast_path(rng):
 
 def test_fast_kernels_reject_bad_static_options():
     image = jnp.ones((4, 4, 3))
-    with pytest.raises(ValueError, match="passes"):
-        fast.radial_rays_multipass(image, jnp.zeros(2), num_samples=8, passes=0, **RAYS)
+    with pytest.raises(ValueError, match="num_passes"):
+        fast.radial_rays_multipass(image, jnp.zeros(2), num_samples=8, num_passes=0, **RAYS)
     with pytest.raises(ValueError, match="factor"):
-        fast.fast_radial_rays(image, jnp.zeros(2), num_samples=8, factor=1.5, **RAYS)
+        fast.fast_radial_rays(image, jnp.zeros(2), num_samples=8, resolution_factor=1.5, **RAYS)
     with pytest.raises(ValueError, match="num_samples"):
         fast.radial_rays_multipass(image, jnp.zeros(2), num_samples=jnp.ones(2), **RAYS)

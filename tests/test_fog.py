@@ -16,8 +16,8 @@ from godrays_jax.kernels.media import apply_fog, henyey_greenstein, in_scatterin
 HEIGHT, WIDTH = 6, 8
 LIGHT = (3.3, 1.7)
 FOG = dict(
-    fov_x_deg=60.0, extinction=0.05, max_distance=30.0, ambient=(0.1, 0.2, 0.3),
-    sun_irradiance=(2.0, 1.5, 1.0), anisotropy=0.7,
+    fov_x_deg=60.0, extinction=0.05, max_distance=30.0, ambient_color=(0.1, 0.2, 0.3),
+    light_color=(2.0, 1.5, 1.0), anisotropy=0.7,
 )  # fmt: skip
 
 
@@ -30,7 +30,7 @@ def _frame(rng, dtype=np.float64):
     return gr.Buffers(color=jnp.asarray(color, dtype), depth=jnp.asarray(depth, dtype), coverage=jnp.asarray(coverage, dtype))
 
 
-def reference_fog(color, depth, light, *, fov_x_deg, extinction, max_distance, ambient, sun_irradiance, anisotropy, lit=None, in_front=True):
+def reference_fog(color, depth, light, *, fov_x_deg, extinction, max_distance, ambient_color, light_color, anisotropy, lit=None, in_front=True):
     """One pixel at a time: direction through the pixel, HG phase, Beer-Lambert, single scattering."""
     height, width = depth.shape
     focal = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
@@ -46,7 +46,7 @@ def reference_fog(color, depth, light, *, fov_x_deg, extinction, max_distance, a
             distance = min(depth[row, col], max_distance)
             t = math.exp(-extinction * distance)
             sun_share = 1.0 if lit is None else lit[row, col]
-            scattered = (1 - t) * (np.asarray(ambient) + np.asarray(sun_irradiance) * phase * sun_share)
+            scattered = (1 - t) * (np.asarray(ambient_color) + np.asarray(light_color) * phase * sun_share)
             out[row, col, :3] = color[row, col, :3] * t + scattered
     return out
 
@@ -94,14 +94,14 @@ def _expected_effect(effect, frame, light, in_front=True):
     options = dict(num_samples=n, density=float(effect.density), decay=float(effect.decay), weight=1.0, exposure=1.0)
     rays = reference_rays(sky, light, **options)[..., 0]
     normaliser = 1.0 + sum(float(effect.decay) ** i for i in range(n))
-    lit = 1.0 - float(effect.shaft_strength) * (1.0 - rays / normaliser) * (1.0 if in_front else 0.0)
+    lit = 1.0 - float(effect.shadow_strength) * (1.0 - rays / normaliser) * (1.0 if in_front else 0.0)
     fog = {name: np.asarray(getattr(effect, name)).tolist() for name in FOG}
     return reference_fog(np.asarray(frame.color), np.asarray(frame.depth), light, lit=lit, in_front=in_front, **fog)
 
 
 def test_scattering_fog_effect_matches_loop_with_shafts_and_behind_camera(x64, rng):
     frame = _frame(rng)
-    effect = gr.ScatteringFog(**FOG, shaft_strength=0.8, density=0.9, decay=0.9, num_samples=5.0, max_samples=6)
+    effect = gr.ScatteringFog(**FOG, shadow_strength=0.8, density=0.9, decay=0.9, num_samples=5.0, max_samples=6)
     call = eqx.filter_jit(lambda e, f, light, front: e(f, light, light_in_front=front))
     np.testing.assert_allclose(call(effect, frame, jnp.asarray(LIGHT), True), _expected_effect(effect, frame, LIGHT), rtol=1e-9, atol=1e-12)
     behind = call(effect, frame, jnp.asarray(LIGHT), False)
@@ -109,17 +109,17 @@ def test_scattering_fog_effect_matches_loop_with_shafts_and_behind_camera(x64, r
     # Behind the camera: no screen-space shafts (lit = 1) and the backward lobe.
     np.testing.assert_allclose(behind, _expected_effect(effect, frame, LIGHT, in_front=False), rtol=1e-9, atol=1e-12)
     # Shadowed shafts only ever remove sun light: the shaded frame is never brighter.
-    unshadowed = eqx.tree_at(lambda e: e.shaft_strength, effect, jnp.asarray(0.0))
+    unshadowed = eqx.tree_at(lambda e: e.shadow_strength, effect, jnp.asarray(0.0))
     assert np.all(np.asarray(effect(frame, jnp.asarray(LIGHT))) <= np.asarray(unshadowed(frame, jnp.asarray(LIGHT))) + 1e-12)
 
 
-FITTED = ("extinction", "max_distance", "anisotropy", "ambient", "sun_irradiance", "fov_x_deg", "shaft_strength",
+FITTED = ("extinction", "max_distance", "anisotropy", "ambient_color", "light_color", "fov_x_deg", "shadow_strength",
           "density", "decay", "num_samples", "offscreen_fade")  # fmt: skip
 
 
 def test_scattering_fog_gradients_float64(x64, rng):
     frame = _frame(rng)
-    effect = gr.ScatteringFog(**FOG, shaft_strength=0.8, density=0.9, decay=0.9, num_samples=4.6, max_samples=6)
+    effect = gr.ScatteringFog(**FOG, shadow_strength=0.8, density=0.9, decay=0.9, num_samples=4.6, max_samples=6)
     values = tuple(getattr(effect, name) for name in FITTED)
 
     def render(*values):
@@ -151,8 +151,8 @@ def test_preset_round_trips_and_errors_name_the_argument(tmp_path):
     assert gr.effect_to_dict(loaded) == gr.effect_to_dict(effect)
     assert set(gr.parameter_bounds(effect)) == set(FITTED)
     depth = jnp.ones((3, 4))
-    with pytest.raises(ValueError, match="ambient"):
-        in_scattering(depth, (1.0, 1.0), **{**FOG, "ambient": (0.1, 0.2)})
+    with pytest.raises(ValueError, match="ambient_color"):
+        in_scattering(depth, (1.0, 1.0), **{**FOG, "ambient_color": (0.1, 0.2)})
     with pytest.raises(ValueError, match="lit"):
         in_scattering(depth, (1.0, 1.0), **FOG, lit=jnp.ones((2, 2)))
     with pytest.raises(ValueError, match="depth"):

@@ -59,17 +59,17 @@ CASES = {
     "apply_fog": Case(
         lambda image, depth, light, extinction: gr.apply_fog(
             image, depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0,
-            ambient=(0.1, 0.1, 0.1), sun_irradiance=(1.0, 0.9, 0.8), anisotropy=0.7),
+            ambient_color=(0.1, 0.1, 0.1), light_color=(1.0, 0.9, 0.8), anisotropy=0.7),
         lambda r, t: (_image(r, t), _depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
     ),  # fmt: skip
     "at_reduced_resolution": Case(
         lambda image, light, decay: gr.at_reduced_resolution(
-            image, light, kernel=gr.radial_rays, factor=2, density=0.8, decay=decay, **RAYS),
+            image, light, kernel=gr.radial_rays, resolution_factor=2, density=0.8, decay=decay, **RAYS),
         lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
     ),  # fmt: skip
     "blend": Case(lambda scene, layer: gr.blend(scene, layer, mode="screen"), lambda r, t: (_image(r, t), _image(r, t) / 2)),
     "bloom": Case(
-        lambda image, threshold: gr.bloom(image, threshold=threshold, sigma=1.0, radius=3),
+        lambda image, threshold: gr.bloom(image, threshold=threshold, sigma=1.0, reach=3),
         lambda r, t: (_image(r, t), _scalar(r, t, 0.5, 1.0)),
     ),
     "bright_pass": Case(
@@ -93,12 +93,12 @@ CASES = {
         lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
     ),
     "flare_image": Case(
-        lambda light, size: gr.flare_image(HEIGHT, WIDTH, light, radius=size, dtype=size.dtype),
+        lambda light, size: gr.flare_image(HEIGHT, WIDTH, light, flare_size=size, dtype=size.dtype),
         lambda r, t: (_light(r, t), _scalar(r, t, 2.0, 4.0)),
     ),
     "flare_mask": Case(gr.flare_mask, lambda r, t: (_image(r, t), _plane(r, t))),
     "gaussian_blur": Case(
-        lambda image, sigma: gr.gaussian_blur(image, sigma=sigma, radius=3), lambda r, t: (_image(r, t), _scalar(r, t, 0.7, 1.5))
+        lambda image, sigma: gr.gaussian_blur(image, sigma=sigma, reach=3), lambda r, t: (_image(r, t), _scalar(r, t, 0.7, 1.5))
     ),
     "henyey_greenstein": Case(
         lambda cosine, anisotropy: gr.henyey_greenstein(cosine, anisotropy=anisotropy),
@@ -106,17 +106,17 @@ CASES = {
     ),
     "in_scattering": Case(
         lambda depth, light, extinction: gr.in_scattering(
-            depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, ambient=(0.1, 0.1, 0.1),
-            sun_irradiance=(1.0, 0.9, 0.8), anisotropy=0.7),
+            depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, ambient_color=(0.1, 0.1, 0.1),
+            light_color=(1.0, 0.9, 0.8), anisotropy=0.7),
         lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
     ),  # fmt: skip
     "l1_loss": Case(gr.l1_loss, lambda r, t: (_image(r, t), _image(r, t))),
     "lens_dirt": Case(
-        lambda dirt, depth, light, fov: gr.lens_dirt(dirt, depth, light, fov_x_deg=fov, far=50.0, power=4.0),
+        lambda dirt, depth, light, fov: gr.lens_dirt(dirt, depth, light, fov_x_deg=fov, far_plane=50.0, power=4.0),
         lambda r, t: (_image(r, t, 1), _depth(r, t), _light(r, t), _scalar(r, t, 40.0, 70.0)),
     ),
     "lens_dirt_intensity": Case(
-        lambda depth, light, fov: gr.lens_dirt_intensity(depth, light, fov_x_deg=fov, far=50.0, power=4.0),
+        lambda depth, light, fov: gr.lens_dirt_intensity(depth, light, fov_x_deg=fov, far_plane=50.0, power=4.0),
         lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 40.0, 70.0)),
     ),
     "light_direction": Case(
@@ -124,13 +124,13 @@ CASES = {
         lambda r, t: (_light(r, t), _scalar(r, t, 40.0, 70.0)),
     ),
     "light_source_mask": Case(
-        lambda light, size: gr.light_source_mask(HEIGHT, WIDTH, light, radius=size, dtype=size.dtype),
+        lambda light, size: gr.light_source_mask(HEIGHT, WIDTH, light, flare_size=size, dtype=size.dtype),
         lambda r, t: (_light(r, t), _scalar(r, t, 2.0, 4.0)),
     ),
     "mse_loss": Case(gr.mse_loss, lambda r, t: (_image(r, t), _image(r, t))),
     "multiply": Case(gr.multiply, lambda r, t: (_image(r, t), _image(r, t))),
     "poisson_blur": Case(
-        lambda image, power: gr.poisson_blur(image, blur_power=power, passes=2),
+        lambda image, power: gr.poisson_blur(image, blur_power=power, num_passes=2),
         lambda r, t: (_image(r, t), _scalar(r, t, 0.02, 0.08)),
     ),
     "radial_rays": Case(
@@ -142,7 +142,7 @@ CASES = {
         lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
     ),
     "radial_rays_multipass": Case(
-        lambda image, light, decay: gr.radial_rays_multipass(image, light, density=0.8, decay=decay, passes=2, taps=3,
+        lambda image, light, decay: gr.radial_rays_multipass(image, light, density=0.8, decay=decay, num_passes=2, num_taps=3,
                                                              **RAYS),
         lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
     ),  # fmt: skip
@@ -155,7 +155,7 @@ CASES = {
         lambda r, t: (_image(r, t), _light(r, t), r.uniform(0.5, 1.2, 3).astype(t), r.uniform(0.2, 1.0, 3).astype(t)),
     ),
     "screen": Case(gr.screen, lambda r, t: (_image(r, t) / 2, _image(r, t) / 2)),
-    "sky_mask": Case(lambda depth, far: gr.sky_mask(depth, far=far), lambda r, t: (_depth(r, t), _scalar(r, t, 20.0, 30.0))),
+    "sky_mask": Case(lambda depth, sky_depth: gr.sky_mask(depth, sky_depth=sky_depth), lambda r, t: (_depth(r, t), _scalar(r, t, 20.0, 30.0))),
     "ssim": Case(gr.ssim, lambda r, t: (_image(r, t), _image(r, t))),
     "ssim_loss": Case(gr.ssim_loss, lambda r, t: (_image(r, t), _image(r, t))),
     "sun_spot": Case(

@@ -131,7 +131,7 @@ def test_radial_rays_on_a_window_around_a_compact_source_equal_the_full_loop(lig
     height, width, radius = 160, 300, 10.0
     light = jnp.asarray(light, jnp.float32)
     occluders = (np.indices((height, width)).sum(0) % 7 > 1).astype(np.float32)[..., None]
-    image = gr.light_source_mask(height, width, light, radius=radius) * jnp.asarray(occluders) * jnp.ones(3)
+    image = gr.light_source_mask(height, width, light, flare_size=radius) * jnp.asarray(occluders) * jnp.ones(3)
     for density, num_samples, max_samples in [(0.5, 32, None), (0.7, 20.5, 24)]:
         options = dict(num_samples=num_samples, density=density, decay=0.95, weight=1.0, exposure=0.2,
                        max_samples=max_samples)  # fmt: skip
@@ -161,7 +161,7 @@ def test_radial_rays_on_a_window_around_a_compact_source_equal_the_full_loop(lig
 def test_radial_rays_window_gradients(x64):
     height, width = 60, 90
     light = jnp.asarray([40.3, 22.6])
-    image = gr.light_source_mask(height, width, light, radius=4.0, dtype=jnp.float64) * jnp.ones(2)
+    image = gr.light_source_mask(height, width, light, flare_size=4.0, dtype=jnp.float64) * jnp.ones(2)
     options = dict(num_samples=8, density=0.5, decay=0.9, weight=1.0, exposure=0.3)
 
     def windowed(im, xy):
@@ -237,32 +237,32 @@ def test_scale_iterated_flares_copy_zero_is_the_texture(rng):
 def test_poisson_blur_matches_loop(x64, rng, passes):
     image = random_image(rng)
     expected = reference.poisson_blur(image, 0.07, passes)
-    assert_close(gr.poisson_blur(jnp.asarray(image), blur_power=0.07, passes=passes), expected, 1e-6)
-    assert_close(jax.jit(lambda i: gr.poisson_blur(i, blur_power=0.07, passes=passes))(jnp.asarray(image)), expected, 1e-6)
+    assert_close(gr.poisson_blur(jnp.asarray(image), blur_power=0.07, num_passes=passes), expected, 1e-6)
+    assert_close(jax.jit(lambda i: gr.poisson_blur(i, blur_power=0.07, num_passes=passes))(jnp.asarray(image)), expected, 1e-6)
 
 
 def test_poisson_blur_constant_vmap_relaxed_and_gradients(x64, rng):
     constant = jnp.full((5, 6, 3), 0.7)
-    np.testing.assert_allclose(gr.poisson_blur(constant, blur_power=0.3, passes=3), constant, rtol=1e-12)
+    np.testing.assert_allclose(gr.poisson_blur(constant, blur_power=0.3, num_passes=3), constant, rtol=1e-12)
     image = jnp.asarray(random_image(rng, height=5, width=6))
-    one = gr.poisson_blur(image, blur_power=0.05, passes=1)
-    two = gr.poisson_blur(image, blur_power=0.05, passes=2)
-    relaxed = lambda p: gr.poisson_blur(image, blur_power=0.05, passes=p, max_passes=3)
+    one = gr.poisson_blur(image, blur_power=0.05, num_passes=1)
+    two = gr.poisson_blur(image, blur_power=0.05, num_passes=2)
+    relaxed = lambda p: gr.poisson_blur(image, blur_power=0.05, num_passes=p, max_passes=3)
     np.testing.assert_array_equal(relaxed(jnp.asarray(2.0)), two)
     np.testing.assert_allclose(relaxed(jnp.asarray(1.25)), 0.75 * one + 0.25 * two, rtol=1e-12)
     np.testing.assert_array_equal(relaxed(jnp.asarray(0.0)), image)
     batched = jax.vmap(lambda i: gr.poisson_blur(i, blur_power=0.05))(jnp.stack([image, image * 3]))
     np.testing.assert_allclose(batched[1], 3 * one, rtol=1e-12)
-    check_grads(jax.jit(lambda i, b: gr.poisson_blur(i, blur_power=b, passes=2)), (image, 0.05), order=1, modes=("rev",), eps=1e-6)
+    check_grads(jax.jit(lambda i, b: gr.poisson_blur(i, blur_power=b, num_passes=2)), (image, 0.05), order=1, modes=("rev",), eps=1e-6)
     check_grads(jax.jit(lambda p: jnp.sum(relaxed(p) ** 2)), (1.3,), order=1, modes=("rev",), eps=1e-6)
 
 
 def test_gaussian_blur_matches_loop_and_keeps_constants(x64, rng):
     image = random_image(rng)
-    assert_close(gr.gaussian_blur(jnp.asarray(image), sigma=1.3, radius=3), reference.gaussian_blur(image, 1.3, 3), 1e-6)
+    assert_close(gr.gaussian_blur(jnp.asarray(image), sigma=1.3, reach=3), reference.gaussian_blur(image, 1.3, 3), 1e-6)
     constant = jnp.full((4, 3, 1), 2.5)
     np.testing.assert_allclose(gr.gaussian_blur(constant, sigma=2.0), constant, rtol=1e-12)
-    check_grads(jax.jit(lambda i, s: gr.gaussian_blur(i, sigma=s, radius=2)), (jnp.asarray(image[:5, :6]), 0.9), order=1, modes=("rev",))
+    check_grads(jax.jit(lambda i, s: gr.gaussian_blur(i, sigma=s, reach=2)), (jnp.asarray(image[:5, :6]), 0.9), order=1, modes=("rev",))
     with pytest.raises(ValueError, match="radius"):
         jax.jit(lambda s: gr.gaussian_blur(jnp.asarray(image), sigma=s))(1.0)
 
@@ -270,7 +270,7 @@ def test_gaussian_blur_matches_loop_and_keeps_constants(x64, rng):
 def test_sky_flare_coverage_and_depth_masks():
     depth = jnp.asarray([[1.0, jnp.inf], [5.0, 1e9]])
     np.testing.assert_array_equal(gr.sky_mask(depth), [[0, 1], [0, 0]])
-    np.testing.assert_array_equal(gr.sky_mask(depth, far=1e9), [[0, 1], [0, 1]])
+    np.testing.assert_array_equal(gr.sky_mask(depth, sky_depth=1e9), [[0, 1], [0, 1]])
     np.testing.assert_allclose(gr.coverage_mask(jnp.asarray([[0.0, 0.25], [1.0, 1.5]])), [[1, 0.75], [0, 0]])
     flare = jnp.arange(12.0).reshape(2, 2, 3)
     np.testing.assert_array_equal(gr.flare_mask(flare, gr.sky_mask(depth)), flare * np.array([[0, 1], [0, 0]])[..., None])
@@ -283,20 +283,20 @@ def test_sky_flare_coverage_and_depth_masks():
 
 def test_light_source_mask_matches_loop_and_is_off_when_behind():
     light = (6.2, 3.1)
-    mask = gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0)
+    mask = gr.light_source_mask(8, 11, jnp.asarray(light), flare_size=4.0)
     for row in range(8):
         for col in range(11):
             distance = np.hypot(col + 0.5 - light[0], row + 0.5 - light[1])
             expected = 2 * max(0.0, 1 - distance / 4.0) ** 2
             assert abs(float(mask[row, col, 0]) - expected) < 1e-5
-    assert float(jnp.max(gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0, light_in_front=False))) == 0.0
+    assert float(jnp.max(gr.light_source_mask(8, 11, jnp.asarray(light), flare_size=4.0, light_in_front=False))) == 0.0
     # A texture covers the square light +- radius.
     texture = jnp.ones((4, 4, 3)) * 0.5
-    textured = gr.light_source_mask(8, 11, jnp.asarray(light), radius=4.0, texture=texture)
+    textured = gr.light_source_mask(8, 11, jnp.asarray(light), flare_size=4.0, texture=texture)
     np.testing.assert_allclose(textured[3, 6], [0.5, 0.5, 0.5])
-    off = gr.light_source_mask(8, 11, jnp.asarray([-50.0, 3.0]), radius=4.0)
+    off = gr.light_source_mask(8, 11, jnp.asarray([-50.0, 3.0]), flare_size=4.0)
     assert float(jnp.max(off)) == 0.0
-    grad = jax.grad(lambda l, r: jnp.sum(gr.light_source_mask(8, 11, l, radius=r)), argnums=(0, 1))(
+    grad = jax.grad(lambda l, r: jnp.sum(gr.light_source_mask(8, 11, l, flare_size=r)), argnums=(0, 1))(
         jnp.asarray([6.5, 3.5]), 4.0
     )
     assert all(np.all(np.isfinite(g)) for g in grad)

@@ -65,7 +65,7 @@ def scene(rng):
 @pytest.mark.parametrize("light", [(7.3, 3.1), (-20.0, 40.0)])
 def test_lens_dirt_matches_numpy_loop(scene, view, light):
     dirt, depth = scene
-    options = dict(fov_x_deg=FOV, far=100.0, sun_color=(1.0, 0.7, 0.4), power=3.0, scale=2.0, aberration=0.05)
+    options = dict(fov_x_deg=FOV, far_plane=100.0, tint=(1.0, 0.7, 0.4), power=3.0, scale=2.0, aberration=0.05)
     expected = _reference_lens_dirt(dirt, depth, light, FOV, 100.0, np.array([1.0, 0.7, 0.4]), 3.0, 2.0, 0.05, view)
     eager = gr.lens_dirt(jnp.asarray(dirt, jnp.float32), jnp.asarray(depth, jnp.float32), jnp.asarray(light), view=view, **options)
     np.testing.assert_allclose(eager, expected, rtol=2e-5, atol=1e-6)
@@ -77,14 +77,14 @@ def test_lens_dirt_seed_constants_and_behind_camera(scene):
     dirt, depth = scene
     light = (5.5, 4.5)
     expected = _reference_lens_dirt(dirt, depth, light, FOV, 100.0, np.ones(3), 20.0, 2.0, lens.LENS_DIRT_ABERRATION)
-    got = gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.asarray(light), fov_x_deg=FOV, far=100.0)
+    got = gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.asarray(light), fov_x_deg=FOV, far_plane=100.0)
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6)
-    options = dict(fov_x_deg=FOV, far=100.0)
+    options = dict(fov_x_deg=FOV, far_plane=100.0)
     near = gr.lens_dirt_intensity(jnp.full((H, W), 40.0), jnp.asarray(light), **options)
     sky = gr.lens_dirt_intensity(jnp.full((H, W), jnp.inf), jnp.asarray(light), **options)
     np.testing.assert_allclose(near, sky * 0.8**20, rtol=1e-4)  # occluders nearer than 0.8 * far
     behind = _reference_lens_dirt(dirt, depth, light, FOV, 100.0, np.ones(3), 20.0, 2.0, 0.002, in_front=False)
-    got_behind = gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.asarray(light), fov_x_deg=FOV, far=100.0, light_in_front=False)
+    got_behind = gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.asarray(light), fov_x_deg=FOV, far_plane=100.0, light_in_front=False)
     np.testing.assert_allclose(got_behind, behind, atol=1e-7)
     assert float(got_behind.max()) < 1e-6
 
@@ -120,11 +120,11 @@ def test_dirt_texture_is_deterministic_and_bounded():
 def test_argument_errors_name_the_argument(scene):
     dirt, depth = scene
     with pytest.raises(ValueError, match="dirt"):
-        gr.lens_dirt(jnp.ones((4, 4, 3)), jnp.asarray(depth), jnp.zeros(2), fov_x_deg=FOV, far=1.0)
-    with pytest.raises(ValueError, match="sun_color"):
-        gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.zeros(2), fov_x_deg=FOV, far=1.0, sun_color=(1.0, 1.0))
+        gr.lens_dirt(jnp.ones((4, 4, 3)), jnp.asarray(depth), jnp.zeros(2), fov_x_deg=FOV, far_plane=1.0)
+    with pytest.raises(ValueError, match="tint"):
+        gr.lens_dirt(jnp.asarray(dirt), jnp.asarray(depth), jnp.zeros(2), fov_x_deg=FOV, far_plane=1.0, tint=(1.0, 1.0))
     with pytest.raises(ValueError, match="view"):
-        gr.lens_dirt_intensity(jnp.asarray(depth), jnp.zeros(2), fov_x_deg=FOV, far=1.0, view="eye")
+        gr.lens_dirt_intensity(jnp.asarray(depth), jnp.zeros(2), fov_x_deg=FOV, far_plane=1.0, view="eye")
 
 
 @pytest.mark.parametrize("in_front", [True, False])
@@ -136,7 +136,7 @@ def test_gradients(x64, scene, in_front):
     @jax.jit
     def dirt_layer(power, scale, aberration, far, fov, light_xy):
         return gr.lens_dirt(
-            jnp.asarray(dirt), jnp.asarray(depth), light_xy, fov_x_deg=fov, far=far, power=power, scale=scale,
+            jnp.asarray(dirt), jnp.asarray(depth), light_xy, fov_x_deg=fov, far_plane=far, power=power, scale=scale,
             aberration=aberration, light_in_front=in_front,
         )  # fmt: skip
 

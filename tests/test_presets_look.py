@@ -178,6 +178,6 @@ def test_physically_based_halo_has_no_spikes_when_the_sun_is_hidden(hidden_sun):
 
 def test_full_shadowing_or_a_sky_emitter_spikes_from_the_corners(hidden_sun):
     """The measure sees spikes: shadowing the haze wholly, or summing the open sky, doubles the error."""
-    fully_shadowed = eqx.tree_at(lambda e: e.shaft_strength, gr.preset("physically_based"), jnp.asarray(1.0))
+    fully_shadowed = eqx.tree_at(lambda e: e.shadow_strength, gr.preset("physically_based"), jnp.asarray(1.0))
     assert _halo_error(fully_shadowed, hidden_sun, 1.0, 1.25) > 0.1
     assert _halo_error(gr.preset("gpu_gems"), hidden_sun, 1.0, 1.25) > 0.1

@@ -235,7 +235,7 @@ def test_blurs_finite_jit_vmap_and_gradients(image, blur_power, passes, sigma):
 
 def _blur(image, blur_power, passes, sigma):
     """Both blurs, summed: seed 000's Poisson blur (relaxed passes) and the Gaussian."""
-    return gr.poisson_blur(image, blur_power=blur_power, passes=passes, max_passes=3) + gr.gaussian_blur(image, sigma=sigma, radius=4)
+    return gr.poisson_blur(image, blur_power=blur_power, num_passes=passes, max_passes=3) + gr.gaussian_blur(image, sigma=sigma, reach=4)
 
 
 _blur_jit = jax.jit(_blur)
@@ -367,7 +367,7 @@ def test_effects_vmap_over_frames_equals_loop(name):
                                 weight=1.0, exposure=1.0), "density must be a scalar"),  # fmt: skip
         (lambda: gr.scale_iterated_flares(jnp.ones((0, 4, 3)), jnp.zeros(2), num_iters=2, scale_step=1.1),
          "masked must be at least 1x1"),
-        (lambda: gr.poisson_blur(jnp.ones((4, 4, 3)), blur_power=0.1, passes=-1), "passes must be >= 0"),
+        (lambda: gr.poisson_blur(jnp.ones((4, 4, 3)), blur_power=0.1, num_passes=-1), "num_passes must be >= 0"),
         (lambda: gr.gaussian_blur(jnp.ones((4, 4, 3)), sigma=jnp.float32(1.0)), "radius must be given"),
         (lambda: gr.Buffers(color=jnp.ones((4, 4)), depth=jnp.ones((4, 4)), coverage=jnp.ones((4, 4))),
          "buffers.color must have shape"),
@@ -390,7 +390,7 @@ def test_bad_shapes_ranks_dtypes_and_counts_name_the_argument(call, message):
         (lambda: gr.GodRays(decay=-0.5), r"GodRays.decay must lie in \[0.5, 1\], got -0.5"),
         (lambda: gr.GodRays(num_samples=0.0), r"GodRays.num_samples must lie in \[1, 4096\]"),
         (lambda: gr.FlareOuts(intensity=float("nan")), "FlareOuts.intensity must lie in"),
-        (lambda: gr.SunOvercast(glow_color=(0.8, 0.5, -1.0, 0.65)), "SunOvercast.glow_color must lie in"),
+        (lambda: gr.SunOvercast(tint=(0.8, 0.5, -1.0, 0.65)), "SunOvercast.tint must lie in"),
         (lambda: gr.effect_from_dict({"effect": "GodRays", "exposure": float("inf")}), "GodRays.exposure"),
     ],
 )

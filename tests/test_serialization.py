@@ -1,12 +1,14 @@
 """Effects as text: JSON without float32 noise, and a repr that shows the values."""
 
 import json
+from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 
 import godrays_jax as gr
-from godrays_jax.effects.base import plain_value
+from godrays_jax.effects.base import effect_class, plain_value, renamed_fields
 
 
 def test_saved_json_holds_the_shortest_decimals_that_read_back_to_the_same_float32(tmp_path):
@@ -41,3 +43,49 @@ def test_an_effect_prints_its_values():
     assert text.startswith("GodRays(density=0.5, decay=0.95, weight=1.0, exposure=0.15,")
     assert "tint=[1.0, 0.85, 0.6]" in text and "source='disc'" in text and "f32[]" not in text
     assert str(gr.preset("xna_crepuscular")) == text
+
+
+OLD_NAMES = {
+    "ScatteringFog": {"sun_irradiance": [0.5, 0.4, 0.3], "ambient": [0.01, 0.02, 0.03], "shaft_strength": 0.6},
+    "SunOvercast": {"passes": 1.0, "glow_color": [0.8, 0.5, 0.0, 0.65]},
+    "FlareOuts": {"target_factor": 2},
+    "Bloom": {"sigma": 0.02, "reach": 0.05, "gaussian_sigma": 0.03, "gaussian_reach": 0.09},
+    "LensDirt": {"far": 50.0, "sun_color": [1.0, 0.9, 0.8]},
+    "SunSpot": {"sun_color": [1.0, 0.9, 0.8], "glow_intensity": 0.5, "glow_weights": [1.0, 0.5, 0.25, 0.125],
+                "glow_sigma": 0.02, "glow_reach": 0.05},
+}  # fmt: skip
+"""Every renamed field of every effect, with a value other than its default."""
+
+
+@pytest.mark.parametrize("kind", sorted(OLD_NAMES))
+def test_a_params_file_with_old_names_loads_and_warns_with_the_new_name(tmp_path, kind):
+    renamed = renamed_fields(effect_class(kind))
+    assert set(OLD_NAMES[kind]) <= set(renamed)
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps({"effect": kind, **OLD_NAMES[kind]}))
+    with pytest.warns(FutureWarning) as caught:
+        effect = gr.load_effect(path)
+    messages = [str(warning.message) for warning in caught]
+    for old, value in OLD_NAMES[kind].items():
+        new = renamed[old]
+        assert any(f"{kind}.{old} is now named {new}" in message for message in messages), messages
+        np.testing.assert_allclose(np.asarray(plain_value(getattr(effect, new)), np.float64), value, rtol=1e-6)
+    saved = gr.effect_to_dict(effect)
+    assert not set(OLD_NAMES[kind]) & set(saved), "files are written with the new names"
+
+
+def test_an_old_name_beside_its_new_name_is_refused():
+    with pytest.raises(ValueError, match="'ambient' and its new name 'ambient_color'"):
+        gr.effect_from_dict({"effect": "ScatteringFog", "ambient": [0, 0, 0], "ambient_color": [0, 0, 0]})
+
+
+def test_the_cli_names_the_new_name_in_one_warning_line(tmp_path, capsys):
+    from godrays_jax.app.cli import main
+
+    params = tmp_path / "old.json"
+    params.write_text(json.dumps({"effect": "Bloom", "sigma": 0.02}))
+    sample = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
+    output = tmp_path / "out.exr"
+    assert main(["apply", str(sample), "--params", str(params), "--layer-only", "-o", str(output)]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "sigma" in line]
+    assert lines == ["godrays-jax apply: warning: Bloom.sigma is now named blur_sigma: read as blur_sigma"]

@@ -11,6 +11,7 @@ import importlib
 import os
 import re
 import sys
+import warnings
 from collections.abc import Callable
 
 import godrays_jax
@@ -293,14 +294,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        if not args.no_cache:
-            try:
-                compile_cache.enable()
-            except compile_cache.CacheUnavailable as error:
-                warn(args.command, f"{error}; running without a cache")
-        module, function = args.handler.split(":")
-        # Only the chosen command's module is imported: `apply` never loads the rasterizer or the solver.
-        return getattr(importlib.import_module(module), function)(args)
+        with warnings.catch_warnings():
+            # The library's warnings (a params file's old field name) as one line each, like every other message.
+            warnings.showwarning = lambda message, *_, **__: warn(args.command, str(message))
+            if not args.no_cache:
+                try:
+                    compile_cache.enable()
+                except compile_cache.CacheUnavailable as error:
+                    warn(args.command, f"{error}; running without a cache")
+            module, function = args.handler.split(":")
+            # Only the chosen command's module is imported: `apply` never loads the rasterizer or the solver.
+            return getattr(importlib.import_module(module), function)(args)
     except KeyboardInterrupt:
         print(f"{PROGRAM} {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -76,15 +76,14 @@ STATIC_RANGES: dict[str, tuple[int, int]] = {
     "max_iters": (1, 64),
     "max_passes": (0, 8),
     "resolution_factor": (1, 64),
-    "target_factor": (1, 64),
     "dirt_seed": (0, 2**63 - 1),
 }
 """Inclusive ranges of the integer static fields, checked by every effect's constructor (so also for params files).
 
 Loop lengths stop at the top of the fittable count they bound (`num_samples`
-<= 4096, `num_iters` <= 64, `passes` <= 8): a longer loop renders the same
+<= 4096, `num_iters` <= 64, `num_passes` <= 8): a longer loop renders the same
 image more slowly, and a huge one (`max_samples: 1e8`) hangs a render;
-`resolution_factor` and `target_factor` at 64 (a 4K frame is then 60 px
+`resolution_factor` at 64 (a 4K frame is then 60 px
 wide); `dirt_seed` is any non-negative 64-bit seed. Static sizes (blur and
 morphology reaches, `size_reach`) are floats: at most `MAX_REACH` of their
 units.
@@ -145,13 +144,14 @@ def _static_annotations(cls) -> dict[str, object]:
     return {field.name: hints[field.name] for field in dataclasses.fields(cls) if field.metadata.get("static")}
 
 
-def param(default, *, low: float, high: float):
+def param(default, *, low: float, high: float, formerly: tuple[str, ...] = ()):
     """A fittable field, stored as a floating JAX array whatever number or list is given.
 
     `[low, high]` is its valid range (every element, for a vector): fitting keeps
-    the value inside it and the tuner's sliders span it.
+    the value inside it and the tuner's sliders span it. `formerly`: the
+    field's old names, which params files may still use (`renamed_fields`).
     """
-    return eqx.field(converter=_array, default=default, metadata={"bounds": (low, high)})
+    return eqx.field(converter=_array, default=default, metadata={"bounds": (low, high), "formerly": formerly})
 
 
 def plain_value(value):
@@ -187,16 +187,21 @@ def texture_field():
     return eqx.field(default=None, converter=_texture)
 
 
-def size_param(default, *, low: float, high: float, px_high: float):
+def size_param(default, *, low: float, high: float, px_high: float, formerly: tuple[str, ...] = ()):
     """A fittable size: in frame units within `[low, high]`, or in pixels within `[0, px_high]` under `units="px"`."""
-    return eqx.field(
-        converter=_array, default=default, metadata={"bounds": (low, high), "px_bounds": (0.0, px_high), "size": True}
-    )
+    metadata = {"bounds": (low, high), "px_bounds": (0.0, px_high), "size": True, "formerly": formerly}
+    return eqx.field(converter=_array, default=default, metadata=metadata)
 
 
-def size_reach(default: float):
+def size_reach(default: float, *, formerly: tuple[str, ...] = ()):
     """A static size (a blur's or a morphology's reach, in frame units or pixels as the effect's `units`)."""
-    return eqx.field(static=True, default=default, metadata={"size": True})
+    return eqx.field(static=True, default=default, metadata={"size": True, "formerly": formerly})
+
+
+def renamed_fields(effect: "Effect | type[Effect]") -> dict[str, str]:
+    """`{old name: field name}` for every field of an effect that had another name (`formerly`)."""
+    cls = effect if isinstance(effect, type) else type(effect)
+    return {old: field.name for field in dataclasses.fields(cls) for old in field.metadata.get("formerly", ())}
 
 
 def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, float]]:
@@ -230,7 +235,7 @@ def reach_taps(reach: float, units: str, height: int, width: int, *, level: int 
     return max(1, math.ceil(reach * pixels_per_unit(units, height, width) / level - 1e-9))
 
 
-def flare_radius_px(size, units: str, height: int, width: int, dtype) -> Float[Array, "2"]:
+def flare_size_px(size, units: str, height: int, width: int, dtype) -> Float[Array, "2"]:
     """A flare's half-extent `(rx, ry)` in pixels: UV units stretch with the frame (`(size * W, size * H)`)."""
     size = jnp.asarray(size, dtype)
     if units == "px":
@@ -425,7 +430,7 @@ def _emitter(
     depth_bias: float,
     buffers: Buffers,
     light_xy,
-    radius,
+    flare_size,
     texture,
     light_in_front,
     fade,
@@ -446,7 +451,7 @@ def _emitter(
     mask = scene_mask_of(scene_mask, buffers, light_depth, depth_bias)[..., None]
     if source == "disc":
         draw = light_source_mask if squared else flare_image
-        flare = draw(buffers.height, buffers.width, light_xy, radius=radius, texture=texture, dtype=dtype)
+        flare = draw(buffers.height, buffers.width, light_xy, flare_size=flare_size, texture=texture, dtype=dtype)
         return flare * mask * visible
     colour = buffers.color[..., :3] if buffers.color.shape[-1] >= 3 else buffers.color[..., :1]
     return colour * mask * visible
@@ -473,7 +478,7 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
     """
     dtype = buffers.color.dtype
     flare = effect.source == "disc"
-    radius = flare_radius_px(effect.flare_size, effect.units, buffers.height, buffers.width, dtype) if flare else None
+    flare_size = flare_size_px(effect.flare_size, effect.units, buffers.height, buffers.width, dtype) if flare else None
     texture = flare_texture_of(effect) if flare else None
     depth_test = effect.source != "light_pass" and effect.scene_mask == "depth" and buffers.depth is not None
     scene_mask = effect.scene_mask
@@ -481,7 +486,7 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
         # With the light at infinity the depth test passes the sky alone, whatever the depth measures.
         depth_test, scene_mask = False, "sky"
     arguments = (
-        buffers, light_xy, radius, texture, light_in_front, effect.offscreen_fade,
+        buffers, light_xy, flare_size, texture, light_in_front, effect.offscreen_fade,
         light_depth if depth_test else None,
     )  # fmt: skip
     static = (effect.source, scene_mask, effect.FLARE_SQUARED, effect.depth_bias)

@@ -19,19 +19,19 @@ from godrays_jax.primitives.checks import check_light
 class ScatteringFog(Effect):
     """A homogeneous participating medium: extinction of the frame plus in-scattered sky and sun light.
 
-    The frame becomes `color * T + (1 - T) * (ambient + sun_irradiance * p(theta) * lit)`
+    The frame becomes `color * T + (1 - T) * (ambient_color + light_color * p(theta) * lit)`
     (`media.apply_fog`, single scattering in closed form): `T = exp(-extinction *
     min(depth, max_distance))` with `depth` the distance along the camera ray in
     scene units (`buffers.ray_depth(fov_x_deg)`: planar depth converted with
     the effect's field of view; sky: `max_distance`), `extinction` per scene unit, `p` the
     Henyey-Greenstein phase function (per steradian) of `anisotropy` at the
     angle between each pixel's view ray and the sun (from `fov_x_deg`, the
-    horizontal field of view in degrees), `ambient` and `sun_irradiance` RGB
+    horizontal field of view in degrees), `ambient_color` and `light_color` RGB
     (albedo times sky radiance and times sun irradiance).
 
     `lit` is the screen-space estimate of how much of each ray the sun
     reaches, so occluders cast shafts of shadow into the medium:
-    `lit = 1 - shaft_strength * v * (1 - rays)`, `rays` the GPU Gems radial
+    `lit = 1 - shadow_strength * v * (1 - rays)`, `rays` the GPU Gems radial
     blur (`radial_rays`, `num_samples` up to `max_samples`, `density`,
     `decay`) of the open-sky mask toward the sun, normalised so open sky gives
     1, and `v` the off-screen fade (`light_visibility`): far off-screen or
@@ -46,10 +46,10 @@ class ScatteringFog(Effect):
     extinction: Float[Array, ""] = param(0.01, low=0.0, high=1.0)
     max_distance: Float[Array, ""] = param(100.0, low=0.0, high=1e4)
     anisotropy: Float[Array, ""] = param(0.76, low=-0.95, high=0.95)
-    ambient: Float[Array, "3"] = param((0.05, 0.06, 0.08), low=0.0, high=10.0)
-    sun_irradiance: Float[Array, "3"] = param((1.0, 0.9, 0.75), low=0.0, high=100.0)
+    ambient_color: Float[Array, "3"] = param((0.05, 0.06, 0.08), low=0.0, high=10.0, formerly=("ambient",))
+    light_color: Float[Array, "3"] = param((1.0, 0.9, 0.75), low=0.0, high=100.0, formerly=("sun_irradiance",))
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
-    shaft_strength: Float[Array, ""] = param(1.0, low=0.0, high=1.0)
+    shadow_strength: Float[Array, ""] = param(1.0, low=0.0, high=1.0, formerly=("shaft_strength",))
     density: Float[Array, ""] = param(1.0, low=0.0, high=2.0)
     decay: Float[Array, ""] = param(0.97, low=0.5, high=1.0)
     num_samples: Float[Array, ""] = param(32.0, low=1.0, high=512.0)
@@ -73,12 +73,13 @@ class ScatteringFog(Effect):
         visible = light_visibility(
             light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
         )
-        return 1.0 - self.shaft_strength.astype(dtype) * visible * (1.0 - normalised)
+        return 1.0 - self.shadow_strength.astype(dtype) * visible * (1.0 - normalised)
 
     def _fog_options(self, buffers, light_xy, light_in_front):
         return dict(
-            fov_x_deg=self.fov_x_deg, extinction=self.extinction, max_distance=self.max_distance, ambient=self.ambient,
-            sun_irradiance=self.sun_irradiance, anisotropy=self.anisotropy, light_in_front=light_in_front,
+            fov_x_deg=self.fov_x_deg, extinction=self.extinction, max_distance=self.max_distance,
+            ambient_color=self.ambient_color, light_color=self.light_color, anisotropy=self.anisotropy,
+            light_in_front=light_in_front,
             lit=self.lit(buffers, light_xy, light_in_front=light_in_front),
         )  # fmt: skip
 

@@ -39,24 +39,24 @@ class SunOvercast(Effect):
     """The sun-overcasting article's sun overcasting: a glow pass blurred twice with the Poisson blur, then added.
 
     The glow pass is `buffers.glow_pass` when the rasterizer rendered it (the
-    source enlarged x1.3 in `glow_color`, occluders shrunk x0.8 in transparent
+    source enlarged x1.3 in the article's orange, occluders shrunk x0.8 in transparent
     black). For other buffers it is drawn in image space, the sun-overcasting article's two
     object scalings becoming fittable sizes (frame units: fractions of the
     larger side; pixels under `units="px"`): the light source's coverage
     (`buffers.light_pass` if present, else a disc of radius `source_radius` at
-    the light) dilated by `source_grow`, in `glow_color`, with the frame's
+    the light) dilated by `source_grow`, in `tint` (RGBA: the article's colour, alpha included), with the frame's
     geometry (its coverage) eroded by `occluder_shrink` cut out in transparent
     black, so the glow seeps into the occluders' outlines (`masks.dilate` /
     `masks.erode`, reach `morphology_reach`; the disc is grown analytically).
     `blur_power` is in UV units in either unit system, as the article writes it. The blurred RGBA is added as `rgb * alpha`, as XNA's
     additive sprite blend does.
-    `passes` is fittable (relaxation of `poisson_blur`, loop length `max_passes`).
+    `num_passes` is fittable (relaxation of `poisson_blur`, loop length `max_passes`).
     """
 
     blur_power: Float[Array, ""] = param(0.015, low=0.0, high=0.2)
-    glow_color: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65), low=0.0, high=10.0)
+    tint: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65), low=0.0, high=10.0, formerly=("glow_color",))
     source_radius: Float[Array, ""] = size_param(0.1, low=0.0, high=2.0, px_high=4096.0)
-    passes: Float[Array, ""] = param(2.0, low=0.0, high=8.0)
+    num_passes: Float[Array, ""] = param(2.0, low=0.0, high=8.0, formerly=("passes",))
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     source_grow: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0)
     occluder_shrink: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0)
@@ -86,14 +86,14 @@ class SunOvercast(Effect):
             source = jnp.clip(self.source_radius * scale + grow - distance + 0.5, 0.0, 1.0)
         occluders = erode(jnp.clip(buffers.coverage, 0.0, 1.0), radius=shrink, max_radius=reach)
         inside = (source * (1.0 - occluders) * visible)[..., None]
-        return inside * self.glow_color.astype(dtype)
+        return inside * self.tint.astype(dtype)
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The blurred glow as added: `(H, W, 3)` = blurred rgb times blurred alpha."""
         glow = poisson_blur(
             self.glow(buffers, light_xy, light_in_front=light_in_front),
             blur_power=self.blur_power,
-            passes=self.passes,
+            num_passes=self.num_passes,
             max_passes=self.max_passes,
         )
         return glow[..., :3] * glow[..., 3:]
@@ -105,12 +105,12 @@ class LensDirt(Effect):
     The texture is `lens.dirt_texture(H, W, seed=dirt_seed)`, generated at the
     frame's size on first use and cached (pass your own texture to
     `lens.lens_dirt`). Directions come from `fov_x_deg` (horizontal field of
-    view, degrees); `far` (scene units) normalises depth to the VBex article's
+    view, degrees); `far_plane` (scene units) normalises depth to the VBex article's
     `LDepth`; `power` and `scale` are the VBex article's 20 and 2; `aberration` is the
-    per-channel UV offset (0.002); `sun_color` tints the dirt. `depth_floor`
+    per-channel UV offset (0.002); `tint` (the article's SunColor) colours the dirt. `depth_floor`
     is the article's `.8` in `max(LDepth, .8)`: with `depth_in_power` false
     (ours) it scales the intensity after the power, so geometry nearer than
-    `depth_floor * far` dims the dirt to `depth_floor` of the sky's and the
+    `depth_floor * far_plane` dims the dirt to `depth_floor` of the sky's and the
     dirt fades smoothly toward far geometry; `depth_in_power` true is the
     formula as printed, `pow(dot * max(LDepth, .8), 20)`, which dims near
     geometry by `0.8 ** 20` and draws a hard line along every silhouette,
@@ -120,9 +120,9 @@ class LensDirt(Effect):
     power: Float[Array, ""] = param(20.0, low=1.0, high=200.0)
     scale: Float[Array, ""] = param(2.0, low=0.0, high=20.0)
     aberration: Float[Array, ""] = param(LENS_DIRT_ABERRATION, low=-0.05, high=0.05)
-    sun_color: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
+    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0, formerly=("sun_color",))
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
-    far: Float[Array, ""] = param(100.0, low=1e-3, high=1e6)
+    far_plane: Float[Array, ""] = param(100.0, low=1e-3, high=1e6, formerly=("far",))
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     depth_floor: Float[Array, ""] = param(0.8, low=0.0, high=1.0)
     dirt_seed: int = eqx.field(static=True, default=0)
@@ -138,9 +138,9 @@ class LensDirt(Effect):
         dtype = buffers.color.dtype
         dirt = jnp.asarray(_cached_dirt(buffers.height, buffers.width, self.dirt_seed), dtype)
         lit = lens_dirt(
-            dirt, frame_ray_depth(self, buffers), light_xy, fov_x_deg=self.fov_x_deg, far=self.far, sun_color=self.sun_color,
-            power=self.power, scale=self.scale, aberration=self.aberration, light_in_front=light_in_front, view=self.view,
-            depth_floor=self.depth_floor, depth_in_power=self.depth_in_power,
+            dirt, frame_ray_depth(self, buffers), light_xy, fov_x_deg=self.fov_x_deg, far_plane=self.far_plane,
+            tint=self.tint, power=self.power, scale=self.scale, aberration=self.aberration, light_in_front=light_in_front,
+            view=self.view, depth_floor=self.depth_floor, depth_in_power=self.depth_in_power,
         )  # fmt: skip
         visible = light_visibility(
             light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
@@ -156,24 +156,26 @@ def _cached_dirt(height: int, width: int, seed: int) -> np.ndarray:
 
 
 class SunSpot(Effect):
-    """The VBex article's sky sun spot, `lens.sun_spot` on the sky in `sun_color`, plus its glow.
+    """The VBex article's sky sun spot, `lens.sun_spot` on the sky in `tint` (the article's SunColor), plus its glow.
 
     As in the VBex article the spot is also written to a glow target (`glow`), which
-    the bloom pyramid spreads (`blur.bloom`, no threshold, `glow_weights`;
-    `glow_sigma` and `glow_reach` as `Bloom.sigma` and `Bloom.reach`); the
-    layer is `spot + glow_intensity * bloom(spot)`, and the article adds the
-    glow at full strength (`glow_intensity = 1`).
+    the bloom pyramid spreads (`blur.bloom`, no threshold, `bloom_weights`;
+    `bloom_blur_sigma` and `bloom_blur_reach` as `Bloom.blur_sigma` and `Bloom.blur_reach`); the
+    layer is `spot + bloom_intensity * bloom(spot)`, and the article adds the
+    glow at full strength (`bloom_intensity = 1`).
     """
 
     sun_distance: Float[Array, ""] = param(1.0, low=0.01, high=100.0)
     sun_sharpness: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
-    sun_color: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
+    tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0, formerly=("sun_color",))
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
-    glow_intensity: Float[Array, ""] = param(1.0, low=0.0, high=10.0)
-    glow_weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0)
-    glow_sigma: Float[Array, ""] = size_param(0.0125, low=1e-4, high=0.2, px_high=100.0)
+    bloom_intensity: Float[Array, ""] = param(1.0, low=0.0, high=10.0, formerly=("glow_intensity",))
+    bloom_weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0, formerly=("glow_weights",))
+    bloom_blur_sigma: Float[Array, ""] = size_param(
+        0.0125, low=1e-4, high=0.2, px_high=100.0, formerly=("glow_sigma",)
+    )
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    glow_reach: float = size_reach(0.0375)
+    bloom_blur_reach: float = size_reach(0.0375, formerly=("glow_reach",))
     blend_mode: str = eqx.field(static=True, default="add")
     units: Units = eqx.field(static=True, default="frame")
 
@@ -189,13 +191,13 @@ class SunSpot(Effect):
             light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
         )
         sky = coverage_mask(buffers.coverage.astype(dtype))[..., None]
-        return spot * sky * self.sun_color.astype(dtype) * visible
+        return spot * sky * self.tint.astype(dtype) * visible
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The spot and its bloom, `(H, W, 3)`."""
         spot = self.glow(buffers, light_xy, light_in_front=light_in_front)
-        glow = _pyramid(spot, self.glow_sigma, self.glow_reach, self.glow_weights, self.units)
-        return spot + self.glow_intensity * glow
+        glow = _pyramid(spot, self.bloom_blur_sigma, self.bloom_blur_reach, self.bloom_weights, self.units)
+        return spot + self.bloom_intensity * glow
 
 
 def _pyramid(image, sigma, reach, weights, units):
@@ -209,7 +211,7 @@ def _pyramid(image, sigma, reach, weights, units):
     height, width = image.shape[0], image.shape[1]
     level_sigma = sigma * pixels_per_unit(units, height, width) / 2
     taps = reach_taps(reach, units, height, width, level=2)
-    return bloom(image, threshold=0.0, weights=weights, sigma=level_sigma, radius=taps)
+    return bloom(image, threshold=0.0, weights=weights, sigma=level_sigma, reach=taps)
 
 
 LUMINANCE = (0.2126, 0.7152, 0.0722)
@@ -247,11 +249,11 @@ class Bloom(Effect):
     without one (and for `"frame"`) the frame's bright part
     (`bright_part(colour, threshold)`, luminance above `threshold`, hue kept).
     `method="pyramid"` is the article's four targets (`blur.bloom`: box-reduced
-    to 1/2, 1/4, 1/8 and 1/16, each blurred by the same Gaussian of `sigma`
-    at the finest level, frame units, taps to `reach`; see `_pyramid`),
+    to 1/2, 1/4, 1/8 and 1/16, each blurred by the same Gaussian of `blur_sigma`
+    at the finest level, frame units, taps to `blur_reach`; see `_pyramid`),
     weighted by `weights` and summed; `method="gaussian"` is the single large
-    Gaussian the article compares it with, `gaussian_sigma` at full
-    resolution (taps to `gaussian_reach`). Sizes are fractions of the frame's
+    Gaussian the article compares it with, `wide_blur_sigma` at full
+    resolution (taps to `wide_blur_reach`). Sizes are fractions of the frame's
     larger side (pixels under `units="px"`). The layer is `intensity` times
     either. Bloom does not depend on the light: `light_xy`, `light_in_front`
     and `light_depth` are accepted and ignored.
@@ -260,10 +262,12 @@ class Bloom(Effect):
     threshold: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
     intensity: Float[Array, ""] = param(0.25, low=0.0, high=10.0)
     weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0)
-    sigma: Float[Array, ""] = size_param(0.0125, low=1e-4, high=0.2, px_high=100.0)
-    gaussian_sigma: Float[Array, ""] = size_param(0.0375, low=1e-4, high=0.5, px_high=500.0)
-    reach: float = size_reach(0.0375)
-    gaussian_reach: float = size_reach(0.1125)
+    blur_sigma: Float[Array, ""] = size_param(0.0125, low=1e-4, high=0.2, px_high=100.0, formerly=("sigma",))
+    wide_blur_sigma: Float[Array, ""] = size_param(
+        0.0375, low=1e-4, high=0.5, px_high=500.0, formerly=("gaussian_sigma",)
+    )
+    blur_reach: float = size_reach(0.0375, formerly=("reach",))
+    wide_blur_reach: float = size_reach(0.1125, formerly=("gaussian_reach",))
     method: BloomMethod = eqx.field(static=True, default="pyramid")
     bloom_source: BloomSource = eqx.field(static=True, default="frame")
     blend_mode: str = eqx.field(static=True, default="add")
@@ -287,11 +291,11 @@ class Bloom(Effect):
         check_light(light_xy)
         glowing = self.glowing(buffers)
         if self.method == "pyramid":
-            glow = _pyramid(glowing, self.sigma, self.reach, self.weights, self.units)
+            glow = _pyramid(glowing, self.blur_sigma, self.blur_reach, self.weights, self.units)
         else:
             scale = pixels_per_unit(self.units, buffers.height, buffers.width)
-            taps = reach_taps(self.gaussian_reach, self.units, buffers.height, buffers.width)
-            glow = gaussian_blur(glowing, sigma=self.gaussian_sigma * scale, radius=taps)
+            taps = reach_taps(self.wide_blur_reach, self.units, buffers.height, buffers.width)
+            glow = gaussian_blur(glowing, sigma=self.wide_blur_sigma * scale, reach=taps)
         return glow * self.intensity.astype(glow.dtype)
 
 

@@ -38,7 +38,7 @@ def _kbengine_flares() -> FlareOuts:
     # the intensity and the blur (sigma 0.625 % of the frame's larger side).
     return FlareOuts(
         scale_step=1.03, num_iters=20.0, max_iters=20, intensity=0.1, flare_size=0.3, blur_sigma=0.00625,
-        blur_reach=0.01875, target_factor=2, scene_mask="sky",
+        blur_reach=0.01875, resolution_factor=2, scene_mask="sky",
     )  # fmt: skip
 
 
@@ -48,7 +48,7 @@ def _sun_overcast() -> SunOvercast:
     # open in image space (frames without the rendered glow pass): a halo of 14 % of the
     # frame's larger side and 0.6 % of seeping read as the article's picture.
     return SunOvercast(
-        blur_power=0.015, glow_color=(0.8, 0.5, 0.0, 0.65), passes=2.0, max_passes=2, source_radius=0.140625,
+        blur_power=0.015, tint=(0.8, 0.5, 0.0, 0.65), num_passes=2.0, max_passes=2, source_radius=0.140625,
         occluder_shrink=0.00625,
     )  # fmt: skip
 
@@ -58,7 +58,7 @@ def _vbex_lens_dirt() -> LensDirt:
     # Ours: the depth factor applied after the power (near geometry dims the dirt to 80 %,
     # as max(LDepth, .8) reads; inside the power it would cut it 87-fold along a hard line).
     return LensDirt(
-        power=20.0, scale=2.0, aberration=LENS_DIRT_ABERRATION, sun_color=(1.0, 0.8, 0.55), depth_floor=0.8,
+        power=20.0, scale=2.0, aberration=LENS_DIRT_ABERRATION, tint=(1.0, 0.8, 0.55), depth_floor=0.8,
         depth_in_power=False,
     )  # fmt: skip
 
@@ -66,8 +66,8 @@ def _vbex_lens_dirt() -> LensDirt:
 def _vbex_sun_spot() -> SunSpot:
     """The VBex article: `pow(dot, SunDistance * 2000) * SunSharpness * 30` on the sky, bloomed through the glow target."""
     return SunSpot(
-        sun_distance=1.0, sun_sharpness=1.0, sun_color=(1.0, 0.85, 0.6), glow_intensity=1.0, glow_sigma=0.0125,
-        glow_reach=0.0375,
+        sun_distance=1.0, sun_sharpness=1.0, tint=(1.0, 0.85, 0.6), bloom_intensity=1.0, bloom_blur_sigma=0.0125,
+        bloom_blur_reach=0.0375,
     )  # fmt: skip
 
 
@@ -76,15 +76,15 @@ def _vbex_bloom() -> Bloom:
     # Ours: the blur (1.25 % of the frame's larger side at the finest level), the intensity,
     # and for frames without a glow target, the luminance threshold.
     return Bloom(
-        threshold=1.0, weights=(1.0, 1.0, 1.0, 1.0), intensity=0.25, sigma=0.0125, reach=0.0375, method="pyramid",
-        bloom_source="glow_target",
+        threshold=1.0, weights=(1.0, 1.0, 1.0, 1.0), intensity=0.25, blur_sigma=0.0125, blur_reach=0.0375,
+        method="pyramid", bloom_source="glow_target",
     )  # fmt: skip
 
 
 def _gaussian_bloom() -> Bloom:
     """The single large Gaussian that the VBex article's pyramid replaces, for comparison."""
     return Bloom(
-        threshold=1.0, gaussian_sigma=0.0375, gaussian_reach=0.1125, intensity=1.0, method="gaussian",
+        threshold=1.0, wide_blur_sigma=0.0375, wide_blur_reach=0.1125, intensity=1.0, method="gaussian",
         bloom_source="glow_target",
     )  # fmt: skip
 
@@ -94,8 +94,8 @@ def _participating_media() -> ScatteringFog:
     # Mie haze has g ~ 0.76; extinction 0.01 per unit leaves 37 % of the light after
     # 100 units; a bluish ambient (sky light) and a warm sun; the medium ends at 100 units.
     return ScatteringFog(
-        extinction=0.01, max_distance=100.0, anisotropy=0.76, ambient=(0.05, 0.06, 0.08),
-        sun_irradiance=(1.0, 0.9, 0.75), fov_x_deg=50.0, shaft_strength=1.0, density=1.0, decay=0.97,
+        extinction=0.01, max_distance=100.0, anisotropy=0.76, ambient_color=(0.05, 0.06, 0.08),
+        light_color=(1.0, 0.9, 0.75), fov_x_deg=50.0, shadow_strength=1.0, density=1.0, decay=0.97,
         num_samples=32.0, max_samples=32,
     )  # fmt: skip
 
@@ -141,15 +141,15 @@ def _physically_based() -> ScatteringFog:
     128 samples) to the Mitsuba 3 frames of a colonnade in a homogeneous medium (sigma_t .02 per
     unit, albedo .95, Henyey-Greenstein g .8, a sphere of radius 40 around the camera); the frames
     live beside the checkout (`shared/data/colonnade_*`), so the constants are baked in and
-    `benchmarks/fit_physically_based.py` re-derives them. The fitted shadowing (`shaft_strength` .61)
+    `benchmarks/fit_physically_based.py` re-derives them. The fitted shadowing (`shadow_strength` .61)
     is what keeps the halo smooth: a path tracer's shadow of an object that hides the sun dims the
     haze in front of it by the medium's optical depth there, not wholly, so spikes from the
     silhouette's corners stay faint (`tests/test_presets_look.py` measures them against a
     single-scattering reference). Distances are in scene units; `fov_x_deg` is the colonnade camera's.
     """
     return ScatteringFog(
-        extinction=0.0073, max_distance=183.33, anisotropy=0.8948, ambient=(0.0525, 0.0249, 0.0),
-        sun_irradiance=(0.5271, 0.4038, 0.2397), fov_x_deg=50.0, shaft_strength=0.6084, density=1.0209,
+        extinction=0.0073, max_distance=183.33, anisotropy=0.8948, ambient_color=(0.0525, 0.0249, 0.0),
+        light_color=(0.5271, 0.4038, 0.2397), fov_x_deg=50.0, shadow_strength=0.6084, density=1.0209,
         decay=0.99681, num_samples=128.0, max_samples=128,
     )  # fmt: skip
 

@@ -3,10 +3,11 @@
 import dataclasses
 import json
 import os
+import warnings
 
 import numpy as np
 
-from godrays_jax.effects.base import Effect, effect_class, plain_value
+from godrays_jax.effects.base import Effect, effect_class, plain_value, renamed_fields
 from godrays_jax.primitives.files import atomic_write
 
 
@@ -32,13 +33,21 @@ def effect_from_dict(fields: dict) -> Effect:
     Raises `ValueError` naming the field for an unknown effect or key, a value
     of the wrong JSON type (`"0.5"` for a number, `"false"` for a boolean), a
     vector of the wrong length, or a value out of its range (`parameter_bounds`,
-    `STATIC_RANGES`).
+    `STATIC_RANGES`). A field's old name (`renamed_fields`) is read as its
+    new one, with a `FutureWarning` naming the new name.
     """
     fields = dict(fields)
     kind = fields.pop("effect", None)
     if not isinstance(kind, str):
         raise ValueError(f'the "effect" key must name an effect class, got {json.dumps(kind)}')
     cls = effect_class(kind)
+    for old, new in renamed_fields(cls).items():
+        if old not in fields:
+            continue
+        if new in fields:
+            raise ValueError(f"{kind} has both {old!r} and its new name {new!r}: keep {new!r}")
+        warnings.warn(f"{kind}.{old} is now named {new}: read as {new}", FutureWarning, stacklevel=2)
+        fields[new] = fields.pop(old)
     unknown = sorted(set(fields) - set(_field_names(cls)))
     if unknown:
         raise ValueError(f"unknown parameter(s) for {kind}: {', '.join(unknown)}")

@@ -157,7 +157,9 @@ class GodRays(Effect):
         elif self.method == "multipass":
             rays = radial_rays_multipass(emitter_fn(*emitter_args), light_xy, **fields)
         else:
-            rays = fast_radial_rays(emitter_fn(*emitter_args), light_xy, factor=self.resolution_factor, **fields)
+            rays = fast_radial_rays(
+                emitter_fn(*emitter_args), light_xy, resolution_factor=self.resolution_factor, **fields
+            )
         if self.use_bright_pass:
             rays = bright_pass(rays, threshold=self.threshold)
         return rays * self.tint.astype(rays.dtype)
@@ -173,7 +175,7 @@ class FlareOuts(Effect):
        (`scene_mask`; kbEngine's `1 - sign(depth)` is `"sky"`);
     2. the flare-outs: the masked texture scaled about the light `num_iters`
        times by `scale_step` each (`scale_iterated_flares`), added into a
-       target at `1 / target_factor` of the frame's resolution (the article
+       target at `1 / resolution_factor` of the frame's resolution (the article
        draws them into a low-resolution target; 1 draws at full resolution);
     3. times `intensity`, a Gaussian blur of `blur_sigma` against banding
        (frame units, taps to `blur_reach`), on the low-resolution target;
@@ -197,20 +199,20 @@ class FlareOuts(Effect):
     depth_bias: float = eqx.field(static=True, default=0.1)
     max_iters: int = eqx.field(static=True, default=20)
     blur_reach: float = size_reach(0.01875)
-    target_factor: int = eqx.field(static=True, default=1)
+    resolution_factor: int = eqx.field(static=True, default=1, metadata={"formerly": ("target_factor",)})
     source: Source = eqx.field(static=True, default="disc")
     scene_mask: SceneMask = eqx.field(static=True, default="coverage")
     blend_mode: str = eqx.field(static=True, default="add")
     units: Units = eqx.field(static=True, default="frame")
 
     def __check_init__(self):
-        if not is_static_int(self.target_factor) or self.target_factor < 1:
-            raise ValueError(f"target_factor must be a Python int >= 1, got {self.target_factor!r}")
+        if not is_static_int(self.resolution_factor) or self.resolution_factor < 1:
+            raise ValueError(f"resolution_factor must be a Python int >= 1, got {self.resolution_factor!r}")
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The flare-outs alone, `(H, W, C)` (C: the flare texture's channels, or 3 for the `sky` source)."""
         check_light(light_xy)
-        height, width, factor = buffers.height, buffers.width, self.target_factor
+        height, width, factor = buffers.height, buffers.width, self.resolution_factor
         emitter_fn, emitter_args = emitter_inputs(self, buffers, light_xy, light_in_front, light_depth)
         target_fn = emitter_fn if factor == 1 else lambda *args: downsample_box(emitter_fn(*args), factor)
         flares = scale_iterated_flares_of(
@@ -224,7 +226,7 @@ class FlareOuts(Effect):
         )
         sigma = self.blur_sigma * pixels_per_unit(self.units, height, width) / factor
         taps = reach_taps(self.blur_reach, self.units, height, width, level=factor)
-        flares = gaussian_blur(flares * self.intensity, sigma=sigma, radius=taps)
+        flares = gaussian_blur(flares * self.intensity, sigma=sigma, reach=taps)
         if factor > 1:
             flares = upsample_bilinear(flares, factor, height, width)
         return flares * self.tint.astype(flares.dtype)

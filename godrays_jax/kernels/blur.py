@@ -57,7 +57,7 @@ def poisson_blur(
     image: Float[Array, "H W C"],
     *,
     blur_power: Float[ArrayLike, ""],
-    passes: int | Float[ArrayLike, ""] = 1,
+    num_passes: int | Float[ArrayLike, ""] = 1,
     max_passes: int | None = None,
 ) -> Float[Array, "H W C"]:
     """The sun-overcasting article's blur: the centre tap plus 12 Poisson-disk taps, summed and divided by 13.
@@ -69,21 +69,21 @@ def poisson_blur(
     Args:
         image: the image to blur.
         blur_power: tap radius in UV units; 0 returns the image unchanged.
-        passes: how many times to apply the blur (the sun-overcasting article uses 2). A Python
+        num_passes: how many times to apply the blur (the sun-overcasting article uses 2). A Python
             int >= 0 is exact. A float `p` is the relaxation
             `(1 - f) * blur^k(image) + f * blur^(k+1)(image)` with `k = floor(p)`,
             `f = p - k`: the piecewise-linear interpolation between whole pass
             counts, equal to the exact blur at integers.
-        max_passes: static upper bound for a relaxed `passes`.
+        max_passes: static upper bound for a relaxed `num_passes`.
     """
     check_image(image)
     check_scalar(blur_power, "blur_power")
     blur_power = jnp.asarray(blur_power, image.dtype)
-    loop_length, relaxed = resolve_count(passes, max_passes, "passes", "max_passes", minimum=0)
+    loop_length, relaxed = resolve_count(num_passes, max_passes, "num_passes", "max_passes", minimum=0)
     # The barrier makes XLA materialise each pass: fused into the next pass's
     # gathers it would be recomputed for every tap.
     # A Python loop, not fori_loop: XLA's CPU while loop runs these gathers far slower.
-    count = checked_count(passes, loop_length, "passes", "max_passes", image.dtype) if relaxed else None
+    count = checked_count(num_passes, loop_length, "num_passes", "max_passes", image.dtype) if relaxed else None
     blurred = image
     total = jnp.clip(1.0 - jnp.abs(count), 0.0, 1.0) * image if relaxed else None
     for k in range(1, loop_length + 1):
@@ -97,25 +97,25 @@ def gaussian_blur(
     image: Float[Array, "H W C"],
     *,
     sigma: Float[ArrayLike, ""],
-    radius: int | None = None,
+    reach: int | None = None,
 ) -> Float[Array, "H W C"]:
     """Separable Gaussian blur, `sigma` in pixels, clamp-to-edge.
 
-    The kernel has `2 * radius + 1` taps per axis, normalised to sum 1, so a
-    constant image stays constant. `radius` defaults to `ceil(3 * sigma)` when
+    The kernel has `2 * reach + 1` taps per axis, normalised to sum 1, so a
+    constant image stays constant. `reach` defaults to `ceil(3 * sigma)` when
     `sigma` is a Python number and must be given when it is traced (fitted).
     `sigma` near 0 returns the image unchanged.
     """
     check_image(image)
     check_scalar(sigma, "sigma")
-    if radius is None:
+    if reach is None:
         if not isinstance(sigma, (int, float)) or isinstance(sigma, bool):
-            raise ValueError("radius must be given (a Python int) when sigma is an array or traced value")
-        radius = max(1, math.ceil(3 * sigma))
-    if not is_static_int(radius) or radius < 0:
-        raise ValueError(f"radius must be a Python int >= 0, got {radius!r}")
+            raise ValueError("reach must be given (a Python int) when sigma is an array or traced value")
+        reach = max(1, math.ceil(3 * sigma))
+    if not is_static_int(reach) or reach < 0:
+        raise ValueError(f"reach must be a Python int >= 0, got {reach!r}")
     sigma = jnp.maximum(jnp.asarray(sigma, image.dtype), 1e-6)
-    taps = jnp.arange(-radius, radius + 1, dtype=image.dtype)
+    taps = jnp.arange(-reach, reach + 1, dtype=image.dtype)
     kernel = jnp.exp(-0.5 * (taps / sigma) ** 2)
     kernel = kernel / jnp.sum(kernel)
 
@@ -125,10 +125,10 @@ def gaussian_blur(
     # the time an unrolled sum of shifted slices takes on XLA's CPU backend.
     def blur_axis(values, axis):
         pad = [(0, 0)] * 3
-        pad[axis] = (radius, radius)
+        pad[axis] = (reach, reach)
         padded = jnp.pad(values, pad, mode="edge")[None]
         shape = [1, 1, 1, channels]
-        shape[axis] = 2 * radius + 1
+        shape[axis] = 2 * reach + 1
         weights = jnp.broadcast_to(kernel.reshape([-1 if i == axis else 1 for i in range(4)]), shape)
         return jax.lax.conv_general_dilated(
             padded, weights, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), feature_group_count=channels,
@@ -148,7 +148,7 @@ def bloom(
     threshold: Float[ArrayLike, ""] = 1.0,
     weights: Float[ArrayLike, "4"] = (1.0, 1.0, 1.0, 1.0),
     sigma: Float[ArrayLike, ""] = 2.0,
-    radius: int = 6,
+    reach: int = 6,
 ) -> Float[Array, "H W C"]:
     """The VBex article's bright glow: a bright pass, blurred at 1/2, 1/4, 1/8, 1/16 resolution, summed.
 
@@ -156,7 +156,7 @@ def bloom(
     sun at 40 keeps its energy; the XNA crepuscular-rays article's clipped `bright_pass` is for LDR).
     Level `k` (factor `2, 4, 8, 16`, `BLOOM_LEVELS`) is the bright pass
     averaged over `factor x factor` blocks (`downsample_box`), blurred with a
-    Gaussian of `sigma` pixels *of that level* (`gaussian_blur`, `radius`
+    Gaussian of `sigma` pixels *of that level* (`gaussian_blur`, `reach`
     taps each side, static), and read back at full resolution bilinearly
     (full-resolution pixel `x` reads level position `x / factor`,
     clamp-to-edge). The output is `sum_k weights[k] * level_k`, no clipping;
@@ -175,6 +175,6 @@ def bloom(
     ys = jnp.arange(image.shape[0], dtype=dtype) + 0.5
     total = jnp.zeros_like(image)
     for level, factor in enumerate(BLOOM_LEVELS):
-        low = gaussian_blur(downsample_box(bright, factor), sigma=sigma, radius=radius)
+        low = gaussian_blur(downsample_box(bright, factor), sigma=sigma, reach=reach)
         total = total + weights[level] * sample_separable(low, xs / factor, ys / factor)
     return total

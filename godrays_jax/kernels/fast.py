@@ -5,9 +5,9 @@ them into the project's default fast path (used by `GodRays(method="fast")`):
 
 - `radial_rays_multipass`: the engines' multi-pass radial blur (CryEngine 2:
   3 passes x 8 taps, "virtually 512"; Unreal 3 x 12). Each pass samples the
-  previous pass's output with a step `taps` times longer, so `taps**passes`
-  effective samples cost `passes * taps` image reads.
-- `at_reduced_resolution`: run any kernel on a `factor x factor` box-averaged
+  previous pass's output with a step `num_taps` times longer, so `num_taps**num_passes`
+  effective samples cost `num_passes * num_taps` image reads.
+- `at_reduced_resolution`: run any kernel on a `resolution_factor`-times smaller box-averaged
   image and read it back bilinearly (rays are smooth, so 1/2 resolution costs
   a quarter of the reads for little error; errors in `benchmarks/README.md`).
 - `radial_rays_jittered`: per-pixel interleaved-gradient-noise offsets of the
@@ -69,16 +69,17 @@ def radial_rays_multipass(
     decay: Float[ArrayLike, ""],
     weight: Float[ArrayLike, ""],
     exposure: Float[ArrayLike, ""],
-    passes: int = 3,
-    taps: int = 8,
+    num_passes: int = 3,
+    num_taps: int = 8,
 ) -> Float[Array, "H W C"]:
-    """Multi-pass approximation of `radial_rays` with the same parameters: `passes * taps` reads, `taps**passes` samples.
+    """Multi-pass approximation of `radial_rays` with the same parameters: `num_passes * num_taps` reads,
+    `num_taps**num_passes` samples.
 
     Scaling about the light composes multiplicatively, so in `u = -log(scale)`
     every pass is a comb: pass `k` reads the previous output at scales
-    `exp(-(j * taps**k + offset) * h)`, j = 0..taps-1, with weights
-    `a**(j * taps**k)`. Their composition is exactly the comb of
-    `M = taps**passes` samples at `u = (m + 1/2) * h + u_start` weighted
+    `exp(-(j * num_taps**k + offset) * h)`, j = 0..num_taps-1, with weights
+    `a**(j * num_taps**k)`. Their composition is exactly the comb of
+    `M = num_taps**num_passes` samples at `u = (m + 1/2) * h + u_start` weighted
     `A * a**m`. The exact loop's samples (`scale_i = 1 - i * density / n`,
     weight `weight * decay**(i-1)`, i = 1..n) are a density in `u`; the comb
     spans the same range of `u` and `a` is the weighted log-linear fit of
@@ -97,22 +98,22 @@ def radial_rays_multipass(
     Args:
         image, light_xy, num_samples, density, decay, weight, exposure: as
             `radial_rays` (pixels, clamp-to-edge addressing).
-        passes: static number of passes (>= 1).
-        taps: static taps per pass (>= 1).
+        num_passes: static number of passes (>= 1).
+        num_taps: static taps per pass (>= 1).
 
     Returns:
         The rays image, same shape and dtype as `image`.
     """
     image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
-    _check_positive_int(passes, "passes")
-    _check_positive_int(taps, "taps")
+    _check_positive_int(num_passes, "num_passes")
+    _check_positive_int(num_taps, "num_taps")
     dtype = image.dtype
     if is_static_int(num_samples):
         _count(num_samples, None, dtype)
     else:
         check_scalar(num_samples, "num_samples")
     count = jnp.maximum(jnp.asarray(num_samples, dtype), 0.0)
-    comb_length = taps**passes
+    comb_length = num_taps**num_passes
     # The exact samples i = 1..n cover the sample index t in [1/2, n + 1/2] (midpoint rule),
     # that is scales 1 - t * density / n, mapped to u = -log(scale).
     step = jnp.clip(jnp.asarray(density, dtype), 0.0, 1.0) / jnp.maximum(count, 1e-6)
@@ -150,9 +151,9 @@ def radial_rays_multipass(
 
     light_xy = jnp.asarray(light_xy, dtype)
     rays = image
-    digits = jnp.arange(taps, dtype=dtype)
-    for level in range(passes):
-        stride = taps**level
+    digits = jnp.arange(num_taps, dtype=dtype)
+    for level in range(num_passes):
+        stride = num_taps**level
         scales = jnp.exp(-cell * digits * stride)
         if level == 0:
             scales = scales * jnp.exp(-(u_start + 0.5 * cell))
@@ -166,27 +167,28 @@ def at_reduced_resolution(
     light_xy: Float[ArrayLike, "2"],
     *,
     kernel: Callable[..., Float[Array, "h w C"]],
-    factor: int,
+    resolution_factor: int,
     **options,
 ) -> Float[Array, "H W C"]:
-    """`kernel(image, light_xy, **options)` computed at `1/factor` resolution and upsampled.
+    """`kernel(image, light_xy, **options)` computed at `1/resolution_factor` resolution and upsampled.
 
-    The image is box-averaged over `factor x factor` blocks (`downsample_box`),
-    the light moved to `light_xy / factor` (pixels of the small image), the
+    The image is box-averaged over square blocks of `resolution_factor` pixels a side (`downsample_box`),
+    the light moved to `light_xy / resolution_factor` (pixels of the small image), the
     kernel run there, and the result read back bilinearly (`upsample_bilinear`).
     Kernel options in pixels would need rescaling; those of `radial_rays`,
     `radial_rays_multipass` and `scale_iterated_flares` are all unitless.
-    `factor = 1` calls the kernel unchanged.
+    `resolution_factor = 1` calls the kernel unchanged.
     """
     check_image(image)
     check_light(light_xy)
-    _check_positive_int(factor, "factor")
+    _check_positive_int(resolution_factor, "resolution_factor")
     image = jnp.asarray(image)
-    if factor == 1:
+    if resolution_factor == 1:
         return kernel(image, light_xy, **options)
     height, width, _ = image.shape
-    small = kernel(downsample_box(image, factor), jnp.asarray(light_xy, image.dtype) / factor, **options)
-    return upsample_bilinear(small, factor, height, width)
+    light_small = jnp.asarray(light_xy, image.dtype) / resolution_factor
+    small = kernel(downsample_box(image, resolution_factor), light_small, **options)
+    return upsample_bilinear(small, resolution_factor, height, width)
 
 
 def interleaved_gradient_noise(height: int, width: int, *, seed: int = 0, dtype: DTypeLike = jnp.float32) -> Float[Array, "H W"]:
@@ -258,11 +260,11 @@ def fast_radial_rays(
     decay: Float[ArrayLike, ""],
     weight: Float[ArrayLike, ""],
     exposure: Float[ArrayLike, ""],
-    factor: int = 2,
-    passes: int = 3,
-    taps: int = 8,
+    resolution_factor: int = 2,
+    num_passes: int = 3,
+    num_taps: int = 8,
 ) -> Float[Array, "H W C"]:
-    """The default fast path: `radial_rays_multipass` at `1/factor` resolution, plus the exact full-resolution pixel term.
+    """The default fast path: `radial_rays_multipass` at `1/resolution_factor` resolution, plus the exact pixel term.
 
     `exposure * (image(p) + upsampled multi-pass sum)`: the pixel's own term
     (the sharp emitter) stays exact at full resolution and only the smooth
@@ -271,11 +273,12 @@ def fast_radial_rays(
     and units as `radial_rays`; see `radial_rays_multipass` for accuracy.
     """
     image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
-    _check_positive_int(factor, "factor")
+    _check_positive_int(resolution_factor, "resolution_factor")
 
     def shafts(small, small_light):
         return radial_rays_multipass(
             small, small_light, num_samples=num_samples, density=density, decay=decay, weight=weight,
-            exposure=1.0, passes=passes, taps=taps,
+            exposure=1.0, num_passes=num_passes, num_taps=num_taps,
         ) - small  # fmt: skip
-    return (image + at_reduced_resolution(image, light_xy, kernel=shafts, factor=factor)) * jnp.asarray(exposure, image.dtype)
+    reduced = at_reduced_resolution(image, light_xy, kernel=shafts, resolution_factor=resolution_factor)
+    return (image + reduced) * jnp.asarray(exposure, image.dtype)

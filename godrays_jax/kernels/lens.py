@@ -87,11 +87,11 @@ def safe_power(base: Float[Array, "*S"], exponent: Float[ArrayLike, ""]) -> Floa
     return jnp.where(positive, jnp.exp(exponent * log_base), 0.0)
 
 
-def linear_depth(depth: Float[Array, "H W"], far: Float[ArrayLike, ""]) -> Float[Array, "H W"]:
-    """The VBex article's `LDepth`: `depth / far` clipped to [0, 1]; the sky (`+inf`) is 1."""
+def linear_depth(depth: Float[Array, "H W"], far_plane: Float[ArrayLike, ""]) -> Float[Array, "H W"]:
+    """The VBex article's `LDepth`: `depth / far_plane` clipped to [0, 1]; the sky (`+inf`) is 1."""
     finite = jnp.isfinite(depth)
-    far = jnp.asarray(far, depth.dtype)
-    return jnp.where(finite, jnp.clip(jnp.where(finite, depth, 0.0) / far, 0.0, 1.0), 1.0)
+    far_plane = jnp.asarray(far_plane, depth.dtype)
+    return jnp.where(finite, jnp.clip(jnp.where(finite, depth, 0.0) / far_plane, 0.0, 1.0), 1.0)
 
 
 def lens_dirt_intensity(
@@ -99,7 +99,7 @@ def lens_dirt_intensity(
     light_xy: Float[ArrayLike, "2"],
     *,
     fov_x_deg: Float[ArrayLike, ""],
-    far: Float[ArrayLike, ""],
+    far_plane: Float[ArrayLike, ""],
     power: Float[ArrayLike, ""] = 20.0,
     scale: Float[ArrayLike, ""] = 2.0,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
@@ -113,8 +113,8 @@ def lens_dirt_intensity(
     each pixel's own view ray (`"pixel"`, the default: the dirt lights up
     around the sun) or the optical axis for every pixel (`"axis"`: the whole
     texture brightens as the camera turns to the sun). `LDepth` is
-    `linear_depth(depth, far)` (scene units), so occluders nearer than
-    `0.8 * far` are dimmed by `0.8 ** power`. The VBex article: `power = 20`, `scale = 2`.
+    `linear_depth(depth, far_plane)` (scene units), so occluders nearer than
+    `0.8 * far_plane` are dimmed by `0.8 ** power`. The VBex article: `power = 20`, `scale = 2`.
 
     `depth_floor` is the `0.8`. `depth_in_power=False` applies the depth
     factor after the power instead, `pow(saturate(dot), power) * scale *
@@ -126,7 +126,7 @@ def lens_dirt_intensity(
         raise ValueError(f"view must be 'pixel' or 'axis', got {view!r}")
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
-    for name, value in (("far", far), ("power", power), ("scale", scale), ("depth_floor", depth_floor)):
+    for name, value in (("far_plane", far_plane), ("power", power), ("scale", scale), ("depth_floor", depth_floor)):
         check_scalar(value, name)
     height, width = depth.shape
     dtype = jnp.result_type(depth, jnp.float32)
@@ -135,7 +135,7 @@ def lens_dirt_intensity(
         cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_light, precision="highest")
     else:
         cosine = jnp.broadcast_to(toward_light[2], (height, width))
-    occlusion = jnp.maximum(linear_depth(depth.astype(dtype), far), jnp.asarray(depth_floor, dtype))
+    occlusion = jnp.maximum(linear_depth(depth.astype(dtype), far_plane), jnp.asarray(depth_floor, dtype))
     if depth_in_power:
         return safe_power(jnp.clip(cosine * occlusion, 0.0, 1.0), power) * scale
     return safe_power(jnp.clip(cosine, 0.0, 1.0), power) * scale * occlusion
@@ -147,8 +147,8 @@ def lens_dirt(
     light_xy: Float[ArrayLike, "2"],
     *,
     fov_x_deg: Float[ArrayLike, ""],
-    far: Float[ArrayLike, ""],
-    sun_color: Float[ArrayLike, "3"] = (1.0, 1.0, 1.0),
+    far_plane: Float[ArrayLike, ""],
+    tint: Float[ArrayLike, "3"] = (1.0, 1.0, 1.0),
     power: Float[ArrayLike, ""] = 20.0,
     scale: Float[ArrayLike, ""] = 2.0,
     aberration: Float[ArrayLike, ""] = LENS_DIRT_ABERRATION,
@@ -163,19 +163,19 @@ def lens_dirt(
     stretched over the frame and sampled bilinearly, clamp-to-edge: red at the
     pixel's UV, green at `uv + (0, aberration)`, blue at `uv + (aberration, 0)`
     (UV units; the VBex article: 0.002, a chromatic-aberration fringe), each times that
-    channel of `sun_color` (linear RGB). See `lens_dirt_intensity` for the
+    channel of `tint` (linear RGB). See `lens_dirt_intensity` for the
     other arguments.
     """
     check_image(dirt, "dirt")
     if dirt.shape[-1] != 1:
         raise ValueError(f"dirt must have one channel, shape (h, w, 1), got shape {dirt.shape}")
     check_scalar(aberration, "aberration")
-    if np.shape(sun_color) != (3,):
-        raise ValueError(f"sun_color must be an RGB triple, shape (3,), got shape {np.shape(sun_color)}")
+    if np.shape(tint) != (3,):
+        raise ValueError(f"tint must be an RGB triple, shape (3,), got shape {np.shape(tint)}")
     intensity = lens_dirt_intensity(
-        depth, light_xy, fov_x_deg=fov_x_deg, far=far, power=power, scale=scale, light_in_front=light_in_front, view=view,
-        depth_floor=depth_floor, depth_in_power=depth_in_power,
-    )
+        depth, light_xy, fov_x_deg=fov_x_deg, far_plane=far_plane, power=power, scale=scale,
+        light_in_front=light_in_front, view=view, depth_floor=depth_floor, depth_in_power=depth_in_power,
+    )  # fmt: skip
     height, width = intensity.shape
     dtype = intensity.dtype
     x, y = pixel_centres(height, width, dtype)
@@ -186,7 +186,7 @@ def lens_dirt(
     red = sample_bilinear(texture, u * tex_w, v * tex_h)
     green = sample_bilinear(texture, u * tex_w, (v + aberration) * tex_h)
     blue = sample_bilinear(texture, (u + aberration) * tex_w, v * tex_h)
-    colour = jnp.concatenate([red, green, blue], axis=-1) * jnp.asarray(sun_color, dtype)
+    colour = jnp.concatenate([red, green, blue], axis=-1) * jnp.asarray(tint, dtype)
     return colour * intensity[..., None]
 
 

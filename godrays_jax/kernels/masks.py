@@ -20,16 +20,16 @@ from godrays_jax.primitives.checks import (
 from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 
 
-def sky_mask(depth: Float[Array, "H W"], *, far: Float[ArrayLike, ""] = jnp.inf) -> Float[Array, "H W"]:
+def sky_mask(depth: Float[Array, "H W"], *, sky_depth: Float[ArrayLike, ""] = jnp.inf) -> Float[Array, "H W"]:
     """1 where nothing was hit, else 0.
 
     kbEngine's `1 - sign(depth)` for a buffer that stores 0 on the sky,
     generalised to linear depth: a pixel is sky when its depth is `+inf` or at
-    least `far` (for renderers that write the far plane instead of infinity).
+    least `sky_depth` (for renderers that write the far plane instead of infinity).
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
-    return (depth >= far).astype(jnp.result_type(depth, jnp.float32))
+    return (depth >= sky_depth).astype(jnp.result_type(depth, jnp.float32))
 
 
 def coverage_mask(coverage: Float[Array, "H W"]) -> Float[Array, "H W"]:
@@ -55,21 +55,21 @@ def flare_image(
     width: int,
     light_xy: Float[ArrayLike, "2"],
     *,
-    radius: Float[ArrayLike, ""] | Float[ArrayLike, "2"],
+    flare_size: Float[ArrayLike, ""] | Float[ArrayLike, "2"],
     texture: Float[Array, "h w C"] | None = None,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "H W C"]:
     """A flare texture drawn centred on the light (kbEngine's base flare texture), as sampled: no squaring.
 
-    The flare covers the rectangle `light +- radius` pixels: `radius` is one
+    The flare covers the rectangle `light +- flare_size` pixels: `flare_size` is one
     number (a square) or `(rx, ry)` (the article's `SunSize / clip-space z`
     is a half-extent in UV units, so on a `W x H` frame it is
     `(size * W, size * H)` pixels: wider than tall on a landscape frame, as on
     the GPU). With no `texture` the flare is the analytic cone
     `saturate(1 - r)`, `r` the distance from the light in units of the
-    radius, one channel; a `texture` is stretched over the rectangle, its
-    texel `i` centred at `light - radius + (i + 0.5) * 2 * radius / w`, and
+    half-extent, one channel; a `texture` is stretched over the rectangle, its
+    texel `i` centred at `light - flare_size + (i + 0.5) * 2 * flare_size / w`, and
     sampled bilinearly with clamp-to-edge addressing as the article's sampler
     does (so a texture whose border is not black lights the whole frame).
     `procedural_flare` makes a texture. Off-screen lights draw the part of
@@ -77,13 +77,13 @@ def flare_image(
     (`light_in_front` false) draws nothing.
     """
     check_light(light_xy)
-    if jnp.shape(radius) not in ((), (2,)):
-        raise ValueError(f"radius must be a scalar or a pair (rx, ry), got shape {jnp.shape(radius)}")
+    if jnp.shape(flare_size) not in ((), (2,)):
+        raise ValueError(f"flare_size must be a scalar or a pair (rx, ry), got shape {jnp.shape(flare_size)}")
     light_xy = jnp.asarray(light_xy, dtype)
-    radius = jnp.maximum(jnp.broadcast_to(jnp.asarray(radius, dtype), (2,)), 1e-6)
+    flare_size = jnp.maximum(jnp.broadcast_to(jnp.asarray(flare_size, dtype), (2,)), 1e-6)
     x, y = pixel_centres(height, width, dtype)
-    u = (x - light_xy[0]) / (2 * radius[0]) + 0.5
-    v = (y - light_xy[1]) / (2 * radius[1]) + 0.5
+    u = (x - light_xy[0]) / (2 * flare_size[0]) + 0.5
+    v = (y - light_xy[1]) / (2 * flare_size[1]) + 0.5
     if texture is None:
         # Clipped before squaring: a far light's squared distance overflows float32 (and its gradient
         # turns NaN), and beyond 1.5 radii on either axis the flare is 0 whatever the exact distance.
@@ -102,17 +102,19 @@ def light_source_mask(
     width: int,
     light_xy: Float[ArrayLike, "2"],
     *,
-    radius: Float[ArrayLike, ""] | Float[ArrayLike, "2"],
+    flare_size: Float[ArrayLike, ""] | Float[ArrayLike, "2"],
     texture: Float[Array, "h w C"] | None = None,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
     dtype: DTypeLike = jnp.float32,
 ) -> Float[Array, "H W C"]:
     """The XNA crepuscular-rays article's light-source mask `2 * pow(tex2D(Flare, coord), 2)`: `2 * flare_image**2`.
 
-    `light_xy` and `radius` are in pixels; see `flare_image` for the flare's
+    `light_xy` and `flare_size` are in pixels; see `flare_image` for the flare's
     placement, size, texture and sampling.
     """
-    flare = flare_image(height, width, light_xy, radius=radius, texture=texture, light_in_front=light_in_front, dtype=dtype)
+    flare = flare_image(
+        height, width, light_xy, flare_size=flare_size, texture=texture, light_in_front=light_in_front, dtype=dtype
+    )
     return 2.0 * flare**2
 
 

@@ -4,12 +4,12 @@ Along a camera ray through a homogeneous medium (extinction coefficient
 `sigma_t` per scene unit), the radiance reaching the camera from a surface at
 distance `d` is
 
-    L = L_surface * T + (1 - T) * (ambient + sun_irradiance * p(cos theta) * lit),
+    L = L_surface * T + (1 - T) * (ambient_color + light_color * p(cos theta) * lit),
     T = exp(-sigma_t * min(d, max_distance)),
 
 the closed form of the single-scattering integral when the medium is lit
-uniformly: `ambient` is the isotropic in-scattered radiance (albedo times the
-sky's radiance), `sun_irradiance` the albedo times the sun's irradiance,
+uniformly: `ambient_color` is the isotropic in-scattered radiance (albedo times the
+sky's radiance), `light_color` the albedo times the sun's irradiance,
 `p` the Henyey-Greenstein phase function (per steradian) of the angle `theta`
 between the view ray and the direction to the sun, and `lit` in [0, 1] the
 fraction of the ray the sun reaches (1 without shadows; screen-space light
@@ -75,13 +75,13 @@ def in_scattering(
     fov_x_deg: Float[ArrayLike, ""],
     extinction: Float[ArrayLike, ""],
     max_distance: Float[ArrayLike, ""],
-    ambient: Float[ArrayLike, "3"],
-    sun_irradiance: Float[ArrayLike, "3"],
+    ambient_color: Float[ArrayLike, "3"],
+    light_color: Float[ArrayLike, "3"],
     anisotropy: Float[ArrayLike, ""],
     lit: Float[ArrayLike, "H W"] | float = 1.0,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
 ) -> Float[Array, "H W 3"]:
-    """The light the medium scatters toward the camera: `(1 - T) * (ambient + sun_irradiance * p * lit)`.
+    """The light the medium scatters toward the camera: `(1 - T) * (ambient_color + light_color * p * lit)`.
 
     Args:
         depth: distance along each camera ray in scene units, `+inf` on sky.
@@ -89,8 +89,8 @@ def in_scattering(
         fov_x_deg: horizontal field of view in degrees, in (0, 180).
         extinction: `sigma_t` per scene unit, >= 0.
         max_distance: the medium's extent along a ray, scene units (what sky pixels see).
-        ambient: isotropic in-scattered radiance, RGB (albedo x sky radiance).
-        sun_irradiance: RGB albedo x sun irradiance; times the phase function (per sr).
+        ambient_color: isotropic in-scattered radiance, RGB (albedo x sky radiance).
+        light_color: RGB albedo x sun irradiance; times the phase function (per sr).
         anisotropy: Henyey-Greenstein `g`, in (-1, 1).
         lit: fraction of each ray the sun reaches, `(H, W)` or a scalar, in [0, 1].
         light_in_front: whether the sun is in front of the camera; behind it the
@@ -98,7 +98,7 @@ def in_scattering(
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
-    for name, value in (("ambient", ambient), ("sun_irradiance", sun_irradiance)):
+    for name, value in (("ambient_color", ambient_color), ("light_color", light_color)):
         if np.shape(value) != (3,):
             raise ValueError(f"{name} must be an RGB triple, shape (3,), got shape {np.shape(value)}")
     height, width = depth.shape
@@ -108,7 +108,7 @@ def in_scattering(
     toward_sun = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
     cosine = jnp.matmul(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), toward_sun, precision="highest")
     sun = henyey_greenstein(cosine, anisotropy=anisotropy) * jnp.asarray(lit, dtype)
-    scattered = jnp.asarray(ambient, dtype) + sun[..., None] * jnp.asarray(sun_irradiance, dtype)
+    scattered = jnp.asarray(ambient_color, dtype) + sun[..., None] * jnp.asarray(light_color, dtype)
     opacity = 1.0 - transmittance(depth, extinction=extinction, max_distance=max_distance)
     return opacity[..., None] * scattered
 
@@ -121,8 +121,8 @@ def apply_fog(
     fov_x_deg: Float[ArrayLike, ""],
     extinction: Float[ArrayLike, ""],
     max_distance: Float[ArrayLike, ""],
-    ambient: Float[ArrayLike, "3"],
-    sun_irradiance: Float[ArrayLike, "3"],
+    ambient_color: Float[ArrayLike, "3"],
+    light_color: Float[ArrayLike, "3"],
     anisotropy: Float[ArrayLike, ""],
     lit: Float[ArrayLike, "H W"] | float = 1.0,
     light_in_front: Bool[ArrayLike, ""] | bool = True,
@@ -138,8 +138,9 @@ def apply_fog(
     dtype = image.dtype
     extinguished = transmittance(depth, extinction=extinction, max_distance=max_distance).astype(dtype)[..., None]
     scattered = in_scattering(
-        depth, light_xy, fov_x_deg=fov_x_deg, extinction=extinction, max_distance=max_distance, ambient=ambient,
-        sun_irradiance=sun_irradiance, anisotropy=anisotropy, lit=lit, light_in_front=light_in_front,
+        depth, light_xy, fov_x_deg=fov_x_deg, extinction=extinction, max_distance=max_distance,
+        ambient_color=ambient_color, light_color=light_color, anisotropy=anisotropy, lit=lit,
+        light_in_front=light_in_front,
     ).astype(dtype)  # fmt: skip
     channels = min(image.shape[-1], 3)
     if channels == 1:

@@ -9,7 +9,7 @@ How the parameters are fitted:
 
 - Every fittable field (`effects.parameter_bounds`) not named in `fixed` is
   fitted; static fields never are. Integer counts (`num_samples`, `num_iters`,
-  `passes`) are fitted through the kernels' continuous relaxations and capped
+  `num_passes`) are fitted through the kernels' continuous relaxations and capped
   by their static loop lengths (`max_samples`, ...); the result also carries
   the effect with the counts rounded, re-evaluated.
 - Ranges are kept by reparameterisation: a field with bounds `[low, high]` is
@@ -53,14 +53,14 @@ from godrays_jax.primitives.checks import ranges_guaranteed
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
 
-COUNT_FIELDS: tuple[str, ...] = ("num_samples", "num_iters", "passes")
+COUNT_FIELDS: tuple[str, ...] = ("num_samples", "num_iters", "num_passes")
 """Fittable fields that are integer counts: fitted relaxed, reported rounded."""
 
 
 _STATIC_CAPS = {
     "num_samples": "max_samples",
     "num_iters": "max_iters",
-    "passes": "max_passes",
+    "num_passes": "max_passes",
     "source_grow": "morphology_reach",
     "occluder_shrink": "morphology_reach",
 }

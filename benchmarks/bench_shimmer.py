@@ -1,0 +1,187 @@
+"""Shimmer of the shaft presets on a slow camera pan: how much their error against a converged version changes per frame.
+
+    python benchmarks/bench_shimmer.py [--size 320x180] [--frames 12] [--pan 0.35] [--oversample 32] [--presets a,b]
+
+The shipped forest (examples/scenes/forest_hero.json) is rendered by the
+project's rasterizer at `--size` for `--frames` frames while the camera turns
+about its vertical axis by `--pan` pixels per frame at the image centre (the
+scene, the sun and its shafts slide sideways; the pixel grid stays). Every
+shaft preset (every preset of `GodRays`, `FlareOuts` and `ScatteringFog`) is
+applied at its defaults, with the light's pixel position and distance as
+`render` stores them, and so is its converged version:
+
+- the same effect with every sample of its loop replaced by `--oversample`
+  (K) samples spread over the sample's interval: `num_samples` (or
+  `num_iters`) times K, `decay` (`copy_decay`, `scale_step`) to the power
+  1/K, `weight` (`intensity`) divided by K, the exact loop
+  (`method="exact"`) at full resolution (`resolution_factor=1`); the other
+  fields as they are. Its weights are the same continuous density along the
+  ray sampled K times as densely, so its only departure from the effect's own
+  integral is the sampling.
+
+Both are encoded as `apply` writes a PNG (linear colour clipped to [0, 1],
+sRGB-encoded, times 255), kept unrounded so that rounding does not hide or
+add change. For each frame the error is `effect - converged` in these codes;
+the table gives, per preset, the RMS over pixels, channels and frame pairs of
+the error's change from one frame to the next, and its 99th percentile in
+absolute value, plus the RMS of the error itself. The target: at most 0.3 RMS
+and 1.5 codes at the 99th percentile.
+"""
+
+import argparse
+import dataclasses
+import math
+import os
+import pickle
+import time
+from pathlib import Path
+from unittest import mock
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import godrays_jax as gr
+from godrays_jax.raster import light_distance
+from godrays_jax.effects.base import STATIC_RANGES
+from godrays_jax.effects.fog import ScatteringFog
+from godrays_jax.effects.presets import PRESETS
+from godrays_jax.effects.shafts import FlareOuts, GodRays
+
+SCENE = Path(__file__).resolve().parent.parent / "examples" / "scenes" / "forest_hero.json"
+TARGET_RMS, TARGET_P99 = 0.3, 1.5
+
+
+def pan_cameras(camera: gr.Camera, *, width: int, height: int, frames: int, pan_px: float) -> list[gr.Camera]:
+    """The scene's camera at `width x height`, turned about the world's up axis by `pan_px` pixels (at the centre) per frame."""
+    focal = 0.5 * width / math.tan(math.radians(float(camera.fov_x_deg)) / 2)
+    position = np.asarray(camera.position, np.float64)
+    forward = np.asarray(camera.target, np.float64) - position
+    cameras = []
+    for frame in range(frames):
+        angle = math.atan(pan_px / focal) * (frame - (frames - 1) / 2)
+        cosine, sine = math.cos(angle), math.sin(angle)
+        turned = np.array([cosine * forward[0] + sine * forward[2], forward[1], -sine * forward[0] + cosine * forward[2]])
+        cameras.append(eqx.tree_at(lambda c: c.target, camera, jnp.asarray(position + turned, jnp.float32)))
+    return [
+        gr.Camera(position=c.position, target=c.target, up=c.up, fov_x_deg=c.fov_x_deg, width=width, height=height,
+                  near=c.near, far=c.far)  # fmt: skip
+        for c in cameras
+    ]
+
+
+def render_pan(*, width: int, height: int, frames: int, pan_px: float) -> list:
+    """`(buffers, light_xy, in_front, light_depth)` of every frame of the pan."""
+    scene, camera = gr.load_scene(SCENE)
+    rendered = []
+    for cam in pan_cameras(camera, width=width, height=height, frames=frames, pan_px=pan_px):
+        xy, _, in_front = gr.light_pixel(scene, cam)
+        rendered.append((gr.render(scene, cam), np.asarray(xy), bool(in_front), light_distance(scene, cam)))
+    return rendered
+
+
+def shaft_presets() -> list[str]:
+    """Every preset whose effect draws shafts."""
+    shaft_classes = tuple(
+        cls for cls in (GodRays, FlareOuts, ScatteringFog, getattr(gr, "VolumetricShafts", None)) if cls is not None
+    )
+    return [name for name, make in PRESETS.items() if isinstance(make(), shaft_classes)]
+
+
+def _replace(effect, **values):
+    """`effect` with the named fields replaced (fields it lacks are skipped: names differ between versions); unchecked."""
+    names = [name for name in values if hasattr(effect, name)]
+    return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [values[n] for n in names])
+
+
+def converged(effect, oversample: int):
+    """The effect with every sample of its loop spread over `oversample` samples (see the module's docstring)."""
+    k = oversample
+    if isinstance(effect, FlareOuts):
+        count = int(round(float(effect.num_iters))) * k
+        changed = _replace(
+            effect, num_iters=float(count), scale_step=effect.scale_step ** (1.0 / k),
+            copy_decay=effect.copy_decay ** (1.0 / k), intensity=effect.intensity / k,
+        )  # fmt: skip
+        static = dict(max_iters=count, target_factor=1, resolution_factor=1)
+    else:
+        count = int(round(float(effect.num_samples))) * k
+        values = dict(num_samples=float(count), decay=effect.decay ** (1.0 / k))
+        if isinstance(effect, GodRays):
+            values["weight"] = effect.weight / k
+        changed = _replace(effect, **values)
+        static = dict(max_samples=count, method="exact", resolution_factor=1)
+    static = {name: value for name, value in static.items() if hasattr(changed, name)}
+    # Loops longer than a user may ask for: the ranges bound what fits, the tuner and params files set.
+    with mock.patch.dict(STATIC_RANGES, {"max_samples": (1, count), "max_iters": (1, count)}), \
+            mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}):  # fmt: skip
+        return dataclasses.replace(changed, **static)
+
+
+def display_codes(image) -> np.ndarray:
+    """Colour as `apply` writes it to an 8-bit PNG, before rounding: `srgb_encode(clip(x, 0, 1)) * 255`."""
+    return np.asarray(gr.srgb_encode(np.asarray(image, np.float64)[..., :3])) * 255.0
+
+
+def shimmer(errors: list[np.ndarray]) -> tuple[float, float, float]:
+    """(RMS of the frame-to-frame change, its 99th percentile of |change|, RMS of the error)."""
+    stack = np.stack(errors)
+    change = np.diff(stack, axis=0)
+    return (
+        float(np.sqrt(np.mean(change**2))),
+        float(np.percentile(np.abs(change), 99)),
+        float(np.sqrt(np.mean(stack**2))),
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="320x180", help="WIDTHxHEIGHT (default 320x180)")
+    parser.add_argument("--frames", type=int, default=12)
+    parser.add_argument("--pan", type=float, default=0.35, help="pixels per frame at the image centre (default 0.35)")
+    parser.add_argument("--oversample", type=int, default=32, help="samples of the converged version per sample")
+    parser.add_argument("--presets", default=None, help="comma-separated presets (default: every shaft preset)")
+    parser.add_argument("--method", default=None, help="also measure GodRays presets with this method (e.g. fast)")
+    parser.add_argument("--cache", default=None, help="keep the rendered frames in this file and reuse them")
+    args = parser.parse_args()
+    width, height = (int(v) for v in args.size.split("x"))
+    started = time.perf_counter()
+    key = (width, height, args.frames, args.pan)
+    if args.cache and os.path.exists(args.cache):
+        with open(args.cache, "rb") as stream:
+            cached_key, frames = pickle.load(stream)
+        if cached_key != key:
+            raise SystemExit(f"{args.cache} holds another sequence {cached_key}; remove it")
+    else:
+        frames = render_pan(width=width, height=height, frames=args.frames, pan_px=args.pan)
+        if args.cache:
+            with open(args.cache, "wb") as stream:
+                pickle.dump((key, jax.device_get(frames)), stream)
+    rendered = time.perf_counter() - started
+    print(f"{args.frames} frames of {width}x{height} in {rendered:.1f} s; "
+          f"light x {float(frames[0][1][0]):.2f} .. {float(frames[-1][1][0]):.2f} px")  # fmt: skip
+
+    cases = []
+    for name in args.presets.split(",") if args.presets else shaft_presets():
+        effect = PRESETS[name]()
+        cases.append((name, effect))
+        if args.method and isinstance(effect, GodRays) and effect.method != args.method:
+            cases.append((f"{name} (method={args.method})", dataclasses.replace(effect, method=args.method)))
+    print(f"| preset | change RMS | change p99 | error RMS | within target |")
+    print(f"|---|---|---|---|---|")
+    for name, effect in cases:
+        reference = converged(effect, args.oversample)
+        run = jax.jit(lambda b, xy, front, depth, e=effect: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
+        run_reference = jax.jit(lambda b, xy, front, depth, e=reference: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
+        errors = []
+        for buffers, xy, in_front, depth in frames:
+            errors.append(display_codes(run(buffers, xy, in_front, depth)) - display_codes(run_reference(buffers, xy, in_front, depth)))
+        rms, p99, error = shimmer(errors)
+        ok = "yes" if rms <= TARGET_RMS and p99 <= TARGET_P99 else "no"
+        print(f"| {name} | {rms:.2f} | {p99:.2f} | {error:.2f} | {ok} |", flush=True)
+    print(f"total {time.perf_counter() - started:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,439 @@
+"""Render the path-traced reference frames with Mitsuba 3: per scene a clean frame and two fog frames.
+
+    DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
+        python benchmarks/references/render_references.py [SCENE ...] [--spp 256] [--variant llvm_ad_rgb]
+
+Every scene is 320x180, camera looking along -z with a horizontal field of
+view of 50 degrees, ground at y = 0. Per scene NAME it writes into this folder:
+
+- `NAME_clean.exr`: the frame without a medium (path tracer, max depth 3,
+  four times the fog's samples per pixel): `R, G, B` (linear), `A` (the
+  fraction of a 4x4 grid of rays in the pixel that hit geometry), `Z` (the
+  distance along the pixel centre's camera ray, scene units, `+inf` on sky).
+- `NAME_fog_a.exr`, `NAME_fog_b.exr`: the same frame inside a homogeneous
+  medium (volumetric path tracer, max depth 3), seeds 1 and 2: `R, G, B`.
+
+Colour is stored as half floats, depth as float32, zip compressed. Every file's
+header carries `godrays:light_px` (x right, y down, pixel centres at
+`i + 0.5`), `godrays:light_in_front`, `godrays:light_depth` (the light's
+distance along its camera ray, scene units, `inf` for the sun) and
+`godrays:fov_x_deg`.
+
+`scenes.json` (read by `scenes.py`) gets each scene's light, medium, samples,
+render seconds (wall and CPU) and noise floor: half the display-space MSE between the two
+fog frames, display space `x / (1 + |x|)` per channel as `godrays-jax fit`
+compares (`kernels.losses.mse_loss`).
+
+The sun is a disc in an environment map (at infinity, so its shafts are
+parallel); the point light is a small emitting sphere inside the medium. The
+medium is a sphere around the camera (its radius is the medium's extent) or,
+for `ground_fog`, a layer near the ground that the camera stands in.
+
+`llvm_ad_rgb` (the default) needs an LLVM newer than 15 (`DRJIT_LIBLLVM_PATH`;
+19 works); `--variant scalar_rgb` runs without one, slower. One
+render thread (`--threads`), so that a render takes one core.
+"""
+
+import argparse
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+WIDTH, HEIGHT = 320, 180
+FOV_X_DEG = 50.0
+MAX_DEPTH = 3
+CLEAN_SPP_FACTOR = 4
+PASS_SPP = 32  # samples per launch: the LLVM variant holds one launch's paths in memory at once
+SEEDS = {"clean": 0, "fog_a": 1, "fog_b": 2}
+GROUND_REFLECTANCE = (0.35, 0.32, 0.27)
+ENVMAP_SIZE = (1024, 2048)
+COVERAGE_GRID = 4
+
+
+# ----------------------------------------------------------------------------- scene description
+
+
+@dataclass(frozen=True)
+class Sun:
+    """A disc of `radiance` in a constant sky, `azimuth_deg` right of -z, `elevation_deg` above the horizon."""
+
+    azimuth_deg: float
+    elevation_deg: float
+    radiance: tuple[float, float, float] = (2500.0, 2100.0, 1600.0)
+    radius_deg: float = 1.0
+    sky: tuple[float, float, float] = (0.06, 0.08, 0.12)
+
+    def direction(self) -> np.ndarray:
+        az, el = math.radians(self.azimuth_deg), math.radians(self.elevation_deg)
+        return np.array([math.sin(az) * math.cos(el), math.sin(el), -math.cos(az) * math.cos(el)])
+
+
+@dataclass(frozen=True)
+class Lamp:
+    """A small emitting sphere (a bulb) at `position` in a constant night sky."""
+
+    position: tuple[float, float, float]
+    radiance: tuple[float, float, float] = (3000.0, 2400.0, 1600.0)
+    radius: float = 0.08
+    sky: tuple[float, float, float] = (0.002, 0.003, 0.006)
+
+
+@dataclass(frozen=True)
+class Medium:
+    """Homogeneous: extinction `sigma_t` (per scene unit), single-scattering `albedo`, Henyey-Greenstein `g`.
+
+    `extent`: a sphere of this radius around the camera, or `("layer", top)`:
+    the slab from below the ground up to height `top`, 200 units wide.
+    """
+
+    sigma_t: float
+    albedo: float
+    g: float
+    extent: float | tuple[str, float]
+
+    def describe(self) -> str:
+        if isinstance(self.extent, tuple):
+            where = f"layer from the ground to y = {self.extent[1]:g} (camera inside)"
+        else:
+            where = f"sphere of radius {self.extent:g} around the camera"
+        return where
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    shows: str
+    light: Sun | Lamp
+    medium: Medium
+    camera: tuple[float, float, float] = (0.0, 1.6, 0.0)
+    shapes: list = field(default_factory=list)  # (kind, to_world matrix as nested lists, reflectance)
+
+
+def box(center, half_size, reflectance=(0.5, 0.5, 0.5)):
+    """An axis-aligned box (Mitsuba's cube is [-1, 1]^3)."""
+    cx, cy, cz = center
+    sx, sy, sz = half_size
+    return ("cube", [[sx, 0, 0, cx], [0, sy, 0, cy], [0, 0, sz, cz], [0, 0, 0, 1]], reflectance)
+
+
+def post(x, z, radius, height, reflectance=(0.45, 0.42, 0.38)):
+    """A vertical cylinder on the ground (Mitsuba's cylinder runs along +z from 0 to 1)."""
+    return ("cylinder", [[radius, 0, 0, x], [0, 0, height, 0], [0, -radius, 0, z], [0, 0, 0, 1]], reflectance)
+
+
+def ball(center, radius, reflectance=(0.6, 0.55, 0.5)):
+    cx, cy, cz = center
+    return ("sphere", [[radius, 0, 0, cx], [0, radius, 0, cy], [0, 0, radius, cz], [0, 0, 0, 1]], reflectance)
+
+
+def _sun_at(distance, sun: Sun, camera):
+    return np.asarray(camera) + distance * sun.direction()
+
+
+def _hidden_sun() -> Scene:
+    sun = Sun(azimuth_deg=-4.0, elevation_deg=5.0)
+    center = _sun_at(15.0, sun, (0.0, 1.6, 0.0))
+    return Scene(
+        "hidden_sun", "a block 15 units away hides the sun: the haze in front of it in its shadow, a halo around it",
+        sun, Medium(0.03, 0.9, 0.75, 50.0),
+        shapes=[box((center[0], 2.75, center[2]), (1.8, 2.75, 1.0), (0.45, 0.4, 0.35))],
+    )
+
+
+def _blinds() -> Scene:
+    sun = Sun(azimuth_deg=6.0, elevation_deg=6.0)
+    wall = (0.5, 0.47, 0.43)
+    window = [box((-5.1, 1.5, -7.0), (3.5, 1.5, 0.15), wall), box((5.1, 1.5, -7.0), (3.5, 1.5, 0.15), wall),
+              box((0.0, 0.4, -7.0), (1.6, 0.4, 0.15), wall), box((0.0, 2.8, -7.0), (1.6, 0.2, 0.15), wall)]
+    slats = [box((0.0, 0.95 + 0.3 * i, -7.0), (1.6, 0.07, 0.05), (0.6, 0.57, 0.52)) for i in range(6)]
+    return Scene(
+        "blinds", "a wall 7 units away, the sun behind blinds in its window: shafts through the gaps toward the camera",
+        sun, Medium(0.04, 0.9, 0.7, 40.0), shapes=window + slats,
+    )
+
+
+def _forest() -> Scene:
+    sun = Sun(azimuth_deg=2.0, elevation_deg=2.5, radiance=(2500.0, 1700.0, 900.0))
+    rng = np.random.default_rng(7)
+    trees = []
+    while len(trees) < 70:
+        x, z = rng.uniform(-22.0, 22.0), rng.uniform(-45.0, -5.0)
+        if abs(x) < 1.0 and z > -8.0:
+            continue  # keep the view open just in front of the camera
+        trees.append(post(x, z, rng.uniform(0.18, 0.45), rng.uniform(7.0, 12.0), (0.3, 0.24, 0.18)))
+    return Scene(
+        "forest_low_sun", "70 trunks, the sun 2.5 degrees above the horizon behind them: long shafts between trunks",
+        sun, Medium(0.025, 0.95, 0.8, 60.0), shapes=trees,
+    )
+
+
+def _sun_off_screen() -> Scene:
+    sun = Sun(azimuth_deg=-42.0, elevation_deg=14.0)
+    pillars = [post(-4.5, -3.0 - 3.0 * i, 0.45, 6.0) for i in range(10)]
+    beam = [box((-4.5, 6.2, -16.5), (0.5, 0.2, 14.0), (0.45, 0.42, 0.38))]
+    return Scene(
+        "sun_off_screen", "the sun off the left edge behind a colonnade: shafts slant across the view",
+        sun, Medium(0.03, 0.9, 0.7, 40.0), shapes=pillars + beam,
+    )
+
+
+def _point_light() -> Scene:
+    lamp = Lamp(position=(0.8, 2.4, -10.0))
+    fence = [post(-1.85 + 0.55 * i, -7.5, 0.07, 3.2, (0.3, 0.3, 0.3)) for i in range(8)]
+    pole = [post(1.1, -10.3, 0.06, 2.3, (0.25, 0.25, 0.25))]
+    walls = [box((-7.0, 3.0, -14.0), (0.3, 3.0, 8.0), (0.5, 0.48, 0.45)), box((6.0, 2.5, -16.0), (2.0, 2.5, 2.0))]
+    return Scene(
+        "point_light", "a lamp 10 units away inside the medium behind a fence: a glow and shadow shafts from the posts",
+        lamp, Medium(0.05, 0.9, 0.5, 40.0), shapes=fence + pole + walls,
+    )
+
+
+def _thin_haze() -> Scene:
+    sun = Sun(azimuth_deg=16.0, elevation_deg=10.0)
+    near = [ball((-0.6, 0.9, -3.2), 0.9, (0.7, 0.35, 0.25))]
+    far = [box((-14.0 + 7.0 * i, 2.0 + 1.2 * (i % 3), -38.0 - 4.0 * (i % 2)), (2.5, 2.0 + 1.2 * (i % 3), 2.5))
+           for i in range(5)]
+    return Scene(
+        "thin_haze", "a clear near ball in thin haze, far blocks faded by it, the sun in the upper right",
+        sun, Medium(0.006, 0.95, 0.8, 80.0), shapes=near + far,
+    )
+
+
+def _ground_fog() -> Scene:
+    sun = Sun(azimuth_deg=5.0, elevation_deg=8.0)
+    pillars = [post(-6.0 + 3.0 * i, -14.0 - 2.0 * (i % 2), 0.4, 5.0) for i in range(5)]
+    pillars += [post(-9.0, -6.0, 0.35, 5.0), post(8.0, -9.0, 0.35, 5.0)]
+    return Scene(
+        "ground_fog", "a fog layer 2.5 units deep, the camera in it, the sun above it: surfaces and haze lit through the fog",
+        sun, Medium(0.1, 0.95, 0.6, ("layer", 2.5)), camera=(0.0, 1.2, 0.0), shapes=pillars,
+    )
+
+
+SCENES = {s.name: s for s in (_hidden_sun(), _blinds(), _forest(), _sun_off_screen(), _point_light(),
+                              _thin_haze(), _ground_fog())}
+
+
+# ----------------------------------------------------------------------------- camera
+
+
+def project(scene: Scene) -> tuple[tuple[float, float], bool, float]:
+    """The light's pixel position (x right, y down, centres at i + 0.5), whether in front, its depth along its ray."""
+    focal = (WIDTH / 2) / math.tan(math.radians(FOV_X_DEG) / 2)  # pixels per unit of x / -z
+    if isinstance(scene.light, Sun):
+        x, y, z = scene.light.direction()
+        depth = math.inf
+    else:
+        x, y, z = np.asarray(scene.light.position) - np.asarray(scene.camera)
+        depth = float(math.sqrt(x * x + y * y + z * z))
+    forward = -z
+    return (WIDTH / 2 + focal * x / forward, HEIGHT / 2 - focal * y / forward), bool(forward > 0), depth
+
+
+# ----------------------------------------------------------------------------- Mitsuba
+
+
+def _envmap(mi, light):
+    """A latitude-longitude sky (Mitsuba's convention: u = atan2(x, -z) / 2 pi, v = acos(y) / pi), the sun a disc."""
+    rows, cols = ENVMAP_SIZE
+    pixels = np.empty((rows, cols, 3), np.float32)
+    pixels[...] = light.sky
+    if isinstance(light, Sun):
+        theta = (np.arange(rows) + 0.5) / rows * np.pi
+        phi = (np.arange(cols) + 0.5) / cols * 2 * np.pi
+        theta, phi = np.meshgrid(theta, phi, indexing="ij")
+        direction = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
+        disc = direction @ light.direction() >= math.cos(math.radians(light.radius_deg))
+        pixels[disc] = light.radiance
+    return {"type": "envmap", "bitmap": mi.Bitmap(pixels)}
+
+
+def scene_dict(mi, scene: Scene, *, fog: bool, emitters: bool = True) -> dict:
+    """Mitsuba's description of `scene`, with or without its medium (and its lights, for the geometry pass)."""
+    T = mi.ScalarTransform4f
+    camera = scene.camera
+    sensor = {
+        "type": "perspective",
+        "fov": FOV_X_DEG,
+        "fov_axis": "x",
+        "to_world": T().look_at(origin=camera, target=[camera[0], camera[1], camera[2] - 1.0], up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": WIDTH, "height": HEIGHT, "rfilter": {"type": "box"},
+                 "pixel_format": "rgb", "component_format": "float32"},
+        "sampler": {"type": "independent"},
+    }
+    d = {
+        "type": "scene",
+        "integrator": {"type": "volpath" if fog else "path", "max_depth": MAX_DEPTH},
+        "ground": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale([200, 200, 1]),
+                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(GROUND_REFLECTANCE)}}},
+    }
+    for i, (kind, matrix, reflectance) in enumerate(scene.shapes):
+        d[f"shape_{i}"] = {"type": kind, "to_world": T(matrix),
+                           "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}}}
+    if emitters:
+        d["sky"] = _envmap(mi, scene.light)
+        if isinstance(scene.light, Lamp):
+            d["lamp"] = {"type": "sphere", "center": list(scene.light.position), "radius": scene.light.radius,
+                         "emitter": {"type": "area", "radiance": {"type": "rgb", "value": list(scene.light.radiance)}}}
+    if fog:
+        m = scene.medium
+        # declared once, referred to by the shape that bounds it and by the camera inside it
+        d["fog"] = {"type": "homogeneous", "id": "fog", "sigma_t": m.sigma_t, "albedo": m.albedo,
+                    "phase": {"type": "hg", "g": m.g}}
+        if isinstance(m.extent, tuple):
+            top, bottom = m.extent[1], -1.0  # below the ground, so the ground never coincides with a face
+            bounds = {"type": "cube", "to_world": T().translate([0, (top + bottom) / 2, 0]).scale(
+                [100, (top - bottom) / 2, 100])}
+        else:
+            bounds = {"type": "sphere", "center": list(camera), "radius": m.extent}
+        d["medium_bounds"] = bounds | {"bsdf": {"type": "null"}, "interior": {"type": "ref", "id": "fog"}}
+        sensor["medium"] = {"type": "ref", "id": "fog"}
+    d["sensor"] = sensor
+    return d
+
+
+def render_color(mi, scene: Scene, *, fog: bool, spp: int, seed: int) -> np.ndarray:
+    """Mean of `spp` samples per pixel, launched `PASS_SPP` at a time with seeds derived from `seed`."""
+    loaded = mi.load_dict(scene_dict(mi, scene, fog=fog))
+    total = np.zeros((HEIGHT, WIDTH, 3), np.float64)
+    launches = max(1, math.ceil(spp / PASS_SPP))
+    for launch in range(launches):
+        image = mi.render(loaded, spp=spp // launches, seed=seed * 100_003 + launch)
+        total += np.asarray(image, np.float64)[..., :3]
+    return (total / launches).astype(np.float32)
+
+
+def render_geometry(mi, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Depth along the pixel centre's ray (`+inf` on a miss) and the fraction of a grid of rays that hit."""
+    import drjit as dr
+
+    loaded = mi.load_dict(scene_dict(mi, scene, fog=False, emitters=isinstance(scene.light, Lamp)))
+    sensor = loaded.sensors()[0]
+
+    def cast(offset_x, offset_y):
+        j, i = np.mgrid[0:HEIGHT, 0:WIDTH]
+        u = ((i + offset_x) / WIDTH).ravel().astype(np.float32)
+        v = ((j + offset_y) / HEIGHT).ravel().astype(np.float32)
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(u, v), mi.Point2f(0.5, 0.5))
+        si = loaded.ray_intersect(ray)
+        t = np.asarray(dr.select(si.is_valid(), si.t, dr.inf))
+        return t.reshape(HEIGHT, WIDTH)
+
+    depth = cast(0.5, 0.5)
+    grid = (np.arange(COVERAGE_GRID) + 0.5) / COVERAGE_GRID
+    hits = sum(np.isfinite(cast(ox, oy)) for ox in grid for oy in grid)
+    return depth.astype(np.float32), (hits / COVERAGE_GRID**2).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def display_mse(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean squared difference over pixels and RGB of `x / (1 + |x|)`: `godrays-jax fit`'s loss."""
+    a, b = (np.asarray(x, np.float64)[..., :3] for x in (a, b))
+    return float(np.mean((a / (1 + np.abs(a)) - b / (1 + np.abs(b))) ** 2))
+
+
+def write_frame(path: Path, color: np.ndarray, scene: Scene, depth=None, coverage=None) -> None:
+    """Half-float colour (and coverage), float32 depth, zip; the light and field of view in the header."""
+    import OpenImageIO as oiio
+
+    planes, names, formats = [color], ["R", "G", "B"], [oiio.TypeHalf] * 3
+    if depth is not None:
+        planes += [coverage[..., None], depth[..., None]]
+        names += ["A", "Z"]
+        formats += [oiio.TypeHalf, oiio.TypeFloat]
+    pixels = np.ascontiguousarray(np.concatenate(planes, -1), dtype=np.float32)
+    spec = oiio.ImageSpec(WIDTH, HEIGHT, len(names), oiio.HALF)
+    spec.channelnames = tuple(names)
+    if depth is not None:
+        spec.channelformats = tuple(formats)
+    if depth is not None:
+        spec.alpha_channel, spec.z_channel = 3, 4
+    spec.attribute("compression", "zip")
+    light_px, in_front, light_depth = project(scene)
+    spec.attribute("godrays:light_px", oiio.TypeFloat2, light_px)
+    spec.attribute("godrays:light_in_front", oiio.TypeInt, int(in_front))
+    spec.attribute("godrays:light_depth", oiio.TypeFloat, light_depth)
+    spec.attribute("godrays:fov_x_deg", oiio.TypeFloat, FOV_X_DEG)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
+        raise OSError(f"cannot write {path}: {oiio.geterror()}")
+
+
+def record(scene: Scene, spp: int, seconds: dict, floor: float, variant: str) -> dict:
+    light_px, in_front, light_depth = project(scene)
+    m = scene.medium
+    light = scene.light
+    return {
+        "shows": scene.shows,
+        "clean": f"{scene.name}_clean.exr",
+        "fog": [f"{scene.name}_fog_a.exr", f"{scene.name}_fog_b.exr"],
+        "light_px": list(light_px),
+        "light_in_front": in_front,
+        "light_depth": None if math.isinf(light_depth) else light_depth,
+        "fov_x_deg": FOV_X_DEG,
+        "light": (f"sun: disc of radius {light.radius_deg:g} deg, radiance {list(light.radiance)}, "
+                  f"azimuth {light.azimuth_deg:g} deg, elevation {light.elevation_deg:g} deg; sky {list(light.sky)}")
+        if isinstance(light, Sun) else
+        (f"lamp: sphere of radius {light.radius:g} at {list(light.position)}, radiance {list(light.radiance)}; "
+         f"sky {list(light.sky)}"),
+        "medium": {"sigma_t": m.sigma_t, "albedo": m.albedo, "g": m.g, "extent": m.describe()},
+        "camera": list(scene.camera),
+        "spp": {"fog": spp, "clean": spp * CLEAN_SPP_FACTOR},
+        "seconds": seconds,
+        "variant": variant,
+        "noise_floor": floor,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("scenes", nargs="*", help=f"default: all of {', '.join(SCENES)}")
+    parser.add_argument("--spp", type=int, default=256, help="fog samples per pixel (clean: 4x)")
+    parser.add_argument("--variant", default="llvm_ad_rgb")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=HERE)
+    args = parser.parse_args()
+
+    unknown = [name for name in args.scenes if name not in SCENES]
+    if unknown:
+        parser.error(f"unknown scene {', '.join(unknown)}; scenes: {', '.join(SCENES)}")
+    import drjit as dr
+    import mitsuba as mi
+
+    mi.set_variant(args.variant)
+    dr.set_thread_count(args.threads)
+    index_path = args.out / "scenes.json"
+    for name in args.scenes or list(SCENES):
+        scene = SCENES[name]
+        seconds = {}
+        start, cpu = time.perf_counter(), time.process_time()
+        depth, coverage = render_geometry(mi, scene)
+        clean = render_color(mi, scene, fog=False, spp=args.spp * CLEAN_SPP_FACTOR, seed=SEEDS["clean"])
+        seconds["clean"] = [round(time.perf_counter() - start, 1), round(time.process_time() - cpu, 1)]
+        write_frame(args.out / f"{name}_clean.exr", clean, scene, depth, coverage)
+        fogs = []
+        for key in ("fog_a", "fog_b"):
+            start, cpu = time.perf_counter(), time.process_time()
+            fogs.append(render_color(mi, scene, fog=True, spp=args.spp, seed=SEEDS[key]))
+            seconds[key] = [round(time.perf_counter() - start, 1), round(time.process_time() - cpu, 1)]
+            write_frame(args.out / f"{name}_{key}.exr", fogs[-1], scene)
+        # the floor of the frames as stored (half floats), read back as `fit` reads them
+        import OpenImageIO as oiio
+
+        stored = [oiio.ImageBuf(str(args.out / f"{name}_{key}.exr")).get_pixels(oiio.FLOAT)[..., :3]
+                  for key in ("fog_a", "fog_b")]
+        floor = 0.5 * display_mse(*stored)
+        index = json.loads(index_path.read_text()) if index_path.exists() else {}  # read late: runs side by side
+        index[name] = record(scene, args.spp, seconds, floor, args.variant)
+        index_path.write_text(json.dumps(dict(sorted(index.items())), indent=1) + "\n")
+        print(f"{name}: {seconds} s, noise floor {floor:.3e} (float32 {0.5 * display_mse(*fogs):.3e})", flush=True)
+
+
+if __name__ == "__main__":
+    main()

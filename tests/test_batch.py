@@ -211,7 +211,7 @@ def test_bad_frames_are_reported_and_skipped(tmp_path, capsys):
     assert "4 written, 0 skipped (already done), 4 failed" in err
     lines = {line.split(": ", 1)[1].split(":")[0]: line for line in err.splitlines() if "failed: " in line}
     assert set(lines) == {str(corrupt), str(no_depth), str(wrong_size), str(nan_colour)}
-    assert "no depth channel" in lines[str(no_depth)]
+    assert "no light position" in lines[str(no_depth)]  # read as a frame without depth, it has no light either
     assert "wrong size 24x18 (the run's frames are 24x16)" in lines[str(wrong_size)]
     assert "NaN" in lines[str(nan_colour)]
     good = [p for p in inputs if p not in (corrupt, no_depth, wrong_size, nan_colour)]

@@ -76,8 +76,9 @@ def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
         bogus = tmp_path / "notes.exr"
         bogus.write_text("not an image")
         args[1], expected = bogus, "cannot read image"
-    elif case == "no_depth":
-        args[1], expected = small_frame(tmp_path / "flat.exr", depth=False), "channels found: R, G, B"
+    elif case == "no_depth":  # a frame without depth runs the shaft presets, not a medium
+        args[1], expected = small_frame(tmp_path / "flat.exr", depth=False), "presets that run without depth"
+        args += ["--preset", "participating_media"]
     elif case == "bad_light":
         args[3], expected = "3;2", "--light must be X,Y"
     elif case == "nan_colour":

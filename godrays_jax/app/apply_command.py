@@ -7,17 +7,20 @@ import numpy as np
 
 from godrays_jax.app.options import (
     NO_SKY,
+    CommandError,
     check_output_path,
     effect_for_frame,
     effect_option,
+    frame_field_of_view,
     frame_reading,
     has_sky,
     resolve_light,
     resolve_light_depth,
     warn,
+    with_field_of_view,
     with_flare_texture,
 )
-from godrays_jax.pipeline.batch import frames_function
+from godrays_jax.pipeline.batch import dither_seed_of, frames_function, ready_frame
 from godrays_jax.primitives.frame_files import read_frame, write_frame_like
 from godrays_jax.primitives.images import write_image
 
@@ -30,10 +33,15 @@ def run(args) -> int:
     check_output_path(args.output, args.buffers)
     effect = with_flare_texture(effect_option(args.preset, args.params), args.flare_texture)
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
-    if not has_sky(buffers):
-        warn("apply", f"{args.buffers} has {NO_SKY}")
+    effect = with_field_of_view(effect, frame_field_of_view(args, args.buffers))
     effect = effect_for_frame("apply", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
+    try:
+        buffers = ready_frame(effect, buffers, light_xy, args.buffers)
+    except ValueError as error:
+        raise CommandError(str(error)) from None
+    if not has_sky(buffers):
+        warn("apply", f"{args.buffers} has {NO_SKY}")
     light_depth = resolve_light_depth(args.light_depth, args.buffers)
     # The program `batch` runs, on a group of one frame, stored traced: a later `apply` neither traces nor compiles it.
     apply = frames_function(effect, layer_only=args.layer_only, light_depth=light_depth, stored=True)
@@ -43,6 +51,6 @@ def run(args) -> int:
         # EXR to EXR: every other channel, each channel's format and the metadata as the frame had them.
         write_frame_like(args.output, image, frame_file)
     else:
-        write_image(args.output, image)
+        write_image(args.output, image, dither_seed=None if args.no_dither else dither_seed_of(args.buffers))
     print(f"wrote {args.output}")
     return 0

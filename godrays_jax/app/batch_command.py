@@ -9,8 +9,11 @@ from godrays_jax.app.options import (
     NO_SKY,
     effect_for_frame,
     effect_option,
+    frame_field_of_view,
     frame_reading,
+    resolve_light_depth,
     warn,
+    with_field_of_view,
 )
 from godrays_jax.pipeline.batch import BatchError, describe_plan, plan_batch, run_batch
 from godrays_jax.pipeline.sequences import (
@@ -66,6 +69,9 @@ def run(args) -> int:
         shard = (jax.process_index(), jax.process_count())
     effect = effect_option(args.preset, args.params)
     inputs = expand_frames(args.pattern)
+    # The camera and the light's distance come from the first frame: one compiled program for the shot.
+    effect = with_field_of_view(effect, frame_field_of_view(args, inputs[0]))
+    light_depth = resolve_light_depth(args.light_depth, inputs[0])
     if getattr(effect, "source", None) == "light_pass":
         effect = effect_for_frame("batch", effect, read_buffers(inputs[0], **frame_reading(args)), inputs[0])
     jobs = plan_batch(
@@ -87,7 +93,9 @@ def run(args) -> int:
         effect,
         light,
         layer_only=args.layer_only,
-        **frame_reading(args),
+        light_depth=light_depth,
+        dither=not args.no_dither,
+        **{key: value for key, value in frame_reading(args).items() if key != "without_depth"},  # run_batch reads both
         progress=None if args.quiet else sys.stderr,
     )
     if report.without_sky:

@@ -19,6 +19,7 @@ from godrays_jax.app import compile_cache
 from godrays_jax.app.options import (
     DEFAULT_PRESET,
     SKY_DEPTH_HELP,
+    parse_fov,
     parse_light,
     parse_light_depth,
     parse_sky_depth,
@@ -70,7 +71,10 @@ def _add_effect_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--params", metavar="FILE", help="effect parameters as JSON (from `fit` or save_effect)")
 
 
-FRAME_HELP = "the frame: EXR (or any OpenImageIO format) with colour and depth channels (plain, Nuke or Blender names)"
+FRAME_HELP = (
+    "the frame: EXR (or any OpenImageIO format) with colour and depth channels (plain, Nuke or Blender names), or "
+    "an image without depth (a photograph, a plate: the open sky comes from its alpha or its bright parts)"
+)
 
 
 def _add_frame_options(parser: argparse.ArgumentParser) -> None:
@@ -85,6 +89,26 @@ def _add_frame_options(parser: argparse.ArgumentParser) -> None:
         "layer's view layer's Depth.Z (Blender)",
     )  # fmt: skip
     parser.add_argument("--sky-depth", type=parse_sky_depth, default=SKY_DEPTH, metavar="DEPTH", help=SKY_DEPTH_HELP)
+    parser.add_argument(
+        "--depth-kind", choices=("auto", "planar", "ray"), default="auto",
+        help="what the depth channel measures: distance along each camera ray (ray: Mitsuba, godrays-jax render) or "
+        "along the camera's axis (planar: Blender's Z, hardware depth); default auto: planar for Blender's files, "
+        "ray otherwise. Effects read ray depth: planar depth is converted with the field of view",
+    )  # fmt: skip
+    parser.add_argument(
+        "--fov-x-deg", type=parse_fov, metavar="DEG",
+        help="the camera's horizontal field of view in degrees, for effects with a fov_x_deg field (fit keeps it "
+        "fixed) and to convert planar depth; default: the frame's header (godrays:fov_x_deg, worldToNDC, Blender's "
+        "Lens), else the effect's own",
+    )  # fmt: skip
+
+
+def _add_dither_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--no-dither", action="store_true",
+        help="round 8-bit outputs (PNG, JPEG, TIFF) to the nearest code; by default they get triangular dither of "
+        "one code, seeded by the frame number, so smooth glows do not band",
+    )  # fmt: skip
 
 
 def _add_apply(subparsers) -> None:
@@ -114,6 +138,7 @@ def _add_apply(subparsers) -> None:
         "--flare-texture", metavar="IMAGE", help="the flare texture of a GodRays or FlareOuts effect (any image)"
     )
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
+    _add_dither_option(parser)
     _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.apply_command:run")
 
@@ -139,10 +164,16 @@ def _add_batch(subparsers) -> None:
     lights.add_argument(
         "--light-track", metavar="FILE", help="per-frame lights: CSV rows 'frame,x,y[,in_front]' or JSON; frames between keys are interpolated linearly"
     )
+    parser.add_argument(
+        "--light-depth", type=parse_light_depth, metavar="D",
+        help="the light's distance from the camera in scene units, or inf, for every frame; default: the first "
+        "frame's godrays:light_depth metadata, else inf",
+    )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
     parser.add_argument("--ext", help="write this format instead (e.g. png): colour only, display-encoded")
+    _add_dither_option(parser)
     parser.add_argument("--resume", action="store_true", help="skip frames whose output exists")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     parser.add_argument("--dry-run", action="store_true", help="list what would run, write nothing")

@@ -12,12 +12,15 @@ from godrays_jax.app.options import (
     check_output_path,
     effect_for_frame,
     effect_option,
+    frame_field_of_view,
     frame_reading,
     has_sky,
     resolve_light,
     warn,
+    with_field_of_view,
 )
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
+from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.fit import (
     default_fit_effect,
     determination,
@@ -39,13 +42,19 @@ def run(args) -> int:
     if len(lights) not in (0, len(pairs)):
         raise CommandError(f"give --light once per frame ({len(pairs)} frames) or not at all, got {len(lights)}")
     effect = effect_option(args.preset, args.params, default=default_fit_effect)
+    fov = frame_field_of_view(args, args.buffers)
+    effect = with_field_of_view(effect, fov)
     frames, light_positions, in_front, targets = [], [], [], []
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = read_buffers(buffers_path, **frame_reading(args))
-        if not has_sky(frame):
-            warn("fit", f"{buffers_path} has {NO_SKY}")
         effect = effect_for_frame("fit", effect, frame, buffers_path)
         (light, front) = resolve_light(lights[index] if lights else None, buffers_path)
+        try:
+            frame = ready_frame(effect, frame, light, buffers_path)
+        except ValueError as error:
+            raise CommandError(str(error)) from None
+        if not has_sky(frame):
+            warn("fit", f"{buffers_path} has {NO_SKY}")
         target = read_image(target_path)
         if target.shape[:2] != frame.color.shape[:2]:
             raise CommandError(
@@ -56,6 +65,8 @@ def run(args) -> int:
         in_front.append(bool(front))
         targets.append(target)
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
+    if fov is not None and hasattr(effect, "fov_x_deg") and "fov_x_deg" not in fixed:
+        fixed += ("fov_x_deg",)  # the frame's camera says it: not a parameter to fit
 
     bar = tqdm.tqdm(total=args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
 

@@ -13,6 +13,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.camera_metadata import read_frame_camera
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
 from godrays_jax.primitives.images import read_image
 from godrays_jax.primitives.light_metadata import read_light, read_light_depth
@@ -116,9 +117,38 @@ SKY_DEPTH_HELP = (
 ).replace("e+0", "e")
 
 
+def parse_fov(text: str) -> float:
+    """`--fov-x-deg`: a horizontal field of view in degrees, in (0, 180)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < 180:
+        raise argparse.ArgumentTypeError(f"--fov-x-deg must be a number of degrees in (0, 180), got {text!r}")
+    return value
+
+
 def frame_reading(args: argparse.Namespace) -> dict:
-    """The keyword arguments of `read_buffers` / `read_frame` / `run_batch` from the frame options."""
-    return {"depth_channel": args.depth_channel, "color_layer": args.color_layer, "sky_depth": args.sky_depth}
+    """The keyword arguments of `read_buffers` / `read_frame` / `run_batch` from the frame options.
+
+    Frames without depth are read too (`without_depth`): `batch.ready_frame` gives them their open sky.
+    """
+    return {
+        "depth_channel": args.depth_channel, "color_layer": args.color_layer, "sky_depth": args.sky_depth,
+        "depth_kind": args.depth_kind, "fov_x_deg": args.fov_x_deg, "without_depth": True,
+    }  # fmt: skip
+
+
+def frame_field_of_view(args: argparse.Namespace, path: str) -> float | None:
+    """The field of view effects use: `--fov-x-deg`, else the one the frame's header carries, else None."""
+    return args.fov_x_deg if args.fov_x_deg is not None else read_frame_camera(path).fov_x_deg
+
+
+def with_field_of_view(effect: Effect, fov_x_deg: float | None) -> Effect:
+    """The effect with the frame's field of view, if it has a `fov_x_deg` field and the frame's is known."""
+    if fov_x_deg is None or "fov_x_deg" not in {field.name for field in dataclasses.fields(effect)}:
+        return effect
+    return dataclasses.replace(effect, fov_x_deg=np.float32(fov_x_deg))
 
 
 def warn(command: str, text: str) -> None:

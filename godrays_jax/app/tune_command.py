@@ -6,12 +6,15 @@ from godrays_jax.app.options import (
     check_output_path,
     effect_for_frame,
     effect_option,
+    frame_field_of_view,
     frame_reading,
     has_sky,
     resolve_light,
     warn,
+    with_field_of_view,
 )
 from godrays_jax.app.server import HOST, TuneServer
+from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.app.tuner import Tuner
 from godrays_jax.primitives.frame_reading import read_buffers
 from godrays_jax.primitives.images import read_image
@@ -26,10 +29,16 @@ def run(args) -> int:
         raise CommandError(f"--fit-steps must be >= 1, got {args.fit_steps}")
     effect = effect_option(args.preset, args.params)
     buffers = read_buffers(args.buffers, **frame_reading(args))
-    if not has_sky(buffers):
-        warn("tune", f"{args.buffers} has {NO_SKY}")
+    effect = with_field_of_view(effect, frame_field_of_view(args, args.buffers))
     effect = effect_for_frame("tune", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
+    try:
+        # A frame without depth keeps the open sky found around the starting light while the light is dragged.
+        buffers = ready_frame(effect, buffers, light_xy, args.buffers)
+    except ValueError as error:
+        raise CommandError(str(error)) from None
+    if not has_sky(buffers):
+        warn("tune", f"{args.buffers} has {NO_SKY}")
     target = None if args.target is None else read_image(args.target)
     if target is not None and target.shape[:2] != (buffers.height, buffers.width):
         raise CommandError(

@@ -10,9 +10,11 @@ which are already done) and then executed (`run_batch`):
   (`jax.local_devices()`), the group's frames stacked, sharded over the
   devices along the frame axis (`jax.sharding.NamedSharding`) and mapped with
   `jax.vmap`; the last group is padded by repeating a frame.
-- Each output keeps its input's file name, channels, per-channel formats and
-  metadata (`write_frame_like`: only `R, G, B` change) unless another
-  extension is asked for (then `write_image` writes the colour alone).
+- Each EXR output keeps its input's file name, channels, per-channel formats
+  and metadata (`write_frame_like`: only `R, G, B` change) unless another
+  extension is asked for; then, and for frames in other formats (photographs
+  and plates without depth), `write_image` writes the colour alone,
+  display-encoded, 8-bit outputs dithered per frame (`dither`).
 - Every output is written to a hidden temporary file that is synced to disk
   and renamed into place, so an interrupted run leaves only complete frames.
   A temporary's name carries its process (`files.temporary_path`); the next
@@ -56,14 +58,16 @@ import numpy as np
 import tqdm
 from jaxtyping import Array, Bool, Float
 
-from godrays_jax.effects.base import Effect
+from godrays_jax.effects.base import Effect, needs_depth
+from godrays_jax.effects.plates import buffers_without_depth
+from godrays_jax.effects.presets import presets_without_depth
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.sequences import Light, LightSource, frame_number, light_for
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.files import Claim, claim, release, remove_stale, temporaries_of
 from godrays_jax.primitives.frame_files import FrameFile, read_frame, write_frame_like
-from godrays_jax.primitives.frame_reading import SKY_DEPTH
+from godrays_jax.primitives.frame_reading import SKY_DEPTH, DepthKindOption
 from godrays_jax.primitives.image_files import read_header
 from godrays_jax.primitives.images import write_image
 
@@ -212,9 +216,37 @@ class _Loaded:
     light: Light
 
 
-def _load(job: Job, light: LightSource, reading: dict) -> _Loaded:
+def without_depth_error(name: str, effect: Effect) -> str:
+    """Why `effect` cannot run on the frame `name`, which has no depth: one line naming the presets that can."""
+    return (
+        f"{name} has no depth channel and {type(effect).__name__} measures distance in it; presets that run "
+        f"without depth: {', '.join(presets_without_depth())}"
+    )
+
+
+def ready_frame(effect: Effect, buffers: Buffers, light_xy: tuple[float, float], name: str) -> Buffers:
+    """The frame as the effect reads it: a frame without depth gets its open sky (`plates.buffers_without_depth`).
+
+    Raises:
+        ValueError: the frame has no depth and the effect needs it (`without_depth_error`).
+    """
+    if buffers.depth is not None:
+        return buffers
+    if needs_depth(effect):
+        raise ValueError(without_depth_error(name, effect))
+    return buffers_without_depth(buffers.color, light_xy, alpha=buffers.coverage)
+
+
+def dither_seed_of(path: str) -> int:
+    """The seed of a frame's 8-bit dither: its frame number (0 without one), so each frame's grain differs and repeats."""
+    number = frame_number(path)
+    return 0 if number is None else number % 2**32
+
+
+def _load(job: Job, light: LightSource, reading: dict, effect: Effect) -> _Loaded:
     buffers, frame_file = read_frame(job.input, **reading)
-    return _Loaded(job, buffers, frame_file, light_for(job.input, light))
+    frame_light = light_for(job.input, light)
+    return _Loaded(job, ready_frame(effect, buffers, frame_light[0], job.input), frame_file, frame_light)
 
 
 def _header_size(path: str) -> tuple[int, int] | None:
@@ -275,9 +307,13 @@ def run_batch(
     light: LightSource,
     *,
     layer_only: bool = False,
+    light_depth: float = math.inf,
     depth_channel: str | None = None,
     color_layer: str | None = None,
     sky_depth: float = SKY_DEPTH,
+    depth_kind: DepthKindOption = "auto",
+    fov_x_deg: float | None = None,
+    dither: bool = True,
     devices: Sequence[jax.Device] | None = None,
     io_threads: int = 2,
     progress: TextIO | None = sys.stderr,
@@ -290,7 +326,12 @@ def run_batch(
         effect: the effect, applied with the same parameters to every frame.
         light: each frame's light (`LightSource`).
         layer_only: write the effect alone instead of the composited frame.
-        depth_channel, color_layer, sky_depth: how frames are read (`read_frame`).
+        light_depth: the light's distance (scene units, `inf`: at infinity) for every frame.
+        depth_channel, color_layer, sky_depth, depth_kind, fov_x_deg: how
+            frames are read (`read_frame`; frames without depth are read too,
+            and get their open sky from `plates.buffers_without_depth`).
+        dither: 8-bit outputs (PNG, JPEG, TIFF through `--ext`) get
+            triangular dither seeded by the frame number (`dither_seed_of`).
         devices: devices to spread the frames over (default: `jax.local_devices()`).
         io_threads: threads for reading and, separately, for writing.
         progress: a stream for the progress bar (frames done, frames/s, ETA; None: no bar).
@@ -309,18 +350,21 @@ def run_batch(
     bar = tqdm.tqdm(total=len(todo), unit="frame", file=progress, disable=progress is None, dynamic_ncols=True)
 
     traces_before = _traces["frames"]
-    apply_to_frames = frames_function(effect, layer_only=layer_only)
+    apply_to_frames = frames_function(effect, layer_only=layer_only, light_depth=light_depth)
     mesh = jax.sharding.Mesh(np.array(devices), ("frames",))
     frame_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("frames"))
     group_size = len(devices)
     size = _common_size(todo)
     timing_lock = threading.Lock()
-    reading = {"depth_channel": depth_channel, "color_layer": color_layer, "sky_depth": sky_depth}
+    reading = {
+        "depth_channel": depth_channel, "color_layer": color_layer, "sky_depth": sky_depth, "depth_kind": depth_kind,
+        "fov_x_deg": fov_x_deg, "without_depth": True,
+    }  # fmt: skip
 
     def timed_load(job):
         began = time.perf_counter()
         try:
-            return _load(job, light, reading)
+            return _load(job, light, reading, effect)
         finally:
             with timing_lock:
                 report.read_s += time.perf_counter() - began
@@ -328,10 +372,12 @@ def run_batch(
     def write(job: Job, image: np.ndarray, frame_file: FrameFile) -> None:
         began = time.perf_counter()
         try:
-            if os.path.splitext(job.output)[1].lower() == os.path.splitext(job.input)[1].lower():
+            # EXR to EXR keeps every channel and the header; other formats are display-encoded colour.
+            if all(os.path.splitext(path)[1].lower() == ".exr" for path in (job.output, job.input)):
                 write_frame_like(job.output, image, frame_file, replace=job.overwrite)
             else:
-                write_image(job.output, image, replace=job.overwrite)
+                seed = dither_seed_of(job.input) if dither else None
+                write_image(job.output, image, replace=job.overwrite, dither_seed=seed)
         finally:
             with timing_lock:
                 report.write_s += time.perf_counter() - began

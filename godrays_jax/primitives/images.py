@@ -10,7 +10,7 @@ import numpy as np
 import OpenImageIO as oiio
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax.primitives.color import srgb_decode, srgb_encode
+from godrays_jax.primitives.color import quantize, srgb_decode, srgb_encode
 from godrays_jax.primitives.image_files import EXR_EXTENSIONS, read_pixels, set_attribute, write_pixels
 
 _DISPLAY_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
@@ -48,6 +48,7 @@ def write_image(
     bit_depth: Literal[8, 16] | None = None,
     metadata: Mapping[str, object] | None = None,
     replace: bool = True,
+    dither_seed: int | None = None,
 ) -> None:
     """Write a linear image; the format follows the extension.
 
@@ -65,6 +66,11 @@ def write_image(
             numbers` (formats other than EXR may keep only some).
         replace: False: never replace an existing `path`, even one another
             process creates meanwhile (`FileExistsError`).
+        dither_seed: 8-bit PNG/TIFF/JPEG only: add triangular noise of one
+            code to the colour before rounding (`color.quantize`), drawn from
+            this seed, so smooth gradients do not band; None (the default)
+            rounds; EXR and 16-bit files ignore it. `apply` and `batch` pass
+            one per frame (`dither_seed_of`).
 
     Raises:
         ValueError: an unknown extension, a wrong shape or channel count, an
@@ -95,14 +101,14 @@ def write_image(
         if channels == 4 and ext in _JPEG_EXTENSIONS:
             raise ValueError(f"JPEG has no alpha channel: cannot write 4 channels to '{os.fspath(path)}'")
         fmt = oiio.UINT8 if bits == 8 else oiio.UINT16
+        colour_seed = dither_seed if bits == 8 else None
         if channels == 4:
             alpha = np.clip(pixels[..., 3:], 0.0, 1.0)
             straight = np.where(alpha > 0, pixels[..., :3] / np.where(alpha > 0, alpha, 1.0), 0.0)
-            encoded = np.concatenate([srgb_encode(straight), alpha], axis=-1)
+            colour = quantize(srgb_encode(straight), bits=bits, dither_seed=colour_seed)
+            pixels = np.concatenate([colour, quantize(alpha, bits=bits)], axis=-1)
         else:
-            encoded = srgb_encode(pixels)
-        scale = 2**bits - 1
-        pixels = np.rint(encoded * scale).astype(np.uint8 if bits == 8 else np.uint16)
+            pixels = quantize(srgb_encode(pixels), bits=bits, dither_seed=colour_seed)
     else:
         raise ValueError(
             f"cannot write image '{os.fspath(path)}': unknown extension {ext or '(none)'!r} "

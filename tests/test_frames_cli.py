@@ -1,0 +1,129 @@
+"""The commands on frames as renderers and cameras write them: Blender's planar depth and camera, photographs
+without depth, 8-bit outputs dithered."""
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.app.cli import main
+from godrays_jax.primitives.color import quantize, srgb_encode
+
+DATA = Path(__file__).resolve().parent / "data"
+BLENDER = DATA / "blender_planar_z.exr"  # tests/data/blender_planar_z.py: planar Z, a 30 mm lens stamped
+BLENDER_FOV = 2 * math.degrees(math.atan(18 / 30))
+LIGHT = (40.0, 8.0)
+
+
+def _photo(path, height=18, width=32):
+    """A photograph: a bright sky with a sun at (16, 5), dark trunks, dark ground; sRGB 8-bit."""
+    colour = np.full((height, width, 3), 0.45, np.float32) * np.asarray([1.0, 0.9, 0.75], np.float32)
+    colour[3:7, 14:18] = 1.0
+    colour[:, 8:10] = colour[:, 22:24] = 0.01
+    colour[12:] = 0.02
+    gr.write_image(path, colour)
+    return path
+
+
+def test_apply_photo_without_depth(tmp_path):
+    photo = _photo(tmp_path / "photo.png")
+    output = tmp_path / "rays.png"
+    assert main(["apply", str(photo), "--light", "16,5", "--preset", "gpu_gems", "--no-dither", "-o", str(output)]) == 0
+    plate = gr.buffers_without_depth(gr.read_image(photo), (16.0, 5.0))
+    expected = gr.preset("gpu_gems")(plate, jnp.asarray([16.0, 5.0]))
+    written = np.asarray(gr.read_image(output))
+    codes = quantize(srgb_encode(np.asarray(expected)), bits=8)
+    np.testing.assert_array_equal(np.rint(srgb_encode(written) * 255), codes)
+    assert float(np.mean(written[:12, 10:22] - np.asarray(gr.read_image(photo))[:12, 10:22])) > 0.01  # shafts added
+
+
+def test_apply_photo_with_an_effect_that_needs_depth(tmp_path, capsys):
+    photo = _photo(tmp_path / "photo.png")
+    assert main(["apply", str(photo), "--light", "16,5", "--preset", "participating_media", "-o", str(tmp_path / "o.png")]) == 1
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "photo.png has no depth channel and ScatteringFog" in line
+    assert "presets that run without depth: " in line and "gpu_gems" in line and "participating_media" not in line
+    assert sorted(os.listdir(tmp_path)) == ["photo.png"]
+
+
+def test_apply_dithers_8_bit_outputs(tmp_path):
+    frame = DATA / "colonnade_buffers.exr"
+    runs = {}
+    for name, extra in (("a.png", []), ("b.png", []), ("round.png", ["--no-dither"]), ("c.jpg", []), ("d.tif", [])):
+        assert main(["apply", str(frame), "--light", "160,40", "--preset", "gpu_gems", *extra, "-o", str(tmp_path / name)]) == 0
+        runs[name] = np.rint(srgb_encode(np.asarray(gr.read_image(tmp_path / name))) * 255)
+    np.testing.assert_array_equal(runs["a.png"], runs["b.png"])  # deterministic
+    difference = runs["a.png"] - runs["round.png"]
+    assert np.max(np.abs(difference)) <= 2 and np.mean(difference != 0) > 0.2  # grain of about a code
+    np.testing.assert_array_equal(runs["d.tif"], runs["a.png"])  # 8-bit TIFF dithered the same way
+    assert np.mean(np.abs(runs["c.jpg"] - runs["round.png"])) > 0.1
+
+
+def test_apply_blender_frame_reads_ray_depth_and_the_frames_camera(tmp_path):
+    output = tmp_path / "fog.exr"
+    assert main(["apply", str(BLENDER), "--light", "40,8", "--preset", "participating_media", "-o", str(output)]) == 0
+    fog = gr.preset("participating_media")
+    assert float(fog.fov_x_deg) != pytest.approx(BLENDER_FOV)  # the preset's own differs from the frame's
+    frame = gr.read_buffers(BLENDER)  # planar Z converted to ray depth with the header's field of view
+    expected = dataclasses.replace(fog, fov_x_deg=BLENDER_FOV)(frame, jnp.asarray(LIGHT))
+    np.testing.assert_allclose(np.asarray(gr.read_buffers(output).color), np.asarray(expected), rtol=1e-5, atol=1e-6)
+    # --fov-x-deg overrides the header, for the effect and the depth alike.
+    output = tmp_path / "fog40.exr"
+    assert main(["apply", str(BLENDER), "--light", "40,8", "--preset", "participating_media", "--fov-x-deg", "40",
+                 "-o", str(output)]) == 0  # fmt: skip
+    expected = dataclasses.replace(fog, fov_x_deg=40.0)(
+        gr.read_buffers(BLENDER, fov_x_deg=40.0), jnp.asarray(LIGHT)
+    )
+    np.testing.assert_allclose(np.asarray(gr.read_buffers(output).color), np.asarray(expected), rtol=1e-5, atol=1e-6)
+    # --depth-kind ray reads Blender's Z as stored.
+    output = tmp_path / "as_ray.exr"
+    assert main(["apply", str(BLENDER), "--light", "40,8", "--preset", "participating_media", "--depth-kind", "ray",
+                 "-o", str(output)]) == 0  # fmt: skip
+    assert not np.allclose(np.asarray(gr.read_buffers(output).color), np.asarray(gr.read_buffers(tmp_path / "fog.exr").color))
+
+
+def test_fit_keeps_the_frames_field_of_view(tmp_path, capsys):
+    fog = gr.preset("participating_media")
+    truth = dataclasses.replace(fog, fov_x_deg=BLENDER_FOV, extinction=0.05)
+    target = tmp_path / "target.exr"
+    gr.write_image(target, truth(gr.read_buffers(BLENDER), jnp.asarray(LIGHT)))
+    params = tmp_path / "params.json"
+    assert main(["fit", str(BLENDER), str(target), "--light", "40,8", "--max-steps", "2", "-o", str(params)]) == 0
+    fitted = json.loads(params.read_text())
+    assert fitted["fov_x_deg"] == pytest.approx(BLENDER_FOV, rel=1e-6)
+    assert "fov_x_deg =" not in capsys.readouterr().out  # fixed, not fitted
+
+
+def test_batch_photos_without_depth_dithered_per_frame(tmp_path):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for number in (1, 2):
+        _photo(folder / f"plate.{number:04d}.png")
+    out = tmp_path / "out"
+    assert main(["batch", str(folder / "plate.####.png"), "-o", str(out), "--light", "16,5", "--preset", "gpu_gems", "-q"]) == 0
+    assert main(["batch", str(folder / "plate.####.png"), "-o", str(tmp_path / "round"), "--light", "16,5",
+                 "--preset", "gpu_gems", "--no-dither", "-q"]) == 0  # fmt: skip
+    codes = {p.name: np.rint(srgb_encode(np.asarray(gr.read_image(p))) * 255) for p in sorted(out.iterdir())}
+    rounded = np.rint(srgb_encode(np.asarray(gr.read_image(tmp_path / "round" / "plate.0001.png"))) * 255)
+    first, second = codes["plate.0001.png"], codes["plate.0002.png"]
+    assert np.any(first != second)  # the same picture, each frame's own grain
+    assert np.max(np.abs(first - rounded)) <= 2 and np.any(first != rounded)
+    plate = gr.buffers_without_depth(gr.read_image(folder / "plate.0001.png"), (16.0, 5.0))
+    expected = gr.preset("gpu_gems")(plate, jnp.asarray([16.0, 5.0]))
+    np.testing.assert_array_equal(rounded, quantize(srgb_encode(np.asarray(expected)), bits=8))
+
+
+def test_batch_frames_without_depth_and_a_medium_fail_each_frame(tmp_path, capsys):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    _photo(folder / "plate.0001.png")
+    status = main(["batch", str(folder / "plate.####.png"), "-o", str(tmp_path / "out"), "--light", "16,5",
+                   "--preset", "participating_media", "-q"])  # fmt: skip
+    assert status == 1
+    assert "has no depth channel and ScatteringFog measures distance in it" in capsys.readouterr().err

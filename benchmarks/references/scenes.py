@@ -83,14 +83,19 @@ BY_NAME = {scene.name: scene for scene in SCENES}
 
 
 def table() -> str:
-    """The README's table of the scenes (markdown): medium, light, samples, seconds, noise floor."""
+    """The README's table (markdown): medium, light, samples, seconds, noise floor, today's fit (`baseline.json`)."""
+    baseline_path = HERE / "baseline.json"
+    baseline = json.loads(baseline_path.read_text()) if baseline_path.exists() else {}
     rows = ["| scene | what it shows | medium: sigma_t, albedo, g, extent | light | spp fog / clean | "
-            "seconds per fog render (wall, CPU) | noise floor |", "|---|---|---|---|---|---|---|"]
+            "seconds per fog render (wall / CPU) | noise floor | today's model / floor (fog A, fog B) |",
+            "|---|---|---|---|---|---|---|---|"]
     for s in SCENES:
         m = s.medium
         fog_seconds = ", ".join(f"{wall:g} / {cpu:g}" for wall, cpu in (s.seconds["fog_a"], s.seconds["fog_b"]))
+        fit = baseline.get(s.name)
+        today = f"{fit['ratio_fog_a']:.2f}, {fit['ratio_fog_b']:.2f}" if fit else "not measured"
         rows.append(f"| {s.name} | {s.shows} | {m['sigma_t']:g}, {m['albedo']:g}, {m['g']:g}, {m['extent']} | "
-                    f"{s.light} | {s.spp['fog']} / {s.spp['clean']} | {fog_seconds} | {s.noise_floor:.3e} |")
+                    f"{s.light} | {s.spp['fog']} / {s.spp['clean']} | {fog_seconds} | {s.noise_floor:.3e} | {today} |")
     return "\n".join(rows)
 
 

@@ -9,6 +9,7 @@ labelled contact sheet of them; into `out/seeds/`, `--out DIR`, or
 """
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import equinox as eqx
@@ -28,6 +29,12 @@ PRESET_OF_SCENE = {
 }
 
 
+def with_frame_camera(effect: gr.Effect, camera: gr.Camera) -> gr.Effect:
+    """The effect told the frame's camera: its field of view and clip planes, where the effect reads them."""
+    fields = {"fov_x_deg": camera.fov_x_deg, "near_plane": float(camera.near), "far_plane": float(camera.far)}
+    return dataclasses.replace(effect, **{name: value for name, value in fields.items() if hasattr(effect, name)})
+
+
 def make_seed_pictures(*, docs: bool = False, out: Path | None = None) -> None:
     """Every seed scene rendered and composed with its article's preset, and their contact sheet."""
     folder = output_folder(docs, "seeds", out)
@@ -36,9 +43,11 @@ def make_seed_pictures(*, docs: bool = False, out: Path | None = None) -> None:
         scene, camera = gr.load_scene(SCENES / f"{name}.json")
         buffers = gr.render(scene, camera)
         light_xy, _, in_front = gr.light_pixel(scene, camera)
-        effect = gr.preset(preset_name)
-        compose = eqx.filter_jit(lambda e, b, l, front: e(b, l, light_in_front=front))
-        composed = compose(effect, buffers, jnp.asarray(light_xy), bool(in_front))
+        # The light's distance, as `render` stores it with a frame: the XNA depth test passes the sun's own pixels.
+        light_depth = gr.light_distance(scene, camera)
+        effect = with_frame_camera(gr.preset(preset_name), camera)
+        compose = eqx.filter_jit(lambda e, b, l, front, depth: e(b, l, light_in_front=front, light_depth=depth))
+        composed = compose(effect, buffers, jnp.asarray(light_xy), bool(in_front), light_depth)
         gr.write_image(folder / f"{name}_{preset_name}.png", composed)
         tiles.append(labelled(display(composed), f"{name}: {preset_name}"))
         if name == "solar_system_000":

@@ -62,12 +62,14 @@ from godrays_jax.kernels.losses import ssim as ssim
 from godrays_jax.kernels.losses import ssim_loss as ssim_loss
 from godrays_jax.kernels.masks import bright_pass as bright_pass
 from godrays_jax.kernels.masks import bright_sky as bright_sky
+from godrays_jax.kernels.masks import clip_space_depth as clip_space_depth
 from godrays_jax.kernels.masks import coverage_mask as coverage_mask
 from godrays_jax.kernels.masks import depth_test_mask as depth_test_mask
 from godrays_jax.kernels.masks import dilate as dilate
 from godrays_jax.kernels.masks import erode as erode
 from godrays_jax.kernels.masks import flare_image as flare_image
 from godrays_jax.kernels.masks import flare_mask as flare_mask
+from godrays_jax.kernels.masks import hardware_depth as hardware_depth
 from godrays_jax.kernels.masks import light_source_mask as light_source_mask
 from godrays_jax.kernels.masks import procedural_flare as procedural_flare
 from godrays_jax.kernels.masks import sky_mask as sky_mask
@@ -103,6 +105,8 @@ from godrays_jax.effects.serialization import save_effect as save_effect
 from godrays_jax.effects.shafts import FlareOuts as FlareOuts
 from godrays_jax.effects.shafts import GodRays as GodRays
 from godrays_jax.effects.shafts import step_clamp as step_clamp
+from godrays_jax.effects.shafts import XNA_FAR_PLANE as XNA_FAR_PLANE
+from godrays_jax.effects.shafts import XNA_NEAR_PLANE as XNA_NEAR_PLANE
 
 # Pipeline: sequences and batches of frames (fitting loads on first use, below).
 from godrays_jax.pipeline.batch import plan_batch as plan_batch
@@ -118,6 +122,7 @@ _ON_FIRST_USE = {
     "FitResult": "godrays_jax.pipeline.fit",
     "fit_report_image": "godrays_jax.pipeline.report",
     "DirectionalLight": "godrays_jax.raster",
+    "light_distance": "godrays_jax.raster",
     "light_pixel": "godrays_jax.raster",
     "load_obj": "godrays_jax.raster",
     "load_scene": "godrays_jax.raster",

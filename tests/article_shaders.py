@@ -44,39 +44,90 @@ def saturate(x):
 
 
 # --- seed 003: XNA crepuscular rays (LightSourceMask, LightSceneMask, LightRays, BrightPass, SceneBlend) ---
+#
+# The shaders take the light as `lightPosition` and the camera as `matVP`, XNA's row-vector matrices
+# (`mul(v, M)`), its view space looking down -z; here the light is given in view space (`matVP` is then the
+# projection alone) as the point `float4(lightPosition, 1)`: its clip-space z is `(d - near) * far / (far -
+# near)` and `w` its distance `d` along the axis. (Compiled as printed, `mul(float3, float4x4)` would drop
+# the matrix's last row, the view's translation and the projection's z offset with it; the article's
+# comments meet that and subtract the camera's position.) Full-screen passes shade each pixel at its
+# texel centre: the shared vertex shader (not printed) adds the half pixel that `texCoord -= halfPixel`
+# takes away (Direct3D 9's rule).
 
 
-def light_source_mask(height, width, light_uv, size, flare):
-    """LightSourceMask.fx: `coord = .5 - (texCoord - center) / size * .5; col = pow(tex2D(Flare, coord), 2) * 2`.
+def xna_projection(fov_y, aspect, near, far):
+    """`Matrix.CreatePerspectiveFieldOfView(fov_y, aspect, near, far)`, row-vector convention."""
+    y_scale = 1.0 / np.tan(fov_y / 2)
+    matrix = np.zeros((4, 4))
+    matrix[0, 0] = y_scale / aspect
+    matrix[1, 1] = y_scale
+    matrix[2, 2] = far / (near - far)
+    matrix[2, 3] = -1.0
+    matrix[3, 2] = near * far / (near - far)
+    return matrix
 
-    `size` is `SunSize / scale` in UV units (half the flare's extent in u and in v).
-    """
+
+def screen_position(light_view, mat_vp):
+    """`ScreenPosition = mul(lightPosition, matVP)`, then as every XNA pass continues:
+    `(xy / w) * (.5, -.5) + .5`, z divided by w, w kept. Returns `(u, v, z / w, w)`."""
+    clip = np.append(np.asarray(light_view, np.float64), 1.0) @ mat_vp
+    x, y, z, w = clip / np.array([clip[3], clip[3], clip[3], 1.0])
+    return x / 2 + 0.5, -y / 2 + 0.5, z, w
+
+
+def article_depth_map(planar_depth, mat_vp):
+    """The depth map the scene mask reads: `1 - z/w` in `.r` (`depthVal = 1 - tex.r` is then z/w), cleared to 0
+    where nothing was drawn (the sky: depthVal 1, the far plane). `planar_depth` is distance along the axis."""
+    drawn = np.isfinite(planar_depth)
+    d = np.where(drawn, planar_depth, 1.0)
+    z_over_w = (-d * mat_vp[2, 2] + mat_vp[3, 2]) / d  # a point (0, 0, -d, 1): w = d
+    return np.where(drawn, 1.0 - z_over_w, 0.0)[..., None]
+
+
+def light_source_mask(height, width, light_view, mat_vp, sun_size, flare):
+    """LightSourceMask.fx: `size = SunSize / ScreenPosition.z` (before the divide); `coord = .5 - (texCoord -
+    center) / size * .5; col = pow(tex2D(Flare, coord), 2) * 2` while `w > 0` (clamp addressing)."""
     u, v = uv_grid(height, width)
-    coord_u = 0.5 - (u - light_uv[0]) / size * 0.5
-    coord_v = 0.5 - (v - light_uv[1]) / size * 0.5
-    return tex2d(flare, coord_u, coord_v) ** 2 * 2
+    scale = (np.append(np.asarray(light_view, np.float64), 1.0) @ mat_vp)[2]
+    center_u, center_v, _, w = screen_position(light_view, mat_vp)
+    if not w > 0:
+        return np.zeros((height, width, flare.shape[-1]))
+    size = sun_size / scale
+    return tex2d(flare, 0.5 - (u - center_u) / size * 0.5, 0.5 - (v - center_v) / size * 0.5) ** 2 * 2
 
 
-def scene_mask(source, depth, light_depth, bias):
-    """LightSceneMask.fx: black out the pixels in front of the light (`depth < light depth - bias`).
+def scene_mask(scene, depth_map, light_view, mat_vp):
+    """LightSceneMask.fx: `depthVal = 1 - tex2D(DepthMap, texCoord).r` (point filtering: the pixel's own texel);
+    `if (depthVal < ScreenPosition.z - .00025) scene = 0`."""
+    depth_val = 1.0 - depth_map[..., 0]
+    _, _, light_z, _ = screen_position(light_view, mat_vp)
+    return np.where((depth_val < light_z - 0.00025)[..., None], 0.0, scene)
 
-    Linear depths in scene units; the bias is a fraction of the light's depth.
-    """
-    in_front = depth < light_depth * (1.0 - bias)
-    return np.where(in_front[..., None], 0.0, source)
+
+def light_rays(scene, light_view, mat_vp, *, num_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.15):
+    """LightRays.fx: `DeltaTexCoord = (TexCoord - ScreenPosition.xy) * (1 / NUM_SAMPLES * Density) *
+    clamp(ScreenPosition.w * ScreenPosition.z, 0, .5)` (z already divided by w), then the GPU Gems loop; it
+    returns `col * Exposure` before its `w > 0` test (dead code)."""
+    height, width = scene.shape[:2]
+    light_u, light_v, z_over_w, w = screen_position(light_view, mat_vp)
+    u, v = uv_grid(height, width)
+    step = 1.0 / num_samples * density * np.clip(w * z_over_w, 0.0, 0.5)
+    du, dv = (u - light_u) * step, (v - light_v) * step
+    col = tex2d(scene, u, v)
+    illumination = 1.0
+    for _ in range(num_samples):
+        u, v = u - du, v - dv
+        col = col + tex2d(scene, u, v) * illumination * weight
+        illumination *= decay
+    return col * exposure
 
 
-def light_rays(scene, light_uv, light_depth, *, num_samples=128, density=0.5, decay=0.95, weight=1.0, exposure=0.15,
-               step_clamp=True):
-    """LightRays.fx, with `DeltaTexCoord *= clamp(ScreenPosition.w * ScreenPosition.z, 0, .5)` (clip-space z, the
-    light's depth for a near plane much closer than the light) when `step_clamp`."""
+def gpu_gems_loop(scene, light_uv, *, num_samples, density, decay, weight, exposure):
+    """The GPU Gems 3 loop alone (no step clamp), light given in UV."""
     height, width = scene.shape[:2]
     u, v = uv_grid(height, width)
     du = (u - light_uv[0]) * (1.0 / num_samples * density)
     dv = (v - light_uv[1]) * (1.0 / num_samples * density)
-    if step_clamp:
-        clamp = np.clip(light_depth, 0.0, 0.5)
-        du, dv = du * clamp, dv * clamp
     col = tex2d(scene, u, v)
     illumination = 1.0
     for _ in range(num_samples):
@@ -91,12 +142,12 @@ def bright_pass(image, threshold):
     return saturate((image - threshold) / (1.0 - threshold))
 
 
-def xna_crepuscular(color, depth, light_uv, light_depth, *, size, flare, bias, threshold, tint, **rays):
-    """The five passes of seed 003 (tint, ours, scales the bright pass): `(frame, layer)`."""
-    height, width = depth.shape
-    mask = light_source_mask(height, width, light_uv, size, flare)
-    masked = scene_mask(mask, depth, light_depth, bias)
-    layer = bright_pass(light_rays(masked, light_uv, light_depth, **rays), threshold) * np.asarray(tint)
+def xna_crepuscular(color, depth_map, light_view, mat_vp, *, sun_size, flare, threshold, tint, **rays):
+    """The five passes of seed 003, SceneBlend's `Aditive` last (tint, ours, scales the bright pass): `(frame, layer)`."""
+    height, width = color.shape[:2]
+    mask = light_source_mask(height, width, light_view, mat_vp, sun_size, flare)
+    masked = scene_mask(mask, depth_map, light_view, mat_vp)
+    layer = bright_pass(light_rays(masked, light_view, mat_vp, **rays), threshold) * np.asarray(tint)
     return color + layer, layer
 
 
@@ -105,8 +156,8 @@ def xna_crepuscular(color, depth, light_uv, light_depth, *, size, flare, bias, t
 
 def galaxy_vls(black_scene, light_uv, *, num_samples=200, density=1.0, weight=1.0, decay=0.98, exposure=0.05):
     """PS_VLS on the white-light/black-occluder target (its `1 - y` flip undone: both targets share it)."""
-    return light_rays(black_scene, light_uv, 0.0, num_samples=num_samples, density=density, decay=decay, weight=weight,
-                      exposure=exposure, step_clamp=False)
+    return gpu_gems_loop(black_scene, light_uv, num_samples=num_samples, density=density, decay=decay, weight=weight,
+                         exposure=exposure)
 
 
 # --- seed 002: kbEngine flare-outs ---
@@ -126,12 +177,14 @@ def kbengine_masked_flare(height, width, light_uv, size, flare, depth):
 
 def kbengine_flares(color, depth, light_uv, *, size, flare, num_iters, scale_step, intensity, sigma, radius, factor,
                     tint=(1.0, 1.0, 1.0)):
-    """The whole kbEngine pass: masked flare, flare-outs into a `1/factor` target, `intensity`, a Gaussian against
-    banding on that target (`sigma` texels, `radius` taps), drawn back over the frame and added: `(frame, layer)`."""
+    """The whole kbEngine pass: "repeatedly scaling and rendering the masked texture into a low-res scene texture"
+    (`Fullsize / factor` whole pixels, each copy sampled from the full-resolution masked texture), `intensity`, a
+    Gaussian against banding on that target (`sigma` texels, `radius` taps), "added on top the scene color buffer"
+    (drawn by UV): `(frame, layer)`."""
     height, width = depth.shape
     masked = kbengine_masked_flare(height, width, light_uv, size, flare, depth)
-    low = box_downsample(masked, factor)
-    low = flare_outs(low, light_uv, low.shape[:2], num_iters=num_iters, scale_step=scale_step) * intensity
+    target = (max(1, height // factor), max(1, width // factor))
+    low = flare_outs(masked, light_uv, target, num_iters=num_iters, scale_step=scale_step) * intensity
     layer = upsample(gaussian_blur(low, sigma, radius), height, width) * np.asarray(tint)
     return color + layer, layer
 
@@ -156,13 +209,6 @@ def gaussian_blur(image, sigma, radius):
     h, w = image.shape[:2]
     rows = sum(kernel[i] * image[np.clip(np.arange(h) + t, 0, h - 1)] for i, t in enumerate(taps))
     return sum(kernel[i] * rows[:, np.clip(np.arange(w) + t, 0, w - 1)] for i, t in enumerate(taps))
-
-
-def box_downsample(image, factor):
-    h, w = image.shape[:2]
-    lh, lw = -(-h // factor), -(-w // factor)
-    padded = np.pad(image, ((0, lh * factor - h), (0, lw * factor - w), (0, 0)), mode="edge")
-    return padded.reshape(lh, factor, lw, factor, -1).mean(axis=(1, 3))
 
 
 def upsample(low, height, width):
@@ -209,23 +255,18 @@ def view_rays(height, width, fov_x_deg):
     return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
 
-def lens_dirt(dirt, depth, to_light, fov_x_deg, far, sun_color, *, power=20.0, scale=2.0, offset=0.002,
-              depth_in_power=False, floor=0.8):
-    """VBex LensDirt: per-channel dirt samples (green at `tex + (0, .002)`, blue at `tex + (.002, 0)`) times the sun
-    colour, times `pow(saturate(dot(view, -lightdir) * max(LDepth, .8)), 20) * 2` as written (`depth_in_power`), or
-    with `max(LDepth, .8)` applied to the intensity after the power (the depth response we ship)."""
+def lens_dirt(dirt, depth, to_light, fov_x_deg, far_plane, sun_color):
+    """VBex LensDirt as printed: `LensDirtColor.r/g/b = TextureDirt.Sample(tex [+ ofsG | + ofsB]) * SunColor`, with
+    `ofsG = (0, .002)`, `ofsB = (.002, 0)`; `LensDirtIntensity = saturate(dot(WViewDirection, -DirLight.direction) *
+    max(GBuffer.LDepth, 0.8))`, then `pow(LensDirtIntensity, 20) * 2`. `LDepth` is linear depth over `far_plane`, 1 on the
+    sky; the view direction is each pixel's ray."""
     height, width = depth.shape
     u, v = uv_grid(height, width)
-    colour = np.concatenate([tex2d(dirt, u, v), tex2d(dirt, u, v + offset), tex2d(dirt, u + offset, v)], axis=-1)
+    colour = np.concatenate([tex2d(dirt, u, v), tex2d(dirt, u, v + 0.002), tex2d(dirt, u + 0.002, v)], axis=-1)
     colour = colour * np.asarray(sun_color)
-    ldepth = np.where(np.isfinite(depth), np.clip(np.where(np.isfinite(depth), depth, 0) / far, 0, 1), 1.0)
-    cosine = view_rays(height, width, fov_x_deg) @ to_light
-    occluder = np.maximum(ldepth, floor)
-    if depth_in_power:
-        intensity = saturate(cosine * occluder) ** power * scale
-    else:
-        intensity = saturate(cosine) ** power * scale * occluder
-    return colour * intensity[..., None]
+    ldepth = np.where(np.isfinite(depth), np.clip(np.where(np.isfinite(depth), depth, 0) / far_plane, 0, 1), 1.0)
+    intensity = saturate((view_rays(height, width, fov_x_deg) @ to_light) * np.maximum(ldepth, 0.8))
+    return colour * (intensity**20 * 2)[..., None]
 
 
 def sun_spot(height, width, to_light, fov_x_deg, sun_distance, sun_sharpness):
@@ -235,11 +276,14 @@ def sun_spot(height, width, to_light, fov_x_deg, sun_distance, sun_sharpness):
 
 
 def bright_glow(glow, sigma, radius, weights=(1, 1, 1, 1)):
-    """Glow/Bloom: the glow target box-reduced to Fullsize/2, /4, /8, /16, each blurred by the same Gaussian
-    (`sigma` texels of that target, `radius` taps), read back with linear filtering and added."""
+    """Glow/Bloom: "four BlurTargets with different sizes, Fullsize/2, Fullsize/4, Fullsize/8, Fullsize/16. Add all
+    results". Render targets have whole-pixel sizes (`H // f` x `W // f`); each is drawn from the one before it (the
+    first from the glow target) as a full-screen quad, linear filtering at its texel centres' UV; blurred by the same
+    Gaussian (`sigma` texels of that target, `radius` taps); drawn back over the frame by UV and added."""
     height, width = glow.shape[:2]
-    total = 0.0
+    full_u, full_v = uv_grid(height, width)
+    total, level = 0.0, glow
     for weight, factor in zip(weights, (2, 4, 8, 16)):
-        low = gaussian_blur(box_downsample(glow, factor), sigma, radius)
-        total = total + weight * upsample(low, height, width)
+        level = tex2d(level, *uv_grid(max(1, height // factor), max(1, width // factor)))
+        total = total + weight * tex2d(gaussian_blur(level, sigma, radius), full_u, full_v)
     return total

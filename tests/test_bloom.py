@@ -12,17 +12,6 @@ import godrays_jax as gr
 import reference
 
 
-def _box(image, factor):
-    height, width, channels = image.shape
-    out = np.zeros((-(-height // factor), -(-width // factor), channels))
-    for row in range(out.shape[0]):
-        for col in range(out.shape[1]):
-            for dy in range(factor):
-                for dx in range(factor):
-                    out[row, col] += image[min(row * factor + dy, height - 1), min(col * factor + dx, width - 1)]
-    return out / factor**2
-
-
 def _gauss(image, sigma, radius):
     kernel = np.array([math.exp(-0.5 * (t / sigma) ** 2) for t in range(-radius, radius + 1)])
     kernel /= kernel.sum()
@@ -40,14 +29,24 @@ def _gauss(image, sigma, radius):
     return out
 
 
+def _draw(image, height, width):
+    """A full-screen quad into a `height x width` target: each pixel reads `image` at its own UV."""
+    out = np.zeros((height, width, image.shape[2]))
+    for row in range(height):
+        for col in range(width):
+            x, y = (col + 0.5) * image.shape[1] / width, (row + 0.5) * image.shape[0] / height
+            out[row, col] = reference.bilinear(image, x, y)
+    return out
+
+
 def _reference_bloom(image, threshold, weights, sigma, radius):
-    bright = np.maximum(image - threshold, 0.0)
+    """Levels of whole pixels `H // f x W // f`, each drawn from the one before by UV, blurred, drawn back by UV."""
+    height, width = image.shape[:2]
+    level = np.maximum(image - threshold, 0.0)
     out = np.zeros_like(image)
-    for level, factor in enumerate((2, 4, 8, 16)):
-        low = _gauss(_box(bright, factor), sigma, radius)
-        for row in range(image.shape[0]):
-            for col in range(image.shape[1]):
-                out[row, col] += weights[level] * reference.bilinear(low, (col + 0.5) / factor, (row + 0.5) / factor)
+    for index, factor in enumerate((2, 4, 8, 16)):
+        level = _draw(level, max(1, height // factor), max(1, width // factor))
+        out += weights[index] * _draw(_gauss(level, sigma, radius), height, width)
     return out
 
 

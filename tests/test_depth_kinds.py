@@ -1,5 +1,6 @@
 """Depth as renderers write it: planar depth (along the camera's axis) read as distance along each ray."""
 
+import dataclasses
 import math
 
 import jax
@@ -111,14 +112,20 @@ def test_fog_reads_ray_depth(rng):
     assert float(jnp.max(jnp.abs(misread - from_ray))) > 1e-3
 
 
-def test_depth_test_reads_ray_depth(rng):
-    """The XNA depth test compares distance along the ray with the light's distance."""
-    effect = gr.preset("xna_crepuscular")
-    planar = np.full((18, 32), 10.0)
-    planar[:, :16] = np.inf
+def test_depth_test_reads_planar_depth_as_the_hardware_does(rng):
+    """The XNA depth test compares hardware depth, which is planar: planar depth as stored, ray depth converted
+    with the effect's `fov_x_deg` give the same picture; ray depth read as planar would not."""
+    effect = dataclasses.replace(gr.preset("xna_crepuscular"), sun_size=3.0, threshold=0.0)  # a .3 UV flare
+    planar = np.full((18, 32), 10.48)  # within the bias (.00025 in z/w) of a light at 10.5 along the axis
+    planar[:, :8] = np.inf
+    planar[:, 28:] = 4.0  # in front of the light: blanked
     light = jnp.asarray([16.0, 9.0])
-    with pytest.raises(ValueError, match="fov_x_deg"):
-        effect(_buffers(planar, "planar"), light, light_depth=10.5)
+    fov = float(effect.fov_x_deg)
+    from_planar = effect(_buffers(planar, "planar"), light, light_depth=10.5)
+    from_ray = effect(_buffers(_ray_depth_loop(planar, fov), "ray"), light, light_depth=10.5)
+    np.testing.assert_allclose(np.asarray(from_planar), np.asarray(from_ray), rtol=1e-5, atol=1e-6)
+    misread = effect(_buffers(planar, "ray"), light, light_depth=10.5)
+    assert float(jnp.max(jnp.abs(misread - from_ray))) > 1e-3
     # A light at infinity passes only the sky, whatever the depth measures.
     at_infinity = effect(_buffers(planar, "planar"), light)
     np.testing.assert_allclose(np.asarray(at_infinity), np.asarray(effect(_buffers(planar, "ray"), light)))

@@ -226,6 +226,40 @@ def test_scale_iterated_flares_jit_vmap_relaxed_and_gradients(x64, rng):
     assert np.isfinite(count_grad) and count_grad > 0
 
 
+def _flare_outs_into_loop(masked, light, target, num_iters, scale_step, decay):
+    """Each target pixel's centre, in full-resolution pixels, read from every copy of the full-resolution texture."""
+    height, width = masked.shape[:2]
+    out = np.zeros((*target, masked.shape[2]))
+    for row in range(target[0]):
+        for col in range(target[1]):
+            x, y = (col + 0.5) * width / target[1], (row + 0.5) * height / target[0]
+            for k in range(num_iters):
+                scale = scale_step**k
+                out[row, col] += decay**k * reference.bilinear(
+                    masked, light[0] + (x - light[0]) / scale, light[1] + (y - light[1]) / scale, addressing="zero"
+                )
+    return out
+
+
+@pytest.mark.parametrize("target", [(5, 7), (3, 4)])
+def test_flare_outs_into_a_smaller_target_match_loop_jit_vmap_and_gradients(x64, rng, target):
+    """kbEngine's low-resolution target: the full-resolution texture sampled at the target's pixel centres."""
+    masked = jnp.asarray(random_image(rng, height=11, width=15))
+    light = jnp.asarray([6.2, 4.9])
+    kernel = lambda m, l, step: rays.flare_outs_into(m, l, target_shape=target, num_iters=5, scale_step=step, decay=0.9)
+    expected = _flare_outs_into_loop(np.asarray(masked), np.asarray(light), target, 5, 1.13, 0.9)
+    assert_close(kernel(masked, light, 1.13), expected, 1e-10)
+    np.testing.assert_allclose(jax.jit(kernel)(masked, light, 1.13), expected, rtol=1e-10)
+    batched = jax.vmap(kernel, in_axes=(0, None, None))(jnp.stack([masked, 2 * masked]), light, 1.13)
+    np.testing.assert_allclose(batched[1], 2 * expected, rtol=1e-10)
+    check_grads(jax.jit(kernel), (masked, light, 1.13), order=1, modes=("rev",), eps=1e-6)
+    grad_of_vmap = jax.grad(lambda step: jnp.sum(jax.vmap(kernel, in_axes=(0, None, None))(masked[None], light, step)))
+    assert np.isfinite(float(grad_of_vmap(1.13)))
+    relaxed = rays.flare_outs_into(masked, light, target_shape=target, num_iters=jnp.asarray(5.0), max_iters=9,
+                              scale_step=1.13, decay=0.9)  # fmt: skip
+    np.testing.assert_allclose(relaxed, expected, rtol=1e-10)
+
+
 def test_scale_iterated_flares_copy_zero_is_the_texture(rng):
     masked = jnp.asarray(random_image(rng), jnp.float32)
     np.testing.assert_allclose(

@@ -1,7 +1,7 @@
 """`godrays-jax render`: a scene file through the built-in rasterizer to an EXR frame."""
 
 from godrays_jax.app.options import check_output_path
-from godrays_jax.primitives.camera_metadata import FOV_X_ATTR
+from godrays_jax.primitives.camera_metadata import CLIP_PLANES_ATTR, FOV_X_ATTR
 from godrays_jax.primitives.frame_files import write_buffers
 from godrays_jax.primitives.light_metadata import LIGHT_DEPTH_ATTR
 from godrays_jax.raster import light_distance, light_pixel, load_scene, render
@@ -14,7 +14,13 @@ def run(args) -> int:
     xy, _, in_front = light_pixel(scene, camera)
     light_xy = (float(xy[0]), float(xy[1]))
     depth = light_distance(scene, camera)
-    metadata = {LIGHT_DEPTH_ATTR: depth, FOV_X_ATTR: float(camera.fov_x_deg)}
+    # The camera goes with the frame: effects that measure directions or hardware depth read its field of view
+    # and clip planes.
+    metadata = {
+        LIGHT_DEPTH_ATTR: depth,
+        FOV_X_ATTR: float(camera.fov_x_deg),
+        CLIP_PLANES_ATTR: (float(camera.near), float(camera.far)),
+    }
     write_buffers(args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front), metadata=metadata)
     if args.light:
         side = "in front" if in_front else "behind the camera"

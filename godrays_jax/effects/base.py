@@ -44,11 +44,13 @@ from godrays_jax.kernels.masks import (
     coverage_mask,
     depth_test_mask,
     flare_image,
+    hardware_depth,
     light_source_mask,
     procedural_flare,
     sky_mask,
 )
 from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.camera import focal_length_px, ray_depth_scale
 from godrays_jax.primitives.checks import check_light, is_static_int
 
 Source = Literal["disc", "sky", "light_pass"]
@@ -393,28 +395,57 @@ def light_visibility(
     return (1.0 - t * t * (3.0 - 2.0 * t)) * jnp.asarray(light_in_front, dtype)
 
 
-def scene_mask_of(kind: str, buffers: Buffers, light_depth, depth_bias) -> Float[Array, "H W"]:
+def scene_mask_of(kind: str, buffers: Buffers, light_depth, clip: "ClipPlanes | None" = None) -> Float[Array, "H W"]:
     """The scene mask `kind` (`SCENE_MASKS`): 1 where an emitter shows, 0 where the scene hides it.
 
-    `"depth"` blanks the pixels nearer than `light_depth * (1 - depth_bias)`
-    (scene units; `depth_bias` a fraction of the light's distance, so the
-    emitter's own surface in front of its centre is not blanked); with the
-    light at infinity only the sky passes (`emitter_inputs` then asks for
-    `"sky"`). Depth is the frame's distance along the ray (`Buffers.ray_depth`:
-    planar depth is refused, the effect having no field of view to convert
-    it with; the app converts it when it reads the frame). A frame without
-    depth gives the coverage mask for every kind: its coverage says what is
-    open sky (`plates.buffers_without_depth`). The test is a hard step: its
-    threshold has no gradient, so `depth_bias` is a static field.
+    `"depth"` is the XNA crepuscular-rays article's `LightSceneMask`: the
+    pixel is blanked when its hardware depth (`masks.hardware_depth`, z/w of
+    the camera's `clip` planes) is below the light's less `clip.depth_bias`
+    (the article's .00025). Hardware depth is planar: a frame's ray depth is
+    converted with `clip.fov_x_deg`, and the light's distance (`light_depth`,
+    along its ray) at its pixel `clip.light_xy`. With the light at infinity
+    only the sky passes (`emitter_inputs` then asks for `"sky"`). A frame
+    without depth gives the coverage mask for every kind: its coverage says
+    what is open sky (`plates.buffers_without_depth`). The test is a hard
+    step: its threshold has no gradient, so the bias and the planes are
+    static fields.
     """
     dtype = buffers.color.dtype
     if kind == "coverage" or buffers.depth is None:
         return coverage_mask(buffers.coverage).astype(dtype)
     if kind == "sky":
         return sky_mask(buffers.depth).astype(dtype)
-    depth = buffers.ray_depth()
-    light_depth = jnp.asarray(light_depth, dtype)
-    return depth_test_mask(depth, light_depth=light_depth * (1 - jnp.asarray(depth_bias, dtype))).astype(dtype)
+    planes = dict(near_plane=clip.near_plane, far_plane=clip.far_plane)
+    if buffers.depth_kind == "planar":
+        planar = buffers.depth.astype(dtype)
+    else:
+        planar = buffers.ray_depth() / ray_depth_scale(buffers.height, buffers.width, fov_x_deg=clip.fov_x_deg, dtype=dtype)
+    light_planar = planar_light_depth(light_depth, clip.light_xy, buffers.height, buffers.width, clip.fov_x_deg, dtype)
+    return depth_test_mask(
+        hardware_depth(planar, **planes), light_depth=hardware_depth(light_planar, **planes), bias=clip.depth_bias
+    ).astype(dtype)
+
+
+class ClipPlanes(typing.NamedTuple):
+    """What the XNA depth test needs besides the depth: the camera's planes (static) and where the light is."""
+
+    near_plane: float
+    far_plane: float
+    depth_bias: float
+    fov_x_deg: Float[Array, ""]
+    light_xy: Float[Array, "2"]
+
+
+def planar_light_depth(light_depth, light_xy, height: int, width: int, fov_x_deg, dtype) -> Float[Array, ""]:
+    """The light's distance along the camera's axis (scene units) from its distance along its ray at `light_xy`.
+
+    `light_depth / sqrt(1 + ((x - W/2) / f)^2 + ((H/2 - y) / f)^2)`, `f` the focal length in pixels of
+    `fov_x_deg`; `+inf` stays `+inf`.
+    """
+    light_xy = jnp.asarray(light_xy, dtype)
+    focal = focal_length_px(width, fov_x_deg, dtype)
+    scale = jnp.sqrt(1.0 + ((light_xy[0] - 0.5 * width) / focal) ** 2 + ((0.5 * height - light_xy[1]) / focal) ** 2)
+    return jnp.asarray(light_depth, dtype) / scale
 
 
 @functools.lru_cache(maxsize=1)
@@ -427,7 +458,7 @@ def _emitter(
     source: str,
     scene_mask: str,
     squared: bool,
-    depth_bias: float,
+    planes: tuple[float, float, float] | None,
     buffers: Buffers,
     light_xy,
     flare_size,
@@ -435,10 +466,12 @@ def _emitter(
     light_in_front,
     fade,
     light_depth,
+    fov_x_deg,
 ) -> Float[Array, "H W C"]:
     """What shines: a flare at the light through the scene mask, the sky's own colour, or the light pass.
 
     The flare is the XNA article's `2 * pow(tex, 2)` when `squared`, else the texture as sampled (kbEngine's).
+    `planes` (near, far, depth bias) and `fov_x_deg` serve the depth test only.
     """
     dtype = buffers.color.dtype
     visible = light_visibility(
@@ -448,7 +481,8 @@ def _emitter(
         if buffers.light_pass is None:
             raise ValueError("source='light_pass' needs buffers.light_pass (render it, or use source='disc')")
         return buffers.light_pass[..., None].astype(dtype) * visible
-    mask = scene_mask_of(scene_mask, buffers, light_depth, depth_bias)[..., None]
+    clip = None if planes is None else ClipPlanes(*planes, fov_x_deg=fov_x_deg, light_xy=light_xy)
+    mask = scene_mask_of(scene_mask, buffers, light_depth, clip)[..., None]
     if source == "disc":
         draw = light_source_mask if squared else flare_image
         flare = draw(buffers.height, buffers.width, light_xy, flare_size=flare_size, texture=texture, dtype=dtype)
@@ -474,11 +508,13 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
 
     The loops differentiate an emitter's few-number arguments in forward mode,
     one sampled derivative image each, so an unused one (a sky's flare size)
-    would cost a derivative image of zeros.
+    would cost a derivative image of zeros. The flare's half-extent is
+    `effect.flare_size_in_px(...)` (its half-extent in pixels); the depth test reads the effect's
+    `near_plane`, `far_plane`, `depth_bias` and `fov_x_deg`.
     """
     dtype = buffers.color.dtype
     flare = effect.source == "disc"
-    flare_size = flare_size_px(effect.flare_size, effect.units, buffers.height, buffers.width, dtype) if flare else None
+    flare_size = effect.flare_size_in_px(buffers.height, buffers.width, light_xy, light_depth, dtype) if flare else None
     texture = flare_texture_of(effect) if flare else None
     depth_test = effect.source != "light_pass" and effect.scene_mask == "depth" and buffers.depth is not None
     scene_mask = effect.scene_mask
@@ -487,7 +523,8 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
         depth_test, scene_mask = False, "sky"
     arguments = (
         buffers, light_xy, flare_size, texture, light_in_front, effect.offscreen_fade,
-        light_depth if depth_test else None,
+        light_depth if depth_test else None, effect.fov_x_deg if depth_test else None,
     )  # fmt: skip
-    static = (effect.source, scene_mask, effect.FLARE_SQUARED, effect.depth_bias)
+    planes = (effect.near_plane, effect.far_plane, effect.depth_bias) if depth_test else None
+    static = (effect.source, scene_mask, effect.FLARE_SQUARED, planes)
     return functools.partial(_emitter, *static), arguments

@@ -104,17 +104,19 @@ class LensDirt(Effect):
 
     The texture is `lens.dirt_texture(H, W, seed=dirt_seed)`, generated at the
     frame's size on first use and cached (pass your own texture to
-    `lens.lens_dirt`). Directions come from `fov_x_deg` (horizontal field of
-    view, degrees); `far_plane` (scene units) normalises depth to the VBex article's
-    `LDepth`; `power` and `scale` are the VBex article's 20 and 2; `aberration` is the
+    `lens.lens_dirt`). Directions come from `fov_x_deg`, the frame's
+    horizontal field of view in degrees (`render` writes it with the frame);
+    `far_plane` (scene units) normalises depth to the VBex article's `LDepth`;
+    `power` and `scale` are the VBex article's 20 and 2; `aberration` is the
     per-channel UV offset (0.002); `tint` (the article's SunColor) colours the dirt. `depth_floor`
-    is the article's `.8` in `max(LDepth, .8)`: with `depth_in_power` false
-    (ours) it scales the intensity after the power, so geometry nearer than
-    `depth_floor * far_plane` dims the dirt to `depth_floor` of the sky's and the
-    dirt fades smoothly toward far geometry; `depth_in_power` true is the
-    formula as printed, `pow(dot * max(LDepth, .8), 20)`, which dims near
-    geometry by `0.8 ** 20` and draws a hard line along every silhouette,
-    the horizon included (`lens.lens_dirt_intensity`).
+    is the article's `.8` in `max(LDepth, .8)`. With `depth_in_power` true
+    (the default) the formula is the article's as printed,
+    `pow(saturate(dot * max(LDepth, .8)), 20) * 2`: geometry nearer than
+    `depth_floor * far_plane` dims the dirt by `0.8 ** 20`, the article's
+    "reduce intensity on occluder by LinearDepth", with a hard edge along
+    every silhouette; `depth_in_power` false (ours) scales the intensity
+    after the power instead, dimming near geometry only to `depth_floor`
+    of the sky's (`lens.lens_dirt_intensity`).
     """
 
     power: Float[Array, ""] = param(20.0, low=1.0, high=200.0)
@@ -127,7 +129,7 @@ class LensDirt(Effect):
     depth_floor: Float[Array, ""] = param(0.8, low=0.0, high=1.0)
     dirt_seed: int = eqx.field(static=True, default=0)
     view: ViewMode = eqx.field(static=True, default="pixel")
-    depth_in_power: bool = eqx.field(static=True, default=False)
+    depth_in_power: bool = eqx.field(static=True, default=True)
     blend_mode: str = eqx.field(static=True, default="add")
 
     NEEDS_DEPTH: ClassVar[bool] = True

@@ -10,16 +10,17 @@ from godrays_jax.kernels.lens import LENS_DIRT_ABERRATION
 
 
 def _xna_crepuscular() -> GodRays:
-    """The XNA crepuscular-rays article's five passes: flare, depth test, rays (128 samples, density .5 with its
-    step clamp, decay .95, weight 1, exposure .15), bright pass, additive blend."""
-    # Ours, as the article leaves them open: the flare (its SunSize / z for our scenes, a
-    # glow texture with a small bright core: the rays' gain of about 3 saturates only that
-    # core), the bright-pass threshold (its slider) and a warm tint (the article's flare
-    # texture is coloured); the depth bias is a fraction of the light's distance.
+    """The XNA crepuscular-rays article's five passes: flare `2 * pow(tex, 2)` sized `SunSize / z` (SunSize 1500),
+    hardware-depth test with bias .00025, rays (128 samples, density .5 with its step clamp on clip-space z,
+    decay .95, weight 1, exposure .15), bright pass, additive blend."""
+    # Ours, as the article leaves them open: the flare texture (a glow with a small bright
+    # core: the rays' gain of about 3 saturates only that core), the bright-pass threshold
+    # (its slider) and a warm tint (the article's flare texture is coloured). The clip planes
+    # are its author's sample camera's (XNA_NEAR_PLANE, XNA_FAR_PLANE): the article prints none.
     return GodRays(
         density=0.5, decay=0.95, weight=1.0, exposure=0.15, threshold=0.1, num_samples=128.0, max_samples=128,
-        flare_size=0.3, tint=(1.0, 0.85, 0.6), depth_bias=0.1, source="disc", scene_mask="depth", step_clamp=True,
-        use_bright_pass=True, blend_mode="add",
+        sun_size=1500.0, flare_sizing="clip_depth", tint=(1.0, 0.85, 0.6), depth_bias=0.00025, source="disc",
+        scene_mask="depth", step_clamp=True, use_bright_pass=True, blend_mode="add",
     )  # fmt: skip
 
 
@@ -54,12 +55,12 @@ def _sun_overcast() -> SunOvercast:
 
 
 def _vbex_lens_dirt() -> LensDirt:
-    """The VBex article: power 20, scale 2, chromatic offset 0.002, `max(LDepth, .8)`, warm sun colour, added."""
-    # Ours: the depth factor applied after the power (near geometry dims the dirt to 80 %,
-    # as max(LDepth, .8) reads; inside the power it would cut it 87-fold along a hard line).
+    """The VBex article: `pow(saturate(dot(view, L) * max(LDepth, .8)), 20) * 2` as printed, chromatic offset 0.002,
+    the sun's colour, added."""
+    # Ours: the dirt texture (procedural), `far_plane` (what LDepth divides by) and the tint (its SunColor).
     return LensDirt(
         power=20.0, scale=2.0, aberration=LENS_DIRT_ABERRATION, tint=(1.0, 0.8, 0.55), depth_floor=0.8,
-        depth_in_power=False,
+        depth_in_power=True,
     )  # fmt: skip
 
 
@@ -129,7 +130,7 @@ def _gpu_gems() -> GodRays:
     """
     return GodRays(
         density=0.926, decay=0.96815, weight=0.58767, exposure=0.3 * BABYLON_SAMPLE_SCALE, num_samples=100.0,
-        max_samples=100, flare_size=1.0, flare_shape="cone", tint=(0.3, 0.234, 0.165), source="disc",
+        max_samples=100, flare_size=1.0, flare_sizing="fixed", flare_shape="cone", tint=(0.3, 0.234, 0.165), source="disc",
         method="multipass", blend_mode="add",
     )  # fmt: skip
 

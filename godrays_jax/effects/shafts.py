@@ -13,6 +13,8 @@ from godrays_jax.effects.base import (
     Effect,
     FlareShape,
     SceneMask,
+    flare_size_px,
+    planar_light_depth,
     Source,
     Units,
     emitter_inputs,
@@ -23,12 +25,11 @@ from godrays_jax.effects.base import (
     size_reach,
     texture_field,
 )
-from godrays_jax.kernels.blur import gaussian_blur
+from godrays_jax.kernels.blur import bloom_level_shape, draw_at_uv, gaussian_blur
 from godrays_jax.kernels.fast import fast_radial_rays, radial_rays_multipass
-from godrays_jax.kernels.masks import bright_pass
-from godrays_jax.kernels.rays import radial_rays_of, scale_iterated_flares_of
+from godrays_jax.kernels.masks import bright_pass, clip_space_depth
+from godrays_jax.kernels.rays import flare_outs_into, radial_rays_of, scale_iterated_flares_of
 from godrays_jax.primitives.checks import check_light, is_static_int
-from godrays_jax.primitives.resample import downsample_box, upsample_bilinear
 
 RayMethod = Literal["exact", "multipass", "fast"]
 
@@ -39,32 +40,53 @@ RAY_METHODS: tuple[str, ...] = ("exact", "multipass", "fast")
 STEP_CLAMP_LIMIT = 0.5
 """The XNA crepuscular-rays article's `clamp(ScreenPosition.w * ScreenPosition.z, 0, .5)` upper limit."""
 
+FlareSizing = Literal["clip_depth", "fixed"]
+FLARE_SIZINGS: tuple[str, ...] = ("clip_depth", "fixed")
+"""`GodRays.flare_sizing`: the XNA article's half-extent `sun_size / z` (UV, `z` the light's clip-space z), or a
+fixed `flare_size` whatever the light's distance (ours)."""
 
-def step_clamp(light_depth) -> Float[Array, ""] | float:
-    """The XNA article's step factor `clamp(w * z, 0, .5)` from the light's distance (scene units).
+XNA_NEAR_PLANE = 0.5
+XNA_FAR_PLANE = 20000.0
+"""The clip planes `GodRays` assumes unless given the frame's: those of the XNA article author's sample camera
+(`Base3DCamera(game, .5f, 20000)`); the article itself prints none. `render` writes a frame's own
+(`godrays:clip_planes`)."""
 
-    `w * z` after the perspective divide is the light's clip-space z, which
-    is its view depth less the near plane (scaled by `far / (far - near)`):
-    the light's depth for a near plane much closer than the light. So any
-    light more than half a unit in front halves the step, and a light at
-    infinity (`+inf`) gives 0.5. A concrete depth gives a Python float (so
-    the rays' window around the light stays known at trace time).
+
+def step_clamp(light_clip_depth) -> Float[Array, ""] | float:
+    """The XNA article's step factor `clamp(ScreenPosition.w * ScreenPosition.z, 0, .5)`.
+
+    `w * z` after the perspective divide is the light's clip-space z
+    (`masks.clip_space_depth`, scene units): 0 for a light on the near plane,
+    0.5 once it is half a unit (times `far / (far - near)`) beyond it. A
+    concrete value gives a Python float (so the rays' window around the light
+    stays known at trace time).
     """
-    if isinstance(light_depth, jax.core.Tracer):
-        return jnp.clip(light_depth, 0.0, STEP_CLAMP_LIMIT)
-    return float(np.clip(float(np.asarray(light_depth)), 0.0, STEP_CLAMP_LIMIT))
+    if isinstance(light_clip_depth, jax.core.Tracer):
+        return jnp.clip(light_clip_depth, 0.0, STEP_CLAMP_LIMIT)
+    return float(np.clip(float(np.asarray(light_clip_depth)), 0.0, STEP_CLAMP_LIMIT))
 
 
-def _flare_reach_px(effect, height: int, width: int) -> float | None:
+def _flare_reach_px(effect, height: int, width: int, light_xy, light_depth) -> float | None:
     """How far from the light the default flare can be non-zero, in pixels, when known at trace time.
 
     The procedural flare and the cone are black outside their inscribed ellipse; a user's
     texture may not be (clamp addressing repeats its border), so no promise.
     """
-    size = effect.flare_size
-    if effect.source != "disc" or effect.flare_texture is not None or isinstance(size, jax.core.Tracer):
+    if effect.source != "disc" or effect.flare_texture is not None:
         return None
-    return float(size) * (max(height, width) if effect.units == "frame" else 1.0)
+    inputs = (effect.flare_size, effect.sun_size, effect.fov_x_deg, light_xy, light_depth)
+    if any(isinstance(value, jax.core.Tracer) for value in jax.tree_util.tree_leaves(inputs)):
+        return None
+    with jax.ensure_compile_time_eval():
+        radius = effect.flare_size_in_px(height, width, jnp.asarray(light_xy), light_depth, jnp.float32)
+        return float(jnp.max(radius))
+
+
+def _check_clip_planes(owner: str, near_plane, far_plane) -> None:
+    if not all(isinstance(value, (int, float)) and not isinstance(value, bool) for value in (near_plane, far_plane)):
+        raise ValueError(f"{owner}.near_plane and far_plane must be numbers, got {near_plane!r}, {far_plane!r}")
+    if not 0 < near_plane < far_plane < math.inf:
+        raise ValueError(f"{owner}.near_plane and far_plane must satisfy 0 < near_plane < far_plane, got {near_plane}, {far_plane}")
 
 
 class GodRays(Effect):
@@ -74,25 +96,32 @@ class GodRays(Effect):
 
     1. the emitter (`source`): `"disc"`, the XNA article's light-source mask,
        `2 * pow(tex, 2)` of a flare texture centred on the light with
-       half-extent `flare_size` (UV units, the article's `SunSize / z`: it
-       stretches with the frame's aspect ratio as on the GPU; pixels under
-       `units="px"`): `flare_texture`, else by `flare_shape` the procedural
-       glow (`masks.procedural_flare()`) or the analytic cone; `"sky"`,
-       the frame's own colour; `"light_pass"`, the galaxy-engine VLS article's
-       white-light/black-occluder pass;
+       half-extent (UV units, stretched with the frame's aspect ratio as on
+       the GPU) by `flare_sizing`: `"clip_depth"`, the article's
+       `SunSize / z` (`sun_size` over the light's clip-space z,
+       `masks.clip_space_depth` of `near_plane` and `far_plane`: small for a
+       far light, large for a near one, a light at infinity on the far
+       plane), or `"fixed"` (ours), `flare_size` whatever the light's
+       distance (pixels under `units="px"`); the texture is `flare_texture`,
+       else by `flare_shape` the procedural glow (`masks.procedural_flare()`)
+       or the analytic cone; `"sky"`, the frame's own colour;
+       `"light_pass"`, the galaxy-engine VLS article's white-light/black-occluder pass;
     2. the scene mask (`scene_mask`, not for `"light_pass"`): `"depth"`, the
-       XNA article's depth test (pixels nearer than the light blanked,
-       `depth_bias` a fraction of the light's distance), `"sky"` (hard,
-       depth `+inf`) or `"coverage"` (antialiased open sky);
+       XNA article's hardware-depth compare (pixels whose z/w is below the
+       light's less `depth_bias`, the article's .00025, blanked; `base.scene_mask_of`),
+       `"sky"` (hard, depth `+inf`) or `"coverage"` (antialiased open sky);
     3. `radial_rays` with `density` times, if `step_clamp`, the XNA
-       article's `clamp(clip-space z, 0, .5)` of the light's depth
-       (`step_clamp`: 0.5 for any light beyond half a unit);
+       article's `clamp(z, 0, .5)` of the light's clip-space z;
     4. the XNA article's `bright_pass` (`threshold`) if `use_bright_pass`,
        times `tint` (neither article has a tint: 1 is the article);
     5. the blend.
 
-    `light_depth` (a call argument, scene units, `+inf` by default) is what
-    the depth test and the step clamp read.
+    `light_depth` (a call argument, scene units along the light's ray, `+inf`
+    by default) is what the flare's size, the depth test and the step clamp
+    read. Clip-space z and hardware depth are planar: `fov_x_deg` (the
+    frame's horizontal field of view) converts ray distances; `near_plane`
+    and `far_plane` are the frame's camera's (default `XNA_NEAR_PLANE`,
+    `XNA_FAR_PLANE`; `render` writes its camera's with the frame).
 
     `num_samples` is fittable through `radial_rays`'s relaxation (loop length
     `max_samples`); at an integer value it is the exact loop.
@@ -113,13 +142,18 @@ class GodRays(Effect):
     weight: Float[Array, ""] = param(1.0, low=0.0, high=10.0)
     exposure: Float[Array, ""] = param(0.15, low=0.0, high=5.0)
     flare_size: Float[Array, ""] = size_param(0.1, low=1e-3, high=4.0, px_high=8192.0)
+    sun_size: Float[Array, ""] = param(1500.0, low=1e-3, high=1e7)
+    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     threshold: Float[Array, ""] = param(0.25, low=0.0, high=0.99)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
     num_samples: Float[Array, ""] = param(128.0, low=1.0, high=4096.0)
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     flare_texture: Float[Array, "h w C"] | None = texture_field()
     flare_shape: FlareShape = eqx.field(static=True, default="glow")
-    depth_bias: float = eqx.field(static=True, default=0.1)
+    flare_sizing: FlareSizing = eqx.field(static=True, default="clip_depth")
+    depth_bias: float = eqx.field(static=True, default=0.00025)
+    near_plane: float = eqx.field(static=True, default=XNA_NEAR_PLANE)
+    far_plane: float = eqx.field(static=True, default=XNA_FAR_PLANE)
     max_samples: int = eqx.field(static=True, default=128)
     source: Source = eqx.field(static=True, default="disc")
     scene_mask: SceneMask = eqx.field(static=True, default="coverage")
@@ -133,6 +167,22 @@ class GodRays(Effect):
     def __check_init__(self):
         if self.method not in RAY_METHODS:
             raise ValueError(f"method must be one of {', '.join(RAY_METHODS)}; got {self.method!r}")
+        if self.flare_sizing not in FLARE_SIZINGS:
+            raise ValueError(f"flare_sizing must be one of {', '.join(FLARE_SIZINGS)}; got {self.flare_sizing!r}")
+        _check_clip_planes("GodRays", self.near_plane, self.far_plane)
+
+    def light_clip_depth(self, height: int, width: int, light_xy, light_depth, dtype) -> Float[Array, ""]:
+        """The light's clip-space z (scene units; `masks.clip_space_depth`) from its distance along its ray."""
+        planar = planar_light_depth(light_depth, light_xy, height, width, self.fov_x_deg, dtype)
+        return clip_space_depth(planar, near_plane=self.near_plane, far_plane=self.far_plane)
+
+    def flare_size_in_px(self, height: int, width: int, light_xy, light_depth, dtype) -> Float[Array, "2"]:
+        """The flare's half-extent `(rx, ry)` in pixels, by `flare_sizing` (the class docstring)."""
+        if self.flare_sizing == "fixed":
+            return flare_size_px(self.flare_size, self.units, height, width, dtype)
+        # The article's size = SunSize / scale; a light on or before the near plane gets the largest flare.
+        clip_z = jnp.maximum(self.light_clip_depth(height, width, light_xy, light_depth, dtype), 1e-6)
+        return flare_size_px(jnp.asarray(self.sun_size, dtype) / clip_z, "frame", height, width, dtype)
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The rays alone, `(H, W, 3)` (or 1 channel for a 1-channel flare texture or `sky` source)."""
@@ -141,7 +191,11 @@ class GodRays(Effect):
         # it differentiates the few numbers it is drawn from (flare_size) in
         # forward mode: their reverse-mode gradient then needs no image adjoint.
         emitter_fn, emitter_args = emitter_inputs(self, buffers, light_xy, light_in_front, light_depth)
-        density = self.density * step_clamp(light_depth) if self.step_clamp else self.density
+        density = self.density
+        if self.step_clamp:
+            with jax.ensure_compile_time_eval():  # a known light gives a known step: the rays' window stays known
+                clip_z = self.light_clip_depth(buffers.height, buffers.width, light_xy, light_depth, buffers.color.dtype)
+            density = density * step_clamp(clip_z)
         fields = dict(
             num_samples=self.num_samples,
             density=density,
@@ -150,7 +204,7 @@ class GodRays(Effect):
             exposure=self.exposure,
         )
         if self.method == "exact":
-            reach = _flare_reach_px(self, buffers.height, buffers.width)
+            reach = _flare_reach_px(self, buffers.height, buffers.width, light_xy, light_depth)
             rays = radial_rays_of(
                 emitter_fn, emitter_args, light_xy, max_samples=self.max_samples, source_radius=reach, **fields
             )
@@ -172,14 +226,17 @@ class FlareOuts(Effect):
        `flare_texture`, else the `flare_shape` of `GodRays`) centred on the
        light as in `GodRays` (half-extent `flare_size`, UV units; the article
        does not say where its base texture lies), times the scene mask
-       (`scene_mask`; kbEngine's `1 - sign(depth)` is `"sky"`);
-    2. the flare-outs: the masked texture scaled about the light `num_iters`
-       times by `scale_step` each (`scale_iterated_flares`), added into a
-       target at `1 / resolution_factor` of the frame's resolution (the article
-       draws them into a low-resolution target; 1 draws at full resolution);
+       (`scene_mask`; kbEngine's `1 - sign(depth)` is `"sky"`; `"depth"` is
+       the XNA article's test, with `near_plane`, `far_plane`, `depth_bias`
+       and `fov_x_deg` as in `GodRays`);
+    2. the flare-outs: the full-resolution masked texture scaled about the
+       light `num_iters` times by `scale_step` each, drawn into a target of
+       `Fullsize / resolution_factor` whole pixels (`rays.flare_outs_into`:
+       the article draws them into a low-resolution target; 1 draws at full
+       resolution, `scale_iterated_flares`);
     3. times `intensity`, a Gaussian blur of `blur_sigma` against banding
        (frame units, taps to `blur_reach`), on the low-resolution target;
-    4. the target read back bilinearly at full resolution, times `tint`, added.
+    4. the target drawn back over the frame by UV, bilinearly, times `tint`, added.
 
     `num_iters` is fittable (loop length `max_iters`).
     """
@@ -195,8 +252,11 @@ class FlareOuts(Effect):
     num_iters: Float[Array, ""] = param(20.0, low=1.0, high=64.0)
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     flare_texture: Float[Array, "h w C"] | None = texture_field()
+    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     flare_shape: FlareShape = eqx.field(static=True, default="glow")
-    depth_bias: float = eqx.field(static=True, default=0.1)
+    depth_bias: float = eqx.field(static=True, default=0.00025)
+    near_plane: float = eqx.field(static=True, default=XNA_NEAR_PLANE)
+    far_plane: float = eqx.field(static=True, default=XNA_FAR_PLANE)
     max_iters: int = eqx.field(static=True, default=20)
     blur_reach: float = size_reach(0.01875)
     resolution_factor: int = eqx.field(static=True, default=1, metadata={"formerly": ("target_factor",)})
@@ -208,25 +268,26 @@ class FlareOuts(Effect):
     def __check_init__(self):
         if not is_static_int(self.resolution_factor) or self.resolution_factor < 1:
             raise ValueError(f"resolution_factor must be a Python int >= 1, got {self.resolution_factor!r}")
+        _check_clip_planes("FlareOuts", self.near_plane, self.far_plane)
+
+    def flare_size_in_px(self, height: int, width: int, light_xy, light_depth, dtype) -> Float[Array, "2"]:
+        """The flare's half-extent `(rx, ry)` in pixels: `flare_size` (the article does not size its base texture)."""
+        return flare_size_px(self.flare_size, self.units, height, width, dtype)
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The flare-outs alone, `(H, W, C)` (C: the flare texture's channels, or 3 for the `sky` source)."""
         check_light(light_xy)
         height, width, factor = buffers.height, buffers.width, self.resolution_factor
         emitter_fn, emitter_args = emitter_inputs(self, buffers, light_xy, light_in_front, light_depth)
-        target_fn = emitter_fn if factor == 1 else lambda *args: downsample_box(emitter_fn(*args), factor)
-        flares = scale_iterated_flares_of(
-            target_fn,
-            emitter_args,
-            jnp.asarray(light_xy, buffers.color.dtype) / factor,
-            num_iters=self.num_iters,
-            max_iters=self.max_iters,
-            scale_step=self.scale_step,
-            decay=self.copy_decay,
-        )
+        copies = dict(num_iters=self.num_iters, max_iters=self.max_iters, scale_step=self.scale_step, decay=self.copy_decay)
+        if factor == 1:
+            flares = scale_iterated_flares_of(emitter_fn, emitter_args, jnp.asarray(light_xy, buffers.color.dtype), **copies)
+        else:
+            target = bloom_level_shape(height, width, factor)
+            flares = flare_outs_into(emitter_fn(*emitter_args), light_xy, target_shape=target, **copies)
         sigma = self.blur_sigma * pixels_per_unit(self.units, height, width) / factor
         taps = reach_taps(self.blur_reach, self.units, height, width, level=factor)
         flares = gaussian_blur(flares * self.intensity, sigma=sigma, reach=taps)
         if factor > 1:
-            flares = upsample_bilinear(flares, factor, height, width)
+            flares = draw_at_uv(flares, height, width)
         return flares * self.tint.astype(flares.dtype)

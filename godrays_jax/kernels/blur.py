@@ -17,7 +17,6 @@ from godrays_jax.primitives.checks import (
     is_static_int,
     resolve_count,
 )
-from godrays_jax.primitives.resample import downsample_box
 from godrays_jax.primitives.sampling import sample_separable
 
 POISSON_OFFSETS = np.array(
@@ -142,6 +141,23 @@ BLOOM_LEVELS = (2, 4, 8, 16)
 """The VBex article's bloom pyramid: blurs at 1/2, 1/4, 1/8 and 1/16 of the full resolution."""
 
 
+def bloom_level_shape(height: int, width: int, factor: int) -> tuple[int, int]:
+    """A bloom level's render target: `Fullsize / factor` in whole pixels (`H // factor` x `W // factor`, at least 1)."""
+    return max(1, height // factor), max(1, width // factor)
+
+
+def draw_at_uv(image: Float[Array, "H W C"], height: int, width: int) -> Float[Array, "h w C"]:
+    """`image` drawn into a `height x width` target: each target pixel reads it at its own UV, bilinearly, clamp.
+
+    Target pixel `i` (centre `(i + 0.5) / width` in UV) reads `image` at
+    position `(i + 0.5) / width * W` of its `W` pixels, as a full-screen quad
+    with linear filtering does; halving a side of even length averages pixel pairs.
+    """
+    xs = (jnp.arange(width, dtype=image.dtype) + 0.5) * (image.shape[1] / width)
+    ys = (jnp.arange(height, dtype=image.dtype) + 0.5) * (image.shape[0] / height)
+    return sample_separable(image, xs, ys)
+
+
 def bloom(
     image: Float[Array, "H W C"],
     *,
@@ -154,14 +170,15 @@ def bloom(
 
     Bright pass: `max(image - threshold, 0)` per channel, unclipped (HDR: a
     sun at 40 keeps its energy; the XNA crepuscular-rays article's clipped `bright_pass` is for LDR).
-    Level `k` (factor `2, 4, 8, 16`, `BLOOM_LEVELS`) is the bright pass
-    averaged over `factor x factor` blocks (`downsample_box`), blurred with a
+    Level `k` (factor `2, 4, 8, 16`, `BLOOM_LEVELS`) is a render target of
+    whole pixels, `Fullsize / factor` (`bloom_level_shape`), drawn from the
+    level before it (the first from the bright pass) by UV (`draw_at_uv`:
+    each halving of an even side averages pixel pairs), blurred with a
     Gaussian of `sigma` pixels *of that level* (`gaussian_blur`, `reach`
-    taps each side, static), and read back at full resolution bilinearly
-    (full-resolution pixel `x` reads level position `x / factor`,
-    clamp-to-edge). The output is `sum_k weights[k] * level_k`, no clipping;
-    the VBex article adds the four levels with equal weights. Compare with one large
-    Gaussian: `gaussian_blur(bright, sigma=sigma_px)`.
+    taps each side, static), and read back at full resolution by UV,
+    bilinearly, clamp-to-edge. The output is `sum_k weights[k] * level_k`,
+    no clipping; the VBex article adds the four levels with equal weights.
+    Compare with one large Gaussian: `gaussian_blur(bright, sigma=sigma_px)`.
     """
     check_image(image)
     check_scalar(threshold, "threshold")
@@ -169,12 +186,12 @@ def bloom(
     if np.shape(weights) != (len(BLOOM_LEVELS),):
         raise ValueError(f"weights must have shape ({len(BLOOM_LEVELS)},), one per level, got {np.shape(weights)}")
     dtype = image.dtype
+    height, width = image.shape[0], image.shape[1]
     weights = jnp.asarray(weights, dtype)
-    bright = jnp.maximum(image - jnp.asarray(threshold, dtype), 0.0)
-    xs = jnp.arange(image.shape[1], dtype=dtype) + 0.5
-    ys = jnp.arange(image.shape[0], dtype=dtype) + 0.5
+    level = jnp.maximum(image - jnp.asarray(threshold, dtype), 0.0)
     total = jnp.zeros_like(image)
-    for level, factor in enumerate(BLOOM_LEVELS):
-        low = gaussian_blur(downsample_box(bright, factor), sigma=sigma, reach=reach)
-        total = total + weights[level] * sample_separable(low, xs / factor, ys / factor)
+    for index, factor in enumerate(BLOOM_LEVELS):
+        level = draw_at_uv(level, *bloom_level_shape(height, width, factor))
+        low = gaussian_blur(level, sigma=sigma, reach=reach)
+        total = total + weights[index] * draw_at_uv(low, height, width)
     return total

@@ -149,14 +149,51 @@ def depth_test_mask(
 ) -> Float[Array, "H W"]:
     """The XNA crepuscular-rays article's scene mask: 0 where the scene is in front of the light, else 1.
 
-    `depth` and `light_depth` are linear distances in scene units (`+inf` sky
-    always passes); `bias` (scene units) keeps surfaces at the light's own depth
-    from masking themselves, as the XNA crepuscular-rays article's `0.00025` does in hardware depth.
+    `depth >= light_depth - bias`, in any depth encoding that grows with distance: the article compares
+    hardware depth (`hardware_depth`, z/w) with `bias = 0.00025`, so that surfaces at the light's own depth
+    do not mask themselves; linear distances (scene units, `+inf` sky always passes) work as well.
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
     check_scalar(light_depth, "light_depth")
     return (depth >= light_depth - bias).astype(jnp.result_type(depth, jnp.float32))
+
+
+def clip_space_depth(
+    depth: Float[ArrayLike, "*S"], *, near_plane: float, far_plane: float
+) -> Float[Array, "*S"]:
+    """A point's clip-space z, `(d - near) * far / (far - near)`, from its planar depth `d` (scene units).
+
+    The z that a Direct3D/XNA perspective matrix (`Matrix.CreatePerspectiveFieldOfView`) gives before the
+    divide by `w = d`: 0 on the near plane, `far_plane` on the far plane, negative in front of the near plane.
+    A point at or beyond the far plane (the sky, a light at infinity: `+inf`) is read as on it (`far_plane`),
+    as a sky box is drawn (`z = w`). The XNA crepuscular-rays article sizes its flare `SunSize / z` and clamps
+    its step by `z`.
+    """
+    depth = jnp.asarray(depth)
+    dtype = jnp.result_type(depth, jnp.float32)
+    depth = depth.astype(dtype)
+    beyond = depth >= far_plane
+    finite = jnp.where(beyond, far_plane, depth)
+    return jnp.where(beyond, far_plane, (finite - near_plane) * (far_plane / (far_plane - near_plane)))
+
+
+def hardware_depth(
+    depth: Float[ArrayLike, "*S"], *, near_plane: float, far_plane: float
+) -> Float[Array, "*S"]:
+    """What a Direct3D/XNA depth buffer holds, `z / w = far / (far - near) * (1 - near / d)`, from planar depth `d`.
+
+    `d` is the distance along the camera's axis in scene units; 0 on the near plane, 1 on the far plane; the
+    sky and anything at or beyond the far plane read 1 (the cleared buffer: nothing was drawn there). Pixels
+    nearer than the near plane read negative. The XNA crepuscular-rays article's depth test compares these.
+    """
+    depth = jnp.asarray(depth)
+    dtype = jnp.result_type(depth, jnp.float32)
+    depth = depth.astype(dtype)
+    beyond = depth >= far_plane
+    safe = jnp.where(beyond | (depth <= 0), far_plane, depth)
+    inside = far_plane / (far_plane - near_plane) * (1.0 - near_plane / safe)
+    return jnp.where(beyond, 1.0, jnp.where(depth <= 0, -jnp.inf, inside)).astype(dtype)
 
 
 def bright_pass(image: Float[Array, "H W C"], *, threshold: Float[ArrayLike, ""]) -> Float[Array, "H W C"]:

@@ -29,6 +29,10 @@ from godrays_jax.primitives.image_files import read_header
 FOV_X_ATTR = "godrays:fov_x_deg"
 """The camera's horizontal field of view in degrees (a float), as `render` writes it."""
 
+CLIP_PLANES_ATTR = "godrays:clip_planes"
+"""The camera's near and far clip planes in scene units (two floats), as `render` writes them: the XNA depth test's
+`near_plane` and `far_plane`."""
+
 BLENDER_SENSOR_WIDTH_MM = 36.0
 """Blender's default sensor width: its header stamps the lens but not the sensor."""
 

@@ -14,6 +14,10 @@ import godrays_jax as gr
 from godrays_jax.effects.base import parameter_bounds
 from frames import HEIGHT, LIGHT, WIDTH, make_frame, small
 
+LIGHT_DEPTH = 1000.0
+"""The sun's distance in the XNA article's author's sample: the XNA preset's flare is `SunSize / z` of it (1.5 UV).
+At infinity (on the far plane) it is .075 UV, which the test frame's occluder hides."""
+
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))
 def test_preset_runs_jit_vmap_and_adds_light(name):
     # Eager execution of every kernel is covered in test_kernels.py; here one
@@ -23,9 +27,9 @@ def test_preset_runs_jit_vmap_and_adds_light(name):
 
     @eqx.filter_jit
     def both(effect, lights):
-        single = effect(frame, lights[0])
-        batched = jax.vmap(lambda light: effect(frame, light))(lights)
-        return single, batched, effect.layer(frame, lights[0])
+        single = effect(frame, lights[0], light_depth=LIGHT_DEPTH)
+        batched = jax.vmap(lambda light: effect(frame, light, light_depth=LIGHT_DEPTH))(lights)
+        return single, batched, effect.layer(frame, lights[0], light_depth=LIGHT_DEPTH)
 
     single, batched, layer = both(effect, jnp.stack([LIGHT, LIGHT + 1.0]))
     assert single.shape == frame.color.shape and bool(jnp.all(jnp.isfinite(single)))
@@ -53,7 +57,7 @@ def test_seed_effect_gradients_are_finite_and_nonzero(name):
     params, static = eqx.partition(effect, eqx.is_inexact_array)
 
     def total(params):
-        return jnp.sum(eqx.combine(params, static)(frame, LIGHT))
+        return jnp.sum(eqx.combine(params, static)(frame, LIGHT, light_depth=LIGHT_DEPTH))
 
     grads = jax.jit(jax.grad(total))(params)
     leaves = jax.tree_util.tree_leaves(grads)

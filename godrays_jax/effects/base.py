@@ -445,7 +445,10 @@ def planar_light_depth(light_depth, light_xy, height: int, width: int, fov_x_deg
     light_xy = jnp.asarray(light_xy, dtype)
     focal = focal_length_px(width, fov_x_deg, dtype)
     scale = jnp.sqrt(1.0 + ((light_xy[0] - 0.5 * width) / focal) ** 2 + ((0.5 * height - light_xy[1]) / focal) ** 2)
-    return jnp.asarray(light_depth, dtype) / scale
+    light_depth = jnp.asarray(light_depth, dtype)
+    at_infinity = jnp.isinf(light_depth)
+    # Divided only where finite: inf / scale would give the gradient in the scale a NaN (0 * inf).
+    return jnp.where(at_infinity, jnp.inf, jnp.where(at_infinity, 1.0, light_depth) / scale)
 
 
 @functools.lru_cache(maxsize=1)

@@ -33,8 +33,9 @@ def _galaxy_vls() -> GodRays:
 
 
 def _kbengine_flares() -> FlareOuts:
-    """KbEngine's article: a flare texture masked by `1 - sign(depth)`, kbEngine3's 20 flare-outs scaled x1.03 each
-    into a low-resolution target, blurred against banding, added."""
+    """KbEngine's article: a flare texture masked by `1 - sign(depth)`, flare-outs drawn from that full-resolution
+    texture into a low-resolution target, blurred against banding, added; 20 copies scaled x1.03 each are
+    kbEngine3's code, not the article's."""
     # Ours: the flare (procedural, 0.3 UV), the target at half resolution ("low-res"),
     # the intensity and the blur (sigma 0.625 % of the frame's larger side).
     return FlareOuts(

@@ -97,11 +97,12 @@ class GodRays(Effect):
     1. the emitter (`source`): `"disc"`, the XNA article's light-source mask,
        `2 * pow(tex, 2)` of a flare texture centred on the light with
        half-extent (UV units, stretched with the frame's aspect ratio as on
-       the GPU) by `flare_sizing`: `"clip_depth"`, the article's
-       `SunSize / z` (`sun_size` over the light's clip-space z,
+       the GPU) by `flare_sizing`: `"clip_depth"` (the XNA preset's), the
+       article's `SunSize / z` (`sun_size` over the light's clip-space z,
        `masks.clip_space_depth` of `near_plane` and `far_plane`: small for a
        far light, large for a near one, a light at infinity on the far
-       plane), or `"fixed"` (ours), `flare_size` whatever the light's
+       plane), or `"fixed"` (ours, the class default so that a given
+       `flare_size` is what is drawn), `flare_size` whatever the light's
        distance (pixels under `units="px"`); the texture is `flare_texture`,
        else by `flare_shape` the procedural glow (`masks.procedural_flare()`)
        or the analytic cone; `"sky"`, the frame's own colour;
@@ -150,7 +151,7 @@ class GodRays(Effect):
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     flare_texture: Float[Array, "h w C"] | None = texture_field()
     flare_shape: FlareShape = eqx.field(static=True, default="glow")
-    flare_sizing: FlareSizing = eqx.field(static=True, default="clip_depth")
+    flare_sizing: FlareSizing = eqx.field(static=True, default="fixed")
     depth_bias: float = eqx.field(static=True, default=0.00025)
     near_plane: float = eqx.field(static=True, default=XNA_NEAR_PLANE)
     far_plane: float = eqx.field(static=True, default=XNA_FAR_PLANE)

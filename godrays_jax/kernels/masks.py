@@ -174,8 +174,8 @@ def clip_space_depth(
     dtype = jnp.result_type(depth, jnp.float32)
     depth = depth.astype(dtype)
     beyond = depth >= far_plane
-    finite = jnp.where(beyond, far_plane, depth)
-    return jnp.where(beyond, far_plane, (finite - near_plane) * (far_plane / (far_plane - near_plane)))
+    within = jnp.where(beyond, far_plane, depth)  # the far plane where beyond: no inf in the gradient
+    return jnp.where(beyond, far_plane, (within - near_plane) * (far_plane / (far_plane - near_plane))).astype(dtype)
 
 
 def hardware_depth(

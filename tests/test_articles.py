@@ -296,3 +296,23 @@ def test_render_writes_the_frames_camera(tmp_path):
     assert spec.getattribute("godrays:fov_x_deg") == pytest.approx(37.0)
     assert tuple(spec.getattribute("godrays:clip_planes")) == pytest.approx((0.25, 900.0))
     assert spec.getattribute("godrays:light_depth") == pytest.approx(25.0)
+
+
+def test_vbex_night_lights_are_towns_clustered_on_continents():
+    """The planet's emissive night-light map: dark sea, lit land, towns clustered by region (not a regular grid)."""
+    from godrays_jax.raster import shading
+
+    rng = np.random.default_rng(0)
+    normals = rng.normal(size=(3, 200_000))
+    normals /= np.linalg.norm(normals, axis=0)
+    lights = np.asarray(shading._city_pattern(jnp.asarray(normals, jnp.float32)))
+    land = np.asarray(shading._field(jnp.asarray(normals, jnp.float32), shading._CONTINENTS)) > 0.3
+    assert 0.15 < land.mean() < 0.4  # continents, not the whole sphere
+    assert lights[~land].max() == 0.0  # the sea is dark
+    lit = lights > 0.5
+    assert 0.002 < lit.mean() < 0.05  # scattered towns, not a glowing crust
+    # Clustered: the lit share of land varies strongly between caps of ~10 degrees around random land points.
+    centres = normals[:, np.flatnonzero(land)[:400]]
+    cosine = centres.T @ normals
+    shares = np.array([lit[(row > np.cos(0.17)) & land].mean() for row in cosine])
+    assert shares.std() > 0.5 * shares.mean()  # towns spread evenly over land would give about 0.15

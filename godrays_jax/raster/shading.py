@@ -2,6 +2,7 @@
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from godrays_jax.kernels.lens import sun_spot_intensity
@@ -18,11 +19,49 @@ def world_rays(camera: Camera, px: Float[Array, "P"], py: Float[Array, "P"]) -> 
     return ((px - 0.5 * camera.width) / f) * right + ((0.5 * camera.height - py) / f) * up + forward
 
 
+def _sphere_waves(count: int, lowest: float, highest: float, slope: float, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`count` plane waves over the unit sphere (random directions, frequencies spaced geometrically from `lowest` to
+    `highest` radians per unit, random phases), amplitudes falling as `frequency ** -slope`, scaled to unit RMS."""
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    frequencies = np.geomspace(lowest, highest, count)
+    amplitudes = (lowest / frequencies) ** slope
+    amplitudes /= np.sqrt(np.sum(amplitudes**2) / 2)
+    return (directions * frequencies[:, None]).astype(np.float32), rng.uniform(0, 2 * np.pi, count).astype(np.float32), amplitudes.astype(np.float32)
+
+
+# Fixed random fields on the sphere (no lattice: random directions): continents, the regions where cities cluster, towns.
+_WAVES = np.random.default_rng(2012)
+_CONTINENTS = _sphere_waves(32, 1.5, 12.0, 0.8, _WAVES)
+_REGIONS = _sphere_waves(32, 5.0, 40.0, 0.5, _WAVES)
+_TOWNS = _sphere_waves(64, 120.0, 400.0, 0.0, _WAVES)
+
+
+def _field(normal: Float[Array, "3 *P"], waves) -> Float[Array, "*P"]:
+    vectors, phases, amplitudes = (jnp.asarray(part) for part in waves)
+    along = jnp.tensordot(vectors, normal, axes=(1, 0))
+    return jnp.tensordot(amplitudes, jnp.sin(along + phases.reshape(-1, *([1] * (along.ndim - 1)))), axes=1)
+
+
+def _smoothstep(low: float, high: float, x):
+    t = jnp.clip((x - low) / (high - low), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
 def _city_pattern(normal: Float[Array, "3 *P"]) -> Float[Array, "*P"]:
-    """Procedural stand-in for an emissive night-light map: scattered bright cells."""
-    x, y, z = normal[0], normal[1], normal[2]
-    waves = jnp.sin(83.0 * x + 3.0 * jnp.sin(11.0 * y)) * jnp.sin(89.0 * y + 2.0 * jnp.sin(13.0 * z)) * jnp.sin(97.0 * z + 2.5 * jnp.sin(7.0 * x))
-    return jnp.clip(8.0 * (waves - 0.45), 0.0, 1.0)
+    """Procedural stand-in for an emissive night-light map, in [0, 1] at unit normals: city lights.
+
+    Continents (a smooth random field over the sphere above a threshold,
+    about a quarter of it) hold towns (small bright spots of a fine random
+    field) clustered in regions and along the coasts, with a faint glow of
+    the dense regions between them; the sea is dark.
+    """
+    continents = _field(normal, _CONTINENTS)
+    land = _smoothstep(0.3, 0.45, continents)
+    coast = land * (1.0 - _smoothstep(0.45, 1.05, continents))
+    density = _smoothstep(0.0, 1.6, _field(normal, _REGIONS) + 0.8 * coast)
+    towns = _smoothstep(1.3, 2.3, _field(normal, _TOWNS))
+    return jnp.clip(land * density * (3.0 * towns + 0.1 * density), 0.0, 1.0)
 
 
 def _stack_materials(scene: Scene):

@@ -37,6 +37,11 @@ RayMethod = Literal["exact", "multipass", "fast"]
 RAY_METHODS: tuple[str, ...] = ("exact", "multipass", "fast")
 """`GodRays.method`: the exact loop, or the fast variants of `godrays_jax.kernels.fast` (errors in benchmarks/README.md)."""
 
+MULTIPASS_PASSES, MULTIPASS_TAPS = 2, 16
+"""`method="multipass"`'s comb: 2 passes x 16 taps (256 samples). Each pass resamples the previous one
+bilinearly, with a blur that follows the light's sub-pixel position; two passes instead of the engines'
+three hold the shafts stiller in a moving camera (benchmarks/bench_shimmer.py)."""
+
 STEP_CLAMP_LIMIT = 0.5
 """The XNA crepuscular-rays article's `clamp(ScreenPosition.w * ScreenPosition.z, 0, .5)` upper limit."""
 
@@ -127,7 +132,7 @@ class GodRays(Effect):
     `num_samples` is fittable through `radial_rays`'s relaxation (loop length
     `max_samples`); at an integer value it is the exact loop.
     `method` picks the rays kernel: `"exact"` (`radial_rays`), `"multipass"`
-    (`fast.radial_rays_multipass`, 3 passes x 8 taps) or `"fast"`
+    (`fast.radial_rays_multipass`, `MULTIPASS_PASSES` x `MULTIPASS_TAPS`) or `"fast"`
     (`fast.fast_radial_rays`: multi-pass at `1 / resolution_factor` resolution).
     With the default flare and the fields known at trace time (the effect
     closed over by `jax.jit`, as `batch` does) the exact loop runs only on
@@ -210,7 +215,9 @@ class GodRays(Effect):
                 emitter_fn, emitter_args, light_xy, max_samples=self.max_samples, source_radius=reach, **fields
             )
         elif self.method == "multipass":
-            rays = radial_rays_multipass(emitter_fn(*emitter_args), light_xy, **fields)
+            rays = radial_rays_multipass(
+                emitter_fn(*emitter_args), light_xy, num_passes=MULTIPASS_PASSES, num_taps=MULTIPASS_TAPS, **fields
+            )
         else:
             rays = fast_radial_rays(
                 emitter_fn(*emitter_args), light_xy, resolution_factor=self.resolution_factor, **fields

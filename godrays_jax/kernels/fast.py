@@ -78,12 +78,15 @@ def radial_rays_multipass(
     Scaling about the light composes multiplicatively, so in `u = -log(scale)`
     every pass is a comb: pass `k` reads the previous output at scales
     `exp(-(j * num_taps**k + offset) * h)`, j = 0..num_taps-1, with weights
-    `a**(j * num_taps**k)`. Their composition is exactly the comb of
-    `M = num_taps**num_passes` samples at `u = (m + 1/2) * h + u_start` weighted
-    `A * a**m`. The exact loop's samples (`scale_i = 1 - i * density / n`,
-    weight `weight * decay**(i-1)`, i = 1..n) are a density in `u`; the comb
-    spans the same range of `u` and `a` is the weighted log-linear fit of
-    that density's mass per comb cell; `A` makes the total weight exactly
+    `w_k[j]`. Their composition is exactly the comb of `M = num_taps**num_passes`
+    samples at `u = (m + 1/2) * h` weighted
+    `A * prod_k w_k[digit_k(m)]` (`digit_k(m)` the k-th base-`num_taps` digit of
+    `m`). The exact loop's samples (`scale_i = 1 - i * density / n`, weight
+    `weight * decay**(i-1)`, i = 1..n, each the right end of its cell
+    `(i - 1, i]` of the sample index) are a density in `u`; the comb spans
+    the same range of `u` (scales 1 to `1 - density`) and `log w_k` are the
+    weighted least-squares fit of the log of that density's mass per comb
+    cell (weights: the mass), a sum of one term per digit; `A` makes the total weight exactly
     `weight * sum_i decay**(i-1)`.
     The pixel's own term `image(p)` is added exactly. A relaxed (float or
     traced) `num_samples` needs no upper bound here: it only moves the comb.
@@ -98,8 +101,8 @@ def radial_rays_multipass(
     Args:
         image, light_xy, num_samples, density, decay, weight, exposure: as
             `radial_rays` (pixels, clamp-to-edge addressing).
-        num_passes: static number of passes (>= 1).
-        num_taps: static taps per pass (>= 1).
+        num_passes: static number of num_passes (>= 1).
+        num_taps: static num_taps per pass (>= 1).
 
     Returns:
         The rays image, same shape and dtype as `image`.
@@ -114,17 +117,17 @@ def radial_rays_multipass(
         check_scalar(num_samples, "num_samples")
     count = jnp.maximum(jnp.asarray(num_samples, dtype), 0.0)
     comb_length = num_taps**num_passes
-    # The exact samples i = 1..n cover the sample index t in [1/2, n + 1/2] (midpoint rule),
-    # that is scales 1 - t * density / n, mapped to u = -log(scale).
+    # The exact samples i = 1..n are the right ends of the sample index's cells (i - 1, i]: the comb
+    # spreads them over t in [0, n], as the loop with ever more samples does (scales 1 - t * density / n,
+    # mapped to u = -log(scale)).
     step = jnp.clip(jnp.asarray(density, dtype), 0.0, 1.0) / jnp.maximum(count, 1e-6)
     smallest_scale = 1.0 / (4.0 * max(image.shape[0], image.shape[1]))  # within a pixel of the light
-    u_start = -jnp.log(jnp.maximum(1.0 - 0.5 * step, smallest_scale))
-    u_end = -jnp.log(jnp.maximum(1.0 - (count + 0.5) * step, smallest_scale))
-    cell = (u_end - u_start) / comb_length
-    edges = u_start + cell * jnp.arange(comb_length + 1, dtype=dtype)
+    u_end = -jnp.log(jnp.maximum(1.0 - count * step, smallest_scale))
+    cell = u_end / comb_length
+    edges = cell * jnp.arange(comb_length + 1, dtype=dtype)
     # Sample index t at each cell edge; the linear limit keeps density -> 0 finite.
     safe_step = jnp.where(step > 1e-12, step, 1.0)
-    linear_index = 0.5 + count * jnp.arange(comb_length + 1, dtype=dtype) / comb_length
+    linear_index = count * jnp.arange(comb_length + 1, dtype=dtype) / comb_length
     index = jnp.where(step > 1e-12, -jnp.expm1(-edges) / safe_step, linear_index)
     log_decay = jnp.log(jnp.clip(jnp.asarray(decay, dtype), 1e-6, None))
     width = jnp.diff(index)
@@ -137,29 +140,46 @@ def radial_rays_multipass(
     total_mass = jnp.asarray(weight, dtype) * jnp.where(
         flat_decay, count, jnp.expm1(count * log_decay) / jnp.expm1(safe_log_decay)
     )
-    # Weighted least squares of log(mass) against the comb index, weights = mass.
-    m = jnp.arange(comb_length, dtype=dtype)
+    # The comb's weights are products of one weight per pass and digit, so log(weight) is a sum of one
+    # term per digit: fitted to log(mass) by weighted least squares (weights = mass), it follows the
+    # exact loop's profile along the ray closely (a single exponential in m could not: mass per cell
+    # falls as exp(-u) * decay**t(u)). A profile that departs from the loop's draws every shaft's edge
+    # into the error, which a moving camera turns into shimmer.
     # Guarded divisions (not maximum(x, eps)) so that an empty comb (n = 0) keeps finite gradients.
     mass_sum = jnp.sum(cell_mass)
     fit_weights = jnp.where(mass_sum > 0, cell_mass, 1.0) / jnp.where(mass_sum > 0, mass_sum, comb_length)
     log_mass = jnp.log(jnp.maximum(cell_mass, 1e-30))
-    m_mean = jnp.sum(fit_weights * m)
-    spread = jnp.sum(fit_weights * (m - m_mean) ** 2)
-    covariance = jnp.sum(fit_weights * (m - m_mean) * (log_mass - jnp.sum(fit_weights * log_mass)))
-    slope = jnp.where(spread > 1e-12, covariance, 0.0) / jnp.where(spread > 1e-12, spread, 1.0)
-    slope = jnp.clip(slope, -30.0, 30.0 / comb_length)
+    design = jnp.asarray(_digit_design(num_passes, num_taps), dtype)
+    normal = design.T @ (fit_weights[:, None] * design)
+    # A small ridge picks one of the equivalent solutions (a constant moves freely between passes).
+    ridge = 1e-6 * jnp.eye(num_passes * num_taps, dtype=dtype)
+    centred = log_mass - jnp.sum(fit_weights * log_mass)
+    log_weights = jnp.linalg.solve(normal + ridge, design.T @ (fit_weights * centred))
+    log_weights = jnp.clip(log_weights.reshape(num_passes, num_taps), -30.0, 30.0)
+    log_weights = log_weights - jnp.max(log_weights, axis=1, keepdims=True)
 
     light_xy = jnp.asarray(light_xy, dtype)
     rays = image
     digits = jnp.arange(num_taps, dtype=dtype)
-    for level in range(num_passes):
+    # Coarse pass first: the sharp image is resampled once at scales far apart, and the fine passes
+    # (scales near 1, whose bilinear blur follows the light's sub-pixel position) read smooth images.
+    for level in reversed(range(num_passes)):
         stride = num_taps**level
         scales = jnp.exp(-cell * digits * stride)
         if level == 0:
-            scales = scales * jnp.exp(-(u_start + 0.5 * cell))
-        rays = scaled_copies(rays, light_xy, scales, jnp.exp(slope * digits * stride))
-    comb_mass = jnp.sum(jnp.exp(slope * m))
+            scales = scales * jnp.exp(-0.5 * cell)
+        rays = scaled_copies(rays, light_xy, scales, jnp.exp(log_weights[level]))
+    comb_mass = jnp.prod(jnp.sum(jnp.exp(log_weights), axis=1))
     return (image + rays * (total_mass / comb_mass)) * jnp.asarray(exposure, dtype)
+
+
+def _digit_design(num_passes: int, num_taps: int) -> np.ndarray:
+    """`(num_taps**num_passes, num_passes * num_taps)` indicators: row `m` marks each pass's digit of `m` (base `num_taps`)."""
+    m = np.arange(num_taps**num_passes)
+    design = np.zeros((num_taps**num_passes, num_passes * num_taps))
+    for level in range(num_passes):
+        design[m, level * num_taps + (m // num_taps**level) % num_taps] = 1.0
+    return design
 
 
 def at_reduced_resolution(

@@ -145,7 +145,7 @@ def test_degenerate_inputs_give_finite_values_and_gradients():
 
 def test_preset_round_trips_and_errors_name_the_argument(tmp_path):
     effect = gr.preset("participating_media")
-    assert isinstance(effect, gr.ScatteringFog) and effect.max_samples == 32
+    assert isinstance(effect, gr.ScatteringFog) and effect.max_samples == 128
     gr.save_effect(tmp_path / "fog.json", effect)
     loaded = gr.load_effect(tmp_path / "fog.json")
     assert gr.effect_to_dict(loaded) == gr.effect_to_dict(effect)

@@ -11,6 +11,7 @@ import pytest
 from skimage.measure import label
 
 import godrays_jax as gr
+from godrays_jax.effects.presets import GPU_GEMS_SAMPLE_SPREAD
 
 HERO_FRAME = Path(__file__).resolve().parents[1] / "examples" / "data" / "forest_hero.exr"
 
@@ -33,9 +34,12 @@ def test_hero_frame_cuts_the_sky_around_the_sun_into_many_gaps():
 def test_gpu_gems_holds_babylons_constants():
     effect = gr.preset("gpu_gems")
     assert isinstance(effect, gr.GodRays)
-    assert effect.max_samples == 100 and float(effect.num_samples) == 100.0
-    for field, babylon in {"density": 0.926, "decay": 0.96815, "weight": 0.58767}.items():
-        assert float(getattr(effect, field)) == pytest.approx(babylon, rel=1e-6), field
+    # Each of Babylon's 100 samples spread over a few: the same weights along the ray, a shorter step.
+    spread = GPU_GEMS_SAMPLE_SPREAD
+    assert effect.max_samples == 100 * spread and float(effect.num_samples) == 100.0 * spread
+    assert float(effect.density) == pytest.approx(0.926, rel=1e-6)
+    assert float(effect.decay) ** spread == pytest.approx(0.96815, rel=1e-6)
+    assert float(effect.weight) * spread == pytest.approx(0.58767, rel=1e-6)
     # Babylon's exposure .3 times the 0.4 its shader puts on every sample.
     assert float(effect.exposure) == pytest.approx(0.3 * 0.4, rel=1e-6)
 

@@ -1,0 +1,78 @@
+"""Shafts that hold still: on a slow synthetic pan, a shaft preset's error against its converged self barely changes.
+
+A small sun above a row of thin trunks and a ragged canopy slides sideways a fraction of a pixel per frame
+(area-sampled, so the frames are the same scene moved, not the same pixels); every sample of the preset's
+loop spread over 16 is its converged version (benchmarks/bench_shimmer.py measures the same on the shipped
+forest). The change of (effect - converged) from one frame to the next, in 8-bit display codes, must stay
+small: an error that sits still in the scene moves under the pixel grid only as far as it varies within a
+pixel, and every bilinear resampling on the grid blurs by an amount that follows the light's sub-pixel place.
+"""
+
+import dataclasses
+from unittest import mock
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.effects.base import STATIC_RANGES
+
+HEIGHT, WIDTH, OVERSAMPLE, PAN_PX = 36, 64, 16, 0.6
+
+
+def _scene_coverage(shift: float, supersample: int = 6) -> np.ndarray:
+    """Area-sampled coverage of trunks and a canopy, moved `shift` pixels to the right."""
+    offsets = (np.arange(supersample) + 0.5) / supersample
+    y = (np.arange(HEIGHT)[:, None] + offsets[None, :]).reshape(-1)[:, None]
+    x = (np.arange(WIDTH)[:, None] + offsets[None, :]).reshape(-1)[None, :] - shift
+    trunks = np.zeros((y.size, x.size), bool)
+    for centre, half_width in ((9.3, 1.1), (17.0, 0.7), (26.4, 1.4), (38.2, 0.8), (47.5, 1.2), (57.1, 0.9)):
+        trunks |= (np.abs(x - centre) < half_width) & (y > 14 + 0.3 * centre % 5)
+    canopy = y > 12 + 3 * np.sin(x * 0.9) + 2 * np.sin(x * 0.37 + 1)
+    covered = (trunks | (canopy & (np.sin(x * 2.3) > 0.2))).astype(float)
+    return covered.reshape(HEIGHT, supersample, WIDTH, supersample).mean(axis=(1, 3))
+
+
+def _frames(count: int = 6):
+    frames = []
+    for index in range(count):
+        shift = PAN_PX * index
+        coverage = _scene_coverage(shift)
+        color = np.broadcast_to(np.array([0.05, 0.04, 0.03]), (HEIGHT, WIDTH, 3)) * coverage[..., None]
+        depth = np.where(coverage > 0, 20.0, np.inf)
+        buffers = gr.Buffers(color=jnp.asarray(color, jnp.float32), depth=jnp.asarray(depth, jnp.float32),
+                             coverage=jnp.asarray(coverage, jnp.float32))  # fmt: skip
+        frames.append((buffers, jnp.asarray([30.6 + shift, 4.3], jnp.float32)))
+    return frames
+
+
+def _converged(effect):
+    """Every sample of the preset's loop spread over `OVERSAMPLE`, exact loop (a longer loop than a user may set)."""
+    count = int(round(float(effect.num_samples))) * OVERSAMPLE
+    values = dict(num_samples=jnp.asarray(float(count)), decay=effect.decay ** (1.0 / OVERSAMPLE))
+    if isinstance(effect, gr.GodRays):
+        values |= dict(weight=effect.weight / OVERSAMPLE, method="exact")
+    with mock.patch.dict(STATIC_RANGES, {"max_samples": (1, count)}), \
+            mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}):  # fmt: skip
+        return dataclasses.replace(effect, max_samples=count, **values)
+
+
+def _codes(image) -> np.ndarray:
+    return np.asarray(gr.srgb_encode(np.asarray(image, np.float64)[..., :3])) * 255.0
+
+
+def _shimmer(effect) -> tuple[float, float]:
+    reference = _converged(effect)
+    run = jax.jit(lambda buffers, light: effect(buffers, light))
+    run_reference = jax.jit(lambda buffers, light: reference(buffers, light))
+    errors = np.stack([_codes(run(b, light)) - _codes(run_reference(b, light)) for b, light in _frames()])
+    change = np.diff(errors, axis=0)
+    return float(np.sqrt(np.mean(change**2))), float(np.percentile(np.abs(change), 99))
+
+
+@pytest.mark.parametrize("name", ["gpu_gems", "participating_media"])
+def test_shaft_preset_holds_still_on_a_slow_pan(name):
+    rms, p99 = _shimmer(gr.preset(name))
+    assert rms <= 0.3 and p99 <= 1.5, f"{name}: change of the error {rms:.2f} RMS, {p99:.2f} at the 99th percentile"

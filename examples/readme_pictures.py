@@ -6,6 +6,8 @@
   the `gpu_gems` preset, as the README's main command makes it;
 - `hidden_sun.png`: a sun fully hidden behind a box in haze (`hidden_sun.py`):
   a single-scattering reference, `physically_based` and `gpu_gems`;
+- `plate.png`: a photograph without depth (the hero frame's colour as an
+  8-bit PNG), the open sky `apply` finds in it, and `gpu_gems` on it;
 - `gallery.png` (every preset on the hero frame, `gallery.py`) and
   `seed_scenes.png` (each article's scene with its preset, `render_seeds.py`).
 
@@ -15,6 +17,7 @@ Runs from any directory.
 """
 
 import argparse
+import tempfile
 from pathlib import Path
 
 import equinox as eqx
@@ -71,6 +74,22 @@ def make_hidden_sun(folder) -> None:
     write_display(folder / "hidden_sun.png", contact_sheet(tiles, 2))
 
 
+def make_plate(folder) -> None:
+    """A preset on a frame without depth: what `godrays-jax apply photo.png --light X,Y --preset gpu_gems` does."""
+    buffers = gr.read_buffers(HERO_FRAME)
+    light_xy, _ = gr.read_light(HERO_FRAME)
+    with tempfile.TemporaryDirectory() as scratch:
+        photo_path = Path(scratch) / "photo.png"
+        gr.write_image(photo_path, buffers.color, dither_seed=0)  # sRGB, 8 bits: a photograph, no depth, no alpha
+        photo = gr.read_buffers(photo_path, without_depth=True)
+    plate = gr.buffers_without_depth(photo.color, light_xy, alpha=photo.coverage)
+    after = _apply(gr.preset(HERO_PRESET), plate, jnp.asarray(light_xy, jnp.float32))
+    tiles = [labelled(display(photo.color), "a photograph: no depth, no alpha"),
+             labelled(display(np.repeat(1.0 - np.asarray(plate.coverage)[..., None], 3, axis=-1)), "the open sky found around the light"),
+             labelled(display(after), f"--preset {HERO_PRESET} on it")]  # fmt: skip
+    write_display(folder / "plate.png", contact_sheet(tiles, 3))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     where = parser.add_mutually_exclusive_group()
@@ -80,6 +99,7 @@ def main() -> None:
     folder = output_folder(args.docs, "readme", args.out)
     make_hero(folder)
     make_hidden_sun(folder)
+    make_plate(folder)
     make_gallery(docs=args.docs, out=args.out)
     make_seed_pictures(docs=args.docs, out=args.out)
 

@@ -127,3 +127,30 @@ def test_batch_frames_without_depth_and_a_medium_fail_each_frame(tmp_path, capsy
                    "--preset", "participating_media", "-q"])  # fmt: skip
     assert status == 1
     assert "has no depth channel and ScatteringFog measures distance in it" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["apply", "batch"])
+def test_vbex_presets_take_the_frames_field_of_view(tmp_path, command):
+    """The VBex sun spot is drawn with the frame's field of view (`godrays:fov_x_deg`), not the preset's 50 degrees."""
+    from godrays_jax.primitives.camera_metadata import FOV_X_ATTR
+
+    height, width = 18, 32
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[12:] = 4.0
+    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.1), depth=jnp.asarray(depth),
+                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    folder = tmp_path / "in"
+    folder.mkdir()
+    path = folder / "frame.0001.exr"
+    gr.write_buffers(path, frame, light_xy=(20.0, 6.0), metadata={FOV_X_ATTR: 80.0})
+    if command == "apply":
+        output = tmp_path / "out.exr"
+        assert main(["apply", str(path), "--preset", "vbex_sun_spot", "-o", str(output)]) == 0
+    else:
+        assert main(["batch", str(path), "-o", str(tmp_path / "out"), "--preset", "vbex_sun_spot", "-q"]) == 0
+        output = tmp_path / "out" / path.name
+    spot = gr.preset("vbex_sun_spot")
+    expected = dataclasses.replace(spot, fov_x_deg=80.0)(gr.read_buffers(path), jnp.asarray([20.0, 6.0]))
+    written = np.asarray(gr.read_buffers(output).color)
+    np.testing.assert_allclose(written, np.asarray(expected), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(written, np.asarray(spot(gr.read_buffers(path), jnp.asarray([20.0, 6.0]))), atol=1e-4)

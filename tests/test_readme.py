@@ -21,6 +21,7 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
+from godrays_jax.primitives.camera_metadata import read_frame_camera
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
@@ -91,8 +92,10 @@ def test_the_shell_commands_run_in_order(scratch):
     assert {"godrays-jax render", "godrays-jax batch", "examples/farm/fanout.sh"} <= {
         " ".join(command.split()[:2]) if command.startswith("godrays-jax") else command.split()[0] for command in ran
     }
-    for name in ("forest_rays.png", "crepuscular.exr", "sample_rays.exr", "left_of_frame.png"):
+    for name in ("forest_rays.png", "crepuscular.exr", "sample_rays.exr", "left_of_frame.png", "photo_rays.png"):
         assert (scratch / "out" / name).is_file(), name
+    # `render` writes the camera's field of view beside the light's distance.
+    assert read_frame_camera(scratch / "out" / "crepuscular.exr").fov_x_deg == pytest.approx(60.0)
     for folder in ("shot_rays", "shot_hosts", "shot_farm"):
         assert sorted(os.listdir(scratch / "out" / folder)) == [f"frame.{n}.exr" for n in range(1001, 1005)]
 

@@ -8,7 +8,8 @@ about its vertical axis by `--pan` pixels per frame at the image centre (the
 scene, the sun and its shafts slide sideways; the pixel grid stays). Every
 shaft preset (every preset of `GodRays`, `FlareOuts` and `ScatteringFog`) is
 applied at its defaults, with the light's pixel position and distance as
-`render` stores them, and so is its converged version:
+`render` stores them and the camera's field of view (as `apply` reads them
+from the frame), and so is its converged version:
 
 - the same effect with every sample of its loop replaced by `--oversample`
   (K) samples spread over the sample's interval: `num_samples` (or
@@ -44,6 +45,7 @@ import numpy as np
 
 import godrays_jax as gr
 from godrays_jax.raster import light_distance
+from godrays_jax.app.options import with_field_of_view
 from godrays_jax.effects.base import STATIC_RANGES
 from godrays_jax.effects.fog import ScatteringFog
 from godrays_jax.effects.presets import PRESETS
@@ -162,9 +164,10 @@ def main() -> None:
     print(f"{args.frames} frames of {width}x{height} in {rendered:.1f} s; "
           f"light x {float(frames[0][1][0]):.2f} .. {float(frames[-1][1][0]):.2f} px")  # fmt: skip
 
+    fov_x_deg = float(gr.load_scene(SCENE)[1].fov_x_deg)
     cases = []
     for name in args.presets.split(",") if args.presets else shaft_presets():
-        effect = PRESETS[name]()
+        effect = with_field_of_view(PRESETS[name](), fov_x_deg)  # as `apply` gives it the frame's
         cases.append((name, effect))
         if args.method and isinstance(effect, GodRays) and effect.method != args.method:
             cases.append((f"{name} (method={args.method})", dataclasses.replace(effect, method=args.method)))

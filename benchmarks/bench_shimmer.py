@@ -16,9 +16,10 @@ from the frame), and so is its converged version:
   `num_iters`) times K, `decay` (`copy_decay`, `scale_step`) to the power
   1/K, `weight` (`intensity`) divided by K, the exact loop
   (`method="exact"`) at full resolution (`resolution_factor=1`); the other
-  fields as they are. Its weights are the same continuous density along the
-  ray sampled K times as densely, so its only departure from the effect's own
-  integral is the sampling.
+  fields as they are (`--same-target`: flare-outs stay in the effect's own
+  low-resolution target, so only their copies are oversampled). Its weights
+  are the same continuous density along the ray sampled K times as densely,
+  so its only departure from the effect's own integral is the sampling.
 
 Both are encoded as `apply` writes a PNG (linear colour clipped to [0, 1],
 sRGB-encoded, times 255), kept unrounded so that rounding does not hide or
@@ -97,8 +98,11 @@ def _replace(effect, **values):
     return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [values[n] for n in names])
 
 
-def converged(effect, oversample: int):
-    """The effect with every sample of its loop spread over `oversample` samples (see the module's docstring)."""
+def converged(effect, oversample: int, *, same_target: bool = False):
+    """The effect with every sample of its loop spread over `oversample` samples (see the module's docstring).
+
+    `same_target`: flare-outs stay in the effect's own (low-resolution) target.
+    """
     k = oversample
     if isinstance(effect, FlareOuts):
         count = int(round(float(effect.num_iters))) * k
@@ -106,7 +110,7 @@ def converged(effect, oversample: int):
             effect, num_iters=float(count), scale_step=effect.scale_step ** (1.0 / k),
             copy_decay=effect.copy_decay ** (1.0 / k), intensity=effect.intensity / k,
         )  # fmt: skip
-        static = dict(max_iters=count, target_factor=1, resolution_factor=1)
+        static = dict(max_iters=count) if same_target else dict(max_iters=count, target_factor=1, resolution_factor=1)
     else:
         count = int(round(float(effect.num_samples))) * k
         values = dict(num_samples=float(count), decay=effect.decay ** (1.0 / k))
@@ -145,6 +149,7 @@ def main() -> None:
     parser.add_argument("--oversample", type=int, default=32, help="samples of the converged version per sample")
     parser.add_argument("--presets", default=None, help="comma-separated presets (default: every shaft preset)")
     parser.add_argument("--method", default=None, help="also measure GodRays presets with this method (e.g. fast)")
+    parser.add_argument("--same-target", action="store_true", help="converged flare-outs stay in the effect's target")
     parser.add_argument("--cache", default=None, help="keep the rendered frames in this file and reuse them")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
@@ -174,7 +179,7 @@ def main() -> None:
     print(f"| preset | change RMS | change p99 | error RMS | within target |")
     print(f"|---|---|---|---|---|")
     for name, effect in cases:
-        reference = converged(effect, args.oversample)
+        reference = converged(effect, args.oversample, same_target=args.same_target)
         run = jax.jit(lambda b, xy, front, depth, e=effect: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
         run_reference = jax.jit(lambda b, xy, front, depth, e=reference: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
         errors = []

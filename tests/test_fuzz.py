@@ -110,3 +110,33 @@ def test_bad_requests(name, expected, tune_server):
     expected_status, message = expected.split(" ", 1)
     assert status == int(expected_status) and message in answer["error"], answer
     assert "\n" not in answer["error"]
+
+
+def _render_request(port: int, token: str, light: list[float]) -> bytes:
+    """The PNG `POST /api/render` answers for this light."""
+    body = json.dumps({"light": light, "view": "layer"}).encode()
+    head = (f"POST /api/render HTTP/1.1\r\nHost: {HOST}:{port}\r\nContent-Type: application/json\r\n"
+            f"X-Godrays-Token: {token}\r\nContent-Length: {len(body)}\r\n\r\n").encode()  # fmt: skip
+    status, answer = send_raw(port, head + body)
+    assert status == 200, answer
+    return answer["image"]
+
+
+FAR = "1e39,5"
+"""A light beyond float32's range: every command draws it as at `MAX_LIGHT_PX` in its direction."""
+
+
+def test_a_light_beyond_float32_is_drawn_as_at_the_bound_by_every_command(capsys, tmp_path, tune_server):
+    frame = good_frame(tmp_path / "frame.0001.exr")
+    for light, out in ((FAR, "far.exr"), ("1e9,5e-30", "bound.exr"), ("1e38,5", "near_max.exr")):
+        assert main(["apply", str(frame), f"--light={light}", "-o", str(tmp_path / out), "--preset", "kbengine_flares"]) == 0
+        assert capsys.readouterr().err == ""
+        assert np.all(np.isfinite(gr.read_image(tmp_path / out)[..., :3])), light
+    np.testing.assert_array_equal(gr.read_image(tmp_path / "far.exr"), gr.read_image(tmp_path / "bound.exr"))
+    (tmp_path / "track.csv").write_text("frame,x,y\n1,1e39,5\n")
+    assert main([str(a) for a in ["batch", tmp_path / "frame.####.exr", "-o", tmp_path / "out", "--light-track",
+                                   tmp_path / "track.csv", "--preset", "kbengine_flares", "-q"]]) == 0  # fmt: skip
+    assert capsys.readouterr().err == ""
+    np.testing.assert_array_equal(gr.read_image(tmp_path / "out" / "frame.0001.exr"), gr.read_image(tmp_path / "far.exr"))
+    port, token = tune_server.port, tune_server.token
+    assert _render_request(port, token, [1e39, 5.0]) == _render_request(port, token, [1e9, 5e-30])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from godrays_jax.primitives.checks import MAX_LIGHT_PX, check_light
 
 H, W = 16, 24
 
@@ -76,3 +77,35 @@ def test_bloom_ignores_the_light():
     np.testing.assert_array_equal(
         bloom.layer(buffers, jnp.array([5.0, 5.0])), bloom.layer(buffers, jnp.array([-1e4, 0.0]), light_in_front=False)
     )
+
+
+FAR_LIGHTS = [(1e38, 5.0), (-3.4e38, 5.0), (3.4e38, -3.4e38), (5.0, 1e39), (2e9, 1e9)]
+"""Beyond what float32 arithmetic on pixel distances keeps finite; the last, past `MAX_LIGHT_PX` without overflow."""
+
+
+@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+def test_lights_beyond_float32_reach_are_drawn_as_at_the_bound(name):
+    """A light past `MAX_LIGHT_PX` is moved along its direction to it: finite values and gradients, faded out."""
+    effect = gr.preset(name)
+    buffers = _buffers()
+    layer = jax.jit(lambda light: effect.layer(buffers, light))
+    grad = jax.jit(jax.grad(lambda light: jnp.sum(effect.layer(buffers, light) ** 2)))
+    for light in FAR_LIGHTS:
+        drawn = layer(jnp.asarray(light))
+        assert bool(jnp.all(jnp.isfinite(drawn))) and bool(jnp.all(jnp.isfinite(grad(jnp.asarray(light))))), light
+        if isinstance(effect, SCREEN_SPACE):
+            assert float(jnp.abs(drawn).max()) == 0.0, light
+
+
+def test_the_light_is_moved_along_its_direction_and_near_lights_are_kept_exactly():
+    bounded = check_light
+    np.testing.assert_array_equal(bounded(jnp.asarray([12.5, -3.0])), [12.5, -3.0])
+    np.testing.assert_allclose(bounded(jnp.asarray([4e9, -2e9])), [MAX_LIGHT_PX, -MAX_LIGHT_PX / 2], rtol=1e-6)
+    np.testing.assert_allclose(bounded((1e39, 5.0)), [MAX_LIGHT_PX, 5e-30], atol=1e-35)  # bounded in float64
+    np.testing.assert_array_equal(bounded(jnp.asarray([jnp.inf, 5.0])), [MAX_LIGHT_PX, 0.0])  # along the axis
+    rays = jnp.ones((H, W, 3))
+    far = gr.radial_rays(rays, jnp.asarray([1e38, 1e37]), num_samples=4, density=1.0, decay=0.9, weight=1.0,
+                         exposure=1.0)  # fmt: skip
+    at_bound = gr.radial_rays(rays, jnp.asarray([MAX_LIGHT_PX, MAX_LIGHT_PX / 10]), num_samples=4, density=1.0,
+                              decay=0.9, weight=1.0, exposure=1.0)  # fmt: skip
+    np.testing.assert_array_equal(far, at_bound)

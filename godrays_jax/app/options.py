@@ -13,6 +13,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import check_light
 from godrays_jax.primitives.camera_metadata import read_frame_camera
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
 from godrays_jax.primitives.images import read_image
@@ -27,7 +28,7 @@ class CommandError(Exception):
 
 
 def parse_light(text: str) -> tuple[float, float]:
-    """`"X,Y"` -> `(x, y)` pixels; both finite numbers."""
+    """`"X,Y"` -> `(x, y)` pixels; both finite numbers, a far light moved along its direction to `MAX_LIGHT_PX`."""
     parts = text.replace(" ", "").split(",")
     try:
         x, y = (float(part) for part in parts)
@@ -35,7 +36,8 @@ def parse_light(text: str) -> tuple[float, float]:
         raise argparse.ArgumentTypeError(f"--light must be X,Y in pixels (e.g. 160.5,42), got {text!r}") from None
     if not (math.isfinite(x) and math.isfinite(y)):
         raise argparse.ArgumentTypeError(f"--light must be finite, got {text!r}")
-    return x, y
+    x, y = check_light((x, y))  # as the library bounds it, before a float32 cast could overflow
+    return float(x), float(y)
 
 
 def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:

@@ -72,7 +72,7 @@ from godrays_jax.effects.serialization import (
 )
 from godrays_jax.pipeline.fit import COUNT_FIELDS, fit, fitted_bounds
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.primitives.checks import error_line, ranges_guaranteed
+from godrays_jax.primitives.checks import check_light, error_line, ranges_guaranteed
 from godrays_jax.primitives.color import display_map, to_srgb8
 from godrays_jax.primitives.images import encode_png
 from godrays_jax.primitives.resample import box_pool, downsample_box
@@ -401,7 +401,7 @@ class Tuner:
         light = payload.get("light", list(self.light_xy))
         if not (isinstance(light, list) and len(light) == 2):
             raise TuneRequestError(f"light must be [x, y] in pixels, got {_shown(light)}")
-        x, y = (_number(v, "light") for v in light)
+        x, y = check_light([_number(v, "light") for v in light])  # a far light bounded before a float32 cast
         in_front = payload.get("light_in_front", self.light_in_front)
         if not isinstance(in_front, bool):
             raise TuneRequestError(f"light_in_front must be true or false, got {_shown(in_front)}")

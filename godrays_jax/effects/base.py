@@ -382,7 +382,7 @@ def light_visibility(
     light. 0 when the light is behind the camera (`light_in_front` false).
     Differentiable in `light_xy` and `fade` (gradients finite everywhere).
     """
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     light_xy = jnp.asarray(light_xy, dtype)
     reach = jnp.maximum(jnp.asarray(fade, dtype), 1e-6) * max(height, width)
     # Clipped to the reach, then in units of it, before squaring: squares of far lights' pixel distances

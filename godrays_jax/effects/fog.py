@@ -60,7 +60,7 @@ class ScatteringFog(Effect):
 
     def lit(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W"]:
         """The fraction of each camera ray the sun reaches, in [0, 1] (1 without occluders)."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         dtype = buffers.color.dtype
         open_sky = coverage_mask(buffers.coverage.astype(dtype))[..., None]
         shafts = functools.partial(

@@ -67,7 +67,7 @@ class SunOvercast(Effect):
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 4"]:
         """The unblurred glow pass (RGBA), rendered or drawn in image space."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         dtype = buffers.color.dtype
         visible = light_visibility(
             light_xy, buffers.height, buffers.width, fade=self.offscreen_fade, light_in_front=light_in_front, dtype=dtype
@@ -136,7 +136,7 @@ class LensDirt(Effect):
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The lit dirt alone, `(H, W, 3)`."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         dtype = buffers.color.dtype
         dirt = jnp.asarray(_cached_dirt(buffers.height, buffers.width, self.dirt_seed), dtype)
         lit = lens_dirt(
@@ -183,7 +183,7 @@ class SunSpot(Effect):
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 3"]:
         """The glow target: the coloured spot on sky pixels (the VBex article's `Out.glow`), unblurred."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         dtype = buffers.color.dtype
         spot = sun_spot(
             buffers.height, buffers.width, light_xy, fov_x_deg=self.fov_x_deg, sun_distance=self.sun_distance,
@@ -290,7 +290,7 @@ class Bloom(Effect):
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The glow alone, `(H, W, 3)` (1 channel for a 1-channel frame without a glow target)."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         glowing = self.glowing(buffers)
         if self.method == "pyramid":
             glow = _pyramid(glowing, self.blur_sigma, self.blur_reach, self.weights, self.units)

@@ -192,7 +192,7 @@ class GodRays(Effect):
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The rays alone, `(H, W, 3)` (or 1 channel for a 1-channel flare texture or `sky` source)."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         # The exact loop takes the emitter as a function of its inputs, so that
         # it differentiates the few numbers it is drawn from (flare_size) in
         # forward mode: their reverse-mode gradient then needs no image adjoint.
@@ -284,7 +284,7 @@ class FlareOuts(Effect):
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The flare-outs alone, `(H, W, C)` (C: the flare texture's channels, or 3 for the `sky` source)."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         height, width, factor = buffers.height, buffers.width, self.resolution_factor
         emitter_fn, emitter_args = emitter_inputs(self, buffers, light_xy, light_in_front, light_depth)
         copies = dict(num_iters=self.num_iters, max_iters=self.max_iters, scale_step=self.scale_step, decay=self.copy_decay)

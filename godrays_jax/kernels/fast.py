@@ -40,12 +40,12 @@ from godrays_jax.primitives.sampling import pixel_centres, sample_bilinear
 
 
 def _check_ray_options(image, light_xy, density, decay, weight, exposure):
-    """Trace-time checks; returns the image as a JAX array."""
+    """Trace-time checks; returns the image as a JAX array and the light as `check_light` bounds it."""
     check_image(image)
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     for name, value in (("density", density), ("decay", decay), ("weight", weight), ("exposure", exposure)):
         check_scalar(value, name)
-    return jnp.asarray(image)
+    return jnp.asarray(image), light_xy
 
 
 def _check_positive_int(value, name: str, minimum: int = 1) -> None:
@@ -107,7 +107,7 @@ def radial_rays_multipass(
     Returns:
         The rays image, same shape and dtype as `image`.
     """
-    image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
+    image, light_xy = _check_ray_options(image, light_xy, density, decay, weight, exposure)
     _check_positive_int(num_passes, "num_passes")
     _check_positive_int(num_taps, "num_taps")
     dtype = image.dtype
@@ -200,7 +200,7 @@ def at_reduced_resolution(
     `resolution_factor = 1` calls the kernel unchanged.
     """
     check_image(image)
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     _check_positive_int(resolution_factor, "resolution_factor")
     image = jnp.asarray(image)
     if resolution_factor == 1:
@@ -248,7 +248,7 @@ def radial_rays_jittered(
     Relaxed counts and gradients work as in `radial_rays`; memory grows with
     the number of samples in reverse mode (plain `fori_loop`).
     """
-    image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
+    image, light_xy = _check_ray_options(image, light_xy, density, decay, weight, exposure)
     height, width, _ = image.shape
     dtype = image.dtype
     loop_length, count = _count(num_samples, max_samples, dtype)
@@ -292,7 +292,7 @@ def fast_radial_rays(
     reads 24 quarter-size images instead of 128 full ones. Same parameters
     and units as `radial_rays`; see `radial_rays_multipass` for accuracy.
     """
-    image = _check_ray_options(image, light_xy, density, decay, weight, exposure)
+    image, light_xy = _check_ray_options(image, light_xy, density, decay, weight, exposure)
     _check_positive_int(resolution_factor, "resolution_factor")
 
     def shafts(small, small_light):

@@ -68,7 +68,7 @@ def light_direction(
     camera plane (`camera.project_point`), so when `light_in_front` is false the
     forward (z) component of the direction through `light_xy` is negated.
     """
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     check_scalar(fov_x_deg, "fov_x_deg")
     light_xy = jnp.asarray(light_xy, dtype)
     focal = focal_length_px(width, fov_x_deg, dtype)

@@ -76,7 +76,7 @@ def flare_image(
     the flare that overlaps the image. A light behind the camera
     (`light_in_front` false) draws nothing.
     """
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     if jnp.shape(flare_size) not in ((), (2,)):
         raise ValueError(f"flare_size must be a scalar or a pair (rx, ry), got shape {jnp.shape(flare_size)}")
     light_xy = jnp.asarray(light_xy, dtype)
@@ -276,7 +276,7 @@ def bright_sky(
     """
     if jnp.ndim(luminance) != 2:
         raise ValueError(f"luminance must have shape (H, W), got shape {jnp.shape(luminance)}")
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     if not window > 0.0:
         raise ValueError(f"window must be > 0 (a fraction of the frame's larger side), got {window!r}")
     height, width = luminance.shape

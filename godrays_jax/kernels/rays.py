@@ -63,7 +63,7 @@ def scaled_copies(
         every argument, forward and reverse mode, with memory O(image) for any `K`.
     """
     check_image(image)
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     if addressing not in ("clamp", "zero"):
         raise ValueError(f"addressing must be 'clamp' or 'zero', got {addressing!r}")
     image = jnp.asarray(image)
@@ -216,7 +216,7 @@ def radial_rays_of(image_fn, image_args, light_xy, *, num_samples, density, deca
     disc's radius) are differentiated in forward mode inside the sample loop,
     so their reverse-mode gradient costs no adjoint of the image.
     """
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     if source_radius is not None and not (isinstance(source_radius, (int, float)) and source_radius >= 0):
         raise ValueError(f"source_radius must be a Python number >= 0 (pixels) or None, got {source_radius!r}")
     for name, value in (("density", density), ("decay", decay), ("weight", weight), ("exposure", exposure)):
@@ -288,7 +288,7 @@ def _rays_window(shape, source_radius: float, density, num_samples, loop_length:
 
 def scale_iterated_flares_of(image_fn, image_args, light_xy, *, num_iters, scale_step, decay=1.0, max_iters=None):
     """`scale_iterated_flares(image_fn(*image_args), ...)`, differentiated like `radial_rays_of`."""
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     check_scalar(scale_step, "scale_step")
     check_scalar(decay, "decay")
     loop_length, relaxed = resolve_count(num_iters, max_iters, "num_iters", "max_iters")

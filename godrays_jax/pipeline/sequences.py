@@ -9,6 +9,7 @@ import os
 import re
 from collections.abc import Mapping, Sequence
 
+from godrays_jax.primitives.checks import check_light
 from godrays_jax.primitives.light_metadata import read_light
 
 Light = tuple[tuple[float, float], bool]
@@ -188,7 +189,8 @@ def read_light_track(path: str | os.PathLike) -> dict[int, Light]:
             raise ValueError(f"light track {path}: entry ({frame!r}, {x!r}, {y!r}) must be an integer frame and two numbers") from None
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValueError(f"light track {path}: frame {number} has a non-finite position ({x}, {y})")
-        track[number] = ((x, y), _parse_bool(in_front, path, number))
+        x, y = check_light((x, y))  # as the library bounds a far light, before a float32 cast could overflow
+        track[number] = ((float(x), float(y)), _parse_bool(in_front, path, number))
     if not track:
         raise ValueError(f"light track {path} lists no frames")
     return track

@@ -25,9 +25,45 @@ def check_plane(plane, name: str, height: int, width: int) -> None:
         raise ValueError(f"{name} must have shape ({height}, {width}) to match the image, got {shape}")
 
 
-def check_light(light_xy, name: str = "light_xy") -> None:
-    if jnp.shape(light_xy) != (2,):
-        raise ValueError(f"{name} must be a pixel position (x, y) of shape (2,), got shape {jnp.shape(light_xy)}")
+MAX_LIGHT_PX = 1e9
+"""How far from the frame's corner (pixels, on either axis) `check_light` keeps a light: squares and sums of pixel
+distances up to it stay finite in float32."""
+
+
+def check_light(light_xy, name: str = "light_xy") -> jax.Array | np.ndarray:
+    """`light_xy` as an array: a pixel position `(x, y)`, moved along its direction to at most `MAX_LIGHT_PX`.
+
+    A light farther than `MAX_LIGHT_PX` pixels from the frame's corner
+    `(0, 0)` on either axis (an infinite coordinate too) is drawn as at that
+    bound in the same direction, so that float32 maths on pixel distances
+    stays finite: the direction from a pixel to it changes by less than the
+    frame's size over `MAX_LIGHT_PX` radians, and every light-driven effect
+    has faded such a light out entirely (`offscreen_fade` reaches at most ten
+    frame sizes). Lights within the bound are returned exactly; past it the
+    gradient keeps only the light's direction. Python numbers and NumPy
+    arrays are bounded in float64 (a float64 NumPy array comes back), before
+    a cast to float32 could overflow. NaN stays NaN.
+
+    Raises:
+        ValueError: `light_xy` is not of shape (2,), naming `name`.
+    """
+    if np.shape(light_xy) != (2,):
+        raise ValueError(f"{name} must be a pixel position (x, y) of shape (2,), got shape {np.shape(light_xy)}")
+    if isinstance(light_xy, jax.Array):
+        xp, light = jnp, light_xy
+        if not jnp.issubdtype(light.dtype, jnp.floating):
+            light = light.astype(jnp.float32)
+        work = jnp.promote_types(light.dtype, jnp.float32)  # the bound is beyond float16's range
+    else:
+        xp, light = np, np.asarray(light_xy, np.float64)
+        work = np.float64
+    inputs = light.astype(work)
+    infinite = xp.isinf(inputs)
+    finite = xp.where(infinite, 0.0, inputs)  # no infinity in the scaled branch: its gradient would be NaN
+    scale = MAX_LIGHT_PX / xp.maximum(xp.max(xp.abs(finite)), MAX_LIGHT_PX)
+    along_axes = xp.where(infinite, xp.sign(inputs) * MAX_LIGHT_PX, 0.0)  # the limit of a direction to infinity
+    bounded = xp.where(xp.any(infinite), along_axes, finite * scale).astype(work)
+    return bounded.astype(light.dtype) if xp is jnp else bounded
 
 
 def check_scalar(value, name: str) -> None:

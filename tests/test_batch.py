@@ -484,3 +484,35 @@ def test_two_runs_on_one_folder_share_the_frames_and_replace_nothing(tmp_path):
     _, err = third.communicate(timeout=600)
     assert third.returncode == 1 and "exist already" in err and "--resume" in err
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("ext", ["/../../x.png", "../x.png", "a/b.png", "png/", ".", "..", ".p ng", ""])
+def test_ext_takes_an_extension_only_and_outputs_never_leave_the_output_folder(ext, tmp_path, capsys):
+    _sequence(tmp_path / "in", 1)
+    (tmp_path / "deep" / "er").mkdir(parents=True)
+    out = tmp_path / "deep" / "er" / "out"
+    code = _exit_code(["batch", str(tmp_path / "in" / "shot.####.exr"), "-o", str(out), f"--ext={ext}", "-q"])
+    err = capsys.readouterr().err
+    assert code == 1 and err.count("\n") == 1 and "--ext" in err, err
+    assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == ["shot.0001.exr"]
+    with pytest.raises(batch.BatchError, match="extension"):
+        batch.output_path("shot.0001.exr", str(out), ext)
+
+
+@pytest.mark.parametrize("ext", ["png", ".png", "TIF", "exr"])
+def test_ext_with_or_without_its_dot(ext, tmp_path):
+    assert batch.output_path("in/shot.0001.exr", str(tmp_path), ext) == str(tmp_path / f"shot.0001.{ext.lstrip('.')}")
+
+
+def test_an_output_folder_through_a_missing_folder_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    _sequence(tmp_path / "in", 2)
+    monkeypatch.chdir(tmp_path)
+    code = main(["batch", "in/shot.####.exr", "-o", "nonexist/../out", "-q"])
+    err = capsys.readouterr().err
+    assert code == 1 and err.count("\n") == 1 and "nonexist" in err and "does not exist" in err, err
+    assert sorted(os.listdir(tmp_path)) == ["in"]
+    (tmp_path / "a_file").write_text("mine")
+    assert main(["batch", "in/shot.####.exr", "-o", "a_file", "-q"]) == 1
+    assert "not a folder" in capsys.readouterr().err
+    assert main(["batch", "in/shot.####.exr", "-o", "new/nested/out", "-q"]) == 0  # missing folders are created
+    assert _visible(tmp_path / "new" / "nested" / "out") == ["shot.0001.exr", "shot.0002.exr"]

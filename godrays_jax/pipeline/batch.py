@@ -47,6 +47,7 @@ import concurrent.futures
 import dataclasses
 import math
 import os
+import re
 import sys
 import threading
 import time
@@ -86,12 +87,42 @@ class Job:
     overwrite: bool = False
 
 
+_EXTENSION = re.compile(r"\.?[A-Za-z0-9][A-Za-z0-9_]*")
+"""An extension and nothing more (`png`, `.exr`): no path separator, no `..`, no space."""
+
+
 def output_path(input_path: str, out_dir: str, ext: str | None = None) -> str:
-    """`out_dir/<input's name>`, with the extension replaced by `ext` (e.g. `".png"`) if given."""
+    """`out_dir/<input's name>`, with the extension replaced by `ext` (`"png"` or `".png"`) if given.
+
+    Raises:
+        BatchError: `ext` is not an extension alone (letters, digits and `_`
+            after an optional dot): no path can leave `out_dir` through it.
+    """
     name = os.path.basename(input_path)
-    if ext:
-        name = os.path.splitext(name)[0] + (ext if ext.startswith(".") else "." + ext)
+    if ext is not None:
+        if not _EXTENSION.fullmatch(ext):
+            raise BatchError(f"--ext must be an extension such as png or .exr, got {ext!r}")
+        name = os.path.splitext(name)[0] + "." + ext.lstrip(".")
     return os.path.join(out_dir, name)
+
+
+def check_output_folder(out_dir: str) -> None:
+    """Refuse an output folder that is a file, or whose path goes through a missing folder (`missing/../out`).
+
+    The folder itself and missing folders above it are created when the run
+    starts; a `..` after a missing folder would make the path mean another
+    folder once that one is created.
+
+    Raises:
+        BatchError: naming the file or the missing folder.
+    """
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise BatchError(f"output folder {out_dir} is not a folder")
+    parts = out_dir.split(os.sep)
+    for index, part in enumerate(parts):
+        before = os.sep.join(parts[:index])
+        if part == os.pardir and before and not os.path.isdir(before):
+            raise BatchError(f"output folder {out_dir} goes through {before}, which does not exist")
 
 
 def plan_batch(
@@ -120,8 +151,10 @@ def plan_batch(
     Raises:
         BatchError: an output that is an input, two inputs with the same
             output, existing outputs without `resume`/`overwrite`, a bad
-            shard, or no frame left.
+            shard, no frame left, an `ext` that is not an extension alone,
+            or an output folder that `check_output_folder` refuses.
     """
+    check_output_folder(out_dir)
     selected = list(inputs)
     if frames is not None:
         first, last = frames
@@ -139,6 +172,8 @@ def plan_batch(
     existing = []
     for path in selected:
         out = output_path(path, out_dir, ext)
+        if os.path.dirname(os.path.abspath(out)) != os.path.abspath(out_dir):  # a name such as `..`
+            raise BatchError(f"{path} would be written outside the output folder {out_dir}")
         real_out = os.path.realpath(out)
         if real_out in inputs_abs or (os.path.exists(out) and os.path.samefile(out, path)):
             raise BatchError(f"refusing to overwrite the input {path}: choose another output folder")

@@ -1,4 +1,5 @@
-"""The fuzz corpus in tests/fuzz/: bad frames, params files and HTTP requests, each with its expected one-line error.
+"""The fuzz corpus in tests/fuzz/: bad frames, params files, HTTP requests and flare textures, each with its expected
+one-line error.
 
 Each folder holds the cases and `expected.txt` (`NAME: the error`, a
 substring of the one line the user sees). A case that once got through (a
@@ -30,7 +31,7 @@ def corpus(kind: str) -> list[tuple[str, str]]:
     return [tuple(line.split(": ", 1)) for line in lines if line and not line.startswith("#")]
 
 
-@pytest.mark.parametrize("kind", ["frames", "params", "requests"])
+@pytest.mark.parametrize("kind", ["frames", "params", "requests", "textures"])
 def test_every_case_has_an_expected_error(kind):
     names = {name for name, _ in corpus(kind)}
     assert names == set(os.listdir(FUZZ / kind)) - {"expected.txt"}
@@ -140,3 +141,42 @@ def test_a_light_beyond_float32_is_drawn_as_at_the_bound_by_every_command(capsys
     np.testing.assert_array_equal(gr.read_image(tmp_path / "out" / "frame.0001.exr"), gr.read_image(tmp_path / "far.exr"))
     port, token = tune_server.port, tune_server.token
     assert _render_request(port, token, [1e39, 5.0]) == _render_request(port, token, [1e9, 5e-30])
+
+
+@pytest.mark.parametrize(("name", "expected"), corpus("textures"))
+def test_bad_flare_textures(name, expected, capfd, tmp_path):
+    """Read by `--flare-texture`: one line (a C library's own message too), exit status 1, no output."""
+    frame = good_frame(tmp_path / "frame.exr")
+    texture = FUZZ / "textures" / name
+    code = main(["apply", str(frame), "--flare-texture", str(texture), "--preset", "kbengine_flares",
+                 "-o", str(tmp_path / "out.exr")])  # fmt: skip
+    err = capfd.readouterr().err
+    assert code == 1 and err.count("\n") == 1 and expected in err, err
+    assert not (tmp_path / "out.exr").exists()
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_flare_textures_of_every_promised_channel_count_draw(channels, tmp_path, capsys):
+    """Alpha (channels 2 and 4) is premultiplied into the colour, as EXR and `read_image` hold it, and dropped."""
+    rng = np.random.default_rng(channels)
+    texture = rng.uniform(0.0, 1.0, (5, 7, channels)).astype(np.float32)
+    colour = texture[..., : 1 if channels < 3 else 3]
+    frame = gr.Buffers(color=np.full((6, 8, 3), 0.2, np.float32), depth=np.full((6, 8), np.inf, np.float32),
+                       coverage=np.zeros((6, 8), np.float32))  # fmt: skip
+    for effect_class in (gr.GodRays, gr.FlareOuts):
+        drawn = effect_class(flare_texture=texture)(frame, np.asarray([4.0, 3.0]))
+        np.testing.assert_array_equal(drawn, effect_class(flare_texture=colour)(frame, np.asarray([4.0, 3.0])))
+        assert drawn.shape == (6, 8, 3) and np.all(np.isfinite(drawn))
+    if channels != 2:  # PNG holds grey, RGB and RGBA here
+        gr.write_image(tmp_path / "texture.png", texture)
+        good_frame(tmp_path / "frame.exr")
+        assert main(["apply", str(tmp_path / "frame.exr"), "--flare-texture", str(tmp_path / "texture.png"),
+                     "--preset", "kbengine_flares", "-o", str(tmp_path / "out.exr")]) == 0  # fmt: skip
+
+
+def test_a_texture_too_large_is_refused_before_its_values_are_read():
+    huge = np.broadcast_to(np.float32(0.5), (10000, 10000, 3))  # no memory behind it
+    with pytest.raises(ValueError, match="10000x10000 texels, more than 2048 on a side"):
+        gr.GodRays(flare_texture=huge)
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        gr.FlareOuts(flare_texture=np.full((2, 2), np.inf, np.float32))

@@ -1,21 +1,23 @@
 """What the commands share: their user errors, the light, the effect and output-path options."""
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from godrays_jax.effects.base import Effect
+from godrays_jax.effects.base import MAX_TEXTURE_SIDE, Effect
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.primitives.checks import check_light
+from godrays_jax.primitives.checks import check_light, error_line
 from godrays_jax.primitives.camera_metadata import read_frame_camera
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
+from godrays_jax.primitives.image_files import image_size
 from godrays_jax.primitives.images import read_image
 from godrays_jax.primitives.light_metadata import read_light, read_light_depth
 
@@ -69,13 +71,42 @@ def resolve_light_depth(light_depth: float | None, buffers_path: str) -> float:
     return math.inf if stored is None else stored
 
 
+@contextlib.contextmanager
+def _c_library_messages_dropped() -> Iterator[None]:
+    """Whatever C code writes to stderr meanwhile is dropped: libpng prints a line of its own before OpenImageIO
+    reports the same error, which the command prints as its one line."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def with_flare_texture(effect: Effect, texture_path: str | None) -> Effect:
-    """The effect with its flare texture read from `--flare-texture` (any image; linear values)."""
+    """The effect with its flare texture read from `--flare-texture` (any image; linear values).
+
+    The texture is checked as the effect's `flare_texture` field checks it
+    (1 to 4 channels, alpha premultiplied and dropped, at most
+    `MAX_TEXTURE_SIDE` texels on a side, finite values of magnitude at most
+    `MAX_TEXTURE_VALUE`); its size is read from the header, before its pixels.
+    """
     if texture_path is None:
         return effect
     if "flare_texture" not in {field.name for field in dataclasses.fields(effect)}:
         raise CommandError(f"--flare-texture: {type(effect).__name__} draws no flare (use a GodRays or FlareOuts effect)")
-    return dataclasses.replace(effect, flare_texture=read_image(texture_path))
+    try:
+        with _c_library_messages_dropped():
+            width, height = image_size(texture_path)
+            if max(width, height) > MAX_TEXTURE_SIDE:
+                raise ValueError(f"{width}x{height} texels, more than {MAX_TEXTURE_SIDE} on a side: resample it")
+            texture = read_image(texture_path)
+        return dataclasses.replace(effect, flare_texture=texture)
+    except (OSError, ValueError) as error:
+        raise CommandError(f"--flare-texture {texture_path}: {error_line(error)}") from None
 
 
 def effect_option(

@@ -173,19 +173,54 @@ def plain_value(value):
     return np.array(shortest, dtype=object).reshape(array.shape).tolist()
 
 
+MAX_TEXTURE_SIDE = 2048
+"""The most texels a flare texture may have on a side: a flare covers a part of the frame, and a larger texture only
+costs memory and time (resample it before)."""
+
+MAX_TEXTURE_VALUE = 1e6
+"""The largest magnitude of a flare texture's values: brighter flares come from the effect's gains, and float32 keeps
+sums and squares of the frame's values finite."""
+
+
 def _texture(value) -> Array | None:
     if value is None:
         return None
+    shape = np.shape(value)  # before any copy: a texture too large is refused unread
+    if len(shape) not in (2, 3) or min(shape) < 1:
+        raise ValueError(f"flare_texture must have shape (h, w) or (h, w, C), got shape {shape}")
+    channels = 1 if len(shape) == 2 else shape[2]
+    if channels not in (1, 2, 3, 4):
+        raise ValueError(
+            f"flare_texture must have 1 (grey), 2 (grey and alpha), 3 (RGB) or 4 (RGBA) channels, got {channels}"
+        )
+    if max(shape[:2]) > MAX_TEXTURE_SIDE:
+        raise ValueError(
+            f"flare_texture is {shape[1]}x{shape[0]} texels, more than {MAX_TEXTURE_SIDE} on a side: resample it"
+        )
+    if not isinstance(value, jax.core.Tracer):
+        try:
+            values = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("flare_texture must hold numbers") from None
+        if (count := int(np.sum(~np.isfinite(values)))) > 0:
+            raise ValueError(f"flare_texture has {count} value(s) that are NaN or infinite")
+        if (count := int(np.sum(np.abs(values) > MAX_TEXTURE_VALUE))) > 0:
+            raise ValueError(f"flare_texture has {count} value(s) beyond +-{MAX_TEXTURE_VALUE:g}: scale it down")
     texture = jnp.asarray(value, dtype=jnp.result_type(float))
     if texture.ndim == 2:
         texture = texture[..., None]
-    if texture.ndim != 3 or min(texture.shape) < 1:
-        raise ValueError(f"flare_texture must have shape (h, w) or (h, w, C), got shape {texture.shape}")
-    return texture
+    # Alpha is premultiplied into the colour (as EXR and `read_image` hold it): what the flare adds is the colour.
+    return texture[..., :1] if channels == 2 else texture[..., :3]
 
 
 def texture_field():
-    """An optional texture (`(h, w)` or `(h, w, C)`, linear values): data the effect samples, not fitted."""
+    """An optional texture, linear values: data the effect samples, not fitted.
+
+    `(h, w)` or `(h, w, C)` with C = 1 (grey), 2 (grey and alpha), 3 (RGB) or
+    4 (RGBA); alpha is taken as premultiplied into the colour and dropped. At
+    most `MAX_TEXTURE_SIDE` texels on a side; values finite, of magnitude at
+    most `MAX_TEXTURE_VALUE`. `ValueError` naming the field otherwise.
+    """
     return eqx.field(default=None, converter=_texture)
 
 

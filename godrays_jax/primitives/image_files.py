@@ -35,6 +35,26 @@ def read_header(path: str | os.PathLike) -> oiio.ImageSpec:
         inp.close()
 
 
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """`(width, height)` of the first subimage, from the header alone (no pixel is read).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file is not a readable image.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ValueError(f"cannot read image '{path}': {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        return spec.width, spec.height
+    finally:
+        inp.close()
+
+
 def read_pixels(path: str | os.PathLike, *, straight_alpha: bool = False) -> tuple[np.ndarray, oiio.ImageSpec]:
     """All channels of the first subimage as float32 `(H, W, C)`, and its spec.
 

@@ -325,7 +325,7 @@ def flare_outs_into(
     x target)).
     """
     check_image(masked, "masked")
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     check_scalar(scale_step, "scale_step")
     check_scalar(decay, "decay")
     height, width = target_shape

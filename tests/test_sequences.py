@@ -2,11 +2,12 @@
 
 import os
 
+import numpy as np
 import pytest
 
 import godrays_jax
 from godrays_jax.app.cli import build_parser, main
-from godrays_jax.pipeline.sequences import expand_frames
+from godrays_jax.pipeline.sequences import expand_frames, frame_number
 
 
 def touch(folder, *names):
@@ -100,3 +101,29 @@ def test_a_light_option_missing_its_value_is_still_a_usage_error(capsys):
         build_parser().parse_args(["apply", "frame.exr", "-o", "x.png", "--light", "-q"])
     assert exit_info.value.code == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "name, number",
+    [("shot.-001.exr", -1), ("shot_-12.exr", -12), ("-7.exr", -7), ("shot.0005.exr", 5), ("shot-0001.exr", 1),
+     ("v2-0003.exr", 3), ("take.-2/shot.0004.exr", 4)],
+)  # fmt: skip
+def test_frame_numbers_keep_their_sign(name, number):
+    """A minus sign belongs to the number where a separator (not a letter or digit) comes before it."""
+    assert frame_number(name) == number
+
+
+def test_negative_frames_throughout_a_batch(tmp_path, capsys):
+    """`--frames -2-0` without `=`, the sign kept when selecting frames, and light tracks keyed by signed numbers."""
+    depth = np.full((4, 6), np.inf, np.float32)
+    frame = godrays_jax.Buffers(color=np.full((4, 6, 3), 0.2, np.float32), depth=depth, coverage=np.zeros((4, 6)))
+    for number in (-3, -2, -1, 0, 1, 2):
+        godrays_jax.write_buffers(tmp_path / f"cam.{number:04d}.exr", frame)
+    (tmp_path / "track.csv").write_text("frame,x,y\n-3,1,1\n-2,2,2\n-1,3,3\n0,4,4\n1,5,5\n2,66,66\n")
+    args = build_parser().parse_args(["batch", "p", "-o", "o", "--frames", "-2-0"])
+    assert args.frames == "-2-0"
+    assert main(["batch", str(tmp_path / "cam.####.exr"), "-o", str(tmp_path / "out"), "--frames", "-2-0",
+                 "--light-track", str(tmp_path / "track.csv"), "--dry-run"]) == 0  # fmt: skip
+    listed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("run")]
+    assert [line.split()[1].rsplit("/", 1)[1] for line in listed] == ["cam.-002.exr", "cam.-001.exr", "cam.0000.exr"]
+    assert [line.split("light ")[1].split(")")[0] + ")" for line in listed] == ["(2, 2)", "(3, 3)", "(4, 4)"]

@@ -37,19 +37,24 @@ PROGRAM = "godrays-jax"
 _NEGATIVE_VALUE = re.compile(r"-\s*(?:\d|\.\d)")
 """A value that starts like a negative number (`-5,10`), which argparse would take for an option."""
 
+_TAKES_NEGATIVE_VALUES = {"--light": _NEGATIVE_VALUE, "--frames": re.compile(r"-\d+\s*(?:[-:]\s*-?\d+)?\s*$")}
+"""Options whose value may start with a minus sign: a light's position, a range of frame numbers (batch's; fit's
+`--frames` takes file names)."""
+
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
     def parse_known_args(self, args=None, namespace=None):
-        # `--light -5,10` (a light left of or above the frame): argparse reads `-5,10` as an unknown option,
-        # so the value is attached as `--light=-5,10` before parsing; nothing else is rewritten.
+        # `--light -5,10` (a light left of or above the frame) and `--frames -2-0` (negative frame numbers):
+        # argparse reads such a value as an unknown option, so it is attached (`--light=-5,10`) before parsing;
+        # nothing else is rewritten.
         args = list(sys.argv[1:] if args is None else args)
         joined = []
         for arg in args:
-            if joined and joined[-1] == "--light" and _NEGATIVE_VALUE.match(arg):
-                joined[-1] = f"--light={arg}"
+            if joined and joined[-1] in _TAKES_NEGATIVE_VALUES and _TAKES_NEGATIVE_VALUES[joined[-1]].match(arg):
+                joined[-1] = f"{joined[-1]}={arg}"
             else:
                 joined.append(arg)
         return super().parse_known_args(joined, namespace)
@@ -177,7 +182,9 @@ def _add_batch(subparsers) -> None:
     parser.add_argument("--resume", action="store_true", help="skip frames whose output exists")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     parser.add_argument("--dry-run", action="store_true", help="list what would run, write nothing")
-    parser.add_argument("--frames", metavar="FIRST-LAST", help="only frame numbers in this inclusive range")
+    parser.add_argument(
+        "--frames", metavar="FIRST-LAST", help="only frame numbers in this inclusive range (negative too: -2-0)"
+    )
     parser.add_argument("--shard", metavar="I/N", help="only the I-th (0-based) of N contiguous shares (one per host)")
     parser.add_argument(
         "--distributed", action="store_true", help="jax.distributed.initialize(); this process's share of the frames"

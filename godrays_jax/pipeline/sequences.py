@@ -30,7 +30,9 @@ _FRAME_TOKEN = re.compile(
 _GLOB_CHARS = re.compile(r"[*?\[]")
 
 
-_LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+_LAST_NUMBER = re.compile(r"((?:(?<![A-Za-z0-9])-)?\d+)(?!.*\d)")
+"""The last run of digits, with the minus sign before it unless a letter or digit comes before that (`shot.-001`
+is -1, `shot-0001` is 1)."""
 
 
 FRAME_PATTERN_HELP = (
@@ -43,7 +45,13 @@ FRAME_PATTERN_HELP = (
 
 
 def frame_number(path: str) -> int | None:
-    """The frame number of a file: the last run of digits in its name (`shot.1042.exr` -> 1042)."""
+    """The frame number of a file: the last run of digits in its name (`shot.1042.exr` -> 1042).
+
+    Negative where a minus sign comes right before the digits and follows a
+    separator or the start of the name (`shot.-001.exr` -> -1, as printf's
+    `%04d` pads -1), not where it follows a letter or digit (`shot-0001.exr`
+    -> 1).
+    """
     match = _LAST_NUMBER.search(os.path.splitext(os.path.basename(path))[0])
     return int(match.group(1)) if match else None
 

@@ -92,7 +92,7 @@ def test_the_emulated_projection_puts_the_light_at_its_pixel():
 # (light distance, SunSize): a far sun (the flare .3 UV), a nearer one (.75 UV; the far ridge passes the
 # hardware-depth test), a light just past the near plane (the step clamp on clip-space z shortens the
 # rays; SunSize small enough to see the flare), the frame's own light (pillars blanked, the wall beyond
-# passes), a light at infinity (on the far plane: the sky alone passes).
+# passes), a light at infinity (on the far plane: the sky passes, and the far ridge, within the bias of the far plane).
 XNA_CASES = [(5000.0, 1500.0), (2000.0, 1500.0), (0.8, 0.1), (LIGHT_DEPTH, 6.0), (math.inf, 1500.0)]
 
 

@@ -126,6 +126,6 @@ def test_depth_test_reads_planar_depth_as_the_hardware_does(rng):
     np.testing.assert_allclose(np.asarray(from_planar), np.asarray(from_ray), rtol=1e-5, atol=1e-6)
     misread = effect(_buffers(planar, "ray"), light, light_depth=10.5)
     assert float(jnp.max(jnp.abs(misread - from_ray))) > 1e-3
-    # A light at infinity passes only the sky, whatever the depth measures.
+    # A light at infinity (on the far plane) reads the same from either depth kind.
     at_infinity = effect(_buffers(planar, "planar"), light)
     np.testing.assert_allclose(np.asarray(at_infinity), np.asarray(effect(_buffers(planar, "ray"), light)))

@@ -15,8 +15,7 @@ from godrays_jax.effects.base import parameter_bounds
 from frames import HEIGHT, LIGHT, WIDTH, make_frame, small
 
 LIGHT_DEPTH = 1000.0
-"""The sun's distance in the XNA article's author's sample: the XNA preset's flare is `SunSize / z` of it (1.5 UV).
-At infinity (on the far plane) it is .075 UV, which the test frame's occluder hides."""
+"""The sun's distance in the XNA article's author's sample: the XNA preset's flare is `SunSize / z` of it (1.5 UV)."""
 
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))
 def test_preset_runs_jit_vmap_and_adds_light(name):

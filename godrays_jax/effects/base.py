@@ -438,8 +438,9 @@ def scene_mask_of(kind: str, buffers: Buffers, light_depth, clip: "ClipPlanes | 
     the camera's `clip` planes) is below the light's less `clip.depth_bias`
     (the article's .00025). Hardware depth is planar: a frame's ray depth is
     converted with `clip.fov_x_deg`, and the light's distance (`light_depth`,
-    along its ray) at its pixel `clip.light_xy`. With the light at infinity
-    only the sky passes (`emitter_inputs` then asks for `"sky"`). A frame
+    along its ray) at its pixel `clip.light_xy`. A light at infinity is on
+    the far plane (z/w 1): the sky passes, and geometry within the bias of
+    the far plane. A frame
     without depth gives the coverage mask for every kind: its coverage says
     what is open sky (`plates.buffers_without_depth`). The test is a hard
     step: its threshold has no gradient, so the bias and the planes are
@@ -556,9 +557,6 @@ def emitter_inputs(effect, buffers: Buffers, light_xy, light_in_front, light_dep
     texture = flare_texture_of(effect) if flare else None
     depth_test = effect.source != "light_pass" and effect.scene_mask == "depth" and buffers.depth is not None
     scene_mask = effect.scene_mask
-    if depth_test and not isinstance(light_depth, jax.core.Tracer) and math.isinf(float(np.asarray(light_depth))):
-        # With the light at infinity the depth test passes the sky alone, whatever the depth measures.
-        depth_test, scene_mask = False, "sky"
     arguments = (
         buffers, light_xy, flare_size, texture, light_in_front, effect.offscreen_fade,
         light_depth if depth_test else None, effect.fov_x_deg if depth_test else None,

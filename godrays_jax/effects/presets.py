@@ -16,7 +16,7 @@ def _xna_crepuscular() -> GodRays:
     # Ours, as the article leaves them open: the flare texture (a glow with a small bright
     # core: the rays' gain of about 3 saturates only that core), the bright-pass threshold
     # (its slider) and a warm tint (the article's flare texture is coloured). The clip planes
-    # are its author's sample camera's (XNA_NEAR_PLANE, XNA_FAR_PLANE): the article prints none.
+    # are XNA_NEAR_PLANE (its author's sample camera's) and XNA_FAR_PLANE (ours): the article prints none.
     return GodRays(
         density=0.5, decay=0.95, weight=1.0, exposure=0.15, threshold=0.1, num_samples=128.0, max_samples=128,
         sun_size=1500.0, flare_sizing="clip_depth", tint=(1.0, 0.85, 0.6), depth_bias=0.00025, source="disc",

@@ -51,10 +51,13 @@ FLARE_SIZINGS: tuple[str, ...] = ("clip_depth", "fixed")
 fixed `flare_size` whatever the light's distance (ours)."""
 
 XNA_NEAR_PLANE = 0.5
-XNA_FAR_PLANE = 20000.0
-"""The clip planes `GodRays` assumes unless given the frame's: those of the XNA article author's sample camera
+"""The near clip plane `GodRays` assumes unless given the frame's: the XNA article author's sample camera's
 (`Base3DCamera(game, .5f, 20000)`); the article itself prints none. `render` writes a frame's own
 (`godrays:clip_planes`)."""
+
+XNA_FAR_PLANE = 5000.0
+"""The far clip plane `GodRays` assumes unless given the frame's (ours): a light at infinity is drawn on it, so the
+article's SunSize 1500 gives it a flare of .3 UV, the article's sun as if 5000 units away."""
 
 
 def step_clamp(light_clip_depth) -> Float[Array, ""] | float:

@@ -7,11 +7,13 @@ traceback, a 500, a dropped connection, an all-NaN frame written with exit
 status 0) stays here so it cannot come back.
 """
 
+import contextlib
 import http.client
 import json
 import os
 import re
 import socket
+import time
 from pathlib import Path
 
 import numpy as np
@@ -180,3 +182,28 @@ def test_a_texture_too_large_is_refused_before_its_values_are_read():
         gr.GodRays(flare_texture=huge)
     with pytest.raises(ValueError, match="NaN or infinite"):
         gr.FlareOuts(flare_texture=np.full((2, 2), np.inf, np.float32))
+
+
+def test_the_page_and_state_are_answered_while_one_client_holds_300_idle_connections(tune_server):
+    """Connections that send nothing, or half a request head, hold no worker: the page and its state come promptly."""
+    port, held = tune_server.port, []
+    try:
+        for index in range(300):
+            connection = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            connection.setblocking(False)  # never waits, also while the server does not accept
+            connection.connect_ex((HOST, port))
+            held.append(connection)
+        time.sleep(0.2)
+        for connection in held[::2]:
+            with contextlib.suppress(OSError):
+                connection.send(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # a head never finished
+        started = time.monotonic()
+        for path, headers in (("/api/state", {"X-Godrays-Token": tune_server.token}), ("/", {})):
+            client = http.client.HTTPConnection(HOST, port, timeout=5)
+            client.request("GET", path, headers=headers)
+            assert client.getresponse().status == 200
+            client.close()
+        assert time.monotonic() - started < 3
+    finally:
+        for connection in held:
+            connection.close()

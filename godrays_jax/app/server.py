@@ -23,10 +23,15 @@ served can drive it, not another web page the user has open:
 The body's size is checked before a byte of it is read: a `POST` without a
 `Content-Length` (411), with a malformed or negative one (400), or over
 `MAX_BODY_BYTES` (413) is answered at once, also for unknown endpoints, and
-the connection closed. A stalled request times out after `SOCKET_TIMEOUT_S`
-(a body shorter than its `Content-Length` gets 408), an idle kept-alive
-connection after `KEEP_ALIVE_S`; at most `MAX_WORKERS` connections are
-served at once (the others wait in the listen backlog of `LISTEN_BACKLOG`).
+the connection closed. A connection holds no worker until its request's
+head (request line and headers) has arrived: one thread waits on all such
+connections at once (`_WaitingRoom`, at most `MAX_WAITING` of them), closing
+those that send nothing within `KEEP_ALIVE_S` or no whole head within
+`SOCKET_TIMEOUT_S`, so idle or half-sent connections, however many one client
+opens, never keep the page and its state from being answered. Each
+connection carries one request (`Connection: close`). A body that stalls
+times out after `SOCKET_TIMEOUT_S` (a body shorter than its `Content-Length`
+gets 408); at most `MAX_WORKERS` requests are served at once.
 Every malformed body or bad value is a 400 with a message; clients that
 disconnect are not reported.
 """
@@ -34,11 +39,14 @@ disconnect are not reported.
 import functools
 import html
 import http.server
+import io
 import json
 import secrets
+import selectors
 import socket
 import sys
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
@@ -61,7 +69,13 @@ SOCKET_TIMEOUT_S = 15.0
 """Seconds a request may stall while its headers or body are read (then 408, or the connection is closed)."""
 
 KEEP_ALIVE_S = 5.0
-"""Seconds a kept-alive connection may wait for its next request: an idle connection holds a worker."""
+"""Seconds a new connection may wait before sending the first byte of its request (it holds no worker meanwhile)."""
+
+MAX_WAITING = 1024
+"""Connections waiting for their request's head at once; one more is closed at once."""
+
+MAX_HEAD_BYTES = 64 << 10
+"""A request's head (request line and headers) larger than this is handed on as it is, and refused there."""
 
 MAX_WORKERS = 32
 """Connections served at once (a browser keeps up to 6 open per tab); renders are coalesced onto one worker anyway."""
@@ -103,13 +117,17 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     def log_message(self, format, *args):  # the page polls; a line per request would flood the terminal
         pass
 
-    def handle_one_request(self):
-        self.connection.settimeout(KEEP_ALIVE_S)  # until the request line arrives
-        super().handle_one_request()
+    def setup(self):
+        super().setup()
+        self.connection.settimeout(SOCKET_TIMEOUT_S)  # for the body, and for writing the answer
+        # The head the waiting room read comes first, then the rest (a body) from the socket.
+        self.rfile.close()
+        self.rfile = io.BufferedReader(_Prefixed(self.server.heads.pop(self.connection, b""), self.connection))
 
-    def parse_request(self):
-        self.connection.settimeout(SOCKET_TIMEOUT_S)  # the request has begun: its headers and body may take longer
-        return super().parse_request()
+    def handle(self):
+        self.close_connection = True
+        self.handle_one_request()
+        self.close_connection = True  # one request per connection: the next one waits in the waiting room again
 
     def _send(self, status: int, body: bytes, content_type: str, *, nonce: str | None = None) -> None:
         self.send_response(status)
@@ -120,8 +138,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         self.send_header("X-Content-Type-Options", "nosniff")
         self.send_header("Referrer-Policy", "no-referrer")
         self.send_header("Content-Security-Policy", content_security_policy(nonce or secrets.token_urlsafe(16)))
-        if self.close_connection:
-            self.send_header("Connection", "close")
+        self.close_connection = True
+        self.send_header("Connection", "close")
         self.end_headers()
         self.wfile.write(body)
 
@@ -240,8 +258,110 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     do_PUT = do_DELETE = do_PATCH = do_HEAD = do_OPTIONS = _refuse_method
 
 
+class _Prefixed(io.RawIOBase):
+    """A socket's bytes, after `prefix` (what was read from it already)."""
+
+    def __init__(self, prefix: bytes, connection: socket.socket):
+        self._prefix, self._connection = memoryview(prefix), connection
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        if self._prefix:
+            count = min(len(buffer), len(self._prefix))
+            buffer[:count], self._prefix = self._prefix[:count], self._prefix[count:]
+            return count
+        return self._connection.recv_into(buffer)
+
+
+class _WaitingRoom:
+    """Connections whose request head has not arrived yet, all waited on by one thread (none holds a worker).
+
+    A connection is handed to `ready(connection, head)` once its head is
+    complete (or too large, or the client closed its side: the handler answers
+    or drops it), and closed if it sends nothing within `KEEP_ALIVE_S` or no
+    whole head within `SOCKET_TIMEOUT_S`.
+    """
+
+    def __init__(self, ready: Callable[[socket.socket, bytes], None]):
+        self._ready = ready
+        self._selector = selectors.DefaultSelector()
+        self._waiting: dict[socket.socket, tuple[float, float, bytearray]] = {}  # first-byte and head deadlines, head
+        self._arrived: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self._wake, self._waker = socket.socketpair()
+        self._selector.register(self._wake, selectors.EVENT_READ)
+        self._closing = False
+        self._thread = threading.Thread(target=self._run, name="godrays-tune-waiting", daemon=True)
+        self._thread.start()
+
+    def add(self, connection: socket.socket) -> None:
+        with self._lock:
+            self._arrived.append(connection)
+        self._waker.send(b"\0")
+
+    def close(self) -> None:
+        self._closing = True
+        self._waker.send(b"\0")
+        self._thread.join()
+        for connection in [*self._waiting, *self._arrived]:
+            connection.close()
+        self._selector.close()
+        self._wake.close()
+        self._waker.close()
+
+    def _run(self) -> None:
+        while not self._closing:
+            now = time.monotonic()
+            deadlines = [min(first if not head else later, later) for first, later, head in self._waiting.values()]
+            for key, _ in self._selector.select(max(0.0, min(deadlines, default=now + 1.0) - now)):
+                if key.fileobj is self._wake:
+                    self._wake.recv(4096)
+                    self._admit()
+                else:
+                    self._read(key.fileobj)
+            self._expire(time.monotonic())
+
+    def _admit(self) -> None:
+        with self._lock:
+            arrived, self._arrived = self._arrived, []
+        now = time.monotonic()
+        for connection in arrived:
+            if len(self._waiting) >= MAX_WAITING:
+                connection.close()
+                continue
+            self._waiting[connection] = (now + KEEP_ALIVE_S, now + SOCKET_TIMEOUT_S, bytearray())
+            self._selector.register(connection, selectors.EVENT_READ)
+
+    def _read(self, connection: socket.socket) -> None:
+        head = self._waiting[connection][2]
+        try:
+            data = connection.recv(MAX_HEAD_BYTES + 1 - len(head), socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        head += data
+        if not data or b"\r\n\r\n" in head or len(head) > MAX_HEAD_BYTES:
+            self._selector.unregister(connection)
+            del self._waiting[connection]
+            if head:
+                self._ready(connection, bytes(head))
+            else:
+                connection.close()  # closed before a byte of a request
+
+    def _expire(self, now: float) -> None:
+        for connection, (first, later, head) in list(self._waiting.items()):
+            if now >= later or (not head and now >= first):
+                self._selector.unregister(connection)
+                del self._waiting[connection]
+                connection.close()
+
+
 class _HTTPServer(http.server.HTTPServer):
-    """At most `MAX_WORKERS` connections handled at once, on a pool of threads; disconnects are not reported."""
+    """At most `MAX_WORKERS` requests handled at once, on a pool of threads, each once its head has arrived
+    (`_WaitingRoom`); disconnects are not reported."""
 
     request_queue_size = LISTEN_BACKLOG
     tuner: Tuner
@@ -249,16 +369,25 @@ class _HTTPServer(http.server.HTTPServer):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._slots = threading.BoundedSemaphore(MAX_WORKERS)
         self._pool = ThreadPoolExecutor(MAX_WORKERS, thread_name_prefix="godrays-tune-http")
         self._closing = threading.Event()
+        self.heads: dict[socket.socket, bytes] = {}
+        self._waiting_room = _WaitingRoom(self._head_arrived)
 
     def process_request(self, request, client_address):
-        # Waiting here (not queueing without bound) leaves further connections in the listen backlog.
-        while not self._slots.acquire(timeout=0.25):
-            if self._closing.is_set():
-                self.shutdown_request(request)
-                return
+        self._waiting_room.add(request)
+
+    def _head_arrived(self, request: socket.socket, head: bytes) -> None:
+        if self._closing.is_set():
+            request.close()
+            return
+        self.heads[request] = head
+        try:
+            client_address = request.getpeername()
+        except OSError:  # gone meanwhile
+            self.heads.pop(request, None)
+            request.close()
+            return
         self._pool.submit(self._work, request, client_address)
 
     def _work(self, request, client_address):
@@ -267,8 +396,8 @@ class _HTTPServer(http.server.HTTPServer):
         except Exception:
             self.handle_error(request, client_address)
         finally:
+            self.heads.pop(request, None)
             self.shutdown_request(request)
-            self._slots.release()
 
     def handle_error(self, request, client_address):
         error = sys.exc_info()[1]
@@ -281,6 +410,7 @@ class _HTTPServer(http.server.HTTPServer):
         self._closing.set()
         self.shutdown()
         self.server_close()
+        self._waiting_room.close()
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 

@@ -5,9 +5,9 @@ program text, so a later `apply`, `batch`, `fit` or `tune` of the same effect
 on frames of the same size loads it instead of compiling. The programs of
 `apply` and `fit` are also stored traced (`pipeline.exported`, in the
 subfolder `EXPORTED_FOLDER`), so a later run does not trace them again
-either. Where: the environment variable `GODRAYS_JAX_CACHE_DIR`, else
-`$XDG_CACHE_HOME/godrays_jax` (`~/.cache/godrays_jax`). Its size is capped (`MAX_BYTES`; least recently used
-entries go first); `godrays-jax cache` shows it and `godrays-jax cache --clear`
+either. Where: the environment variable `GODRAYS_JAX_CACHE_DIR`, else the
+user's cache folder (`cache_dir`). Its size is capped (`MAX_BYTES`; least
+recently used entries go first); `godrays-jax cache` shows it and `godrays-jax cache --clear`
 removes the entries the library wrote; `--no-cache` on any command leaves it alone.
 
 The entries are programs (JAX's hold machine code) that later runs execute,
@@ -23,6 +23,7 @@ import re
 import warnings
 
 import jax
+import platformdirs
 
 from godrays_jax.pipeline import exported
 from godrays_jax.primitives.files import private_folder
@@ -37,12 +38,12 @@ EXPORTED_FOLDER = "exported"
 
 
 def cache_dir() -> str:
-    """`$GODRAYS_JAX_CACHE_DIR`, else `$XDG_CACHE_HOME/godrays_jax`, else `~/.cache/godrays_jax`."""
+    """`$GODRAYS_JAX_CACHE_DIR`, else the user's cache folder for `godrays_jax` (`platformdirs`: on Linux
+    `$XDG_CACHE_HOME/godrays_jax`, else `~/.cache/godrays_jax`; `~/Library/Caches/godrays_jax` on macOS)."""
     chosen = os.environ.get(ENVIRONMENT_VARIABLE)
     if chosen:
         return os.path.abspath(os.path.expanduser(chosen))
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "godrays_jax")
+    return platformdirs.user_cache_dir("godrays_jax", appauthor=False)
 
 
 class CacheUnavailable(Exception):

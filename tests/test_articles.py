@@ -296,6 +296,13 @@ def test_render_writes_the_frames_camera(tmp_path):
     assert spec.getattribute("godrays:fov_x_deg") == pytest.approx(37.0)
     assert tuple(spec.getattribute("godrays:clip_planes")) == pytest.approx((0.25, 900.0))
     assert spec.getattribute("godrays:light_depth") == pytest.approx(25.0)
+    # ... and the commands hand them to the effects that read them.
+    from godrays_jax.app.options import with_field_of_view, with_frame_clip_planes
+
+    effect = with_frame_clip_planes(gr.preset("xna_crepuscular"), str(tmp_path / "frame.exr"))
+    assert (effect.near_plane, effect.far_plane) == pytest.approx((0.25, 900.0))
+    assert float(with_field_of_view(effect, spec.getattribute("godrays:fov_x_deg")).fov_x_deg) == pytest.approx(37.0)
+    assert with_frame_clip_planes(gr.preset("vbex_bloom"), str(tmp_path / "frame.exr")) == gr.preset("vbex_bloom")
 
 
 def test_vbex_night_lights_are_towns_clustered_on_continents():

@@ -18,6 +18,7 @@ from godrays_jax.app.options import (
     resolve_light_depth,
     warn,
     with_field_of_view,
+    with_frame_clip_planes,
     with_flare_texture,
 )
 from godrays_jax.pipeline.batch import dither_seed_of, frames_function, ready_frame
@@ -34,6 +35,7 @@ def run(args) -> int:
     effect = with_flare_texture(effect_option(args.preset, args.params), args.flare_texture)
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
     effect = with_field_of_view(effect, frame_field_of_view(args, args.buffers))
+    effect = with_frame_clip_planes(effect, args.buffers)
     effect = effect_for_frame("apply", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
     try:

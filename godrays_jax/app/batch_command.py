@@ -14,6 +14,7 @@ from godrays_jax.app.options import (
     resolve_light_depth,
     warn,
     with_field_of_view,
+    with_frame_clip_planes,
 )
 from godrays_jax.pipeline.batch import BatchError, describe_plan, plan_batch, run_batch
 from godrays_jax.pipeline.sequences import (
@@ -71,6 +72,7 @@ def run(args) -> int:
     inputs = expand_frames(args.pattern)
     # The camera and the light's distance come from the first frame: one compiled program for the shot.
     effect = with_field_of_view(effect, frame_field_of_view(args, inputs[0]))
+    effect = with_frame_clip_planes(effect, inputs[0])
     light_depth = resolve_light_depth(args.light_depth, inputs[0])
     if getattr(effect, "source", None) == "light_pass":
         effect = effect_for_frame("batch", effect, read_buffers(inputs[0], **frame_reading(args)), inputs[0])

@@ -18,6 +18,7 @@ from godrays_jax.app.options import (
     resolve_light,
     warn,
     with_field_of_view,
+    with_frame_clip_planes,
 )
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
@@ -44,6 +45,7 @@ def run(args) -> int:
     effect = effect_option(args.preset, args.params, default=default_fit_effect)
     fov = frame_field_of_view(args, args.buffers)
     effect = with_field_of_view(effect, fov)
+    effect = with_frame_clip_planes(effect, args.buffers)
     frames, light_positions, in_front, targets = [], [], [], []
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = read_buffers(buffers_path, **frame_reading(args))

@@ -15,7 +15,7 @@ from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, error_line
-from godrays_jax.primitives.camera_metadata import read_frame_camera
+from godrays_jax.primitives.camera_metadata import read_clip_planes, read_frame_camera
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
 from godrays_jax.primitives.image_files import image_size
 from godrays_jax.primitives.images import read_image
@@ -175,6 +175,15 @@ def frame_reading(args: argparse.Namespace) -> dict:
 def frame_field_of_view(args: argparse.Namespace, path: str) -> float | None:
     """The field of view effects use: `--fov-x-deg`, else the one the frame's header carries, else None."""
     return args.fov_x_deg if args.fov_x_deg is not None else read_frame_camera(path).fov_x_deg
+
+
+def with_frame_clip_planes(effect: Effect, path: str) -> Effect:
+    """The effect with the frame's camera clip planes (`godrays:clip_planes`, as `render` writes them), if it has
+    `near_plane` and `far_plane` fields (the XNA depth test's) and the frame carries them."""
+    planes = read_clip_planes(path)
+    if planes is None or not {"near_plane", "far_plane"} <= {field.name for field in dataclasses.fields(effect)}:
+        return effect
+    return dataclasses.replace(effect, near_plane=planes[0], far_plane=planes[1])
 
 
 def with_field_of_view(effect: Effect, fov_x_deg: float | None) -> Effect:

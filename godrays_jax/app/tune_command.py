@@ -12,6 +12,7 @@ from godrays_jax.app.options import (
     resolve_light,
     warn,
     with_field_of_view,
+    with_frame_clip_planes,
 )
 from godrays_jax.app.server import HOST, TuneServer
 from godrays_jax.pipeline.batch import ready_frame
@@ -30,6 +31,7 @@ def run(args) -> int:
     effect = effect_option(args.preset, args.params)
     buffers = read_buffers(args.buffers, **frame_reading(args))
     effect = with_field_of_view(effect, frame_field_of_view(args, args.buffers))
+    effect = with_frame_clip_planes(effect, args.buffers)
     effect = effect_for_frame("tune", effect, buffers, args.buffers)
     light_xy, in_front = resolve_light(args.light, args.buffers)
     try:

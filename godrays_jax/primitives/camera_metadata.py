@@ -115,3 +115,16 @@ def read_frame_camera(path: str | os.PathLike) -> FrameCamera:
         ValueError: the file is not a readable image.
     """
     return camera_from_header(read_header(path))
+
+
+def read_clip_planes(path: str | os.PathLike) -> tuple[float, float] | None:
+    """The near and far clip planes a frame's header carries (`CLIP_PLANES_ATTR`, scene units), or None.
+
+    None also when the stored pair is not `0 < near < far < inf`.
+    """
+    stored = read_header(path).getattribute(CLIP_PLANES_ATTR)
+    try:
+        near, far = (float(value) for value in stored)
+    except (TypeError, ValueError):
+        return None
+    return (near, far) if 0.0 < near < far < math.inf else None

@@ -80,6 +80,11 @@ from godrays_jax.kernels.media import transmittance as transmittance
 from godrays_jax.kernels.rays import radial_rays as radial_rays
 from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
 from godrays_jax.kernels.rays import scaled_copies as scaled_copies
+from godrays_jax.kernels.volumetric import apply_volumetric_fog as apply_volumetric_fog
+from godrays_jax.kernels.volumetric import light_transmittance as light_transmittance
+from godrays_jax.kernels.volumetric import optical_depth as optical_depth
+from godrays_jax.kernels.volumetric import segment_visibility as segment_visibility
+from godrays_jax.kernels.volumetric import volumetric_fog_terms as volumetric_fog_terms
 
 # Effects: parameter sets (equinox Modules), presets, serialisation.
 from godrays_jax.effects.base import Effect as Effect

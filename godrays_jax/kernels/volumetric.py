@@ -1,0 +1,497 @@
+"""Scattering from the depth buffer: view rays marched in segments, each segment's shadow read along the screen.
+
+Pixel `p` sees along the unit view ray `t * d_p` (`lens.view_directions`, from
+the horizontal field of view) up to its depth `D_p` (distance along the ray,
+scene units, `+inf` on sky). The light is the point `S = light_depth * d_L`
+(`d_L` = `lens.light_direction`) or, for `light_depth = inf`, the sun in
+direction `d_L`. The medium fills a sphere of radius `max_distance` around the
+camera; its extinction is `extinction * exp(-height_falloff * y)` (`y` the
+height above the camera along its up axis, scene units: engines' height fog)
+below `layer_top` (scene units above the camera, `inf`: no top). The fogged
+frame is
+
+    L = C * T(D) * (1 - direct_fraction + direct_fraction * T_L(P))
+        + light_color * sum_j V_j * T_L(X_j) * E_j * p(theta_j) * (T(t_j) - T(t_j+1))
+        + ambient_color * (1 - T(D)),
+
+single scattering in closed form per segment: `T` the transmittance from the
+camera, `T_L` from a point toward the light (the light dimmed on its way in,
+through the same bounded medium), `E_j` the irradiance relative to the
+light's at the camera's distance (1 for the sun; the mean of
+`(light_depth / |S - X|)^2` over the segment for a point light), `p` the
+Henyey-Greenstein phase function, `V_j` the segment's visibility of the light
+(`segment_visibility`), `P` the surface seen.
+
+A segment's visibility is read from the depth buffer along the screen segment
+from `p` toward the light's position (away from the light's true projection
+when it is behind the camera), clipped to the screen: at each of
+`num_shadow_samples` samples `q`, the shadow ray from the segment's midpoint
+crosses `q`'s camera ray at a distance `mu` (closed form in the plane of the
+camera, the point and the light); the surface at `q` blocks it when `mu` lies
+inside its slab `[D_q, D_q * (1 + thickness)]` (a depth buffer is a height
+field of unknown thickness), with linear ramps `edge_softness * D_q` wide at
+both faces so that the thickness, the light and the field of view have
+gradients. Surfaces whose slab reaches the light (the emitter) and sky block
+nothing; off screen nothing is known and nothing blocks. The samples are
+shared by every segment; the march runs on every `resolution_factor`-th pixel
+and its in-scattering is upsampled with depth-aware weights.
+"""
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from godrays_jax.kernels.lens import light_direction, view_directions
+from godrays_jax.kernels.media import henyey_greenstein
+from godrays_jax.primitives.camera import focal_length_px
+from godrays_jax.primitives.checks import check_image, check_light, check_plane, check_scalar, is_static_int
+
+# exp() arguments are clipped here: a height falloff that would make the medium e^60 times denser than at
+# the camera is outside any fog, and float32 overflows near e^88.
+_MAX_EXPONENT = 60.0
+# Relative width of the depth-aware upsampling's weights (how different two ray lengths may be and still blend).
+_UPSAMPLE_DEPTH_SIGMA = 0.1
+# A point light's irradiance is floored as if it were a ball of this fraction of its distance.
+_POINT_LIGHT_RADIUS = 1e-3
+
+
+def _safe_divide(numerator, denominator, fallback, tiny=1e-20):
+    ok = jnp.abs(denominator) > tiny
+    return jnp.where(ok, numerator / jnp.where(ok, denominator, 1.0), fallback)
+
+
+def _exp_ratio(x):
+    """`(1 - exp(-x)) / x`, 1 at 0, finite with finite gradients everywhere (x clipped at -`_MAX_EXPONENT`)."""
+    x = jnp.maximum(x, -_MAX_EXPONENT)
+    small = jnp.abs(x) < 1e-3
+    safe = jnp.where(small, 1.0, x)
+    return jnp.where(small, 1.0 - x / 2 + x * x / 6, -jnp.expm1(-safe) / safe)
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def medium_interval(
+    origin: Float[Array, "*S 3"],
+    direction: Float[Array, "*S 3"],
+    length: Float[ArrayLike, "*S"],
+    *,
+    max_distance: Float[ArrayLike, ""],
+    layer_top: Float[ArrayLike, ""] = math.inf,
+) -> tuple[Float[Array, "*S"], Float[Array, "*S"]]:
+    """`(start, end)` of the part of the ray `origin + u * direction`, `u` in `[0, length]`, inside the medium.
+
+    The medium is the ball of radius `max_distance` around the camera (the
+    origin) below `layer_top` (height above the camera along its up axis,
+    scene units; `inf`: no top). `direction` is a unit vector; distances are in
+    scene units; an empty intersection gives `start == end`.
+    """
+    dtype = origin.dtype
+    radius = jnp.asarray(max_distance, dtype)
+    top = jnp.asarray(layer_top, dtype)
+    along = _dot(origin, direction)
+    discriminant = along * along - _dot(origin, origin) + radius * radius
+    root = jnp.sqrt(jnp.maximum(discriminant, 0.0))
+    inside_ball = discriminant > 0
+    start = jnp.where(inside_ball, jnp.maximum(-along - root, 0.0), 0.0)
+    end = jnp.where(inside_ball, jnp.minimum(-along + root, length), 0.0)
+    height, rise = origin[..., 1], direction[..., 1]
+    # The height crosses layer_top at u = (top - height) / rise: below it on one side only.
+    crossing = _safe_divide(top - height, rise, jnp.inf)
+    finite_top = jnp.isfinite(top)
+    below_now = height < top
+    start = jnp.where(finite_top & (rise < 0) & ~below_now, jnp.maximum(start, crossing), start)
+    end = jnp.where(finite_top & (rise > 0) & below_now, jnp.minimum(end, crossing), end)
+    end = jnp.where(finite_top & (rise >= 0) & ~below_now, start, end)
+    return start, jnp.maximum(end, start)
+
+
+def optical_depth(
+    origin: Float[Array, "*S 3"],
+    direction: Float[Array, "*S 3"],
+    start: Float[ArrayLike, "*S"],
+    end: Float[ArrayLike, "*S"],
+    *,
+    extinction: Float[ArrayLike, ""],
+    height_falloff: Float[ArrayLike, ""] = 0.0,
+) -> Float[Array, "*S"]:
+    """`integral_start^end extinction * exp(-height_falloff * y(u)) du` along `origin + u * direction`.
+
+    `y` is the height above the camera (the origin's frame, y up), scene units;
+    `extinction` per scene unit at the camera's height, `height_falloff` per
+    scene unit (0: homogeneous). Closed form: `exp(-b * y(start)) * (end -
+    start) * (1 - exp(-x)) / x` with `x = b * rise * (end - start)`.
+    """
+    dtype = origin.dtype
+    falloff = jnp.asarray(height_falloff, dtype)
+    start = jnp.asarray(start, dtype)
+    length = jnp.asarray(end, dtype) - start
+    height = origin[..., 1] + start * direction[..., 1]
+    density = jnp.exp(jnp.clip(-falloff * height, -_MAX_EXPONENT, _MAX_EXPONENT))
+    return jnp.asarray(extinction, dtype) * density * length * _exp_ratio(falloff * direction[..., 1] * length)
+
+
+def _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype):
+    """The unit direction toward the light and `1 / light_depth` (0 for the sun)."""
+    toward = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
+    light_depth = jnp.asarray(light_depth, dtype)
+    inverse = jnp.where(jnp.isfinite(light_depth), 1.0 / jnp.where(jnp.isfinite(light_depth), light_depth, 1.0), 0.0)
+    return toward, inverse
+
+
+def _toward_light(points, toward, inverse_depth):
+    """Unit direction from each point toward the light, and the distance to it (`inf` for the sun)."""
+    finite = inverse_depth > 0
+    light_point = toward * _safe_divide(1.0, inverse_depth, 0.0)
+    offset = jnp.where(finite, light_point - points, toward)
+    distance = jnp.sqrt(jnp.maximum(_dot(offset, offset), 1e-30))
+    return offset / distance[..., None], jnp.where(finite, distance, jnp.inf)
+
+
+def light_transmittance(
+    points: Float[Array, "*S 3"],
+    light_toward: Float[Array, "3"],
+    *,
+    light_depth: Float[ArrayLike, ""],
+    extinction: Float[ArrayLike, ""],
+    max_distance: Float[ArrayLike, ""],
+    height_falloff: Float[ArrayLike, ""] = 0.0,
+    layer_top: Float[ArrayLike, ""] = math.inf,
+) -> Float[Array, "*S"]:
+    """The fraction of the light that reaches each point (camera-space, scene units) through the medium.
+
+    `light_toward` is the unit direction from the camera to the light, the
+    light at `light_depth` along it (`inf`: the sun). A light inside the
+    medium is dimmed only over its distance to the point.
+    """
+    dtype = points.dtype
+    inverse = jnp.where(jnp.isfinite(light_depth), 1.0 / jnp.where(jnp.isfinite(light_depth), light_depth, 1.0), 0.0)
+    direction, distance = _toward_light(points, jnp.asarray(light_toward, dtype), jnp.asarray(inverse, dtype))
+    start, end = medium_interval(points, direction, distance, max_distance=max_distance, layer_top=layer_top)
+    depth = optical_depth(points, direction, start, end, extinction=extinction, height_falloff=height_falloff)
+    return jnp.exp(-depth)
+
+
+def _ramp(x):
+    return jnp.clip(x, 0.0, 1.0)
+
+
+def _march_grid(height, width, factor, dtype):
+    """Pixel positions of the march (every `factor`-th pixel's centre, the block's middle pixel)."""
+    offset = factor // 2 + 0.5
+    xs = jnp.arange(width // factor, dtype=dtype) * factor + offset
+    ys = jnp.arange(height // factor, dtype=dtype) * factor + offset
+    return jnp.meshgrid(xs, ys)
+
+
+def _rays_at(x, y, height, width, focal):
+    """View rays through pixel positions, scaled so the forward component is 1 (y up)."""
+    return jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
+
+
+def segment_visibility(
+    depth: Float[Array, "H W"],
+    light_xy: Float[ArrayLike, "2"],
+    pixel_xy: Float[Array, "h w 2"],
+    distances: Float[Array, "h w M"],
+    *,
+    fov_x_deg: Float[ArrayLike, ""],
+    light_depth: Float[ArrayLike, ""] = math.inf,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
+    thickness: Float[ArrayLike, ""],
+    edge_softness: Float[ArrayLike, ""],
+    num_shadow_samples: int,
+) -> Float[Array, "h w M"]:
+    """How much of the light reaches the points `distances` along the view rays through `pixel_xy`, in [0, 1].
+
+    Args:
+        depth: the frame's distance along each camera ray, scene units, `+inf` on sky.
+        light_xy: the light's projected position in pixels (mirrored through the
+            camera plane when behind it, as `camera.project_point`), any real value.
+        pixel_xy: the pixel positions whose view rays are tested (x right, y down,
+            pixel centres at `i + 0.5`), on screen.
+        distances: distances along those rays (scene units) of the points tested.
+        fov_x_deg: horizontal field of view in degrees, in (0, 180).
+        light_depth: the light's distance along its camera ray, scene units; `inf`: the sun.
+        light_in_front: whether the light is in front of the camera.
+        thickness: each surface's slab depth as a fraction of its own depth, >= 0.
+        edge_softness: the width of the slab's soft faces, a fraction of depth, > 0.
+        num_shadow_samples: depth samples along the screen segment (static int, >= 1).
+
+    The loop runs over the samples, so memory is that of `distances` whatever
+    `num_shadow_samples` is.
+    """
+    if not is_static_int(num_shadow_samples) or num_shadow_samples < 1:
+        raise ValueError(f"num_shadow_samples must be a Python int >= 1, got {num_shadow_samples!r}")
+    if jnp.ndim(depth) != 2:
+        raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
+    check_light(light_xy)
+    for name, value in (("fov_x_deg", fov_x_deg), ("light_depth", light_depth), ("thickness", thickness),
+                        ("edge_softness", edge_softness)):  # fmt: skip
+        check_scalar(value, name)
+    if jnp.ndim(pixel_xy) != 3 or jnp.shape(pixel_xy)[-1] != 2:
+        raise ValueError(f"pixel_xy must have shape (h, w, 2), got shape {jnp.shape(pixel_xy)}")
+    if jnp.ndim(distances) != 3 or jnp.shape(distances)[:2] != jnp.shape(pixel_xy)[:2]:
+        raise ValueError(f"distances must have shape (h, w, M) matching pixel_xy, got shape {jnp.shape(distances)}")
+    height, width = depth.shape
+    dtype = jnp.result_type(depth, jnp.float32)
+    depth = jnp.asarray(depth, dtype)
+    pixel_xy = jnp.asarray(pixel_xy, dtype)
+    distances = jnp.asarray(distances, dtype)
+    focal = focal_length_px(width, fov_x_deg, dtype)
+    toward, inverse = _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    light_xy = jnp.asarray(light_xy, dtype)
+    in_front = jnp.asarray(light_in_front)
+    # Behind the camera the shadow ray runs from p away from the light's true projection (the point
+    # reflection of light_xy through the image centre) until it crosses the camera plane.
+    centre = jnp.asarray([0.5 * width, 0.5 * height], dtype)
+    step = jnp.where(in_front, light_xy - pixel_xy, pixel_xy - (2 * centre - light_xy))
+    exits = [
+        jnp.where(step[..., axis] > 0, (limit - pixel_xy[..., axis]), -pixel_xy[..., axis])
+        / jnp.where(step[..., axis] == 0, 1.0, step[..., axis])
+        for axis, limit in ((0, width), (1, height))
+    ]
+    exits = [jnp.where(step[..., axis] == 0, jnp.inf, e) for axis, e in enumerate(exits)]
+    reach = jnp.minimum(exits[0], exits[1])
+    reach = jnp.where(in_front, jnp.minimum(reach, 1.0), reach)
+    reach = jnp.where(jnp.isfinite(reach), reach, 0.0)
+    view = _rays_at(pixel_xy[..., 0], pixel_xy[..., 1], height, width, focal)
+    view = view / jnp.linalg.norm(view, axis=-1, keepdims=True)
+    view_cross_light = jnp.cross(view, toward)
+    thickness = jnp.asarray(thickness, dtype)
+    softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
+
+    def sample(visibility, k):
+        s = reach * (k + 0.5) / num_shadow_samples
+        q = pixel_xy + s[..., None] * step
+        col = jnp.clip(jnp.floor(q[..., 0]), 0, width - 1).astype(jnp.int32)
+        row = jnp.clip(jnp.floor(q[..., 1]), 0, height - 1).astype(jnp.int32)
+        surface = depth[row, col]
+        ray = _rays_at(q[..., 0], q[..., 1], height, width, focal)
+        ray_cross_light, ray_cross_view = jnp.cross(ray, toward), jnp.cross(ray, view)
+        # mu' * ray = X + u (S - X), X = t * view, S = toward / inverse: crossed with (S - X), in t.
+        a1 = _dot(view_cross_light, ray_cross_light)[..., None]
+        a2 = _dot(view_cross_light, ray_cross_view)[..., None] * inverse
+        b1 = _dot(ray_cross_light, ray_cross_light)[..., None]
+        b2 = _dot(ray_cross_light, ray_cross_view)[..., None] * inverse
+        b3 = _dot(ray_cross_view, ray_cross_view)[..., None] * inverse * inverse
+        t = distances
+        numerator = t * a1 - t * t * a2
+        denominator = b1 - 2 * t * b2 + t * t * b3
+        # Parallel rays never cross: 0, at the camera, lies in no slab.
+        crossing = _safe_divide(numerator, denominator, 0.0, tiny=1e-12) * jnp.linalg.norm(ray, axis=-1)[..., None]
+        front = surface[..., None]
+        # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
+        blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
+        front = jnp.where(blocks, front, 1.0)
+        width_ = softness * front
+        inside = _ramp((crossing - front) / width_) * _ramp((front * (1 + thickness) - crossing) / width_)
+        inside = jnp.where(blocks, inside, 0.0)
+        return jnp.minimum(visibility, 1.0 - inside), None
+
+    visibility, _ = jax.lax.scan(
+        jax.checkpoint(sample), jnp.ones(distances.shape, dtype), jnp.arange(num_shadow_samples, dtype=dtype)
+    )
+    return visibility
+
+
+def _segment_irradiance(view, start, end, toward, inverse):
+    """The mean over `[start, end]` of `(light_depth / |S - t * view|)^2` (1 for the sun)."""
+    cosine = _dot(view, toward)[..., None]
+    light_depth = _safe_divide(1.0, inverse, 1.0)
+    along = light_depth * cosine
+    # Closest approach of the ray to the light, floored by the light's own size.
+    miss = jnp.sqrt(jnp.maximum(light_depth**2 * (1.0 - cosine * cosine), 0.0) + (_POINT_LIGHT_RADIUS * light_depth) ** 2)
+    integral = (jnp.arctan((end - along) / miss) - jnp.arctan((start - along) / miss)) / miss
+    middle = 0.5 * (start + end) - along
+    at_middle = light_depth**2 / (middle * middle + miss * miss)
+    mean = _safe_divide(light_depth**2 * integral, end - start, at_middle, tiny=1e-9)
+    return jnp.where(inverse > 0, mean, 1.0)
+
+
+def _in_scattered(view, ray_end, depth, light_xy, pixel_xy, options):
+    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) up to `ray_end`: `(h, w)`."""
+    (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
+     thickness, edge_softness, num_view_steps, num_shadow_samples) = options  # fmt: skip
+    height, width = depth.shape
+    dtype = view.dtype
+    toward, inverse = _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    origin = jnp.zeros_like(view)
+    start, end = medium_interval(origin, view, ray_end, max_distance=max_distance, layer_top=layer_top)
+    fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
+    bounds = start[..., None] + (end - start)[..., None] * fractions
+    tau = optical_depth(
+        origin[..., None, :], view[..., None, :], start[..., None], bounds,
+        extinction=extinction, height_falloff=height_falloff,
+    )  # fmt: skip
+    attenuated = jnp.exp(-tau[..., :-1]) - jnp.exp(-tau[..., 1:])
+    middles = 0.5 * (bounds[..., :-1] + bounds[..., 1:])
+    points = view[..., None, :] * middles[..., None]
+    dimmed = light_transmittance(
+        points, toward, light_depth=light_depth, extinction=extinction, max_distance=max_distance,
+        height_falloff=height_falloff, layer_top=layer_top,
+    )  # fmt: skip
+    to_light, _ = _toward_light(points, toward, inverse)
+    phase = henyey_greenstein(_dot(view[..., None, :], to_light), anisotropy=anisotropy)
+    irradiance = _segment_irradiance(view, bounds[..., :-1], bounds[..., 1:], toward, inverse)
+    visible = segment_visibility(
+        depth, light_xy, pixel_xy, middles, fov_x_deg=fov_x_deg, light_depth=light_depth,
+        light_in_front=light_in_front, thickness=thickness, edge_softness=edge_softness,
+        num_shadow_samples=num_shadow_samples,
+    )  # fmt: skip
+    return jnp.sum(attenuated * visible * dimmed * phase * irradiance, axis=-1)
+
+
+def _ray_length(depth, max_distance):
+    """A key for the depth-aware upsampling: the distance a ray runs (sky and beyond the medium: its extent)."""
+    finite = jnp.isfinite(depth)
+    return jnp.minimum(jnp.where(finite, depth, max_distance), max_distance)
+
+
+def _upsample_by_depth(values, coarse_key, fine_key, factor):
+    """`values` on the march grid to every pixel: bilinear weights times how alike the ray lengths are."""
+    height, width = fine_key.shape
+    small_h, small_w = values.shape
+    offset = factor // 2 + 0.5
+    dtype = values.dtype
+    x = (jnp.arange(width, dtype=dtype) + 0.5 - offset) / factor
+    y = (jnp.arange(height, dtype=dtype) + 0.5 - offset) / factor
+    x0 = jnp.clip(jnp.floor(x), 0, small_w - 1).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor(y), 0, small_h - 1).astype(jnp.int32)
+    fx = jnp.clip(x - x0, 0.0, 1.0)
+    fy = jnp.clip(y - y0, 0.0, 1.0)
+    x1 = jnp.minimum(x0 + 1, small_w - 1)
+    y1 = jnp.minimum(y0 + 1, small_h - 1)
+    total = jnp.zeros((height, width), dtype)
+    weights = jnp.zeros((height, width), dtype)
+    scale = _UPSAMPLE_DEPTH_SIGMA * jnp.maximum(fine_key, 1e-6)
+    for rows, wy in ((y0, 1 - fy), (y1, fy)):
+        for cols, wx in ((x0, 1 - fx), (x1, fx)):
+            key = coarse_key[rows[:, None], cols[None, :]]
+            alike = jax.lax.stop_gradient(jnp.exp(-jnp.abs(key - fine_key) / scale))
+            weight = wy[:, None] * wx[None, :] * alike + 1e-12
+            total = total + weight * values[rows[:, None], cols[None, :]]
+            weights = weights + weight
+    return total / weights
+
+
+def volumetric_fog_terms(
+    depth: Float[Array, "H W"],
+    light_xy: Float[ArrayLike, "2"],
+    *,
+    fov_x_deg: Float[ArrayLike, ""],
+    light_depth: Float[ArrayLike, ""] = math.inf,
+    light_in_front: Bool[ArrayLike, ""] | bool = True,
+    extinction: Float[ArrayLike, ""],
+    max_distance: Float[ArrayLike, ""],
+    height_falloff: Float[ArrayLike, ""] = 0.0,
+    layer_top: Float[ArrayLike, ""] = math.inf,
+    anisotropy: Float[ArrayLike, ""],
+    direct_fraction: Float[ArrayLike, ""] = 0.0,
+    thickness: Float[ArrayLike, ""] = 0.15,
+    edge_softness: Float[ArrayLike, ""] = 0.05,
+    num_view_steps: int = 16,
+    num_shadow_samples: int = 32,
+    resolution_factor: int = 1,
+) -> tuple[Float[Array, "H W"], Float[Array, "H W"], Float[Array, "H W"]]:
+    """`(surface, scattered, opacity)`: the fogged frame is `C * surface + light_color * scattered + ambient_color * opacity`.
+
+    `surface = T(D) * (1 - direct_fraction + direct_fraction * T_L(P))` (sky:
+    `T(D)`), `scattered` the sum over segments of the module docstring
+    (per steradian of the phase function), `opacity = 1 - T(D)`.
+
+    Args:
+        depth: distance along each camera ray, scene units, `+inf` on sky.
+        light_xy: the light's projected position in pixels, anywhere on or off
+            screen (mirrored through the camera plane when behind it).
+        fov_x_deg: horizontal field of view in degrees, in (0, 180).
+        light_depth: the light's distance along its camera ray, scene units; `inf`: the sun.
+        light_in_front: whether the light is in front of the camera.
+        extinction: per scene unit at the camera's height, >= 0.
+        max_distance: the radius of the medium around the camera, scene units.
+        height_falloff: per scene unit, >= 0 (0: homogeneous in height).
+        layer_top: the medium's top above the camera (scene units; negative: the
+            camera above the layer; `inf`: no top).
+        anisotropy: Henyey-Greenstein `g`, in (-1, 1).
+        direct_fraction: the share of the frame's surface light that comes from
+            the light (dimmed by the medium on its way in), in [0, 1].
+        thickness, edge_softness: the depth buffer's slabs (`segment_visibility`).
+        num_view_steps: segments per view ray (static int, >= 1).
+        num_shadow_samples: depth samples per screen segment (static int, >= 1).
+        resolution_factor: the march runs on every `resolution_factor`-th pixel
+            in each direction (static int, a divisor of H and W).
+    """
+    if jnp.ndim(depth) != 2:
+        raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
+    check_light(light_xy)
+    for name, value in (("num_view_steps", num_view_steps), ("resolution_factor", resolution_factor)):
+        if not is_static_int(value) or value < 1:
+            raise ValueError(f"{name} must be a Python int >= 1, got {value!r}")
+    height, width = depth.shape
+    if height % resolution_factor or width % resolution_factor:
+        raise ValueError(f"resolution_factor={resolution_factor} must divide the image size {width}x{height}")
+    for name, value in (("extinction", extinction), ("max_distance", max_distance), ("height_falloff", height_falloff),
+                        ("layer_top", layer_top), ("anisotropy", anisotropy), ("direct_fraction", direct_fraction)):  # fmt: skip
+        check_scalar(value, name)
+    dtype = jnp.result_type(depth, jnp.float32)
+    depth = jnp.asarray(depth, dtype)
+    medium = dict(extinction=extinction, height_falloff=height_falloff)
+    bounds = dict(max_distance=max_distance, layer_top=layer_top)
+    view = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype)
+    origin = jnp.zeros_like(view)
+    start, end = medium_interval(origin, view, jnp.where(jnp.isfinite(depth), depth, jnp.inf), **bounds)
+    opacity = -jnp.expm1(-optical_depth(origin, view, start, end, **medium))
+    toward, _ = _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    finite = jnp.isfinite(depth)
+    surface_points = view * jnp.where(finite, depth, 0.0)[..., None]
+    dimmed = light_transmittance(surface_points, toward, light_depth=light_depth, **medium, **bounds)
+    share = jnp.asarray(direct_fraction, dtype)
+    surface = (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0)
+    options = (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
+               thickness, edge_softness, num_view_steps, num_shadow_samples)  # fmt: skip
+    factor = resolution_factor
+    if factor == 1:
+        x, y = _march_grid(height, width, 1, dtype)
+        scattered = _in_scattered(view, depth, depth, light_xy, jnp.stack([x, y], axis=-1), options)
+        return surface, scattered, opacity
+    x, y = _march_grid(height, width, factor, dtype)
+    rows, cols = (y - 0.5).astype(jnp.int32), (x - 0.5).astype(jnp.int32)
+    coarse_depth = depth[rows, cols]
+    coarse = _in_scattered(view[rows, cols], coarse_depth, depth, light_xy, jnp.stack([x, y], axis=-1), options)
+    distance = jnp.asarray(max_distance, dtype)
+    key = functools.partial(_ray_length, max_distance=jax.lax.stop_gradient(distance))
+    scattered = _upsample_by_depth(coarse, key(coarse_depth), key(depth), factor)
+    return surface, scattered, opacity
+
+
+def apply_volumetric_fog(
+    image: Float[Array, "H W C"],
+    depth: Float[Array, "H W"],
+    light_xy: Float[ArrayLike, "2"],
+    *,
+    light_color: Float[ArrayLike, "3"],
+    ambient_color: Float[ArrayLike, "3"],
+    **options,
+) -> Float[Array, "H W C"]:
+    """The fogged frame `image * surface + light_color * scattered + ambient_color * opacity`; alpha passes through.
+
+    `image` is the clean linear frame, `depth` its distance along each camera ray (scene units,
+    `+inf` on sky), `light_xy` the light's position in pixels; `light_color` the RGB albedo times the
+    light's irradiance (at the camera's distance from a point light),
+    `ambient_color` the RGB albedo times the sky's radiance; `options` are
+    `volumetric_fog_terms`'. A 1-channel image receives the mean of the RGB light.
+    """
+    check_image(image)
+    check_plane(depth, "depth", image.shape[0], image.shape[1])
+    dtype = image.dtype
+    surface, scattered, opacity = volumetric_fog_terms(depth, light_xy, **options)
+    light = scattered[..., None] * jnp.asarray(light_color, dtype) + opacity[..., None] * jnp.asarray(ambient_color, dtype)
+    channels = min(image.shape[-1], 3)
+    if channels == 1:
+        light = jnp.mean(light, axis=-1, keepdims=True)
+    colour = image[..., :channels] * surface[..., None].astype(dtype) + light[..., :channels].astype(dtype)
+    return jnp.concatenate([colour, image[..., channels:]], axis=-1)

@@ -1,0 +1,304 @@
+"""Scattering from the depth buffer (kernels/volumetric.py) against a slow NumPy loop, and its degenerate cases."""
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from godrays_jax.kernels.volumetric import apply_volumetric_fog, volumetric_fog_terms
+
+HEIGHT, WIDTH = 4, 6
+MEDIUM = dict(
+    fov_x_deg=60.0, extinction=0.06, max_distance=25.0, height_falloff=0.05, layer_top=4.0, anisotropy=0.6,
+    direct_fraction=0.7, thickness=0.3, edge_softness=0.1, num_view_steps=3, num_shadow_samples=4,
+)  # fmt: skip
+COLOURS = dict(light_color=(2.0, 1.5, 1.0), ambient_color=(0.1, 0.2, 0.3))
+
+
+def _depth():
+    depth = np.full((HEIGHT, WIDTH), np.inf)
+    depth[2:] = [[6.0, 9.0, 14.0, 30.0, 11.0, 7.5], [5.0, 6.5, 8.0, 20.0, 9.0, 6.0]]  # ground, one far
+    depth[:, 2] = [3.0, 3.2, 3.4, 3.6]  # a near pillar
+    return depth
+
+
+def _image(rng):
+    return rng.uniform(0.0, 2.0, (HEIGHT, WIDTH, 4))
+
+
+def _hg(cosine, g):
+    return (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * cosine) ** 1.5)
+
+
+def _ramp(x):
+    return min(max(x, 0.0), 1.0)
+
+
+class _Loop:
+    """The model by definition: numeric integrals, 3-D line crossings by least squares, one pixel at a time."""
+
+    def __init__(self, depth, light_xy, *, light_depth, in_front, fov_x_deg, extinction, max_distance,
+                 height_falloff, layer_top, anisotropy, direct_fraction, thickness, edge_softness,
+                 num_view_steps, num_shadow_samples):  # fmt: skip
+        self.depth, self.light_xy = depth, np.asarray(light_xy, float)
+        self.height, self.width = depth.shape
+        self.focal = 0.5 * self.width / math.tan(math.radians(fov_x_deg) / 2)
+        forward = 1.0 if in_front else -1.0
+        toward = self.ray(*self.light_xy) * [1, 1, forward]
+        self.toward = toward / np.linalg.norm(toward)
+        self.light_depth, self.in_front = light_depth, in_front
+        self.sigma, self.radius, self.falloff, self.top = extinction, max_distance, height_falloff, layer_top
+        self.g, self.share, self.thickness, self.softness = anisotropy, direct_fraction, thickness, edge_softness
+        self.steps, self.samples = num_view_steps, num_shadow_samples
+
+    def ray(self, x, y):
+        return np.array([(x - self.width / 2) / self.focal, (self.height / 2 - y) / self.focal, 1.0])
+
+    def density(self, points):
+        inside = (np.linalg.norm(points, axis=-1) < self.radius) & (points[..., 1] < self.top)
+        return np.where(inside, self.sigma * np.exp(-self.falloff * points[..., 1]), 0.0)
+
+    def optical_depth(self, origin, direction, length, n=20000):
+        """A midpoint sum over `n` steps."""
+        du = length / n
+        points = origin + ((np.arange(n) + 0.5) * du)[:, None] * direction
+        return float(np.sum(self.density(points)) * du)
+
+    def to_light(self, point):
+        if math.isinf(self.light_depth):
+            return self.toward, 3 * self.radius  # beyond the medium's far side
+        offset = self.light_depth * self.toward - point
+        return offset / np.linalg.norm(offset), np.linalg.norm(offset)
+
+    def light_transmittance(self, point):
+        direction, distance = self.to_light(point)
+        return math.exp(-self.optical_depth(point, direction, distance))
+
+    def visibility(self, x, y, view, t):
+        point = t * view
+        light_point = self.light_depth * self.toward if math.isfinite(self.light_depth) else None
+        shadow = self.toward if light_point is None else light_point - point
+        p = np.array([x, y])
+        if self.in_front:
+            step = self.light_xy - p
+        else:
+            step = p - (np.array([self.width, self.height]) - self.light_xy)
+        reach = 1.0 if self.in_front else math.inf
+        for axis, limit in ((0, self.width), (1, self.height)):
+            if step[axis] > 0:
+                reach = min(reach, (limit - p[axis]) / step[axis])
+            elif step[axis] < 0:
+                reach = min(reach, -p[axis] / step[axis])
+        if not math.isfinite(reach) or reach == 0:
+            return 1.0
+        visible = 1.0
+        for k in range(self.samples):
+            q = p + reach * (k + 0.5) / self.samples * step
+            col = min(max(int(math.floor(q[0])), 0), self.width - 1)
+            row = min(max(int(math.floor(q[1])), 0), self.height - 1)
+            front = self.depth[row, col]
+            if not math.isfinite(front):
+                continue
+            if light_point is not None and front * (1 + self.thickness) >= self.light_depth:
+                continue
+            ray = self.ray(*q)
+            # mu' * ray - u * shadow = point, least squares (exact: the three lie in one plane)
+            (mu, _), *_ = np.linalg.lstsq(np.stack([ray, -shadow], axis=1), point, rcond=None)
+            crossing = mu * np.linalg.norm(ray)
+            width = self.softness * front
+            inside = _ramp((crossing - front) / width) * _ramp((front * (1 + self.thickness) - crossing) / width)
+            visible = min(visible, 1.0 - inside)
+        return visible
+
+    def end_of_medium(self, view, depth):
+        end = min(depth, self.radius)
+        if view[1] > 0 and math.isfinite(self.top):
+            end = min(end, self.top / view[1])
+        return end
+
+    def pixel(self, row, col):
+        x, y = col + 0.5, row + 0.5
+        view = self.ray(x, y)
+        view /= np.linalg.norm(view)
+        depth = self.depth[row, col]
+        end = self.end_of_medium(view, depth)
+        bounds = np.linspace(0.0, end, self.steps + 1)
+        transmittance = [math.exp(-self.optical_depth(np.zeros(3), view, b)) for b in bounds]
+        scattered = 0.0
+        for j in range(self.steps):
+            middle = 0.5 * (bounds[j] + bounds[j + 1])
+            point = middle * view
+            direction, _ = self.to_light(point)
+            if math.isfinite(self.light_depth):
+                ts = np.linspace(bounds[j], bounds[j + 1], 2001)
+                miss = (1e-3 * self.light_depth) ** 2
+                values = [self.light_depth**2 / (np.sum((self.light_depth * self.toward - s * view) ** 2) + miss) for s in ts]
+                irradiance = np.trapezoid(values, ts) / (bounds[j + 1] - bounds[j])
+            else:
+                irradiance = 1.0
+            scattered += (
+                (transmittance[j] - transmittance[j + 1]) * self.visibility(x, y, view, middle)
+                * self.light_transmittance(point) * _hg(view @ direction, self.g) * irradiance
+            )  # fmt: skip
+        surface = transmittance[-1]
+        if math.isfinite(depth):
+            surface *= 1 - self.share + self.share * self.light_transmittance(depth * view)
+        return surface, scattered, 1 - transmittance[-1]
+
+    def terms(self):
+        rows = [[self.pixel(row, col) for col in range(self.width)] for row in range(self.height)]
+        return tuple(np.array([[pixel[i] for pixel in row] for row in rows]) for i in range(3))
+
+
+CASES = {
+    "sun in front": ((2.3, 0.7), math.inf, True),
+    "point light in the medium": ((4.4, 1.2), 12.0, True),
+    "sun behind the camera": ((1.7, 2.9), math.inf, False),
+    "point light off screen": ((-7.0, 2.5), 9.0, True),
+    "point light behind the camera": ((5.2, 0.4), 6.0, False),
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_terms_match_loop(x64, case):
+    light_xy, light_depth, in_front = CASES[case]
+    depth = _depth()
+    expected = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM).terms()
+    got = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray(light_xy), light_depth=light_depth,
+                               light_in_front=in_front, **MEDIUM)  # fmt: skip
+    for name, want, have in zip(("surface", "scattered", "opacity"), expected, got):
+        np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
+
+
+def test_occluder_shadows_the_haze_in_front_of_it(x64):
+    """A post below the sun shades the haze in front of it; a ray whose shadow rays miss it stays as in open sky."""
+    depth = np.full((HEIGHT, WIDTH), np.inf)
+    depth[2:, 2] = 10.0
+    options = dict(MEDIUM, layer_top=math.inf, height_falloff=0.0, max_distance=10.0, num_shadow_samples=8)
+    light = jnp.asarray([2.6, 0.5])
+    _, shadowed, _ = volumetric_fog_terms(jnp.asarray(depth), light, **options)
+    _, open_sky, _ = volumetric_fog_terms(jnp.asarray(np.full((HEIGHT, WIDTH), np.inf)), light, **options)
+    assert float(shadowed[3, 2]) < 0.8 * float(open_sky[3, 2])
+    assert float(shadowed[0, 5]) == pytest.approx(float(open_sky[0, 5]), rel=1e-12)
+
+
+def _fog(image, depth, light_xy, **overrides):
+    options = dict(MEDIUM, **COLOURS, light_depth=12.0)
+    options.update(overrides)
+    return apply_volumetric_fog(image, depth, light_xy, **options)
+
+
+def test_composite_eager_jit_vmap(x64, rng):
+    image, depth, light = jnp.asarray(_image(rng)), jnp.asarray(_depth()), jnp.asarray([2.3, 0.7])
+    surface, scattered, opacity = volumetric_fog_terms(depth, light, light_depth=12.0, **MEDIUM)
+    light_rgb = scattered[..., None] * jnp.asarray(COLOURS["light_color"]) + opacity[..., None] * jnp.asarray(COLOURS["ambient_color"])
+    expected = jnp.concatenate([image[..., :3] * surface[..., None] + light_rgb, image[..., 3:]], axis=-1)
+    eager = _fog(image, depth, light)
+    np.testing.assert_allclose(eager, expected, rtol=1e-12)
+    np.testing.assert_allclose(jax.jit(_fog)(image, depth, light), eager, rtol=1e-10)
+    lights = jnp.asarray([[2.3, 0.7], [-3.0, 5.0], [3.0, 2.0]])
+    batched = jax.vmap(_fog, in_axes=(None, None, 0))(image, depth, lights)
+    for index, one in enumerate(lights):
+        np.testing.assert_allclose(batched[index], _fog(image, depth, one), rtol=1e-10)
+
+
+def test_grad_of_vmap_matches_per_example(x64, rng):
+    images = jnp.asarray(rng.uniform(0.0, 2.0, (2, HEIGHT, WIDTH, 3)))
+    depth = jnp.asarray(_depth())
+    lights = jnp.asarray([[2.3, 0.7], [4.1, 1.9]])
+
+    def loss(extinction, images, lights):
+        fogged = jax.vmap(lambda i, l: _fog(i, depth, l, extinction=extinction))(images, lights)
+        return jnp.sum(fogged**2)
+
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(0.06, images, lights)
+    for index in range(2):
+        one = jax.grad(loss, argnums=(0, 1, 2))(0.06, images[index : index + 1], lights[index : index + 1])
+        np.testing.assert_allclose(grads[1][index], one[1][0], rtol=1e-9)
+        np.testing.assert_allclose(grads[2][index], one[2][0], rtol=1e-9)
+    total = sum(jax.grad(loss)(0.06, images[i : i + 1], lights[i : i + 1]) for i in range(2))
+    np.testing.assert_allclose(grads[0], total, rtol=1e-9)
+
+
+FITTED = ("extinction", "max_distance", "height_falloff", "layer_top", "anisotropy", "direct_fraction", "thickness",
+          "edge_softness", "fov_x_deg", "light_depth")  # fmt: skip
+
+
+@pytest.mark.parametrize("light_depth", [12.0, math.inf])
+def test_gradients_float64(x64, rng, light_depth):
+    image, depth = jnp.asarray(_image(rng)), jnp.asarray(_depth())
+    values = dict(MEDIUM, light_depth=light_depth)
+    names = [name for name in FITTED if not (name == "light_depth" and math.isinf(light_depth))]
+
+    @jax.jit
+    def render(light_xy, *scalars):
+        options = dict(values, **dict(zip(names, scalars)))
+        return _fog(image, depth, light_xy, **options)
+
+    # No depth sample on a pixel edge (nearest sampling steps there): the finite differences stay on one side.
+    start = (jnp.asarray([2.33, 0.71]), *(jnp.asarray(values[name], jnp.float64) for name in names))
+    check_grads(render, start, order=1, modes=("fwd", "rev"), eps=1e-5, atol=1e-4, rtol=1e-4)
+
+
+DEGENERATE = {
+    "behind the camera": dict(light_xy=(3.0, 2.0), light_in_front=False),
+    "far off screen": dict(light_xy=(1e7, -3e6)),
+    "on a pixel centre": dict(light_xy=(2.5, 1.5)),
+    "on the optical axis": dict(light_xy=(3.0, 2.0)),
+    "at infinity": dict(light_xy=(2.5, 1.5), light_depth=math.inf),
+    "at the camera": dict(light_xy=(3.0, 2.0), light_depth=1e-6),
+}
+
+
+@pytest.mark.parametrize("case", DEGENERATE)
+def test_degenerate_lights_finite_values_and_gradients(rng, case):
+    image = jnp.asarray(_image(rng), jnp.float32)
+    options = dict(DEGENERATE[case])
+    light_xy = jnp.asarray(options.pop("light_xy"), jnp.float32)
+
+    @jax.jit
+    @functools.partial(jax.value_and_grad, argnums=(0, 1, 2, 3))
+    def loss(light_xy, extinction, thickness, fov_x_deg, depth):
+        return jnp.sum(_fog(image, depth, light_xy, extinction=extinction, thickness=thickness, fov_x_deg=fov_x_deg, **options))
+
+    for depth in (jnp.asarray(_depth(), jnp.float32), jnp.full((HEIGHT, WIDTH), jnp.inf)):  # and a frame all sky
+        value, grads = loss(light_xy, 0.06, 0.3, 60.0, depth)
+        assert np.isfinite(float(value))
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
+
+
+def test_zero_density_leaves_the_frame(rng):
+    image, depth = jnp.asarray(_image(rng), jnp.float32), jnp.asarray(_depth(), jnp.float32)
+    np.testing.assert_array_equal(_fog(image, depth, jnp.asarray([2.3, 0.7]), extinction=0.0), image)
+
+
+def test_camera_above_the_layer_sees_haze_only_below_it(x64):
+    depth = np.full((HEIGHT, WIDTH), np.inf)
+    _, scattered, opacity = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), **dict(MEDIUM, layer_top=-1.0))
+    assert np.all(np.asarray(opacity[: HEIGHT // 2]) == 0)  # rays going up never meet the layer below
+    assert np.all(np.asarray(opacity[HEIGHT // 2 :]) > 0)
+    assert np.all(np.asarray(scattered[: HEIGHT // 2]) == 0)
+
+
+def test_reduced_resolution_equals_full_resolution_on_the_march_pixels(x64, rng):
+    depth = np.full((8, 12), np.inf)
+    depth[4:] = rng.uniform(5.0, 30.0, (4, 12))
+    light = jnp.asarray([5.1, 1.3])
+    _, full, _ = volumetric_fog_terms(jnp.asarray(depth), light, **MEDIUM)
+    _, reduced, _ = volumetric_fog_terms(jnp.asarray(depth), light, resolution_factor=2, **MEDIUM)
+    np.testing.assert_allclose(reduced[1::2, 1::2], full[1::2, 1::2], rtol=1e-9)
+    assert np.all(np.isfinite(np.asarray(reduced)))
+
+
+def test_bad_options_name_the_argument():
+    depth = jnp.ones((HEIGHT, WIDTH))
+    with pytest.raises(ValueError, match="num_view_steps"):
+        volumetric_fog_terms(depth, jnp.zeros(2), **dict(MEDIUM, num_view_steps=0))
+    with pytest.raises(ValueError, match="resolution_factor"):
+        volumetric_fog_terms(depth, jnp.zeros(2), resolution_factor=4, **MEDIUM)
+    with pytest.raises(ValueError, match="num_shadow_samples"):
+        volumetric_fog_terms(depth, jnp.zeros(2), **dict(MEDIUM, num_shadow_samples=2.5))

@@ -138,10 +138,19 @@ def round_counts(effect: Effect) -> Effect:
     return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [jnp.round(getattr(effect, n)) for n in names])
 
 
-def _as_frames(buffers, light_xy, target, light_in_front):
+def _per_frame(value, count, name):
+    """One value per frame from a scalar (or bool) or a sequence of `count`."""
+    values = [value] * count if isinstance(value, bool) or np.ndim(value) == 0 else list(value)
+    if len(values) != count:
+        raise ValueError(f"{name} must be one value or one per frame ({count})")
+    return values
+
+
+def _as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf):
     """Normalise one frame or a sequence of frames into equal-length lists."""
     if isinstance(buffers, Buffers):
         buffers, light_xy, target, light_in_front = [buffers], [light_xy], [target], [light_in_front]
+        light_depth = [light_depth]
     else:
         buffers = list(buffers)
         count = len(buffers)
@@ -161,12 +170,8 @@ def _as_frames(buffers, light_xy, target, light_in_front):
             raise ValueError(f"target must hold one image per frame ({count})")
         if len(target) != count:
             raise ValueError(f"target must hold one image per frame ({count}), got {len(target)}")
-        light_in_front = (
-            [light_in_front] * count if isinstance(light_in_front, bool) or np.ndim(light_in_front) == 0
-            else list(light_in_front)
-        )  # fmt: skip
-        if len(light_in_front) != count:
-            raise ValueError(f"light_in_front must be one bool or one per frame ({count})")
+        light_in_front = _per_frame(light_in_front, count, "light_in_front")
+        light_depth = _per_frame(light_depth, count, "light_depth")
     lights, targets = [], []
     for index, (frame, light, image) in enumerate(zip(buffers, light_xy, target)):
         light = jnp.asarray(light, frame.color.dtype)
@@ -179,8 +184,14 @@ def _as_frames(buffers, light_xy, target, light_in_front):
             )
         lights.append(light)
         targets.append(image)
+    depths = []
+    for index, (frame, depth) in enumerate(zip(buffers, light_depth)):
+        depth = np.asarray(depth, np.float64)
+        if depth.shape != () or not depth > 0:
+            raise ValueError(f"light_depth[{index}] must be a distance > 0 in scene units (inf: the sun), got {depth}")
+        depths.append(jnp.asarray(np.asarray(depth, frame.color.dtype)))
     # From NumPy: `jnp.asarray(True)` compiles a conversion.
-    return buffers, lights, targets, [jnp.asarray(np.asarray(flag)) for flag in light_in_front]
+    return buffers, lights, targets, [jnp.asarray(np.asarray(flag)) for flag in light_in_front], depths
 
 
 def _match_channels(image, target):
@@ -261,8 +272,8 @@ class _Problem(eqx.Module):
         return eqx.tree_at(lambda e: [getattr(e, n) for n in self.names], self.effect, values)
 
     def rendered(self, candidate, frame_data):
-        for frame, light, image, front in zip(*frame_data):
-            yield _match_channels(candidate(frame, light, light_in_front=front), image)
+        for frame, light, image, front, depth in zip(*frame_data):
+            yield _match_channels(candidate(frame, light, light_in_front=front, light_depth=depth), image)
 
     def residuals(self, y, frame_data):
         parts = [
@@ -295,7 +306,11 @@ def _evaluate(candidate, data):
 
 
 def render_compiled(
-    effect: Effect, buffers: Buffers, light_xy: Float[ArrayLike, "2"], light_in_front: bool
+    effect: Effect,
+    buffers: Buffers,
+    light_xy: Float[ArrayLike, "2"],
+    light_in_front: bool,
+    light_depth: Float[ArrayLike, ""] = math.inf,
 ) -> Float[Array, "H W C"]:
     """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own).
 
@@ -305,9 +320,10 @@ def render_compiled(
     `jit`) are checked by the kernels when the program runs.
     """
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(effect)):
-        return _render(effect, buffers, light_xy, light_in_front, True)  # traced fields: checked when run
+        return _render(effect, buffers, light_xy, light_in_front, light_depth, True)  # traced fields: checked when run
     _check_inside_bounds(effect)
-    return exported.call("render", _render, effect, buffers, light_xy, light_in_front, False)
+    light_depth = jnp.asarray(np.asarray(light_depth, buffers.color.dtype))
+    return exported.call("render", _render, effect, buffers, light_xy, light_in_front, light_depth, False)
 
 
 def _check_inside_bounds(effect: Effect) -> None:
@@ -319,12 +335,12 @@ def _check_inside_bounds(effect: Effect) -> None:
 
 
 @eqx.filter_jit
-def _render(effect, buffers, light_xy, light_in_front, checked):
+def _render(effect, buffers, light_xy, light_in_front, light_depth, checked):
     """`checked` is static: a render traced without range checks is never reused for one that needs them."""
     if checked:
-        return effect(buffers, light_xy, light_in_front=light_in_front)
+        return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
     with ranges_guaranteed():
-        return effect(buffers, light_xy, light_in_front=light_in_front)
+        return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
 
 
 @eqx.filter_jit
@@ -398,6 +414,7 @@ def fit(
     rtol: float = 1e-4,
     atol: float = 1e-7,
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
+    light_depth: float | Sequence[float] = math.inf,
     progress: Callable[[int, float], None] | None = None,
 ) -> FitResult:
     """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
@@ -426,6 +443,8 @@ def fit(
         rtol, atol: the solver's convergence tolerances (on the unit-scaled
             parameters and the loss).
         light_in_front: whether each frame's light is in front of the camera.
+        light_depth: each frame's light distance along its camera ray, scene units
+            (`inf`: the sun), one or one per frame; effects that measure depth read it.
         progress: called as `progress(step, loss)` after every step.
 
     Returns:
@@ -442,7 +461,7 @@ def fit(
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
     effect = jax.tree.map(_strongly_typed, effect)
-    frames, lights, targets, in_front = _as_frames(buffers, light_xy, target, light_in_front)
+    frames, lights, targets, in_front, depths = _as_frames(buffers, light_xy, target, light_in_front, light_depth)
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
     _check_inside_bounds(effect)
@@ -457,7 +476,7 @@ def fit(
         loss=loss,
         space=space,
     )
-    data = (problem, (frames, lights, targets, in_front))
+    data = (problem, (frames, lights, targets, in_front, depths))
     function = _residual_function if least_squares else _objective_function
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
     # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
@@ -539,6 +558,7 @@ def determination(
     fitted: Sequence[str],
     space: Space = "display",
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
+    light_depth: float | Sequence[float] = math.inf,
     change: float = 0.1,
     threshold: float = 1e-3,
 ) -> Determination:
@@ -556,7 +576,7 @@ def determination(
 
     Args:
         effect: the solution (e.g. `FitResult.effect`); values inside bounds.
-        buffers, light_xy, target, light_in_front: as for `fit`.
+        buffers, light_xy, target, light_in_front, light_depth: as for `fit`.
         fitted: the fields to examine (e.g. `FitResult.fitted`).
         space: `"display"` or `"linear"`, as the fit compared.
         change: the step, a fraction of each field's range (> 0).
@@ -570,7 +590,7 @@ def determination(
         raise ValueError(f"change and threshold must be > 0, got {change!r} and {threshold!r}")
     check_space(space)
     effect = jax.tree.map(_strongly_typed, effect)
-    frames, lights, targets, in_front = _as_frames(buffers, light_xy, target, light_in_front)
+    frames, lights, targets, in_front, depths = _as_frames(buffers, light_xy, target, light_in_front, light_depth)
     every = parameter_bounds(effect)
     if not fitted or not set(fitted) <= set(every):
         raise ValueError(f"fitted must name fittable fields of {type(effect).__name__}, got {list(fitted)}")
@@ -590,7 +610,7 @@ def determination(
     # The unknowns map into the fields' bounds (as in `fit`): no run-time range check, so the cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         y = _start_point(problem, np.dtype(frames[0].color.dtype))
-        frame_data = (frames, lights, targets, in_front)
+        frame_data = (frames, lights, targets, in_front, depths)
         jacobian = np.asarray(exported.call("determination_jacobian", _jacobian, problem, y, frame_data), np.float64)
     owners, labels, spans = [], [], []
     for name, shape in zip(names, problem.shapes):

@@ -94,6 +94,7 @@ from godrays_jax.effects.base import parameter_bounds as parameter_bounds
 from godrays_jax.effects.base import size_fields as size_fields
 from godrays_jax.effects.base import STATIC_RANGES as STATIC_RANGES
 from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
+from godrays_jax.effects.volumetric import VolumetricFog as VolumetricFog
 from godrays_jax.effects.glow import Bloom as Bloom
 from godrays_jax.effects.glow import LensDirt as LensDirt
 from godrays_jax.effects.glow import SunOvercast as SunOvercast

@@ -78,6 +78,8 @@ STATIC_RANGES: dict[str, tuple[int, int]] = {
     "max_iters": (1, 64),
     "max_passes": (0, 8),
     "resolution_factor": (1, 64),
+    "num_view_steps": (1, 256),
+    "num_shadow_samples": (1, 1024),
     "dirt_seed": (0, 2**63 - 1),
 }
 """Inclusive ranges of the integer static fields, checked by every effect's constructor (so also for params files).

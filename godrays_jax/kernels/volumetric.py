@@ -147,9 +147,11 @@ def _toward_light(points, toward, inverse_depth):
     """Unit direction from each point toward the light, and the distance to it (`inf` for the sun)."""
     finite = inverse_depth > 0
     light_point = toward * _safe_divide(1.0, inverse_depth, 0.0)
-    offset = jnp.where(finite, light_point - points, toward)
+    # The sun's branch never divides: a far off-screen sun's direction is tiny where float32 overflows.
+    offset = jnp.where(finite, light_point - points, 1.0)
     distance = jnp.sqrt(jnp.maximum(_dot(offset, offset), 1e-30))
-    return offset / distance[..., None], jnp.where(finite, distance, jnp.inf)
+    direction = jnp.where(finite, offset / distance[..., None], toward)
+    return direction, jnp.where(finite, distance, jnp.inf)
 
 
 def light_transmittance(

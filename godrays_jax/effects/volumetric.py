@@ -1,0 +1,100 @@
+"""`VolumetricFog`: a bounded medium lit segment by segment, its shadows read from the depth buffer."""
+
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from godrays_jax.effects.base import Effect, frame_ray_depth, param
+from godrays_jax.kernels.volumetric import volumetric_fog_terms
+from godrays_jax.primitives.checks import check_light
+
+
+def march_factor(height: int, width: int, resolution_factor: int) -> int:
+    """The largest divisor of both `height` and `width` that is at most `resolution_factor` (at least 1)."""
+    return max(d for d in range(1, resolution_factor + 1) if height % d == 0 and width % d == 0)
+
+
+class VolumetricFog(Effect):
+    """A medium around the camera, each view ray lit only where the depth buffer lets the light through.
+
+    The fogged frame is `color * surface + light_color * scattered +
+    ambient_color * opacity` (`kernels.volumetric`): every view ray is marched
+    in `num_view_steps` segments up to its depth (`buffers.ray_depth(fov_x_deg)`,
+    scene units) or the medium's end; each segment's light is its share of the
+    ray's extinction times its visibility of the light, read from the depth
+    buffer at `num_shadow_samples` points along the screen toward the light
+    (each surface a slab `thickness` times its depth deep, soft over
+    `edge_softness` of its depth), times the light dimmed by the medium on its
+    way in, times the Henyey-Greenstein phase of `anisotropy`.
+
+    The medium: `extinction` per scene unit at the camera's height, falling
+    off as `exp(-height_falloff * height)` (per scene unit, the height above
+    the camera along its up axis), inside a ball of radius `max_distance`
+    (scene units) around the camera and below `layer_top` (scene units above
+    the camera). `light_color` is the RGB albedo times the light's irradiance
+    (for a point light at `light_depth`, at the camera's distance from it),
+    `ambient_color` the RGB albedo times the sky's radiance; `direct_fraction`
+    of the frame's own surface light comes from the light and is dimmed like
+    the medium's. `fov_x_deg` is the horizontal field of view in degrees.
+
+    The march runs at `1 / resolution_factor` of the frame's size in each
+    direction (the largest divisor of both sides up to it, `march_factor`)
+    and is upsampled with depth-aware weights; memory is O(march pixels x
+    `num_view_steps`) whatever `num_shadow_samples` is.
+
+    `effect(...)` is the fogged frame, `effect.layer(...)` the scattered light alone.
+    """
+
+    extinction: Float[Array, ""] = param(0.01, low=0.0, high=1.0)
+    max_distance: Float[Array, ""] = param(100.0, low=0.0, high=1e4)
+    height_falloff: Float[Array, ""] = param(0.0, low=0.0, high=1.0)
+    layer_top: Float[Array, ""] = param(1e4, low=-1e3, high=1e4)
+    anisotropy: Float[Array, ""] = param(0.76, low=-0.95, high=0.95)
+    light_color: Float[Array, "3"] = param((1.0, 0.9, 0.75), low=0.0, high=100.0)
+    ambient_color: Float[Array, "3"] = param((0.05, 0.06, 0.08), low=0.0, high=10.0)
+    direct_fraction: Float[Array, ""] = param(0.5, low=0.0, high=1.0)
+    thickness: Float[Array, ""] = param(0.15, low=0.0, high=4.0)
+    edge_softness: Float[Array, ""] = param(0.05, low=0.005, high=1.0)
+    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
+    num_view_steps: int = eqx.field(static=True, default=16)
+    num_shadow_samples: int = eqx.field(static=True, default=32)
+    resolution_factor: int = eqx.field(static=True, default=4)
+
+    NEEDS_DEPTH: ClassVar[bool] = True
+
+    def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
+        """`(surface, scattered, opacity)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""
+        check_light(light_xy)
+        depth = frame_ray_depth(self, buffers)
+        factor = march_factor(buffers.height, buffers.width, self.resolution_factor)
+        return volumetric_fog_terms(
+            depth, light_xy, fov_x_deg=self.fov_x_deg, light_depth=light_depth, light_in_front=light_in_front,
+            extinction=self.extinction, max_distance=self.max_distance, height_falloff=self.height_falloff,
+            layer_top=self.layer_top, anisotropy=self.anisotropy, direct_fraction=self.direct_fraction,
+            thickness=self.thickness, edge_softness=self.edge_softness, num_view_steps=self.num_view_steps,
+            num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
+        )  # fmt: skip
+
+    def _light(self, scattered, opacity, dtype):
+        light = scattered[..., None] * self.light_color.astype(dtype) + opacity[..., None] * self.ambient_color.astype(dtype)
+        return light.astype(dtype)
+
+    def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
+        """The scattered light alone, `(H, W, 3)`."""
+        _, scattered, opacity = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        return self._light(scattered, opacity, buffers.color.dtype)
+
+    def __call__(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
+        """The fogged frame: `color * surface + layer` on the colour channels, alpha unchanged."""
+        surface, scattered, opacity = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        color = buffers.color
+        dtype = color.dtype
+        light = self._light(scattered, opacity, dtype)
+        channels = min(color.shape[-1], 3)
+        if channels == 1:
+            light = jnp.mean(light, axis=-1, keepdims=True)
+        fogged = color[..., :channels] * surface[..., None].astype(dtype) + light[..., :channels]
+        return jnp.concatenate([fogged, color[..., channels:]], axis=-1)

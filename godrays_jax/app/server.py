@@ -331,8 +331,12 @@ class _WaitingRoom:
             if len(self._waiting) >= MAX_WAITING:
                 connection.close()
                 continue
+            try:
+                self._selector.register(connection, selectors.EVENT_READ)
+            except (OSError, ValueError):  # closed meanwhile: this thread must never stop on one connection
+                connection.close()
+                continue
             self._waiting[connection] = (now + KEEP_ALIVE_S, now + SOCKET_TIMEOUT_S, bytearray())
-            self._selector.register(connection, selectors.EVENT_READ)
 
     def _read(self, connection: socket.socket) -> None:
         head = self._waiting[connection][2]

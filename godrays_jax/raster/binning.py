@@ -5,7 +5,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from godrays_jax.primitives.camera import Camera
-from godrays_jax.raster.geometry import Geometry, triangle_bounds, triangle_setup
+from godrays_jax.raster.geometry import EMPTY_BOX, Geometry, triangle_bounds, triangle_setup
 
 COARSE_TILES_PER_SIDE = 4
 """A coarse tile is this many fine tiles a side."""
@@ -18,6 +18,19 @@ def tile_grid(camera: Camera, tile_size: int) -> tuple[int, int]:
     """Fine tiles down and across: the frame covered by whole coarse tiles."""
     coarse = tile_size * COARSE_TILES_PER_SIDE
     return -(-camera.height // coarse) * COARSE_TILES_PER_SIDE, -(-camera.width // coarse) * COARSE_TILES_PER_SIDE
+
+
+def _overlaps(low: Array, high: Array, starts: Array, size: float) -> Array:
+    """Whether the box sides `[low, high]` (pixels) meet the tiles `[start, start + size)`, broadcast together."""
+    return (low < starts + size) & (high >= starts)
+
+
+def _rows_and_columns(boxes: Float[Array, "N 4"], size: float, rows: int, columns: int) -> tuple[Array, Array]:
+    """(rows, N) and (columns, N) booleans: which boxes (x0, y0, x1, y1) meet each row and column of tiles."""
+    starts = lambda count: jnp.arange(count, dtype=jnp.float32)[:, None] * size
+    return _overlaps(boxes[None, :, 1], boxes[None, :, 3], starts(rows), size), _overlaps(
+        boxes[None, :, 0], boxes[None, :, 2], starts(columns), size
+    )
 
 
 def _first_overlapping(overlap: Array, capacity: int) -> Int[Array, "... K"]:
@@ -43,27 +56,18 @@ def bin_triangles(
     boxes = boxes[order]
     coarse_y, coarse_x = tiles_y // COARSE_TILES_PER_SIDE, tiles_x // COARSE_TILES_PER_SIDE
 
-    def spans(lo, hi, size, n):
-        starts = jnp.arange(n, dtype=jnp.float32) * size
-        return (lo[None, :] < starts[:, None] + size) & (hi[None, :] >= starts[:, None])
-
-    overlap_x = spans(boxes[:, 0], boxes[:, 2], coarse, coarse_x)
-    overlap_y = spans(boxes[:, 1], boxes[:, 3], coarse, coarse_y)
+    overlap_y, overlap_x = _rows_and_columns(boxes, coarse, coarse_y, coarse_x)
     coarse_capacity = min(capacity * COARSE_CAPACITY_FACTOR, boxes.shape[0])
     coarse_lists = _first_overlapping(overlap_y[:, None, :] & overlap_x[None, :, :], coarse_capacity)
 
-    empty_box = jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9
-    fine_boxes = jnp.where((coarse_lists >= 0)[..., None], boxes[jnp.maximum(coarse_lists, 0)], empty_box)
+    fine_boxes = jnp.where((coarse_lists >= 0)[..., None], boxes[jnp.maximum(coarse_lists, 0)], jnp.array(EMPTY_BOX))
     offsets = jnp.arange(COARSE_TILES_PER_SIDE, dtype=jnp.float32) * tile_size
     starts_y = jnp.arange(coarse_y, dtype=jnp.float32)[:, None] * coarse + offsets[None, :]
     starts_x = jnp.arange(coarse_x, dtype=jnp.float32)[:, None] * coarse + offsets[None, :]
     # Axes: (coarse y, coarse x, fine y within, fine x within, coarse list slot).
-    in_y = (fine_boxes[:, :, None, None, :, 1] < starts_y[:, None, :, None, None] + tile_size) & (
-        fine_boxes[:, :, None, None, :, 3] >= starts_y[:, None, :, None, None]
-    )
-    in_x = (fine_boxes[:, :, None, None, :, 0] < starts_x[None, :, None, :, None] + tile_size) & (
-        fine_boxes[:, :, None, None, :, 2] >= starts_x[None, :, None, :, None]
-    )
+    fine = lambda side: fine_boxes[:, :, None, None, :, side]
+    in_y = _overlaps(fine(1), fine(3), starts_y[:, None, :, None, None], tile_size)
+    in_x = _overlaps(fine(0), fine(2), starts_x[None, :, None, :, None], tile_size)
     local = _first_overlapping(in_y & in_x, capacity)
     coarse_slots = jnp.broadcast_to(coarse_lists[:, :, None, None, :], local.shape[:-1] + coarse_lists.shape[-1:])
     fine = jnp.where(local >= 0, jnp.take_along_axis(coarse_slots, jnp.maximum(local, 0), axis=-1), -1)
@@ -75,19 +79,13 @@ def tile_loads(geometry: Geometry, camera: Camera, tile_size: int) -> Int[Array,
     """How many triangles overlap each fine tile, busiest first."""
     tiles_y, tiles_x = tile_grid(camera, tile_size)
     _, drawn = triangle_setup(geometry, camera)
-    boxes = triangle_bounds(geometry, camera, drawn)
-    starts_y = jnp.arange(tiles_y, dtype=jnp.float32) * tile_size
-    starts_x = jnp.arange(tiles_x, dtype=jnp.float32) * tile_size
-    in_y = (boxes[None, :, 1] < starts_y[:, None] + tile_size) & (boxes[None, :, 3] >= starts_y[:, None])
-    in_x = (boxes[None, :, 0] < starts_x[:, None] + tile_size) & (boxes[None, :, 2] >= starts_x[:, None])
+    in_y, in_x = _rows_and_columns(triangle_bounds(geometry, camera, drawn), tile_size, tiles_y, tiles_x)
+    # A product of the row and column tables counts the pairs without the (T, N) table.
     loads = in_y.astype(jnp.float32) @ in_x.astype(jnp.float32).T
     return -jnp.sort(-loads.reshape(-1)).astype(jnp.int32)
 
 
 def tiles_overlapping(boxes: Float[Array, "M 4"], tile_size: int, tiles_y: int, tiles_x: int) -> Array:
     """(T, M) booleans: which pixel boxes overlap which tile (row-major tiles)."""
-    starts_y = jnp.arange(tiles_y, dtype=jnp.float32) * tile_size
-    starts_x = jnp.arange(tiles_x, dtype=jnp.float32) * tile_size
-    in_y = (boxes[None, :, 1] < starts_y[:, None] + tile_size) & (boxes[None, :, 3] >= starts_y[:, None])
-    in_x = (boxes[None, :, 0] < starts_x[:, None] + tile_size) & (boxes[None, :, 2] >= starts_x[:, None])
+    in_y, in_x = _rows_and_columns(boxes, tile_size, tiles_y, tiles_x)
     return (in_y[:, None, :] & in_x[None, :, :]).reshape(tiles_y * tiles_x, -1)

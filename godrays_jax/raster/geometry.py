@@ -17,6 +17,8 @@ BOX = slice(13, 17)
 # affine functions of the pixel position (3 per corner), then the corners, then the shading normals (3 each).
 TABLE_CORNERS = 9
 TABLE_NORMALS = 18
+EMPTY_BOX = (1e9, 1e9, -1e9, -1e9)
+"""The pixel box (x0, y0, x1, y1) of a culled primitive: it overlaps no tile."""
 
 
 class Geometry(eqx.Module):
@@ -124,7 +126,7 @@ def triangle_bounds(geometry: Geometry, camera: Camera, drawn: Array, *, margin:
     boxes = jnp.stack([x.min(1) - margin, y.min(1) - margin, x.max(1) + margin, y.max(1) + margin], axis=1)
     screen = jnp.array([-jnp.inf, -jnp.inf, jnp.inf, jnp.inf]) if margin == 0 else jnp.array([0.0, 0.0, camera.width, camera.height])
     boxes = jnp.where(all_in_front[:, None], boxes, screen)
-    return jnp.where(drawn[:, None], boxes, jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9)
+    return jnp.where(drawn[:, None], boxes, jnp.array(EMPTY_BOX))
 
 
 def triangle_table(geometry: Geometry, camera: Camera) -> Float[Array, "N 27"]:
@@ -158,4 +160,4 @@ def sphere_bounds(geometry: Geometry, camera: Camera, *, margin: float = 2.0) ->
     boxes = jnp.where(all_in_front[:, None], boxes, jnp.array([0.0, 0.0, camera.width, camera.height]))
     depth = geometry.centers[:, 2]
     visible = (depth + geometry.radii > camera.near) & (depth - geometry.radii < camera.far)
-    return jnp.where(visible[:, None], boxes, jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9)
+    return jnp.where(visible[:, None], boxes, jnp.array(EMPTY_BOX))

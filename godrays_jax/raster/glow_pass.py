@@ -6,7 +6,7 @@ from jaxtyping import Array, Float
 
 from godrays_jax.primitives.camera import Camera
 from godrays_jax.raster.binning import tile_grid, tiles_overlapping
-from godrays_jax.raster.geometry import Geometry, flatten, sphere_bounds, triangle_bounds, triangle_setup
+from godrays_jax.raster.geometry import EMPTY_BOX, Geometry, flatten, sphere_bounds, triangle_bounds, triangle_setup
 from godrays_jax.raster.scene import Scene
 from godrays_jax.raster.shading import sky, world_rays
 from godrays_jax.raster.tile_loop import rasterize
@@ -29,7 +29,7 @@ def glow_tiles(scene: Scene, camera: Camera, glow: Geometry, sky_light: Float[Ar
         padded = jnp.pad(sky_light, ((0, tiles_y * tile_size - camera.height), (0, tiles_x * tile_size - camera.width)))
         return padded.reshape(tiles_y, tile_size, tiles_x, tile_size).max(axis=(1, 3)).reshape(-1) > 0
     _, drawn = triangle_setup(glow, camera)
-    empty = jnp.array([1.0, 1.0, -1.0, -1.0]) * 1e9
+    empty = jnp.array(EMPTY_BOX)
     boxes = jnp.concatenate([
         jnp.where((glow.triangle_object == scene.sun)[:, None], triangle_bounds(glow, camera, drawn), empty),
         jnp.where((glow.sphere_object == scene.sun)[:, None], sphere_bounds(glow, camera), empty),

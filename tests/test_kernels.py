@@ -7,9 +7,10 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from godrays_jax.kernels import cpu_loop, rays
-from godrays_jax.kernels.cpu_loop import copy_sums_cpu
-from godrays_jax.kernels.gpu_loop import copy_sums_gpu
+from godrays_jax.kernels import rays
+from godrays_jax.kernels._copies import cpu_loop
+from godrays_jax.kernels._copies.cpu_loop import copy_sums_cpu
+from godrays_jax.kernels._copies.gpu_loop import copy_sums_gpu
 import reference
 
 HEIGHT, WIDTH = 9, 13

@@ -10,7 +10,7 @@ import importlib
 import importlib.metadata
 
 
-# Image primitives: sampling, resampling, colour, buffers, camera, I/O.
+# Image primitives: sampling, resampling, colour, buffers, camera (files load on first use, below).
 from godrays_jax.primitives.buffers import Buffers as Buffers
 from godrays_jax.primitives.camera import Camera as Camera
 from godrays_jax.primitives.camera import planar_to_ray_depth as planar_to_ray_depth
@@ -18,16 +18,6 @@ from godrays_jax.primitives.camera import project_point as project_point
 from godrays_jax.primitives.color import display_map as display_map
 from godrays_jax.primitives.color import srgb_decode as srgb_decode
 from godrays_jax.primitives.color import srgb_encode as srgb_encode
-from godrays_jax.primitives.frame_files import read_frame as read_frame
-from godrays_jax.primitives.frame_files import write_buffers as write_buffers
-from godrays_jax.primitives.frame_files import write_frame_like as write_frame_like
-from godrays_jax.primitives.frame_reading import check_buffers as check_buffers
-from godrays_jax.primitives.frame_reading import read_buffers as read_buffers
-from godrays_jax.primitives.images import encode_png as encode_png
-from godrays_jax.primitives.images import read_image as read_image
-from godrays_jax.primitives.images import write_image as write_image
-from godrays_jax.primitives.light_metadata import read_light as read_light
-from godrays_jax.primitives.light_metadata import read_light_depth as read_light_depth
 from godrays_jax.primitives.resample import box_pool as box_pool
 from godrays_jax.primitives.resample import downsample_box as downsample_box
 from godrays_jax.primitives.resample import upsample_bilinear as upsample_bilinear
@@ -114,14 +104,23 @@ from godrays_jax.effects.shafts import step_clamp as step_clamp
 from godrays_jax.effects.shafts import XNA_FAR_PLANE as XNA_FAR_PLANE
 from godrays_jax.effects.shafts import XNA_NEAR_PLANE as XNA_NEAR_PLANE
 
-# Pipeline: sequences and batches of frames (fitting loads on first use, below).
-from godrays_jax.pipeline.batch import plan_batch as plan_batch
-from godrays_jax.pipeline.batch import run_batch as run_batch
-from godrays_jax.pipeline.sequences import expand_frames as expand_frames
-from godrays_jax.pipeline.sequences import read_light_track as read_light_track
-
-# Fitting (optimistix) and the rasterizer load on first use: `godrays-jax apply` and `batch` need neither.
+# Load on first use: files (OpenImageIO), batches (tqdm), fitting (optimistix) and the rasterizer, so that
+# importing the kernels or effects loads none of them, and `godrays-jax apply` neither the solver nor the rasterizer.
 _ON_FIRST_USE = {
+    "read_frame": "godrays_jax.primitives.frame_files",
+    "write_buffers": "godrays_jax.primitives.frame_files",
+    "write_frame_like": "godrays_jax.primitives.frame_files",
+    "check_buffers": "godrays_jax.primitives.frame_reading",
+    "read_buffers": "godrays_jax.primitives.frame_reading",
+    "encode_png": "godrays_jax.primitives.images",
+    "read_image": "godrays_jax.primitives.images",
+    "write_image": "godrays_jax.primitives.images",
+    "read_light": "godrays_jax.primitives.light_metadata",
+    "read_light_depth": "godrays_jax.primitives.light_metadata",
+    "plan_batch": "godrays_jax.pipeline.batch",
+    "run_batch": "godrays_jax.pipeline.batch",
+    "expand_frames": "godrays_jax.pipeline.sequences",
+    "read_light_track": "godrays_jax.pipeline.sequences",
     "determination": "godrays_jax.pipeline.fit",
     "Determination": "godrays_jax.pipeline.fit",
     "fit": "godrays_jax.pipeline.fit",

@@ -1,7 +1,25 @@
 """The live tuner's HTTP server: its page and JSON API on 127.0.0.1, answered by a `Tuner`.
 
-See `tuner` for the API's requests and answers. Only the page this server
-served can drive it, not another web page the user has open:
+The JSON API, `GET_API` and `POST_API` below (every answer is JSON; errors are `{"error": message}`):
+
+| request | body | answer |
+|---|---|---|
+| `GET /api/state` | | the frame's size, preview factor, light, effect (`effect_to_dict`), slider bounds, presets, views, tonemaps, save path, whether a target is loaded |
+| `POST /api/render` | `{"params", "light", "light_in_front", "quality", "view", "tonemap"}`, all optional | `{"image": "data:image/png;base64,...", "width", "height", "quality", "render_ms", "encode_ms"}` |
+| `POST /api/preset` | `{"name"}` | the new state (the effect becomes the preset) |
+| `POST /api/fit` | `{"params", "light", "light_in_front", "fixed"}` | starts a fit in the background and answers at once with its progress (409 if one is running) |
+| `GET /api/fit` | | the fit's progress `{"running", "step", "loss", "result", "error", "cancelled"}`; `result` is `{"effect", "loss_before", "loss_after", "steps", "fitted"}` once it is done |
+| `POST /api/fit/cancel` | `{}` | asks the running fit to stop after its current step; its progress |
+| `POST /api/save` | `{"params"}` | `{"path", "effect"}`: writes what `apply --params` reads |
+
+`params` maps fittable field names to numbers (lists for vectors such as
+`tint`); fields left out keep the server's current values, static fields
+(`max_samples`, `source`, ...) come from the current effect or preset. Values
+outside a field's range (`fit.fitted_bounds`: the effect's bounds, counts
+capped by their static loop lengths), unknown fields, malformed JSON, unknown
+presets, views or tonemaps get a 400 with a message; the server keeps running.
+
+Only the page this server served can drive it, not another web page the user has open:
 
 - Every request must name 127.0.0.1 or localhost in its `Host` header (403
   otherwise): a foreign page whose own name resolves to 127.0.0.1 (DNS
@@ -55,6 +73,12 @@ from typing import Any
 from godrays_jax.app.tuner import QUALITIES, Superseded, Tuner, TuneRequestError
 from godrays_jax.effects.serialization import parse_json_object
 from godrays_jax.primitives.checks import error_line
+
+GET_API = {"/api/state": "state", "/api/fit": "fit_progress"}
+"""The GET endpoints and the `Tuner` method that answers each (the table above)."""
+
+POST_API = {"/api/render": "render", "/api/preset": "set_preset", "/api/fit": "fit", "/api/fit/cancel": "cancel_fit", "/api/save": "save"}
+"""The POST endpoints and the `Tuner` method that answers each with the request's JSON body."""
 
 HOST = "127.0.0.1"
 """The tuner serves this address only: the page can write files, so it is never exposed to a network."""
@@ -217,30 +241,26 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 page = page_template().replace(_TOKEN_PLACEHOLDER, html.escape(self.server.token).encode())
                 page = page.replace(_NONCE_PLACEHOLDER, nonce.encode())
                 return self._send(200, page, "text/html; charset=utf-8", nonce=nonce)
-            tuner = self.server.tuner
-            actions = {"/api/state": tuner.state, "/api/fit": tuner.fit_progress}
-            if path not in actions:
+            if path not in GET_API:
                 raise _RequestRefused(404, f"no such page {path}")
             self._check_token()
-            self._answer(actions[path])
+            self._answer(getattr(self.server.tuner, GET_API[path]))
         except _RequestRefused as refused:
             self._refuse(refused)
 
     def do_POST(self):
-        tuner = self.server.tuner
-        actions = {"/api/render": tuner.render, "/api/preset": tuner.set_preset, "/api/fit": tuner.fit,
-                   "/api/fit/cancel": tuner.cancel_fit, "/api/save": tuner.save}  # fmt: skip
         try:
             self._check_host()
             length = self._content_length()
-            if self.path not in actions:
+            if self.path not in POST_API:
                 raise _RequestRefused(404, f"no such endpoint {self.path}")
             self._check_origin()
             self._check_token()
             payload = self._payload(length)
         except _RequestRefused as refused:
             return self._refuse(refused)
-        self._answer(lambda: actions[self.path](payload))
+        action = getattr(self.server.tuner, POST_API[self.path])
+        self._answer(lambda: action(payload))
 
     def handle_expect_100(self):
         # `Expect: 100-continue` would otherwise invite the body before its size is checked.

@@ -1,49 +1,7 @@
 """The live tuner's state and actions, independent of HTTP: renders, presets, fits and saves for its page.
 
-`godrays-jax tune FRAME.exr` serves `tune_page.html` on 127.0.0.1 (never on
-other interfaces) and answers its JSON API. The page is self-contained (inline
-script and style, no network access).
-
-The JSON API (every answer is JSON; errors are `{"error": message}`):
-
-| request | body | answer |
-|---|---|---|
-| `GET /api/state` | | the frame's size, preview factor, light, effect (`effect_to_dict`), slider bounds, presets, views, tonemaps, save path, whether a target is loaded |
-| `POST /api/render` | `{"params", "light", "light_in_front", "quality", "view", "tonemap"}`, all optional | `{"image": "data:image/png;base64,...", "width", "height", "quality", "render_ms", "encode_ms"}` |
-| `POST /api/preset` | `{"name"}` | the new state (the effect becomes the preset) |
-| `POST /api/fit` | `{"params", "light", "light_in_front", "fixed"}` | starts a fit in the background and answers at once with its progress (409 if one is running) |
-| `GET /api/fit` | | the fit's progress `{"running", "step", "loss", "result", "error", "cancelled"}`; `result` is `{"effect", "loss_before", "loss_after", "steps", "fitted"}` once it is done |
-| `POST /api/fit/cancel` | `{}` | asks the running fit to stop after its current step; its progress |
-| `POST /api/save` | `{"params"}` | `{"path", "effect"}`: writes what `apply --params` reads |
-
-`params` maps fittable field names to numbers (lists for vectors such as
-`tint`); fields left out keep the server's current values, static fields
-(`max_samples`, `source`, ...) come from the current effect or preset. Values
-outside a field's range (`fit.fitted_bounds`: the effect's bounds, counts
-capped by their static loop lengths), unknown fields, malformed JSON, unknown
-presets, views or tonemaps get a 400 with a message; the server keeps running.
-
-Renders are coalesced, not queued: one worker thread renders the newest
-request; a request still waiting when a newer one arrives is answered 409
-("superseded"), so a burst of slider events costs one render after the one in
-progress. `quality="preview"` renders at 1/`preview_factor` of the resolution
-(buffers box-averaged, depth min-pooled, the light divided by the factor; an
-effect's sizes are in frame units and need no change, unless it was built
-with `units="px"`: then its size fields are divided by the factor too); the page asks for previews while a
-slider or the light is dragged and for the full resolution on release.
-
-Frames are PNGs display-encoded with `tonemap="reinhard"` (`x / (1 + x)` per
-channel, then sRGB) or `"clip"` (clipped to [0, 1], then sRGB, as `write_image`
-writes PNG). Views: `after` (the composited frame), `before` (the input
-frame), `layer` (the effect alone), `difference` (`4 * |after - reference|`
-in display space, the reference being the target if one is loaded, else the
-input frame) and `target`.
-
-"Fit to target" runs `fit.fit` at the preview resolution (the target box-
-averaged the same way), at most `fit_steps` solver steps, on a thread of its
-own (requests go on being answered), and yields the fitted values at full
-resolution; fields named in `fixed` stay as they are. A cancelled fit keeps
-the effect as it was.
+`server.py` answers the page's HTTP requests with these actions (its docstring has the API table);
+docs/tuner.md says how renders are coalesced, previewed and displayed, and how "fit to target" runs.
 """
 
 import base64

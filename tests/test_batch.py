@@ -299,29 +299,49 @@ def _cli(*args: str, env: dict | None = None) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)  # fmt: skip
 
 
+_KILLED_AFTER_THREE_FRAMES = """
+import os, signal, sys, threading
+from godrays_jax.app.cli import main
+from godrays_jax.pipeline import batch
+from godrays_jax.primitives.files import temporary_path
+
+write, lock, finished = batch.write_frame_like, threading.Lock(), []
+
+
+def write_then_die(path, *args, **kwargs):
+    # A hook at a known point: one write at a time; the fourth dies half written, as a kill mid-write leaves it.
+    with lock:
+        if len(finished) == 3:
+            with open(temporary_path(path), "wb") as partial:
+                partial.write(b"half a frame")
+            os.kill(os.getpid(), signal.SIGKILL)
+        write(path, *args, **kwargs)
+        finished.append(path)
+
+
+batch.write_frame_like = write_then_die
+sys.exit(main(sys.argv[1:]))
+"""
+
+
 def test_killed_run_resumes_to_the_same_files(tmp_path):
     count = 16
     inputs = _sequence(tmp_path / "in", count, h=40, w=56)
-    heavy = tmp_path / "heavy.json"  # slow enough per frame that the kill lands mid-run
-    gr.save_effect(heavy, gr.GodRays(num_samples=1024.0, max_samples=1024))
     pattern = str(tmp_path / "in" / "shot.####.exr")
     killed_dir, reference_dir = tmp_path / "killed", tmp_path / "reference"
 
-    process = _cli(pattern, "-o", str(killed_dir), "--params", str(heavy))
-    deadline = time.monotonic() + 600  # generous: start-up and compilation on a busy machine
-    while time.monotonic() < deadline and process.poll() is None:
-        if killed_dir.exists() and len(_visible(killed_dir)) >= 3:
-            break
-        time.sleep(0.005)
-    process.send_signal(signal.SIGKILL)
-    process.communicate()
+    process = subprocess.Popen([sys.executable, "-c", _KILLED_AFTER_THREE_FRAMES, "batch", pattern, "-o", str(killed_dir)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    process.communicate(timeout=600)
+    assert process.returncode == -signal.SIGKILL
     written = _visible(killed_dir)
-    assert 3 <= len(written) < count, "the kill should land mid-run"
+    assert len(written) == 3, "the kill lands mid-run, after three whole frames"
+    assert len([name for name in os.listdir(killed_dir) if ".tmp-" in name]) == 1, "and a fourth half written"
 
-    assert main(["batch", pattern, "-o", str(reference_dir), "--params", str(heavy), "-q"]) == 0
+    assert main(["batch", pattern, "-o", str(reference_dir), "-q"]) == 0
     for name in written:  # what the killed run left visible is complete
         assert (killed_dir / name).read_bytes() == (reference_dir / name).read_bytes()
-    resumed = _cli(pattern, "-o", str(killed_dir), "--params", str(heavy), "--resume")
+    resumed = _cli(pattern, "-o", str(killed_dir), "--resume")
     out, err = resumed.communicate(timeout=600)
     assert resumed.returncode == 0, err
     assert f"{count - len(written)} written, {len(written)} skipped" in out
@@ -386,8 +406,9 @@ def test_distributed_processes_share_the_frames(tmp_path, capsys):
 
 def _hold(script: str) -> subprocess.Popen:
     """A Python process that runs `script`, prints "ready" and then waits to be killed."""
-    process = subprocess.Popen([sys.executable, "-c", script + "\nprint('ready', flush=True)\nimport time\ntime.sleep(600)"],
-                               stdout=subprocess.PIPE, text=True, cwd=ROOT)  # fmt: skip
+    # It waits on its standard input, which nothing writes to, until it is killed.
+    process = subprocess.Popen([sys.executable, "-c", script + "\nprint('ready', flush=True)\nimport sys\nsys.stdin.read()"],
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)  # fmt: skip
     assert process.stdout.readline().strip() == "ready"
     return process
 

@@ -154,3 +154,73 @@ def test_vbex_presets_take_the_frames_field_of_view(tmp_path, command):
     written = np.asarray(gr.read_buffers(output).color)
     np.testing.assert_allclose(written, np.asarray(expected), rtol=1e-5, atol=1e-6)
     assert not np.allclose(written, np.asarray(spot(gr.read_buffers(path), jnp.asarray([20.0, 6.0]))), atol=1e-4)
+
+
+def test_fit_reads_the_lights_distance(tmp_path, capsys):
+    """`fit` renders with the light's distance the frame stores (`godrays:light_depth`), as `apply` does."""
+    from godrays_jax.pipeline.fit import fit, render_compiled
+
+    height, width = 18, 32
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[10:, :] = 2.0
+    depth[:, 20:23] = 0.2  # a post nearer than the light: the XNA depth test blanks it
+    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.2), depth=jnp.asarray(depth),
+                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    effect = gr.preset("xna_crepuscular")
+    light = jnp.asarray([21.0, 5.0])
+    target = render_compiled(effect, frame, light, True, 0.4)
+    assert float(jnp.max(jnp.abs(target - render_compiled(effect, frame, light, True)))) > 1e-3
+    result = fit(effect, frame, light, target, fixed=[n for n in gr.parameter_bounds(effect) if n != "exposure"],
+                 max_steps=1, light_depth=0.4)  # fmt: skip
+    assert result.loss_before < 1e-10
+    with pytest.raises(ValueError, match="light_depth"):
+        fit(effect, frame, light, target, max_steps=0, light_depth=[0.4, 1.0])
+    path = tmp_path / "frame.exr"
+    gr.write_buffers(path, frame, light_xy=(21.0, 5.0), metadata={"godrays:light_depth": 0.4})
+    gr.write_image(tmp_path / "target.exr", target)
+    assert main(["fit", str(path), str(tmp_path / "target.exr"), "--preset", "xna_crepuscular", "--fixed",
+                 ",".join(n for n in gr.parameter_bounds(effect) if n != "exposure"), "--max-steps", "1",
+                 "-o", str(tmp_path / "params.json")]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "loss before 0," in out
+
+
+def test_tuner_renders_with_the_lights_distance():
+    from godrays_jax.app.tuner import TONEMAPS, Tuner, _render_view, display_encode
+
+    height, width = 18, 32
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[:, 20:23] = 0.2
+    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.2), depth=jnp.asarray(depth),
+                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    effect = gr.preset("xna_crepuscular")
+    light = jnp.asarray([21.0, 5.0])
+    tonemap = TONEMAPS[0]
+    view = np.asarray(_render_view(effect, frame, light, jnp.asarray(True), None, "after", tonemap, 0.4))
+    expected = np.asarray(display_encode(effect(frame, light, light_depth=0.4), tonemap=tonemap))
+    np.testing.assert_array_equal(view, expected)
+    at_infinity = np.asarray(_render_view(effect, frame, light, jnp.asarray(True), None, "after", tonemap))
+    assert np.any(view != at_infinity)
+    assert Tuner(frame, (21.0, 5.0), effect=effect, light_depth=0.4).light_depth == 0.4
+
+
+def test_targets_read_a_renders_colour_layer(tmp_path):
+    """A multilayer reference: its Combined layer is the colour, not whichever pass comes first in the file."""
+    import OpenImageIO as oiio
+
+    from godrays_jax.app.options import read_target
+
+    names = ("ViewLayer.AO.R", "ViewLayer.AO.G", "ViewLayer.AO.B", "ViewLayer.Combined.R", "ViewLayer.Combined.G",
+             "ViewLayer.Combined.B", "ViewLayer.Combined.A")  # fmt: skip
+    pixels = np.zeros((4, 6, 7), np.float32)
+    pixels[..., :3] = 0.9
+    pixels[..., 3:6] = np.asarray([0.1, 0.2, 0.3])
+    pixels[..., 6] = 1.0
+    spec = oiio.ImageSpec(6, 4, 7, oiio.FLOAT)
+    spec.channelnames = names
+    path = tmp_path / "reference.exr"
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(pixels)
+    out.close()
+    np.testing.assert_allclose(np.asarray(read_target(str(path))), np.broadcast_to([0.1, 0.2, 0.3], (4, 6, 3)))

@@ -244,6 +244,11 @@ def _add_fit(subparsers) -> None:
         "--light", type=parse_light, action="append", metavar="X,Y",
         help="the light's pixel position, once per frame in order; default: each frame's godrays:light_px metadata",
     )  # fmt: skip
+    parser.add_argument(
+        "--light-depth", type=parse_light_depth, metavar="D",
+        help="the light's distance from the camera in scene units, or inf, for every frame; default: each frame's "
+        "godrays:light_depth metadata, else inf",
+    )  # fmt: skip
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: participating_media, ScatteringFog)")
     group.add_argument("--params", metavar="FILE", help="start from parameters saved as JSON")

@@ -15,7 +15,9 @@ from godrays_jax.app.options import (
     frame_field_of_view,
     frame_reading,
     has_sky,
+    read_target,
     resolve_light,
+    resolve_light_depth,
     warn,
     with_field_of_view,
     with_frame_clip_planes,
@@ -30,7 +32,7 @@ from godrays_jax.pipeline.fit import (
 )
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
-from godrays_jax.primitives.images import read_image, write_image
+from godrays_jax.primitives.images import write_image
 
 
 def run(args) -> int:
@@ -46,7 +48,7 @@ def run(args) -> int:
     fov = frame_field_of_view(args, args.buffers)
     effect = with_field_of_view(effect, fov)
     effect = with_frame_clip_planes(effect, args.buffers)
-    frames, light_positions, in_front, targets = [], [], [], []
+    frames, light_positions, in_front, targets, depths = [], [], [], [], []
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = read_buffers(buffers_path, **frame_reading(args))
         effect = effect_for_frame("fit", effect, frame, buffers_path)
@@ -57,7 +59,7 @@ def run(args) -> int:
             raise CommandError(str(error)) from None
         if not has_sky(frame):
             warn("fit", f"{buffers_path} has {NO_SKY}")
-        target = read_image(target_path)
+        target = read_target(target_path)
         if target.shape[:2] != frame.color.shape[:2]:
             raise CommandError(
                 f"{target_path} is {target.shape[1]}x{target.shape[0]} but {buffers_path} is {frame.width}x{frame.height}"
@@ -65,6 +67,7 @@ def run(args) -> int:
         frames.append(frame)
         light_positions.append(jnp.asarray(light, jnp.float32))
         in_front.append(bool(front))
+        depths.append(resolve_light_depth(args.light_depth, buffers_path))
         targets.append(target)
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
     if fov is not None and hasattr(effect, "fov_x_deg") and "fov_x_deg" not in fixed:
@@ -79,7 +82,7 @@ def run(args) -> int:
     try:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
-            fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, progress=progress,
+            fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, progress=progress,
         )  # fmt: skip
     finally:
         bar.close()
@@ -92,9 +95,10 @@ def run(args) -> int:
     loss_name = f"{args.loss} ({args.space})"
     after = result.loss_after if args.fractional_counts else result.loss_rounded
     print(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
-    fitted_images = [render_compiled(chosen, *frame) for frame in zip(frames, light_positions, in_front)]
-    print(_metrics_line(effect, fitted_images, frames, light_positions, in_front, targets))
-    for line in _determination_lines(result, frames, light_positions, targets, in_front, args.space):
+    frame_data = list(zip(frames, light_positions, in_front, depths))
+    fitted_images = [render_compiled(chosen, *frame) for frame in frame_data]
+    print(_metrics_line(effect, fitted_images, frame_data, targets))
+    for line in _determination_lines(result, frames, light_positions, targets, in_front, depths, args.space):
         print(line)
     if args.report:
         write_image(args.report, fit_report_image(targets[0], fitted_images[0], result.loss_history))
@@ -103,10 +107,9 @@ def run(args) -> int:
     return 0
 
 
-def _metrics_line(start, fitted_images, frames, lights, in_front, targets) -> str:
+def _metrics_line(start, fitted_images, frame_data, targets) -> str:
     """PSNR and SSIM before and after, by scikit-image in display space: a check independent of the fit's loss."""
-    before = [image_metrics(render_compiled(start, *frame), target) for frame, target in
-              zip(zip(frames, lights, in_front), targets)]  # fmt: skip
+    before = [image_metrics(render_compiled(start, *frame), target) for frame, target in zip(frame_data, targets)]
     after = [image_metrics(image, target) for image, target in zip(fitted_images, targets)]
     (psnr_before, ssim_before), (psnr_after, ssim_after) = np.mean(before, axis=0), np.mean(after, axis=0)
     over = f", mean over {len(targets)} frames" if len(targets) > 1 else ""
@@ -116,10 +119,11 @@ def _metrics_line(start, fitted_images, frames, lights, in_front, targets) -> st
     )
 
 
-def _determination_lines(result, frames, lights, targets, in_front, space) -> list[str]:
+def _determination_lines(result, frames, lights, targets, in_front, depths, space) -> list[str]:
     """Which fitted parameters the frames leave poorly determined, and what offsets them (`determination`)."""
     found = determination(
-        result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front
+        result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front,
+        light_depth=depths,
     )
     if not found.poorly_determined:
         return [f"every fitted parameter is determined by the frames (Jacobian condition number {found.condition:.3g})"]

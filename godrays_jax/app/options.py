@@ -16,7 +16,7 @@ from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, error_line
 from godrays_jax.primitives.camera_metadata import read_clip_planes, read_frame_camera
-from godrays_jax.primitives.frame_reading import SKY_DEPTH
+from godrays_jax.primitives.frame_reading import SKY_DEPTH, read_buffers
 from godrays_jax.primitives.image_files import image_size
 from godrays_jax.primitives.images import read_image
 from godrays_jax.primitives.light_metadata import read_light, read_light_depth
@@ -184,6 +184,15 @@ def with_frame_clip_planes(effect: Effect, path: str) -> Effect:
     if planes is None or not {"near_plane", "far_plane"} <= {field.name for field in dataclasses.fields(effect)}:
         return effect
     return dataclasses.replace(effect, near_plane=planes[0], far_plane=planes[1])
+
+
+def read_target(path: str) -> np.ndarray:
+    """A reference image's colour: its plain `R, G, B`, or a render's colour layer (Blender's `ViewLayer.Combined`).
+
+    Read as a frame's colour is (`read_buffers`, depth not needed), so a multilayer render's other passes
+    (`ViewLayer.AO.R`, `ViewLayer.Depth.Z`, ...) are never taken for its colour.
+    """
+    return read_buffers(path, without_depth=True, depth_kind="ray").color
 
 
 def with_field_of_view(effect: Effect, fov_x_deg: float | None) -> Effect:

@@ -9,16 +9,17 @@ from godrays_jax.app.options import (
     frame_field_of_view,
     frame_reading,
     has_sky,
+    read_target,
     resolve_light,
+    resolve_light_depth,
     warn,
     with_field_of_view,
     with_frame_clip_planes,
 )
 from godrays_jax.app.server import HOST, TuneServer
-from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.app.tuner import Tuner
+from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.primitives.frame_reading import read_buffers
-from godrays_jax.primitives.images import read_image
 
 
 def run(args) -> int:
@@ -41,14 +42,15 @@ def run(args) -> int:
         raise CommandError(str(error)) from None
     if not has_sky(buffers):
         warn("tune", f"{args.buffers} has {NO_SKY}")
-    target = None if args.target is None else read_image(args.target)
+    target = None if args.target is None else read_target(args.target)
     if target is not None and target.shape[:2] != (buffers.height, buffers.width):
         raise CommandError(
             f"--target {args.target} is {target.shape[1]}x{target.shape[0]}, "
             f"the frame {buffers.width}x{buffers.height}: they must match"
         )
     tuner = Tuner(
-        buffers, light_xy, effect=effect, target=target, light_in_front=in_front, save_path=args.output,
+        buffers, light_xy, effect=effect, target=target, light_in_front=in_front,
+        light_depth=resolve_light_depth(None, args.buffers), save_path=args.output,
         max_preview_pixels=args.preview_pixels, fit_steps=args.fit_steps,
     )  # fmt: skip
     try:

@@ -139,14 +139,17 @@ def _render_view(
     target: Float[Array, "H W C"] | None,
     view: str,
     tonemap: str,
+    light_depth: float = math.inf,
 ) -> UInt8[Array, "H W 3"]:
     if view == "before":
         return display_encode(buffers.color, tonemap=tonemap)
     if view == "target":
         return display_encode(target, tonemap=tonemap)
     if view == "layer":
-        return display_encode(effect.layer(buffers, light_xy, light_in_front=light_in_front), tonemap=tonemap)
-    after = effect(buffers, light_xy, light_in_front=light_in_front)
+        return display_encode(
+            effect.layer(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth), tonemap=tonemap
+        )
+    after = effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
     if view == "after":
         return display_encode(after, tonemap=tonemap)
     reference = buffers.color if target is None else target
@@ -245,6 +248,7 @@ class Tuner:
         target: an optional reference image `(H, W, C)` of the frame's size for
             the difference view and "fit to target".
         light_in_front: whether the light starts in front of the camera.
+        light_depth: the light's distance from the camera (scene units, `inf` at infinity), as the frame stores it.
         save_path: where "save" writes the parameters JSON.
         max_preview_pixels: previews have at most this many pixels (see `preview_factor`).
         fit_steps: solver steps at most for "fit to target".
@@ -258,6 +262,7 @@ class Tuner:
         effect: Effect,
         target: Float[ArrayLike, "H W C"] | None = None,
         light_in_front: bool = True,
+        light_depth: float = math.inf,
         save_path: str | os.PathLike = "params.json",
         max_preview_pixels: int = 40_000,
         fit_steps: int = 20,
@@ -275,6 +280,7 @@ class Tuner:
         self.preview_target = None if target is None else downsample_box(target, self.factor)
         self.light_xy = (float(light_xy[0]), float(light_xy[1]))
         self.light_in_front = bool(light_in_front)
+        self.light_depth = float(light_depth)
         self._check_renders(effect)
         self.effect = effect
         self.save_path = os.path.abspath(os.fspath(save_path))
@@ -388,7 +394,9 @@ class Tuner:
             # Values were checked against their bounds above (parse_effect): no run-time check, whose host
             # callback would keep the compiled view out of the persistent cache (a second launch compiles again).
             with ranges_guaranteed():
-                pixels = np.asarray(_render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap))
+                pixels = np.asarray(
+                    _render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap, self.light_depth)
+                )
             rendered = time.perf_counter()
             png = encode_png(pixels)
             return {
@@ -491,6 +499,7 @@ class Tuner:
                 fixed=fixed,
                 max_steps=self.fit_steps,
                 light_in_front=in_front,
+                light_depth=self.light_depth,
                 progress=progress,
             )
             # Counts rounded, as `godrays-jax fit` saves them, unless the page asks for the relaxation's values.

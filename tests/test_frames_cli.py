@@ -224,3 +224,21 @@ def test_targets_read_a_renders_colour_layer(tmp_path):
     out.write_image(pixels)
     out.close()
     np.testing.assert_allclose(np.asarray(read_target(str(path))), np.broadcast_to([0.1, 0.2, 0.3], (4, 6, 3)))
+
+
+def test_batch_says_when_frames_store_other_light_distances(tmp_path, capsys):
+    height, width = 9, 16
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[6:] = 3.0
+    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.2), depth=jnp.asarray(depth),
+                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for number, distance in ((1, 10.0), (2, 10.0), (3, 12.5)):
+        gr.write_buffers(folder / f"f.{number:04d}.exr", frame, light_xy=(8.0, 2.0), metadata={"godrays:light_depth": distance})
+    pattern = str(folder / "f.####.exr")
+    assert main(["batch", pattern, "-o", str(tmp_path / "out"), "--preset", "gpu_gems", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "f.0003.exr stores the light's distance 12.5, the first frame 10" in err
+    assert main(["batch", pattern, "-o", str(tmp_path / "again"), "--preset", "gpu_gems", "-q", "--light-depth", "11"]) == 0
+    assert "light's distance" not in capsys.readouterr().err

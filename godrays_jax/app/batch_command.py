@@ -24,6 +24,7 @@ from godrays_jax.pipeline.sequences import (
     read_light_track,
 )
 from godrays_jax.primitives.frame_reading import read_buffers
+from godrays_jax.primitives.light_metadata import read_light_depth
 
 
 def parse_frame_range(text: str) -> tuple[int, int]:
@@ -44,6 +45,18 @@ def parse_shard(text: str) -> tuple[int, int]:
     if not match:
         raise ValueError(f"--shard must be INDEX/COUNT (e.g. 0/4), got {text!r}")
     return int(match.group(1)), int(match.group(2))
+
+
+def _other_light_depth(inputs: list[str], first: float) -> tuple[str, float] | None:
+    """The first frame whose stored light distance differs from `first` (headers only), or None."""
+    for path in inputs[1:]:
+        try:
+            depth = read_light_depth(path)
+        except (OSError, ValueError):
+            continue  # an unreadable frame is reported when the run reaches it
+        if depth is not None and depth != first:
+            return path, depth
+    return None
 
 
 def run(args) -> int:
@@ -74,6 +87,9 @@ def run(args) -> int:
     effect = with_field_of_view(effect, frame_field_of_view(args, inputs[0]))
     effect = with_frame_clip_planes(effect, inputs[0])
     light_depth = resolve_light_depth(args.light_depth, inputs[0])
+    if args.light_depth is None and (moved := _other_light_depth(inputs, light_depth)) is not None:
+        warn("batch", f"{moved[0]} stores the light's distance {moved[1]:g}, the first frame {light_depth:g}: every "
+             "frame takes the first frame's (one compiled program); pass --light-depth D to choose")  # fmt: skip
     if getattr(effect, "source", None) == "light_pass":
         effect = effect_for_frame("batch", effect, read_buffers(inputs[0], **frame_reading(args)), inputs[0])
     jobs = plan_batch(

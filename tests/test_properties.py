@@ -421,13 +421,19 @@ def test_nan_and_inf_colour_reported_and_inf_depth_is_sky():
         gr.check_buffers(gr.Buffers(color=color, depth=depth, coverage=np.zeros((3, 4), np.float32)), name="f7")
 
 
-def test_every_integer_static_field_has_a_documented_range():
+def test_every_integer_static_field_declares_its_range_and_every_cap_is_a_static_field():
     for cls in (gr.GodRays, gr.FlareOuts, gr.SunOvercast, gr.LensDirt, gr.SunSpot, gr.Bloom, gr.ScatteringFog):
+        infos = gr.field_metadata(cls)
         for field in dataclasses.fields(cls):
-            if field.metadata.get("static") and field.type is int:
-                assert field.name in gr.STATIC_RANGES, f"{cls.__name__}.{field.name}: add it to STATIC_RANGES"
-                low, high = gr.STATIC_RANGES[field.name]
+            info = infos[field.name]
+            if info.kind == "static" and field.type is int:
+                assert field.metadata.get("bounds"), f"{cls.__name__}.{field.name}: declare static(..., low=, high=)"
+                low, high = info.bounds
                 assert low <= field.default <= high
+            if info.cap is not None:
+                assert infos[info.cap].kind == "static", f"{cls.__name__}.{field.name} is capped by {info.cap}"
+            if info.count:
+                assert infos[info.cap].bounds[1] <= info.bounds[1], f"{cls.__name__}.{info.cap} beyond the count"
 
 
 @pytest.mark.parametrize(
@@ -442,7 +448,7 @@ def test_every_integer_static_field_has_a_documented_range():
         (lambda: gr.GodRays(source=["disc"]), r"GodRays.source must be one of disc, sky, light_pass"),
         (lambda: gr.FlareOuts(max_iters=0), r"FlareOuts.max_iters must lie in \[1, 64\]"),
         (lambda: gr.LensDirt(dirt_seed=-1), r"LensDirt.dirt_seed must lie in"),
-        (lambda: gr.Bloom(blend_mode=1), r"Bloom.blend_mode must be a string"),
+        (lambda: gr.Bloom(blend_mode=1), r"Bloom.blend_mode must be one of add, screen"),
     ],
 )
 def test_constructors_refuse_values_of_the_wrong_type_or_range(make, message):

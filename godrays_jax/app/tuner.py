@@ -21,14 +21,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
-from godrays_jax.effects.base import Effect, size_fields
+from godrays_jax.effects.base import Effect, count_fields, size_fields
 from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import (
     effect_from_dict,
     effect_to_dict,
     save_effect,
 )
-from godrays_jax.pipeline.fit import COUNT_FIELDS, fit, fitted_bounds
+from godrays_jax.pipeline.fit import fit, fitted_bounds
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, error_line, ranges_guaranteed
 from godrays_jax.primitives.color import display_map, to_srgb8
@@ -321,7 +321,7 @@ class Tuner:
             "effect": effect_to_dict(effect),
             "bounds": {name: list(bounds) for name, bounds in self.bounds(effect).items()},
             "pixel_fields": sorted(pixel_fields(effect)),
-            "count_fields": list(COUNT_FIELDS),
+            "count_fields": list(count_fields(effect)),
             "presets": sorted(PRESETS),
             "views": list(VIEWS) if self.target is not None else [v for v in VIEWS if v != "target"],
             "tonemaps": list(TONEMAPS),

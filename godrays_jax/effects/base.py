@@ -39,7 +39,7 @@ import numpy as np
 from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.kernels.composite import BLEND_MODES, blend
+from godrays_jax.kernels.composite import BlendMode, blend
 from godrays_jax.kernels.masks import (
     coverage_mask,
     depth_test_mask,
@@ -73,25 +73,8 @@ FLARE_SHAPES: tuple[str, ...] = ("glow", "cone")
 analytic cone `saturate(1 - r)` of `masks.light_source_mask` (bright out to its rim)."""
 
 
-STATIC_RANGES: dict[str, tuple[int, int]] = {
-    "max_samples": (1, 4096),
-    "max_iters": (1, 64),
-    "max_passes": (0, 8),
-    "resolution_factor": (1, 64),
-    "num_view_steps": (1, 256),
-    "num_shadow_samples": (1, 1024),
-    "dirt_seed": (0, 2**63 - 1),
-}
-"""Inclusive ranges of the integer static fields, checked by every effect's constructor (so also for params files).
-
-Loop lengths stop at the top of the fittable count they bound (`num_samples`
-<= 4096, `num_iters` <= 64, `num_passes` <= 8): a longer loop renders the same
-image more slowly, and a huge one (`max_samples: 1e8`) hangs a render;
-`resolution_factor` at 64 (a 4K frame is then 60 px
-wide); `dirt_seed` is any non-negative 64-bit seed. Static sizes (blur and
-morphology reaches, `size_reach`) are floats: at most `MAX_REACH` of their
-units.
-"""
+MAX_SEED = 2**63 - 1
+"""The largest static integer that is not a loop length (a seed): any non-negative 64-bit value."""
 
 MAX_REACH: dict[str, float] = {"frame": 1.0, "px": 4096.0}
 """The largest static size (a blur's or a morphology's reach) per unit system: the whole frame, or 4096 pixels."""
@@ -120,8 +103,8 @@ _SHOWN = reprlib.Repr()
 _SHOWN.maxlevel, _SHOWN.maxstring, _SHOWN.maxother = 3, 40, 40
 
 
-def _check_static(owner: str, name: str, annotation, value) -> None:
-    """A static field's value against its annotation (`bool`, `int` with `STATIC_RANGES`, `Literal`, `str`)."""
+def _check_static(owner: str, name: str, annotation, value, bounds) -> None:
+    """A static field's value against its annotation (`bool`, `int` within `bounds`, `Literal`, `float`, `str`)."""
     shown = _SHOWN.repr(value)
     if annotation is bool:
         if not isinstance(value, (bool, np.bool_)):
@@ -129,9 +112,9 @@ def _check_static(owner: str, name: str, annotation, value) -> None:
     elif annotation is int:
         if not is_static_int(value):
             raise ValueError(f"{owner}.{name} must be an integer, got {shown}")
-        low, high = STATIC_RANGES.get(name, (0, 2**63 - 1))
+        low, high = bounds
         if not low <= value <= high:
-            raise ValueError(f"{owner}.{name} must lie in [{low}, {high}] (STATIC_RANGES), got {value}")
+            raise ValueError(f"{owner}.{name} must lie in [{low}, {high}], got {value}")
     elif typing.get_origin(annotation) is Literal:
         if not isinstance(value, str) or value not in typing.get_args(annotation):
             raise ValueError(f"{owner}.{name} must be one of {', '.join(typing.get_args(annotation))}; got {shown}")
@@ -140,22 +123,6 @@ def _check_static(owner: str, name: str, annotation, value) -> None:
             raise ValueError(f"{owner}.{name} must be a finite number, got {shown}")
     elif annotation is str and not isinstance(value, str):
         raise ValueError(f"{owner}.{name} must be a string, got {shown}")
-
-
-@functools.cache
-def _static_annotations(cls) -> dict[str, object]:
-    hints = typing.get_type_hints(cls)
-    return {field.name: hints[field.name] for field in dataclasses.fields(cls) if field.metadata.get("static")}
-
-
-def param(default, *, low: float, high: float, formerly: tuple[str, ...] = ()):
-    """A fittable field, stored as a floating JAX array whatever number or list is given.
-
-    `[low, high]` is its valid range (every element, for a vector): fitting keeps
-    the value inside it and the tuner's sliders span it. `formerly`: the
-    field's old names, which params files may still use (`renamed_fields`).
-    """
-    return eqx.field(converter=_array, default=default, metadata={"bounds": (low, high), "formerly": formerly})
 
 
 def plain_value(value):
@@ -215,6 +182,94 @@ def _texture(value) -> Array | None:
     return texture[..., :1] if channels == 2 else texture[..., :3]
 
 
+@dataclasses.dataclass(frozen=True)
+class FieldInfo:
+    """What one field of an effect is, as its declaration says (`param`, `count_param`, `size_param`, `static`,
+    `size_reach`, `texture_field`): the one source that the constructor's checks, `fit`, the tuner and params files
+    read.
+
+    Attributes:
+        name: the field's name.
+        kind: `"fittable"` (a floating JAX scalar or vector that `fit` may change), `"static"` (a Python value that
+            selects the algorithm and is part of the compiled program) or `"data"` (an array the effect samples and
+            never fits: a texture).
+        bounds: the inclusive valid range: a fittable field's (every element; a size's in frame units) or a static
+            integer's; `None` for other static fields.
+        px_bounds: a size's range under `units="px"` (pixels).
+        size: whether it is a size, in frame units or in pixels as the effect's `units` says.
+        count: whether it is an integer count, fitted through the kernels' continuous relaxation and rounded after.
+        cap: the static field that caps its value (a count's loop length, a morphology's reach), or `None`.
+        choices: the values a static name may take (its `Literal` annotation), or `None`.
+        formerly: its old names, which params files may still use.
+    """
+
+    name: str
+    kind: Literal["fittable", "static", "data"]
+    bounds: tuple[float, float] | None = None
+    px_bounds: tuple[float, float] | None = None
+    size: bool = False
+    count: bool = False
+    cap: str | None = None
+    choices: tuple[str, ...] | None = None
+    formerly: tuple[str, ...] = ()
+
+
+def param(default, *, low: float, high: float, cap: str | None = None, formerly: tuple[str, ...] = ()):
+    """A fittable field, stored as a floating JAX array whatever number or list is given.
+
+    `[low, high]` is its valid range (every element, for a vector): fitting keeps
+    the value inside it and the tuner's sliders span it; `cap` names a static
+    field whose value lowers `high` for fitting. `formerly`: the field's old
+    names, which params files may still use.
+    """
+    metadata = {"kind": "fittable", "bounds": (low, high), "cap": cap, "formerly": formerly}
+    return eqx.field(converter=_array, default=default, metadata=metadata)
+
+
+def count_param(default: float, *, low: float, high: float, cap: str, formerly: tuple[str, ...] = ()):
+    """A fittable integer count (`num_samples`, ...): fitted through its kernel's relaxation, at most the static `cap`.
+
+    `cap` is the static field holding the loop length (`max_samples`, ...):
+    fitting keeps the count at or below it and rounds it after.
+    """
+    metadata = {"kind": "fittable", "bounds": (low, high), "count": True, "cap": cap, "formerly": formerly}
+    return eqx.field(converter=_array, default=default, metadata=metadata)
+
+
+def size_param(
+    default, *, low: float, high: float, px_high: float, cap: str | None = None, formerly: tuple[str, ...] = ()
+):
+    """A fittable size: in frame units within `[low, high]`, or in pixels within `[0, px_high]` under `units="px"`.
+
+    `cap` names a static size that bounds it (a morphology's reach).
+    """
+    metadata = {
+        "kind": "fittable", "bounds": (low, high), "px_bounds": (0.0, px_high), "size": True, "cap": cap,
+        "formerly": formerly,
+    }  # fmt: skip
+    return eqx.field(converter=_array, default=default, metadata=metadata)
+
+
+def static(default, *, low: int | None = None, high: int | None = None, formerly: tuple[str, ...] = ()):
+    """A static field (a Python value that selects the algorithm), checked against its annotation.
+
+    An `int` field takes its inclusive range `[low, high]` here (loop lengths
+    stop at the top of the count they bound: a longer loop renders the same
+    image more slowly, and a huge one hangs a render); a `Literal` field's
+    choices are its annotation's.
+    """
+    bounds = None if low is None else (low, high)
+    return eqx.field(static=True, default=default, metadata={"kind": "static", "bounds": bounds, "formerly": formerly})
+
+
+def size_reach(default: float, *, formerly: tuple[str, ...] = ()):
+    """A static size (a blur's or a morphology's reach, in frame units or pixels as the effect's `units`).
+
+    At most `MAX_REACH` of its units.
+    """
+    return eqx.field(static=True, default=default, metadata={"kind": "static", "size": True, "formerly": formerly})
+
+
 def texture_field():
     """An optional texture, linear values: data the effect samples, not fitted.
 
@@ -223,24 +278,45 @@ def texture_field():
     most `MAX_TEXTURE_SIDE` texels on a side; values finite, of magnitude at
     most `MAX_TEXTURE_VALUE`. `ValueError` naming the field otherwise.
     """
-    return eqx.field(default=None, converter=_texture)
+    return eqx.field(default=None, converter=_texture, metadata={"kind": "data"})
 
 
-def size_param(default, *, low: float, high: float, px_high: float, formerly: tuple[str, ...] = ()):
-    """A fittable size: in frame units within `[low, high]`, or in pixels within `[0, px_high]` under `units="px"`."""
-    metadata = {"bounds": (low, high), "px_bounds": (0.0, px_high), "size": True, "formerly": formerly}
-    return eqx.field(converter=_array, default=default, metadata=metadata)
+_type_hints = functools.cache(typing.get_type_hints)
 
 
-def size_reach(default: float, *, formerly: tuple[str, ...] = ()):
-    """A static size (a blur's or a morphology's reach, in frame units or pixels as the effect's `units`)."""
-    return eqx.field(static=True, default=default, metadata={"size": True, "formerly": formerly})
+@functools.cache
+def _field_infos(cls) -> dict[str, FieldInfo]:
+    hints = _type_hints(cls)
+    infos = {}
+    for field in dataclasses.fields(cls):
+        metadata = field.metadata
+        kind = metadata.get("kind", "static" if metadata.get("static") else "data")
+        annotation = hints[field.name]
+        choices = typing.get_args(annotation) if typing.get_origin(annotation) is Literal else None
+        bounds = metadata.get("bounds")
+        if kind == "static" and annotation is int and bounds is None:
+            bounds = (0, MAX_SEED)
+        infos[field.name] = FieldInfo(
+            name=field.name, kind=kind, bounds=bounds, px_bounds=metadata.get("px_bounds"),
+            size=metadata.get("size", False), count=metadata.get("count", False), cap=metadata.get("cap"),
+            choices=choices, formerly=tuple(metadata.get("formerly", ())),
+        )  # fmt: skip
+    return infos
+
+
+def field_metadata(effect: "Effect | type[Effect]") -> dict[str, FieldInfo]:
+    """`{field name: FieldInfo}` for every field of an effect (instance or class), in declaration order."""
+    return _field_infos(effect if isinstance(effect, type) else type(effect))
 
 
 def renamed_fields(effect: "Effect | type[Effect]") -> dict[str, str]:
-    """`{old name: field name}` for every field of an effect that had another name (`formerly`)."""
-    cls = effect if isinstance(effect, type) else type(effect)
-    return {old: field.name for field in dataclasses.fields(cls) for old in field.metadata.get("formerly", ())}
+    """`{old name: field name}` for every field of an effect that had another name (`FieldInfo.formerly`)."""
+    return {old: info.name for info in field_metadata(effect).values() for old in info.formerly}
+
+
+def count_fields(effect: "Effect | type[Effect]") -> tuple[str, ...]:
+    """The fittable integer counts (`FieldInfo.count`): fitted relaxed, reported rounded."""
+    return tuple(name for name, info in field_metadata(effect).items() if info.count)
 
 
 def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, float]]:
@@ -249,19 +325,17 @@ def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, 
     Sizes have their frame-unit bounds, or their pixel bounds for an instance
     built with `units="px"`.
     """
-    cls = effect if isinstance(effect, type) else type(effect)
     pixels = not isinstance(effect, type) and getattr(effect, "units", "frame") == "px"
     return {
-        field.name: field.metadata["px_bounds" if pixels and "px_bounds" in field.metadata else "bounds"]
-        for field in dataclasses.fields(cls)
-        if "bounds" in field.metadata
+        name: info.px_bounds if pixels and info.px_bounds is not None else info.bounds
+        for name, info in field_metadata(effect).items()
+        if info.kind == "fittable"
     }
 
 
 def size_fields(effect: "Effect | type[Effect]") -> tuple[str, ...]:
     """The fields holding sizes (fittable or static), in frame units or in pixels as the effect's `units` says."""
-    cls = effect if isinstance(effect, type) else type(effect)
-    return tuple(field.name for field in dataclasses.fields(cls) if field.metadata.get("size"))
+    return tuple(name for name, info in field_metadata(effect).items() if info.size)
 
 
 def pixels_per_unit(units: str, height: int, width: int) -> float:
@@ -297,30 +371,18 @@ class Effect(eqx.Module):
 
     def __check_init__(self):
         owner = type(self).__name__
-        for name, annotation in _static_annotations(type(self)).items():
-            _check_static(owner, name, annotation, getattr(self, name))
-        mode = getattr(self, "blend_mode", "add")
-        if mode not in BLEND_MODES:
-            raise ValueError(f"blend_mode must be one of {', '.join(BLEND_MODES)}; got {mode!r}")
-        source = getattr(self, "source", "disc")
-        if source not in SOURCES:
-            raise ValueError(f"source must be one of {', '.join(SOURCES)}; got {source!r}")
-        units = getattr(self, "units", "frame")
-        if units not in UNITS:
-            raise ValueError(f"units must be one of {', '.join(UNITS)}; got {units!r}")
-        shape = getattr(self, "flare_shape", "glow")
-        if shape not in FLARE_SHAPES:
-            raise ValueError(f"flare_shape must be one of {', '.join(FLARE_SHAPES)}; got {shape!r}")
-        scene_mask = getattr(self, "scene_mask", "coverage")
-        if scene_mask not in SCENE_MASKS:
-            raise ValueError(f"scene_mask must be one of {', '.join(SCENE_MASKS)}; got {scene_mask!r}")
+        hints = _type_hints(type(self))
+        infos = field_metadata(self)
+        for name, info in infos.items():
+            if info.kind == "static":
+                _check_static(owner, name, hints[name], getattr(self, name), info.bounds)
         bias = getattr(self, "depth_bias", 0.0)
-        if not (not isinstance(bias, bool) and isinstance(bias, (int, float)) and 0.0 <= bias < 1.0):
+        if not 0.0 <= bias < 1.0:
             raise ValueError(f"{owner}.depth_bias must be a number in [0, 1), got {bias!r}")
-        static = _static_annotations(type(self))
+        units = getattr(self, "units", "frame")
         for name in size_fields(self):
             value = getattr(self, name)
-            if name in static and not 0 <= value <= MAX_REACH[units]:
+            if infos[name].kind == "static" and not 0 <= value <= MAX_REACH[units]:
                 raise ValueError(f"{owner}.{name} must lie in [0, {MAX_REACH[units]:g}] ({units} units), got {value!r}")
             if isinstance(value, jax.Array) and not isinstance(value, jax.core.Tracer) and not float(np.min(value)) >= 0:
                 raise ValueError(f"{owner}.{name} must be >= 0, got {value!r}")

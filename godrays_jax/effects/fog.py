@@ -4,11 +4,10 @@ import functools
 import math
 from typing import ClassVar
 
-import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from godrays_jax.effects.base import Effect, frame_ray_depth, light_visibility, param
+from godrays_jax.effects.base import Effect, count_param, frame_ray_depth, light_visibility, param, static
 from godrays_jax.kernels.masks import coverage_mask
 from godrays_jax.kernels.media import apply_fog, in_scattering
 from godrays_jax.kernels.rays import radial_rays
@@ -52,9 +51,9 @@ class ScatteringFog(Effect):
     shadow_strength: Float[Array, ""] = param(1.0, low=0.0, high=1.0, formerly=("shaft_strength",))
     density: Float[Array, ""] = param(1.0, low=0.0, high=2.0)
     decay: Float[Array, ""] = param(0.97, low=0.5, high=1.0)
-    num_samples: Float[Array, ""] = param(32.0, low=1.0, high=512.0)
+    num_samples: Float[Array, ""] = count_param(32.0, low=1.0, high=512.0, cap="max_samples")
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    max_samples: int = eqx.field(static=True, default=32)
+    max_samples: int = static(32, low=1, high=4096)
 
     NEEDS_DEPTH: ClassVar[bool] = True
 

@@ -4,24 +4,27 @@ import functools
 import math
 from typing import ClassVar, Literal
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import (
+    MAX_SEED,
     Effect,
-    frame_ray_depth,
     Units,
+    count_param,
+    frame_ray_depth,
     light_visibility,
     param,
     pixels_per_unit,
     reach_taps,
     size_param,
     size_reach,
+    static,
 )
 from godrays_jax.kernels.blur import bloom, gaussian_blur, poisson_blur
+from godrays_jax.kernels.composite import BlendMode
 from godrays_jax.kernels.lens import (
     LENS_DIRT_ABERRATION,
     ViewMode,
@@ -56,14 +59,14 @@ class SunOvercast(Effect):
     blur_power: Float[Array, ""] = param(0.015, low=0.0, high=0.2)
     tint: Float[Array, "4"] = param((0.8, 0.5, 0.0, 0.65), low=0.0, high=10.0, formerly=("glow_color",))
     source_radius: Float[Array, ""] = size_param(0.1, low=0.0, high=2.0, px_high=4096.0)
-    num_passes: Float[Array, ""] = param(2.0, low=0.0, high=8.0, formerly=("passes",))
+    num_passes: Float[Array, ""] = count_param(2.0, low=0.0, high=8.0, cap="max_passes", formerly=("passes",))
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    source_grow: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0)
-    occluder_shrink: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0)
-    max_passes: int = eqx.field(static=True, default=2)
+    source_grow: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0, cap="morphology_reach")
+    occluder_shrink: Float[Array, ""] = size_param(0.0, low=0.0, high=0.1, px_high=64.0, cap="morphology_reach")
+    max_passes: int = static(2, low=0, high=8)
     morphology_reach: float = size_reach(0.0125)
-    blend_mode: str = eqx.field(static=True, default="add")
-    units: Units = eqx.field(static=True, default="frame")
+    blend_mode: BlendMode = static("add")
+    units: Units = static("frame")
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 4"]:
         """The unblurred glow pass (RGBA), rendered or drawn in image space."""
@@ -127,10 +130,10 @@ class LensDirt(Effect):
     far_plane: Float[Array, ""] = param(100.0, low=1e-3, high=1e6, formerly=("far",))
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     depth_floor: Float[Array, ""] = param(0.8, low=0.0, high=1.0)
-    dirt_seed: int = eqx.field(static=True, default=0)
-    view: ViewMode = eqx.field(static=True, default="pixel")
-    depth_in_power: bool = eqx.field(static=True, default=True)
-    blend_mode: str = eqx.field(static=True, default="add")
+    dirt_seed: int = static(0, low=0, high=MAX_SEED)
+    view: ViewMode = static("pixel")
+    depth_in_power: bool = static(True)
+    blend_mode: BlendMode = static("add")
 
     NEEDS_DEPTH: ClassVar[bool] = True
 
@@ -178,8 +181,8 @@ class SunSpot(Effect):
     )
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     bloom_blur_reach: float = size_reach(0.0375, formerly=("glow_reach",))
-    blend_mode: str = eqx.field(static=True, default="add")
-    units: Units = eqx.field(static=True, default="frame")
+    blend_mode: BlendMode = static("add")
+    units: Units = static("frame")
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 3"]:
         """The glow target: the coloured spot on sky pixels (the VBex article's `Out.glow`), unblurred."""
@@ -270,16 +273,10 @@ class Bloom(Effect):
     )
     blur_reach: float = size_reach(0.0375, formerly=("reach",))
     wide_blur_reach: float = size_reach(0.1125, formerly=("gaussian_reach",))
-    method: BloomMethod = eqx.field(static=True, default="pyramid")
-    bloom_source: BloomSource = eqx.field(static=True, default="frame")
-    blend_mode: str = eqx.field(static=True, default="add")
-    units: Units = eqx.field(static=True, default="frame")
-
-    def __check_init__(self):
-        if self.method not in ("pyramid", "gaussian"):
-            raise ValueError(f"method must be 'pyramid' or 'gaussian'; got {self.method!r}")
-        if self.bloom_source not in ("glow_target", "frame"):
-            raise ValueError(f"bloom_source must be 'glow_target' or 'frame'; got {self.bloom_source!r}")
+    method: BloomMethod = static("pyramid")
+    bloom_source: BloomSource = static("frame")
+    blend_mode: BlendMode = static("add")
+    units: Units = static("frame")
 
     def glowing(self, buffers: Buffers) -> Float[Array, "H W C"]:
         """What blooms, unblurred: the glow target, or the frame's bright part (see the class docstring)."""

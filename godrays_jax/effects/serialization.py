@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from godrays_jax.effects.base import Effect, effect_class, plain_value, renamed_fields
+from godrays_jax.effects.base import Effect, effect_class, field_metadata, plain_value, renamed_fields
 from godrays_jax.primitives.files import atomic_write
 
 
@@ -32,8 +32,7 @@ def effect_from_dict(fields: dict) -> Effect:
 
     Raises `ValueError` naming the field for an unknown effect or key, a value
     of the wrong JSON type (`"0.5"` for a number, `"false"` for a boolean), a
-    vector of the wrong length, or a value out of its range (`parameter_bounds`,
-    `STATIC_RANGES`). A field's old name (`renamed_fields`) is read as its
+    vector of the wrong length, or a value out of its range (`field_metadata`). A field's old name (`renamed_fields`) is read as its
     new one, with a `FutureWarning` naming the new name.
     """
     fields = dict(fields)
@@ -53,7 +52,7 @@ def effect_from_dict(fields: dict) -> Effect:
         raise ValueError(f"unknown parameter(s) for {kind}: {', '.join(unknown)}")
     effect = cls(**fields)
     for field in dataclasses.fields(cls):
-        expected = np.shape(field.default) if "bounds" in field.metadata else None
+        expected = np.shape(field.default) if field_metadata(cls)[field.name].kind == "fittable" else None
         if field.name in fields and expected is not None and np.shape(getattr(effect, field.name)) != expected:
             raise ValueError(
                 f"{kind}.{field.name} must have shape {list(expected)}, got {np.shape(getattr(effect, field.name))}"

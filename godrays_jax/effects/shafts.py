@@ -3,7 +3,6 @@
 import math
 from typing import ClassVar, Literal
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,23 +12,26 @@ from godrays_jax.effects.base import (
     Effect,
     FlareShape,
     SceneMask,
-    flare_size_px,
-    planar_light_depth,
     Source,
     Units,
+    count_param,
     emitter_inputs,
+    flare_size_px,
     param,
     pixels_per_unit,
+    planar_light_depth,
     reach_taps,
     size_param,
     size_reach,
+    static,
     texture_field,
 )
 from godrays_jax.kernels.blur import bloom_level_shape, draw_at_uv, gaussian_blur
+from godrays_jax.kernels.composite import BlendMode
 from godrays_jax.kernels.fast import fast_radial_rays, radial_rays_multipass
 from godrays_jax.kernels.masks import bright_pass, clip_space_depth
 from godrays_jax.kernels.rays import flare_outs_into, radial_rays_of, scale_iterated_flares_of
-from godrays_jax.primitives.checks import check_light, is_static_int
+from godrays_jax.primitives.checks import check_light
 
 RayMethod = Literal["exact", "multipass", "fast"]
 
@@ -155,29 +157,25 @@ class GodRays(Effect):
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     threshold: Float[Array, ""] = param(0.25, low=0.0, high=0.99)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
-    num_samples: Float[Array, ""] = param(128.0, low=1.0, high=4096.0)
+    num_samples: Float[Array, ""] = count_param(128.0, low=1.0, high=4096.0, cap="max_samples")
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     flare_texture: Float[Array, "h w C"] | None = texture_field()
-    flare_shape: FlareShape = eqx.field(static=True, default="glow")
-    flare_sizing: FlareSizing = eqx.field(static=True, default="fixed")
-    depth_bias: float = eqx.field(static=True, default=0.00025)
-    near_plane: float = eqx.field(static=True, default=XNA_NEAR_PLANE)
-    far_plane: float = eqx.field(static=True, default=XNA_FAR_PLANE)
-    max_samples: int = eqx.field(static=True, default=128)
-    source: Source = eqx.field(static=True, default="disc")
-    scene_mask: SceneMask = eqx.field(static=True, default="coverage")
-    step_clamp: bool = eqx.field(static=True, default=False)
-    use_bright_pass: bool = eqx.field(static=True, default=False)
-    blend_mode: str = eqx.field(static=True, default="add")
-    method: RayMethod = eqx.field(static=True, default="exact")
-    resolution_factor: int = eqx.field(static=True, default=2)
-    units: Units = eqx.field(static=True, default="frame")
+    flare_shape: FlareShape = static("glow")
+    flare_sizing: FlareSizing = static("fixed")
+    depth_bias: float = static(0.00025)
+    near_plane: float = static(XNA_NEAR_PLANE)
+    far_plane: float = static(XNA_FAR_PLANE)
+    max_samples: int = static(128, low=1, high=4096)
+    source: Source = static("disc")
+    scene_mask: SceneMask = static("coverage")
+    step_clamp: bool = static(False)
+    use_bright_pass: bool = static(False)
+    blend_mode: BlendMode = static("add")
+    method: RayMethod = static("exact")
+    resolution_factor: int = static(2, low=1, high=64)
+    units: Units = static("frame")
 
     def __check_init__(self):
-        if self.method not in RAY_METHODS:
-            raise ValueError(f"method must be one of {', '.join(RAY_METHODS)}; got {self.method!r}")
-        if self.flare_sizing not in FLARE_SIZINGS:
-            raise ValueError(f"flare_sizing must be one of {', '.join(FLARE_SIZINGS)}; got {self.flare_sizing!r}")
         _check_clip_planes("GodRays", self.near_plane, self.far_plane)
 
     def light_clip_depth(self, height: int, width: int, light_xy, light_depth, dtype) -> Float[Array, ""]:
@@ -260,25 +258,23 @@ class FlareOuts(Effect):
     flare_size: Float[Array, ""] = size_param(0.1, low=1e-3, high=4.0, px_high=8192.0)
     blur_sigma: Float[Array, ""] = size_param(0.00625, low=0.0, high=0.2, px_high=200.0)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
-    num_iters: Float[Array, ""] = param(20.0, low=1.0, high=64.0)
+    num_iters: Float[Array, ""] = count_param(20.0, low=1.0, high=64.0, cap="max_iters")
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
     flare_texture: Float[Array, "h w C"] | None = texture_field()
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
-    flare_shape: FlareShape = eqx.field(static=True, default="glow")
-    depth_bias: float = eqx.field(static=True, default=0.00025)
-    near_plane: float = eqx.field(static=True, default=XNA_NEAR_PLANE)
-    far_plane: float = eqx.field(static=True, default=XNA_FAR_PLANE)
-    max_iters: int = eqx.field(static=True, default=20)
+    flare_shape: FlareShape = static("glow")
+    depth_bias: float = static(0.00025)
+    near_plane: float = static(XNA_NEAR_PLANE)
+    far_plane: float = static(XNA_FAR_PLANE)
+    max_iters: int = static(20, low=1, high=64)
     blur_reach: float = size_reach(0.01875)
-    resolution_factor: int = eqx.field(static=True, default=1, metadata={"formerly": ("target_factor",)})
-    source: Source = eqx.field(static=True, default="disc")
-    scene_mask: SceneMask = eqx.field(static=True, default="coverage")
-    blend_mode: str = eqx.field(static=True, default="add")
-    units: Units = eqx.field(static=True, default="frame")
+    resolution_factor: int = static(1, low=1, high=64, formerly=("target_factor",))
+    source: Source = static("disc")
+    scene_mask: SceneMask = static("coverage")
+    blend_mode: BlendMode = static("add")
+    units: Units = static("frame")
 
     def __check_init__(self):
-        if not is_static_int(self.resolution_factor) or self.resolution_factor < 1:
-            raise ValueError(f"resolution_factor must be a Python int >= 1, got {self.resolution_factor!r}")
         _check_clip_planes("FlareOuts", self.near_plane, self.far_plane)
 
     def flare_size_in_px(self, height: int, width: int, light_xy, light_depth, dtype) -> Float[Array, "2"]:

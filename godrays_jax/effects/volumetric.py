@@ -3,11 +3,10 @@
 import math
 from typing import ClassVar
 
-import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from godrays_jax.effects.base import Effect, frame_ray_depth, param
+from godrays_jax.effects.base import Effect, frame_ray_depth, param, static
 from godrays_jax.kernels.volumetric import volumetric_fog_terms
 from godrays_jax.primitives.checks import check_light
 
@@ -59,9 +58,9 @@ class VolumetricFog(Effect):
     thickness: Float[Array, ""] = param(0.15, low=0.0, high=4.0)
     edge_softness: Float[Array, ""] = param(0.05, low=0.005, high=1.0)
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
-    num_view_steps: int = eqx.field(static=True, default=16)
-    num_shadow_samples: int = eqx.field(static=True, default=32)
-    resolution_factor: int = eqx.field(static=True, default=4)
+    num_view_steps: int = static(16, low=1, high=256)
+    num_shadow_samples: int = static(32, low=1, high=1024)
+    resolution_factor: int = static(4, low=1, high=64)
 
     NEEDS_DEPTH: ClassVar[bool] = True
 

@@ -43,7 +43,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.effects.base import Effect, parameter_bounds
+from godrays_jax.effects.base import Effect, count_fields, field_metadata, parameter_bounds
 from godrays_jax.effects.presets import preset
 from godrays_jax.kernels.losses import LOSSES, Space, check_space, to_space
 from godrays_jax.pipeline import exported
@@ -51,20 +51,6 @@ from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
-
-
-COUNT_FIELDS: tuple[str, ...] = ("num_samples", "num_iters", "num_passes")
-"""Fittable fields that are integer counts: fitted relaxed, reported rounded."""
-
-
-_STATIC_CAPS = {
-    "num_samples": "max_samples",
-    "num_iters": "max_iters",
-    "num_passes": "max_passes",
-    "source_grow": "morphology_reach",
-    "occluder_shrink": "morphology_reach",
-}
-"""Fittable field -> the static field that caps it (a kernel's loop length or reach)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +83,7 @@ class FitResult:
 
 
 def fitted_bounds(effect: Effect, *, fixed: Sequence[str] = ()) -> dict[str, tuple[float, float]]:
-    """`{field: (low, high)}` for the fields `fit` would fit: bounds capped by static loop lengths.
+    """`{field: (low, high)}` for the fields `fit` would fit: bounds capped by their static caps (`FieldInfo.cap`).
 
     Raises `ValueError` naming `fixed` if it lists a field that is not fittable.
     """
@@ -107,13 +93,13 @@ def fitted_bounds(effect: Effect, *, fixed: Sequence[str] = ()) -> dict[str, tup
         raise ValueError(
             f"fixed names unknown or static field(s) {', '.join(unknown)}; fittable: {', '.join(bounds)}"
         )
+    infos = field_metadata(effect)
     result = {}
     for name, (low, high) in bounds.items():
         if name in fixed:
             continue
-        cap = getattr(effect, _STATIC_CAPS.get(name, ""), None)
-        if cap is not None:
-            high = min(high, float(cap))
+        if infos[name].cap is not None:
+            high = min(high, float(getattr(effect, infos[name].cap)))
         result[name] = (float(low), float(high))
     if not result:
         raise ValueError("fixed leaves no parameter to fit")
@@ -131,8 +117,8 @@ def _from_unit(unit, low, high):
 
 
 def round_counts(effect: Effect) -> Effect:
-    """The effect with every count field (`COUNT_FIELDS`) rounded to the nearest integer."""
-    names = [name for name in COUNT_FIELDS if name in parameter_bounds(effect)]
+    """The effect with every count field (`FieldInfo.count`) rounded to the nearest integer."""
+    names = count_fields(effect)
     if not names:
         return effect
     return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [jnp.round(getattr(effect, n)) for n in names])

@@ -47,7 +47,6 @@ import numpy as np
 import godrays_jax as gr
 from godrays_jax.raster import light_distance
 from godrays_jax.app.options import with_field_of_view
-from godrays_jax.effects.base import STATIC_RANGES
 from godrays_jax.effects.fog import ScatteringFog
 from godrays_jax.effects.presets import PRESETS
 from godrays_jax.effects.shafts import FlareOuts, GodRays
@@ -110,7 +109,7 @@ def converged(effect, oversample: int, *, same_target: bool = False):
             effect, num_iters=float(count), scale_step=effect.scale_step ** (1.0 / k),
             copy_decay=effect.copy_decay ** (1.0 / k), intensity=effect.intensity / k,
         )  # fmt: skip
-        static = dict(max_iters=count) if same_target else dict(max_iters=count, target_factor=1, resolution_factor=1)
+        static = dict(max_iters=count) if same_target else dict(max_iters=count, resolution_factor=1)
     else:
         count = int(round(float(effect.num_samples))) * k
         values = dict(num_samples=float(count), decay=effect.decay ** (1.0 / k))
@@ -120,8 +119,10 @@ def converged(effect, oversample: int, *, same_target: bool = False):
         static = dict(max_samples=count, method="exact", resolution_factor=1)
     static = {name: value for name, value in static.items() if hasattr(changed, name)}
     # Loops longer than a user may ask for: the ranges bound what fits, the tuner and params files set.
-    with mock.patch.dict(STATIC_RANGES, {"max_samples": (1, count), "max_iters": (1, count)}), \
-            mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}):  # fmt: skip
+    with (
+        mock.patch("godrays_jax.effects.base._check_static"),
+        mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}),
+    ):
         return dataclasses.replace(changed, **static)
 
 

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.effects.base import STATIC_RANGES
 
 HEIGHT, WIDTH, OVERSAMPLE, PAN_PX = 36, 64, 16, 0.6
 
@@ -54,8 +53,10 @@ def _converged(effect):
     values = dict(num_samples=jnp.asarray(float(count)), decay=effect.decay ** (1.0 / OVERSAMPLE))
     if isinstance(effect, gr.GodRays):
         values |= dict(weight=effect.weight / OVERSAMPLE, method="exact")
-    with mock.patch.dict(STATIC_RANGES, {"max_samples": (1, count)}), \
-            mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}):  # fmt: skip
+    with (
+        mock.patch("godrays_jax.effects.base._check_static"),
+        mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}),
+    ):
         return dataclasses.replace(effect, max_samples=count, **values)
 
 

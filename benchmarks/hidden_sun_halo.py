@@ -2,7 +2,8 @@
 
     python benchmarks/hidden_sun_halo.py [--size 160x90]
 
-The scene and the NumPy reference are `examples/hidden_sun.py` (the medium of
+The scene (`examples/scenes/hidden_sun.json`), the NumPy reference and the
+angular profile are `examples/hidden_sun.py` (the medium of
 the path-traced colonnade frame). For every preset, the layer's mean per
 angle about the light over open sky in a ring just outside the silhouette
 (1-1.25 and 1.25-1.6 times its largest radius), divided by its mean, is
@@ -27,29 +28,13 @@ import hidden_sun  # after its folder joins the path
 RINGS = ((1.0, 1.25), (1.25, 1.6))
 
 
-def angular_profile(layer, light_xy, open_sky, inner, outer, bins=24):
-    height, width = layer.shape
-    y, x = np.mgrid[0:height, 0:width] + 0.5
-    radius = np.hypot(x - light_xy[0], y - light_xy[1])
-    angle = np.arctan2(y - light_xy[1], x - light_xy[0])
-    ring = (radius >= inner) & (radius < outer) & open_sky
-    index = ((angle[ring] + np.pi) / (2 * np.pi) * bins).astype(int) % bins
-    profile = np.bincount(index, layer[ring], bins) / np.bincount(index, None, bins)
-    return profile / profile.mean()
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="160x90", help="WIDTHxHEIGHT")
     width, height = (int(v) for v in parser.parse_args().size.split("x"))
-    scene, camera = hidden_sun.scene_and_camera(width, height)
-    buffers = gr.render(scene, camera, with_glow_pass=False)
-    light_xy = np.asarray(gr.light_pixel(scene, camera)[0])
-    open_sky = np.asarray(buffers.coverage) < 0.5
-    y, x = np.mgrid[0:height, 0:width] + 0.5
-    silhouette = np.hypot(x - light_xy[0], y - light_xy[1])[~open_sky].max()
+    buffers, camera, light_xy, open_sky, silhouette = hidden_sun.render_frame(width, height)
     reference = hidden_sun.single_scattering(camera)
-    expected = [angular_profile(reference, light_xy, open_sky, a * silhouette, b * silhouette) for a, b in RINGS]
+    expected = [hidden_sun.angular_profile(reference, light_xy, open_sky, a * silhouette, b * silhouette) for a, b in RINGS]
     print(f"{width}x{height}, reference profile std {expected[0].std():.3f} / {expected[1].std():.3f}")
     print("| preset | RMS vs reference, 1-1.25 x silhouette | 1.25-1.6 x |")
     print("|---|---|---|")
@@ -65,7 +50,7 @@ def main() -> None:
             continue
         cells = []
         for (a, b), e in zip(RINGS, expected):
-            profile = angular_profile(layer, light_xy, open_sky, a * silhouette, b * silhouette)
+            profile = hidden_sun.angular_profile(layer, light_xy, open_sky, a * silhouette, b * silhouette)
             cells.append(f"{np.sqrt(np.mean((profile - e) ** 2)):.3f}" if np.isfinite(profile).all() else "(no light here)")
         print(f"| {name} | {cells[0]} | {cells[1]} |")
 

@@ -8,21 +8,29 @@ was fitted to (extinction 0.02 per unit, Henyey-Greenstein g = 0.8, a sphere
 of radius 40 around the camera).
 """
 
+import dataclasses
+import json
+from pathlib import Path
+
 import numpy as np
 
 import godrays_jax as gr
 
-SUN = np.array([-5.0, 1.5, -100.0])
-SUN_DIRECTION = SUN / np.linalg.norm(SUN)
-BOX_CENTRE = SUN_DIRECTION * 19.0  # on the line to the sun: it hides the whole disc
-BOX_HALF_SIZE = 1.4
+SCENE = Path(__file__).resolve().parent / "scenes" / "hidden_sun.json"
+"""The scene: a sun sphere, and a tilted box 19 units along the line to it (it hides the whole disc; three faces
+show, so its silhouette is a hexagon with sharp corners), a dim sky. The camera looks at the sun."""
 EXTINCTION, ANISOTROPY, MEDIUM_RADIUS = 0.02, 0.8, 40.0
-FOV_X_DEG = 50.0
+
+_TABLE = json.loads(SCENE.read_text())
+_BOX = next(obj for obj in _TABLE["objects"] if obj.get("name") == "box")
+SUN_DIRECTION = np.asarray(_TABLE["light"]["direction"], np.float64)
+BOX_CENTRE = np.asarray(_BOX["translation"], np.float64)
+BOX_HALF_SIZE = float(_BOX["scale"])  # the box's vertices are the unit cube's corners
 
 
 def _box_rotation() -> np.ndarray:
-    """A fixed tilt that shows three faces, so the silhouette is a hexagon with sharp corners."""
-    ax, ay, az = np.deg2rad([20.0, 30.0, 35.0])
+    """The box's rotation, as the rasterizer applies `rotation_deg`: about x, then y, then z."""
+    ax, ay, az = np.deg2rad(_BOX["rotation_deg"])
     rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
     ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
     rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
@@ -30,18 +38,9 @@ def _box_rotation() -> np.ndarray:
 
 
 def scene_and_camera(width: int, height: int) -> tuple[gr.Scene, gr.Camera]:
-    """The box between the camera and the sun, a dim sky; the camera looks at the sun."""
-    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float) * BOX_HALF_SIZE
-    faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-             [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]  # fmt: skip
-    box = gr.Mesh(vertices=corners @ _box_rotation().T + BOX_CENTRE, faces=faces, double_sided=True,
-                  material=gr.Material(albedo=(0.3, 0.3, 0.3)))  # fmt: skip
-    sun = gr.Sphere(center=SUN, radius=2.5, material=gr.Material(albedo=(0.0, 0.0, 0.0), emission=(400.0, 300.0, 180.0)))
-    scene = gr.Scene(objects=(sun, box), light=gr.DirectionalLight(direction=SUN_DIRECTION, color=(4.0, 3.0, 1.8)),
-                     sky=gr.Sky(zenith_color=(0.05, 0.06, 0.08), horizon_color=(0.05, 0.06, 0.08)),
-                     ambient=(0.05, 0.05, 0.05), sun=0)  # fmt: skip
-    camera = gr.Camera(position=(0.0, 0.0, 0.0), target=SUN, up=(0.0, 1.0, 0.0), fov_x_deg=FOV_X_DEG, width=width, height=height)
-    return scene, camera
+    """The scene file at `width` x `height` pixels."""
+    scene, camera = gr.load_scene(SCENE)
+    return scene, dataclasses.replace(camera, width=width, height=height)
 
 
 def _box_distance(origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -76,3 +75,27 @@ def single_scattering(camera: gr.Camera, *, steps: int = 200) -> np.ndarray:
         sunlit = ~np.isfinite(_box_distance(rays * t[..., None], SUN_DIRECTION))
         lit_length += sunlit * np.exp(-EXTINCTION * t) * end / steps
     return EXTINCTION * phase * lit_length
+
+
+def angular_profile(layer, light_xy, open_sky, inner, outer, bins=24):
+    """Mean of `layer` `(H, W)` per angle about the light over open sky `inner..outer` px away, divided by its mean."""
+    height, width = layer.shape
+    y, x = np.mgrid[0:height, 0:width] + 0.5
+    radius = np.hypot(x - light_xy[0], y - light_xy[1])
+    angle = np.arctan2(y - light_xy[1], x - light_xy[0])
+    ring = (radius >= inner) & (radius < outer) & open_sky
+    index = ((angle[ring] + np.pi) / (2 * np.pi) * bins).astype(int) % bins
+    profile = np.bincount(index, layer[ring], bins) / np.bincount(index, None, bins)
+    return profile / profile.mean()
+
+
+def render_frame(width: int, height: int) -> tuple[gr.Buffers, gr.Camera, np.ndarray, np.ndarray, float]:
+    """The scene rendered (no glow pass): `(buffers, camera, light_xy, open_sky, silhouette)`, the silhouette
+    being the box's largest distance from the light in pixels."""
+    scene, camera = scene_and_camera(width, height)
+    buffers = gr.render(scene, camera, with_glow_pass=False)
+    light_xy = np.asarray(gr.light_pixel(scene, camera)[0])
+    open_sky = np.asarray(buffers.coverage) < 0.5
+    y, x = np.mgrid[0:height, 0:width] + 0.5
+    silhouette = float(np.hypot(x - light_xy[0], y - light_xy[1])[~open_sky].max())
+    return buffers, camera, light_xy, open_sky, silhouette

@@ -32,6 +32,8 @@ import godrays_jax as gr
 
 HERO_PRESET = "gpu_gems"
 HIDDEN_SUN_SIZE = (320, 180)
+HIDDEN_SUN_PRESETS = ("physically_based", "gpu_gems")
+"""The presets whose layers `hidden_sun.png` shows beside the reference, in this order."""
 
 
 def _apply(effect, buffers, light, in_front=True):
@@ -60,17 +62,14 @@ def _ring_normalised(layer: np.ndarray, open_sky: np.ndarray, light_xy) -> np.nd
 
 def make_hidden_sun(folder) -> None:
     """The hidden-sun box: reference halo against the presets' in-scattered light (each scaled to the same level)."""
-    scene, camera = hidden_sun.scene_and_camera(*HIDDEN_SUN_SIZE)
-    buffers = gr.render(scene, camera, with_glow_pass=False)
-    light_xy = jnp.asarray(gr.light_pixel(scene, camera)[0])
-    open_sky = np.asarray(buffers.coverage) < 0.5
+    buffers, camera, light_xy, open_sky, _ = hidden_sun.render_frame(*HIDDEN_SUN_SIZE)
     layers = {"single-scattering reference": hidden_sun.single_scattering(camera)}
-    for name in ("physically_based", "gpu_gems"):
+    for name in HIDDEN_SUN_PRESETS:
         effect = gr.preset(name)
-        layer = eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, light_xy)
+        layer = eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, jnp.asarray(light_xy))
         layers[f"{name} (its layer)"] = np.asarray(layer)[..., :3].mean(-1)
     tiles = [labelled(display(buffers.color), "the frame: a box hides the sun")]
-    tiles += [labelled(display(_ring_normalised(layer, open_sky, np.asarray(light_xy))), name) for name, layer in layers.items()]
+    tiles += [labelled(display(_ring_normalised(layer, open_sky, light_xy)), name) for name, layer in layers.items()]
     write_display(folder / "hidden_sun.png", contact_sheet(tiles, 2))
 
 

@@ -2,6 +2,7 @@
 across the frame) and `physically_based` (ScatteringFog fitted to a path-traced fog frame), whose halo
 must stay smooth when an object hides the sun, as a path tracer's does."""
 
+import sys
 from pathlib import Path
 
 import equinox as eqx
@@ -13,7 +14,10 @@ from skimage.measure import label
 import godrays_jax as gr
 from godrays_jax.effects.presets import GPU_GEMS_SAMPLE_SPREAD
 
-HERO_FRAME = Path(__file__).resolve().parents[1] / "examples" / "data" / "forest_hero.exr"
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+HERO_FRAME = EXAMPLES / "data" / "forest_hero.exr"
+sys.path.insert(0, str(EXAMPLES))
+import hidden_sun  # noqa: E402 (examples/hidden_sun.py: the scene file, its reference and the halo measure)
 
 
 def test_hero_frame_cuts_the_sky_around_the_sun_into_many_gaps():
@@ -72,116 +76,41 @@ def test_gpu_gems_shafts_reach_across_the_frame():
     assert brightness(article, far) == 0.0
 
 
-# --- physically_based: the sun hidden behind a box ----------------------------------------------
-
-SUN = np.array([-5.0, 1.5, -100.0])
-SUN_DIRECTION = SUN / np.linalg.norm(SUN)
-BOX_CENTRE = SUN_DIRECTION * 19.0  # on the line to the sun: the box hides the whole disc
-BOX_HALF_SIZE = 1.4
-# The medium of the path-traced frame the preset was fitted to (shared/data/README.md).
-EXTINCTION, ANISOTROPY, MEDIUM_RADIUS = 0.02, 0.8, 40.0
-
-
-def _box_rotation() -> np.ndarray:
-    """A tilt that shows three faces: the silhouette is a hexagon with sharp corners."""
-    ax, ay, az = np.deg2rad([20.0, 30.0, 35.0])
-    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
-    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
-    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
-    return rz @ ry @ rx
-
-
-def _hidden_sun(width: int, height: int) -> tuple[gr.Scene, gr.Camera]:
-    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float) * BOX_HALF_SIZE
-    faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-             [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]  # fmt: skip
-    box = gr.Mesh(vertices=corners @ _box_rotation().T + BOX_CENTRE, faces=faces, double_sided=True)
-    sun = gr.Sphere(center=SUN, radius=2.5, material=gr.Material(albedo=(0.0, 0.0, 0.0), emission=(400.0, 300.0, 180.0)))
-    scene = gr.Scene(objects=(sun, box), light=gr.DirectionalLight(direction=SUN_DIRECTION),
-                     sky=gr.Sky(zenith_color=(0.05, 0.06, 0.08), horizon_color=(0.05, 0.06, 0.08)), sun=0)  # fmt: skip
-    camera = gr.Camera(position=(0.0, 0.0, 0.0), target=SUN, up=(0.0, 1.0, 0.0), fov_x_deg=50.0, width=width, height=height)
-    return scene, camera
-
-
-def _box_distance(origins, direction):
-    """Distance along rays to the box (slab test in its frame), inf where they miss."""
-    rotation = _box_rotation()
-    local_origin = (origins - BOX_CENTRE) @ rotation
-    local_direction = direction @ rotation
-    with np.errstate(divide="ignore", invalid="ignore"):
-        near = (-BOX_HALF_SIZE - local_origin) / local_direction
-        far = (BOX_HALF_SIZE - local_origin) / local_direction
-    enter = np.nanmax(np.minimum(near, far), axis=-1)
-    leave = np.nanmin(np.maximum(near, far), axis=-1)
-    return np.where(leave >= np.maximum(enter, 0.0), np.maximum(enter, 0.0), np.inf)
-
-
-def _single_scattering(camera: gr.Camera, steps: int = 200) -> np.ndarray:
-    """Sun light scattered once toward the camera (slow NumPy march; only the box casts shadows)."""
-    right, up, forward = (np.asarray(v, np.float64) for v in camera.basis())
-    rays = np.asarray(camera.ray_directions(), np.float64) @ np.stack([right, up, forward])
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    end = np.minimum(_box_distance(np.zeros(3), rays), MEDIUM_RADIUS)
-    cosine = rays @ SUN_DIRECTION
-    phase = (1 - ANISOTROPY**2) / (4 * np.pi * (1 + ANISOTROPY**2 - 2 * ANISOTROPY * cosine) ** 1.5)
-    lit_length = np.zeros(end.shape)
-    for i in range(steps):
-        t = (i + 0.5) / steps * end
-        sunlit = ~np.isfinite(_box_distance(rays * t[..., None], SUN_DIRECTION))
-        lit_length += sunlit * np.exp(-EXTINCTION * t) * end / steps
-    return EXTINCTION * phase * lit_length
-
-
-def _angular_profile(layer, light_xy, open_sky, inner, outer, bins=24):
-    """Mean of `layer` per angle about the light over open sky `inner..outer` px away, divided by its mean."""
-    height, width = layer.shape
-    y, x = np.mgrid[0:height, 0:width] + 0.5
-    radius = np.hypot(x - light_xy[0], y - light_xy[1])
-    angle = np.arctan2(y - light_xy[1], x - light_xy[0])
-    ring = (radius >= inner) & (radius < outer) & open_sky
-    index = ((angle[ring] + np.pi) / (2 * np.pi) * bins).astype(int) % bins
-    profile = np.bincount(index, layer[ring], bins) / np.bincount(index, None, bins)
-    return profile / profile.mean()
-
+# --- physically_based: the sun hidden behind a box (examples/scenes/hidden_sun.json) -------------
 
 @pytest.fixture(scope="module")
-def hidden_sun():
-    scene, camera = _hidden_sun(160, 90)
-    buffers = gr.render(scene, camera, with_glow_pass=False)
-    light_xy = np.asarray(gr.light_pixel(scene, camera)[0])
-    open_sky = np.asarray(buffers.coverage) < 0.5
+def hidden_sun_frame():
+    buffers, camera, light_xy, open_sky, silhouette = hidden_sun.render_frame(160, 90)
     assert np.asarray(buffers.light_pass).max() == 0.0  # the whole sun is hidden
-    y, x = np.mgrid[0:90, 0:160] + 0.5
-    silhouette = np.hypot(x - light_xy[0], y - light_xy[1])[~open_sky].max()
-    return buffers, light_xy, open_sky, silhouette, _single_scattering(camera)
+    return buffers, light_xy, open_sky, silhouette, hidden_sun.single_scattering(camera)
 
 
-def _halo_error(effect, hidden_sun, inner, outer):
+def _halo_error(effect, hidden_sun_frame, inner, outer):
     """RMS difference between the effect's and the reference's angular profiles in a ring around the silhouette."""
-    buffers, light_xy, open_sky, silhouette, reference = hidden_sun
+    buffers, light_xy, open_sky, silhouette, reference = hidden_sun_frame
     layer = np.asarray(eqx.filter_jit(lambda e, b, l: e.layer(b, l))(effect, buffers, jnp.asarray(light_xy)))
     layer = layer[..., :3].mean(-1)
     assert np.all(np.isfinite(layer))
     ring = (inner * silhouette, outer * silhouette)
-    expected = _angular_profile(reference, light_xy, open_sky, *ring)
-    return float(np.sqrt(np.mean((_angular_profile(layer, light_xy, open_sky, *ring) - expected) ** 2)))
+    expected = hidden_sun.angular_profile(reference, light_xy, open_sky, *ring)
+    return float(np.sqrt(np.mean((hidden_sun.angular_profile(layer, light_xy, open_sky, *ring) - expected) ** 2)))
 
 
-def test_reference_halo_is_smooth_but_not_flat(hidden_sun):
+def test_reference_halo_is_smooth_but_not_flat(hidden_sun_frame):
     """The path tracer's halo varies gently around the silhouette (a flat reference would let anything pass)."""
-    _, light_xy, open_sky, silhouette, reference = hidden_sun
-    profile = _angular_profile(reference, light_xy, open_sky, silhouette, 1.25 * silhouette)
+    _, light_xy, open_sky, silhouette, reference = hidden_sun_frame
+    profile = hidden_sun.angular_profile(reference, light_xy, open_sky, silhouette, 1.25 * silhouette)
     assert 0.02 < profile.std() < 0.1
 
 
-def test_physically_based_halo_has_no_spikes_when_the_sun_is_hidden(hidden_sun):
+def test_physically_based_halo_has_no_spikes_when_the_sun_is_hidden(hidden_sun_frame):
     """Just outside the silhouette, the fitted haze follows the reference's angular profile within 7 %."""
-    assert _halo_error(gr.preset("physically_based"), hidden_sun, 1.0, 1.25) < 0.07
-    assert _halo_error(gr.preset("physically_based"), hidden_sun, 1.25, 1.6) < 0.04
+    assert _halo_error(gr.preset("physically_based"), hidden_sun_frame, 1.0, 1.25) < 0.07
+    assert _halo_error(gr.preset("physically_based"), hidden_sun_frame, 1.25, 1.6) < 0.04
 
 
-def test_full_shadowing_or_a_sky_emitter_spikes_from_the_corners(hidden_sun):
+def test_full_shadowing_or_a_sky_emitter_spikes_from_the_corners(hidden_sun_frame):
     """The measure sees spikes: shadowing the haze wholly, or summing the open sky, doubles the error."""
     fully_shadowed = eqx.tree_at(lambda e: e.shadow_strength, gr.preset("physically_based"), jnp.asarray(1.0))
-    assert _halo_error(fully_shadowed, hidden_sun, 1.0, 1.25) > 0.1
-    assert _halo_error(gr.preset("gpu_gems"), hidden_sun, 1.0, 1.25) > 0.1
+    assert _halo_error(fully_shadowed, hidden_sun_frame, 1.0, 1.25) > 0.1
+    assert _halo_error(gr.preset("gpu_gems"), hidden_sun_frame, 1.0, 1.25) > 0.1

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.pipeline.fit import determination
+from godrays_jax.pipeline.fit import determination, fitted_bounds
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
 TRUTH = gr.GodRays(
@@ -84,3 +84,28 @@ def test_offsets_are_cut_off_at_the_jacobians_own_tolerance(case):
     steps = found.offsets["fov_x_deg"]
     assert set(steps) == {"fov_x_deg", "light_color[0]", "light_color[1]"}, steps
     assert steps["fov_x_deg"] == pytest.approx(16.9, abs=0.1)
+
+
+def test_every_offset_keeps_every_field_inside_its_range_and_fields_on_a_bound_are_named(case):
+    """Issue 24 item 8: the fog solution has sample count 32 on its cap, anisotropy .9499991 on its bound .95 and
+    extinction 5.5e-5 on 0; offsets of its poorly determined fields pushed the count to 43 and shadow strength past 1."""
+    frame, light, _ = case
+    fog = gr.effect_from_dict(FOG_SOLUTION)
+    target = gr.preset("xna_crepuscular")(frame, light)
+    found = determination(fog, frame, light, target, fitted=tuple(gr.parameter_bounds(fog)))
+    bounds = fitted_bounds(fog)
+    assert found.on_bound["num_samples"] == 32.0 and found.on_bound["anisotropy"] == pytest.approx(0.95)
+    assert found.on_bound["extinction"] == 0.0 and "shadow_strength" not in found.on_bound  # .996: near, not on
+    assert {"shadow_strength", "num_samples", "decay"} <= set(found.poorly_determined)
+    for name in found.poorly_determined:
+        for label, step in found.offsets[name].items():
+            field, _, component = label.partition("[")
+            value = np.asarray(getattr(fog, field), np.float64)
+            value = value[int(component[:-1])] if component else float(value)
+            low, high = bounds[field]
+            assert low <= value + step <= high, (name, label, value, step)
+        part_taken = abs(found.offsets[name][name]) / (0.1 * (bounds[name][1] - bounds[name][0]))
+        assert part_taken <= 1 + 1e-9
+        assert found.offset_change[name] == pytest.approx(found.sensitivity[name] * part_taken)
+    # The count sits on its cap: its offset steps down, into the range.
+    assert found.offsets["num_samples"]["num_samples"] < 0

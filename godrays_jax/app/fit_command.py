@@ -125,14 +125,19 @@ def _determination_lines(result, frames, lights, targets, in_front, depths, spac
         result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front,
         light_depth=depths,
     )
+    lines = []
+    if found.on_bound:
+        at = ", ".join(f"{name} at {value:.6g}" for name, value in found.on_bound.items())
+        lines.append(f"on a bound of its fitting range (the frames may ask for a value beyond it): {at}")
     if not found.poorly_determined:
-        return [f"every fitted parameter is determined by the frames (Jacobian condition number {found.condition:.3g})"]
-    lines = [
+        lines.append(f"every fitted parameter is determined by the frames (Jacobian condition number {found.condition:.3g})")
+        return lines
+    lines.append(
         "poorly determined (a step of 10% of its range, offset by the others, changes the frame by less than "
         f"0.001 RMS in {space} space): {', '.join(found.poorly_determined)}"
-    ]
+    )
     for name in found.poorly_determined:
         (own, step), *others = found.offsets[name].items()
         offset = ", ".join(f"{other} {value:+.3g}" for other, value in others) or "nothing (it changes nothing)"
-        lines.append(f"  {own} {step:+.3g} offset by {offset}: {found.sensitivity[name]:.2g} RMS")
+        lines.append(f"  {own} {step:+.3g} offset by {offset}: {found.offset_change[name]:.2g} RMS")
     return lines

@@ -523,7 +523,17 @@ class Determination:
             offsetting steps, in the fields' own units: `{"num_samples":
             {"num_samples": 6.3, "decay": -0.004, "weight": 0.05}}` (a vector
             field's component as `name[k]`; offsets under 1 % of a field's
-            range are left out).
+            range are left out, a field on a bound that the offset would
+            push out holds still). Every field stays inside its fitting range:
+            the step is `change` of the field's range, or the part of it
+            (in either direction) that keeps every offset field inside.
+        offset_change: for each poorly determined field, the RMS change of
+            the image its offsets leave (`sensitivity` times the part of the
+            step taken).
+        on_bound: the fitted fields (components `name[k]`) that sit on a
+            bound of their fitting range, with that bound: `{"num_samples":
+            32.0}` (a cap such as `max_samples` included); the frames may ask
+            for a value beyond it.
         condition: the Jacobian's condition number (largest over smallest
             singular value; `inf` when some combination leaves the image
             unchanged).
@@ -532,6 +542,8 @@ class Determination:
     sensitivity: dict[str, float]
     poorly_determined: tuple[str, ...]
     offsets: dict[str, dict[str, float]]
+    offset_change: dict[str, float]
+    on_bound: dict[str, float]
     condition: float
 
 
@@ -598,12 +610,18 @@ def determination(
         y = _start_point(problem, np.dtype(frames[0].color.dtype))
         frame_data = (frames, lights, targets, in_front, depths)
         jacobian = np.asarray(exported.call("determination_jacobian", _jacobian, problem, y, frame_data), np.float64)
-    owners, labels, spans = [], [], []
+    owners, labels, lows, spans = [], [], [], []
     for name, shape in zip(names, problem.shapes):
         size = math.prod(shape)
         owners += [name] * size
         labels += [name] if size == 1 and not shape else [f"{name}[{k}]" for k in range(size)]
+        lows += [bounds[name][0]] * size
         spans += [bounds[name][1] - bounds[name][0]] * size
+    # Where each unknown sits in its range: 0 on the lower bound, 1 on the upper.
+    position = np.clip(np.asarray(y, np.float64), 0.0, 1.0)
+    pinned = np.minimum(position, 1.0 - position) <= ON_BOUND
+    on_bound = {label: low + span * float(round(where)) for label, low, span, where, on in
+                zip(labels, lows, spans, position, pinned) if on}  # fmt: skip
     # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares offset below
     # are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
     # The cut-off below which `lstsq` treats singular values as zero stays the Jacobian's (it scales with the rows).
@@ -618,21 +636,58 @@ def determination(
         if name not in sensitivity or per_unknown[index] < sensitivity[name]:
             sensitivity[name], worst[name] = float(per_unknown[index]), index
     poorly = tuple(name for name in names if sensitivity[name] < threshold)
-    offsets = {}
+    offsets, offset_change = {}, {}
     for name in poorly:
         index = worst[name]
         others = [k for k in range(len(owners)) if k != index]
-        steps = np.linalg.lstsq(jacobian[:, others], -jacobian[:, index] * change, rcond=cutoff)[0]
-        moves = {labels[index]: change * spans[index]}
-        moves |= {labels[k]: float(step * spans[k]) for k, step in zip(others, steps) if abs(step) >= 0.01}
+        direction = _offset(jacobian, index, others, change, cutoff)
+        # A field on a bound that the offset would push out holds still, and the others offset without it.
+        outward = [
+            k for k in others if pinned[k] and abs(direction[k]) >= 0.01 and (direction[k] > 0) == (position[k] > 0.5)
+        ]
+        if outward:
+            others = [k for k in others if k not in outward]
+            direction = _offset(jacobian, index, others, change, cutoff)
+        direction[np.abs(direction) < 0.01] = 0.0  # offsets under 1 % of a range are left out
+        direction *= _inside_part(position, direction)
+        moves = {labels[index]: float(direction[index] * spans[index])}
+        moves |= {labels[k]: float(direction[k] * spans[k]) for k in others if direction[k] != 0}
         offsets[name] = moves
+        offset_change[name] = sensitivity[name] * abs(direction[index]) / change
     smallest = singular.min()
     return Determination(
         sensitivity=sensitivity,
         poorly_determined=poorly,
         offsets=offsets,
+        offset_change=offset_change,
+        on_bound=on_bound,
         condition=float(singular.max() / smallest) if smallest > 0 else math.inf,
     )
+
+
+ON_BOUND = 1e-4
+"""A fitted value within this fraction of its range from a bound sits on that bound."""
+
+
+def _offset(jacobian, index, others, change, cutoff):
+    """Unknown `index` stepped by `change` and the `others` moved to offset it (least squares), the rest still."""
+    direction = np.zeros(jacobian.shape[1])
+    direction[index] = change
+    direction[others] = np.linalg.lstsq(jacobian[:, others], -jacobian[:, index] * change, rcond=cutoff)[0]
+    return direction
+
+
+def _inside_part(position, direction) -> float:
+    """The signed part `t` of a step, `|t| <= 1`, that keeps `position + t * direction` inside [0, 1] everywhere.
+
+    An offset is a line through the solution, so either direction shows it;
+    the one that keeps more of the step is taken (forward on a tie).
+    """
+    moving = direction != 0
+    ahead = np.where(direction > 0, 1.0 - position, -position)[moving] / direction[moving]
+    behind = np.where(direction > 0, position, position - 1.0)[moving] / direction[moving]
+    forward, backward = min(1.0, *ahead), min(1.0, *behind)
+    return forward if forward >= backward else -backward
 
 
 def default_fit_effect() -> Effect:

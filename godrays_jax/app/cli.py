@@ -250,7 +250,7 @@ def _add_fit(subparsers) -> None:
         "godrays:light_depth metadata, else inf",
     )  # fmt: skip
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: participating_media, ScatteringFog)")
+    group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: volumetric_haze, VolumetricFog)")
     group.add_argument("--params", metavar="FILE", help="start from parameters saved as JSON")
     _add_frame_options(parser)
     parser.add_argument("-o", "--output", required=True, help="where to write the fitted parameters (JSON)")

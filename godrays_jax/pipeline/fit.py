@@ -691,17 +691,16 @@ def _inside_part(position, direction) -> float:
 
 
 def default_fit_effect() -> Effect:
-    """The model `godrays-jax fit` starts from without `--preset` / `--params`: `preset("participating_media")`.
+    """The model `godrays-jax fit` starts from without `--preset` / `--params`: `preset("volumetric_haze")`.
 
-    Chosen from the physically based comparison in `benchmarks/bench_fit.py`
-    (table in `benchmarks/fit_results.md`): against a volumetric path tracer's
-    fog, every additive effect (god rays, flare-outs, overcast glow, bloom, lens
-    dirt) can only add light onto the clean frame, while real fog also removes
-    it (the fog frame is about half as bright); `ScatteringFog` models both
-    extinction and in-scattering and fits that frame best by a wide margin.
+    Chosen by fitting the path-traced references (`benchmarks/fit_volumetric.py`, table in
+    `benchmarks/README.md`): against a volumetric path tracer's fog, additive effects can only add
+    light while real fog also removes it; of the two media, `VolumetricFog` (each view ray lit
+    segment by segment, its shadows read from the depth buffer) fits every reference measured
+    closer than `ScatteringFog` (one lit fraction per ray from a radial blur of the open sky).
     When the camera's field of view is known, set it and keep it fixed
-    (`fixed=("fov_x_deg", ...)`).
+    (`fixed=("fov_x_deg", ...)`); the command line does so when the frame carries it.
     """
-    return preset("participating_media")
+    return preset("volumetric_haze")
 
 

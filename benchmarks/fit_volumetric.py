@@ -1,0 +1,87 @@
+"""`VolumetricFog` against the path-traced references, through the command line with its defaults.
+
+    python benchmarks/fit_volumetric.py [SCENE ...] [--report DIR]
+
+Per scene (`benchmarks/references/scenes.py`): `godrays-jax fit CLEAN FOG_A -o
+params.json` (the default model, `VolumetricFog` from `volumetric_haze`; light,
+its distance and the field of view from the frames' headers), then
+`godrays-jax apply CLEAN --params params.json -o out.exr`; the display-space
+MSE (`x / (1 + |x|)` per channel, the fit's loss) of `out.exr` against both
+fog renders as ratios to the scene's noise floor, beside `ScatteringFog`'s
+(`references/baseline.json`, the same commands on the previous default).
+Robustness: `--starts` also fits from `physically_based` and `participating`
+starts given as presets and prints the spread of the final losses. Results go
+to `fit_volumetric.json` beside this script; `uptime` is printed first (the
+machine is shared: times are wall seconds under that load).
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE / "references"))
+from baseline import display_mse, read_rgb  # noqa: E402  (the references' folder joins the path first)
+from scenes import BY_NAME, HERE as REFERENCES, SCENES  # noqa: E402
+
+RESULTS = HERE / "fit_volumetric.json"
+
+
+def _run(*arguments: str) -> float:
+    start = time.perf_counter()
+    subprocess.run(["godrays-jax", *arguments], check=True, capture_output=True, text=True)
+    return time.perf_counter() - start
+
+
+def fit_scene(scene, folder: Path, preset: str | None, report: Path | None) -> dict:
+    params, output = folder / f"{scene.name}_{preset or 'default'}.json", folder / f"{scene.name}.exr"
+    options = ["--preset", preset] if preset else []
+    if report is not None:
+        options += ["--report", str(report / f"fit_report_{scene.name}.png")]
+    seconds = _run("fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *options)
+    seconds += _run("apply", str(scene.clean), "--params", str(params), "-o", str(output))
+    fogged = read_rgb(output)
+    return {
+        "ratio_fog_a": display_mse(fogged, read_rgb(scene.fog_a)) / scene.noise_floor,
+        "ratio_fog_b": display_mse(fogged, read_rgb(scene.fog_b)) / scene.noise_floor,
+        "seconds": round(seconds, 1),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("scenes", nargs="*", help=f"default: all of {', '.join(BY_NAME)}")
+    parser.add_argument("--starts", nargs="*", default=[], help="presets to fit from besides the default")
+    parser.add_argument("--report", type=Path, help="write each fit's report PNG here")
+    args = parser.parse_args()
+    print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
+    scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)
+    baseline = json.loads((REFERENCES / "baseline.json").read_text())
+    results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    print("| scene | floor | ScatteringFog / floor (fog A, B) | VolumetricFog / floor (fog A, B) | seconds |")
+    print("|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as folder:
+        for scene in scenes:
+            entry = fit_scene(scene, Path(folder), None, args.report)
+            for preset in args.starts:
+                entry[f"ratio_fog_a_from_{preset}"] = fit_scene(scene, Path(folder), preset, None)["ratio_fog_a"]
+            results[scene.name] = entry
+            RESULTS.write_text(json.dumps(results, indent=1) + "\n")
+            old = baseline.get(scene.name, {})
+            before = f"{old['ratio_fog_a']:.2f}, {old['ratio_fog_b']:.2f}" if old else "not measured"
+            print(f"| {scene.name} | {scene.noise_floor:.3g} | {before} | {entry['ratio_fog_a']:.2f}, "
+                  f"{entry['ratio_fog_b']:.2f} | {entry['seconds']} |", flush=True)  # fmt: skip
+            starts = [entry[key] for key in entry if key.startswith("ratio_fog_a_from_")]
+            if starts:
+                spread = (max([entry["ratio_fog_a"], *starts]) / min([entry["ratio_fog_a"], *starts]) - 1) * 100
+                print(f"  from {', '.join(args.starts)}: {', '.join(f'{s:.3f}' for s in starts)}; spread {spread:.1f} %")
+
+
+if __name__ == "__main__":
+    main()

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.pipeline.fit import determination, fitted_bounds
+from godrays_jax.pipeline.determination import determination
+from godrays_jax.pipeline.problem import fitted_bounds
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
 TRUTH = gr.GodRays(

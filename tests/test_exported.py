@@ -12,7 +12,9 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.fit import determination, fit, render_compiled
+from godrays_jax.pipeline.compiled import render_compiled
+from godrays_jax.pipeline.determination import determination
+from godrays_jax.pipeline.fit import fit
 from godrays_jax.primitives.checks import ranges_guaranteed
 
 

@@ -10,7 +10,8 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
-from godrays_jax.pipeline.fit import _from_unit, _to_unit, fit, fitted_bounds, round_counts
+from godrays_jax.pipeline.fit import fit, round_counts
+from godrays_jax.pipeline.problem import fitted_bounds, from_unit, to_unit
 
 HEIGHT, WIDTH = 24, 32
 
@@ -126,7 +127,7 @@ def test_a_fit_compiles_only_its_own_steps(caplog):
     with jax.log_compiles(), caplog.at_level("WARNING"):
         fit(effect, frame, LIGHT, target, fixed=fixed, max_steps=3)
     compiled = {r.getMessage().split()[4] for r in caplog.records if r.getMessage().startswith("Finished XLA")}
-    assert compiled == {f"jit({name})" for name in ("_start_point", "_init", "_step", "_evaluate", "_fitted_effects")}
+    assert compiled == {f"jit({name})" for name in ("start_point", "_init", "_step", "_evaluate", "_fitted_effects")}
 
 
 def test_a_repeated_fit_traces_and_compiles_nothing(caplog, monkeypatch):
@@ -161,13 +162,13 @@ def test_minimiser_with_ssim_loss_improves_and_counts_round():
 
 def test_reparameterisation_stays_in_bounds_with_unit_slope():
     units = np.linspace(-3.0, 4.0, 141)
-    values = np.asarray(_from_unit(jnp.asarray(units), 0.5, 1.0))
+    values = np.asarray(from_unit(jnp.asarray(units), 0.5, 1.0))
     assert values.min() >= 0.5 and values.max() <= 1.0
     np.testing.assert_allclose(np.abs(np.diff(values)), 0.5 * np.diff(units), atol=1e-6)  # slope never vanishes
-    np.testing.assert_allclose(_from_unit(_to_unit(0.93, 0.5, 1.0), 0.5, 1.0), 0.93, rtol=1e-6)
+    np.testing.assert_allclose(from_unit(to_unit(0.93, 0.5, 1.0), 0.5, 1.0), 0.93, rtol=1e-6)
     # A start on either bound still has unit slope (presets put decay on its upper bound, counts on their caps).
     for unit in (0.0, 1.0):
-        assert float(jax.grad(lambda u: _from_unit(u, 0.5, 1.0))(unit)) == pytest.approx(0.5)
+        assert float(jax.grad(lambda u: from_unit(u, 0.5, 1.0))(unit)) == pytest.approx(0.5)
 
 
 def test_bounds_are_capped_by_static_loop_lengths():

@@ -158,7 +158,8 @@ def test_vbex_presets_take_the_frames_field_of_view(tmp_path, command):
 
 def test_fit_reads_the_lights_distance(tmp_path, capsys):
     """`fit` renders with the light's distance the frame stores (`godrays:light_depth`), as `apply` does."""
-    from godrays_jax.pipeline.fit import fit, render_compiled
+    from godrays_jax.pipeline.compiled import render_compiled
+    from godrays_jax.pipeline.fit import fit
 
     height, width = 18, 32
     depth = np.full((height, width), np.inf, np.float32)

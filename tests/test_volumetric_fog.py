@@ -10,7 +10,8 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.effects.serialization import load_effect, save_effect
 from godrays_jax.effects.volumetric import march_factor
-from godrays_jax.pipeline.fit import fit, render_compiled
+from godrays_jax.pipeline.compiled import render_compiled
+from godrays_jax.pipeline.fit import fit
 
 HEIGHT, WIDTH = 12, 16
 

@@ -10,6 +10,7 @@ from godrays_jax.app.options import (
     NO_SKY,
     CommandError,
     check_output_path,
+    default_fit_effect,
     effect_for_frame,
     effect_option,
     frame_field_of_view,
@@ -24,12 +25,9 @@ from godrays_jax.app.options import (
 )
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
-from godrays_jax.pipeline.fit import (
-    default_fit_effect,
-    determination,
-    fit,
-    render_compiled,
-)
+from godrays_jax.pipeline.compiled import render_compiled
+from godrays_jax.pipeline.determination import determination
+from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
 from godrays_jax.primitives.images import write_image

@@ -25,6 +25,20 @@ DEFAULT_PRESET = "xna_crepuscular"
 """The effect `apply`, `batch` and `tune` use without `--preset` / `--params`."""
 
 
+def default_fit_effect() -> Effect:
+    """The model `godrays-jax fit` starts from without `--preset` / `--params`: `preset("volumetric_haze")`.
+
+    Chosen by fitting the path-traced references (`benchmarks/fit_volumetric.py`, table in
+    `benchmarks/README.md`): against a volumetric path tracer's fog, additive effects can only add
+    light while real fog also removes it; of the two media, `VolumetricFog` (each view ray lit
+    segment by segment, its shadows read from the depth buffer) fits every reference measured
+    closer than `ScatteringFog` (one lit fraction per ray from a radial blur of the open sky).
+    When the camera's field of view is known, set it and keep it fixed
+    (`fixed=("fov_x_deg", ...)`); the command line does so when the frame carries it.
+    """
+    return preset("volumetric_haze")
+
+
 class CommandError(Exception):
     """A user error the CLI reports as one line (no traceback)."""
 

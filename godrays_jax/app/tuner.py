@@ -28,7 +28,8 @@ from godrays_jax.effects.serialization import (
     effect_to_dict,
     save_effect,
 )
-from godrays_jax.pipeline.fit import fit, fitted_bounds
+from godrays_jax.pipeline.fit import fit
+from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, error_line, ranges_guaranteed
 from godrays_jax.primitives.color import display_map, to_srgb8

@@ -1,0 +1,45 @@
+"""`render_compiled`: an effect's frame compiled once and stored (`exported`), its fields checked beforehand."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from godrays_jax.effects.base import Effect
+from godrays_jax.pipeline import exported
+from godrays_jax.pipeline.problem import check_inside_bounds
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import ranges_guaranteed
+
+
+def render_compiled(
+    effect: Effect,
+    buffers: Buffers,
+    light_xy: Float[ArrayLike, "2"],
+    light_in_front: bool,
+    light_depth: Float[ArrayLike, ""] = math.inf,
+) -> Float[Array, "H W C"]:
+    """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own).
+
+    Known fields are checked against their bounds here, so that the compiled
+    render carries no run-time range check and can be stored (`exported`):
+    `ValueError` naming a field outside them. Traced fields (a call inside
+    `jit`) are checked by the kernels when the program runs.
+    """
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(effect)):
+        return _render(effect, buffers, light_xy, light_in_front, light_depth, True)  # traced fields: checked when run
+    check_inside_bounds(effect)
+    light_depth = jnp.asarray(np.asarray(light_depth, buffers.color.dtype))
+    return exported.call("render", _render, effect, buffers, light_xy, light_in_front, light_depth, False)
+
+
+@eqx.filter_jit
+def _render(effect, buffers, light_xy, light_in_front, light_depth, checked):
+    """`checked` is static: a render traced without range checks is never reused for one that needs them."""
+    if checked:
+        return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+    with ranges_guaranteed():
+        return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)

@@ -1,0 +1,215 @@
+"""How well a fit's frames determine each fitted field (`determination`), from the Jacobian at the solution."""
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
+
+from godrays_jax.effects.base import Effect, parameter_bounds
+from godrays_jax.kernels.losses import Space, check_space
+from godrays_jax.pipeline import exported
+from godrays_jax.pipeline.problem import (
+    FitProblem,
+    as_frames,
+    check_inside_bounds,
+    fitted_bounds,
+    start_point,
+    strongly_typed,
+)
+from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import ranges_guaranteed
+
+
+@eqx.filter_jit
+def _jacobian(problem, y, frame_data):
+    """The residuals' Jacobian in the unit-scaled unknowns, `(residuals, unknowns)`, one JVP per unknown."""
+    basis = jnp.eye(y.shape[0], dtype=y.dtype)
+    tangents = jax.vmap(lambda direction: jax.jvp(lambda flat: problem.residuals(flat, frame_data), (y,), (direction,))[1])
+    return tangents(basis).T
+
+
+@dataclasses.dataclass(frozen=True)
+class Determination:
+    """How well a fit's frames pin each fitted field down (`determination`).
+
+    Attributes:
+        sensitivity: field -> the RMS change of the compared image (in the
+            fit's space) when the field moves by `change` of its fitting range
+            and the other fitted fields move to offset it as well as they can;
+            for a vector field, its least determined component.
+        poorly_determined: the fields whose sensitivity is below `threshold`,
+            in fitting order.
+        offsets: for each poorly determined field, its step and the others'
+            offsetting steps, in the fields' own units: `{"num_samples":
+            {"num_samples": 6.3, "decay": -0.004, "weight": 0.05}}` (a vector
+            field's component as `name[k]`; offsets under 1 % of a field's
+            range are left out, a field on a bound that the offset would
+            push out holds still). Every field stays inside its fitting range:
+            the step is `change` of the field's range, or the part of it
+            (in either direction) that keeps every offset field inside.
+        offset_change: for each poorly determined field, the RMS change of
+            the image its offsets leave (`sensitivity` times the part of the
+            step taken).
+        on_bound: the fitted fields (components `name[k]`) that sit on a
+            bound of their fitting range, with that bound: `{"num_samples":
+            32.0}` (a cap such as `max_samples` included); the frames may ask
+            for a value beyond it.
+        condition: the Jacobian's condition number (largest over smallest
+            singular value; `inf` when some combination leaves the image
+            unchanged).
+    """
+
+    sensitivity: dict[str, float]
+    poorly_determined: tuple[str, ...]
+    offsets: dict[str, dict[str, float]]
+    offset_change: dict[str, float]
+    on_bound: dict[str, float]
+    condition: float
+
+
+def determination(
+    effect: Effect,
+    buffers: Buffers | Sequence[Buffers],
+    light_xy: Float[ArrayLike, "2"] | Sequence[Float[ArrayLike, "2"]],
+    target: Float[ArrayLike, "H W C"] | Sequence[Float[ArrayLike, "H W C"]],
+    *,
+    fitted: Sequence[str],
+    space: Space = "display",
+    light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
+    light_depth: float | Sequence[float] = math.inf,
+    change: float = 0.1,
+    threshold: float = 1e-3,
+) -> Determination:
+    """Which fitted fields the frames determine poorly, from the Jacobian at a fit's solution.
+
+    `J` is the Jacobian of the per-pixel differences (the residuals of the
+    MSE in `space`, scaled so that `|r|^2` is the mean squared error) with
+    respect to the fields in units of their fitting ranges (`fitted_bounds`).
+    Moving field `i` by `change` of its range while the others offset it
+    optimally (least squares) changes the image by `change / sqrt(inv(J^T
+    J)_ii)` RMS; the field is poorly determined when that is below
+    `threshold` (the default, 1e-3 in display space, is a quarter of an 8-bit
+    step: a change nobody sees). The answer depends on the frames: a field is
+    determined only as far as their pixels show it.
+
+    Args:
+        effect: the solution (e.g. `FitResult.effect`); values inside bounds.
+        buffers, light_xy, target, light_in_front, light_depth: as for `fit`.
+        fitted: the fields to examine (e.g. `FitResult.fitted`).
+        space: `"display"` or `"linear"`, as the fit compared.
+        change: the step, a fraction of each field's range (> 0).
+        threshold: RMS image change below which a step goes unseen (> 0).
+
+    Raises:
+        ValueError: an unknown or static field in `fitted`, bad frames, or a
+            non-positive `change` / `threshold`.
+    """
+    if not (change > 0 and threshold > 0):
+        raise ValueError(f"change and threshold must be > 0, got {change!r} and {threshold!r}")
+    check_space(space)
+    effect = jax.tree.map(strongly_typed, effect)
+    frames, lights, targets, in_front, depths = as_frames(buffers, light_xy, target, light_in_front, light_depth)
+    every = parameter_bounds(effect)
+    if not fitted or not set(fitted) <= set(every):
+        raise ValueError(f"fitted must name fittable fields of {type(effect).__name__}, got {list(fitted)}")
+    check_inside_bounds(effect)
+    bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
+    names = tuple(bounds)
+    total_pixels = sum(frame.height * frame.width for frame in frames)
+    problem = FitProblem(
+        effect=effect,
+        names=names,
+        bounds=tuple(bounds[name] for name in names),
+        shapes=tuple(tuple(np.shape(getattr(effect, name))) for name in names),
+        frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
+        loss="mse",
+        space=space,
+    )
+    # The unknowns map into the fields' bounds (as in `fit`): no run-time range check, so the cache keeps the Jacobian.
+    with jax.default_matmul_precision("highest"), ranges_guaranteed():
+        y = start_point(problem, np.dtype(frames[0].color.dtype))
+        frame_data = (frames, lights, targets, in_front, depths)
+        jacobian = np.asarray(exported.call("determination_jacobian", _jacobian, problem, y, frame_data), np.float64)
+    owners, labels, lows, spans = [], [], [], []
+    for name, shape in zip(names, problem.shapes):
+        size = math.prod(shape)
+        owners += [name] * size
+        labels += [name] if size == 1 and not shape else [f"{name}[{k}]" for k in range(size)]
+        lows += [bounds[name][0]] * size
+        spans += [bounds[name][1] - bounds[name][0]] * size
+    # Where each unknown sits in its range: 0 on the lower bound, 1 on the upper.
+    position = np.clip(np.asarray(y, np.float64), 0.0, 1.0)
+    pinned = np.minimum(position, 1.0 - position) <= ON_BOUND
+    on_bound = {label: low + span * float(round(where)) for label, low, span, where, on in
+                zip(labels, lows, spans, position, pinned) if on}  # fmt: skip
+    # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares offset below
+    # are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
+    # The cut-off below which `lstsq` treats singular values as zero stays the Jacobian's (it scales with the rows).
+    cutoff = np.finfo(np.float64).eps * max(jacobian.shape)
+    jacobian = np.linalg.qr(jacobian, mode="r")
+    singular, vectors = np.linalg.svd(jacobian, full_matrices=False)[1:]
+    floor = singular.max() * 1e-12 + 1e-300
+    inverse_diagonal = ((vectors.T / np.maximum(singular, floor)) ** 2).sum(axis=1)
+    per_unknown = change / np.sqrt(inverse_diagonal)
+    sensitivity, worst = {}, {}
+    for index, name in enumerate(owners):
+        if name not in sensitivity or per_unknown[index] < sensitivity[name]:
+            sensitivity[name], worst[name] = float(per_unknown[index]), index
+    poorly = tuple(name for name in names if sensitivity[name] < threshold)
+    offsets, offset_change = {}, {}
+    for name in poorly:
+        index = worst[name]
+        others = [k for k in range(len(owners)) if k != index]
+        direction = _offset(jacobian, index, others, change, cutoff)
+        # A field on a bound that the offset would push out holds still, and the others offset without it.
+        outward = [
+            k for k in others if pinned[k] and abs(direction[k]) >= 0.01 and (direction[k] > 0) == (position[k] > 0.5)
+        ]
+        if outward:
+            others = [k for k in others if k not in outward]
+            direction = _offset(jacobian, index, others, change, cutoff)
+        direction[np.abs(direction) < 0.01] = 0.0  # offsets under 1 % of a range are left out
+        direction *= _inside_part(position, direction)
+        moves = {labels[index]: float(direction[index] * spans[index])}
+        moves |= {labels[k]: float(direction[k] * spans[k]) for k in others if direction[k] != 0}
+        offsets[name] = moves
+        offset_change[name] = sensitivity[name] * abs(direction[index]) / change
+    smallest = singular.min()
+    return Determination(
+        sensitivity=sensitivity,
+        poorly_determined=poorly,
+        offsets=offsets,
+        offset_change=offset_change,
+        on_bound=on_bound,
+        condition=float(singular.max() / smallest) if smallest > 0 else math.inf,
+    )
+
+
+ON_BOUND = 1e-4
+"""A fitted value within this fraction of its range from a bound sits on that bound."""
+
+
+def _offset(jacobian, index, others, change, cutoff):
+    """Unknown `index` stepped by `change` and the `others` moved to offset it (least squares), the rest still."""
+    direction = np.zeros(jacobian.shape[1])
+    direction[index] = change
+    direction[others] = np.linalg.lstsq(jacobian[:, others], -jacobian[:, index] * change, rcond=cutoff)[0]
+    return direction
+
+
+def _inside_part(position, direction) -> float:
+    """The signed part `t` of a step, `|t| <= 1`, that keeps `position + t * direction` inside [0, 1] everywhere.
+
+    An offset is a line through the solution, so either direction shows it;
+    the one that keeps more of the step is taken (forward on a tie).
+    """
+    moving = direction != 0
+    ahead = np.where(direction > 0, 1.0 - position, -position)[moving] / direction[moving]
+    behind = np.where(direction > 0, position, position - 1.0)[moving] / direction[moving]
+    forward, backward = min(1.0, *ahead), min(1.0, *behind)
+    return forward if forward >= backward else -backward

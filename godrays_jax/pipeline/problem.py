@@ -1,0 +1,177 @@
+"""What a fit solves: the fitted fields' bounds, the frames normalised, the unknowns mapped into the bounds, the
+residuals and the loss; `fit` and `determination` share it."""
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from godrays_jax.effects.base import Effect, field_metadata, parameter_bounds
+from godrays_jax.kernels.losses import LOSSES, to_space
+from godrays_jax.primitives.buffers import Buffers
+
+
+def fitted_bounds(effect: Effect, *, fixed: Sequence[str] = ()) -> dict[str, tuple[float, float]]:
+    """`{field: (low, high)}` for the fields `fit` would fit: bounds capped by their static caps (`FieldInfo.cap`).
+
+    Raises `ValueError` naming `fixed` if it lists a field that is not fittable.
+    """
+    bounds = parameter_bounds(effect)
+    unknown = sorted(set(fixed) - set(bounds))
+    if unknown:
+        raise ValueError(
+            f"fixed names unknown or static field(s) {', '.join(unknown)}; fittable: {', '.join(bounds)}"
+        )
+    infos = field_metadata(effect)
+    result = {}
+    for name, (low, high) in bounds.items():
+        if name in fixed:
+            continue
+        if infos[name].cap is not None:
+            high = min(high, float(getattr(effect, infos[name].cap)))
+        result[name] = (float(low), float(high))
+    if not result:
+        raise ValueError("fixed leaves no parameter to fit")
+    return result
+
+
+def to_unit(value, low, high):
+    return (value - low) / (high - low)
+
+
+def from_unit(unit, low, high):
+    folded = jnp.mod(unit, 2.0)
+    # Not `1 - |1 - folded|`: the derivative of |x| at 0 is 0, which would pin a start on the upper bound.
+    return low + (high - low) * jnp.where(folded <= 1.0, folded, 2.0 - folded)
+
+
+def _per_frame(value, count, name):
+    """One value per frame from a scalar (or bool) or a sequence of `count`."""
+    values = [value] * count if isinstance(value, bool) or np.ndim(value) == 0 else list(value)
+    if len(values) != count:
+        raise ValueError(f"{name} must be one value or one per frame ({count})")
+    return values
+
+
+def as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf):
+    """Normalise one frame or a sequence of frames into equal-length lists."""
+    if isinstance(buffers, Buffers):
+        buffers, light_xy, target, light_in_front = [buffers], [light_xy], [target], [light_in_front]
+        light_depth = [light_depth]
+    else:
+        buffers = list(buffers)
+        count = len(buffers)
+        if count == 0:
+            raise ValueError("buffers must hold at least one frame")
+        if not all(isinstance(frame, Buffers) for frame in buffers):
+            raise ValueError("buffers must be a Buffers or a sequence of Buffers")
+        light_array = np.asarray(light_xy, dtype=np.float64)
+        if light_array.shape != (count, 2):
+            raise ValueError(f"light_xy must hold one (x, y) per frame ({count}), got shape {light_array.shape}")
+        light_xy = list(light_array)
+        if isinstance(target, (list, tuple)):
+            target = list(target)
+        elif jnp.ndim(target) == 4:
+            target = [target[i] for i in range(target.shape[0])]
+        else:
+            raise ValueError(f"target must hold one image per frame ({count})")
+        if len(target) != count:
+            raise ValueError(f"target must hold one image per frame ({count}), got {len(target)}")
+        light_in_front = _per_frame(light_in_front, count, "light_in_front")
+        light_depth = _per_frame(light_depth, count, "light_depth")
+    lights, targets = [], []
+    for index, (frame, light, image) in enumerate(zip(buffers, light_xy, target)):
+        light = jnp.asarray(light, frame.color.dtype)
+        if light.shape != (2,):
+            raise ValueError(f"light_xy[{index}] must be (x, y) in pixels, got shape {light.shape}")
+        image = jnp.asarray(image, frame.color.dtype)
+        if image.ndim != 3 or image.shape[:2] != frame.color.shape[:2]:
+            raise ValueError(
+                f"target[{index}] must be (H, W, C) with the frame's size {frame.color.shape[:2]}, got {image.shape}"
+            )
+        lights.append(light)
+        targets.append(image)
+    depths = []
+    for index, (frame, depth) in enumerate(zip(buffers, light_depth)):
+        depth = np.asarray(depth, np.float64)
+        if depth.shape != () or not depth > 0:
+            raise ValueError(f"light_depth[{index}] must be a distance > 0 in scene units (inf: the sun), got {depth}")
+        depths.append(jnp.asarray(np.asarray(depth, frame.color.dtype)))
+    # From NumPy: `jnp.asarray(True)` compiles a conversion.
+    return buffers, lights, targets, [jnp.asarray(np.asarray(flag)) for flag in light_in_front], depths
+
+
+def _match_channels(image, target):
+    channels = min(image.shape[-1], target.shape[-1], 3)
+    return image[..., :channels], target[..., :channels]
+
+
+class FitProblem(eqx.Module):
+    """What a fit's objective needs besides the unknowns; static fields make compilations reusable.
+
+    Every field but `effect` is static and hashable, and the objective
+    functions below are module-level, so two fits of the same effect type,
+    fitted names, frame sizes and options reuse one compiled solver step.
+    """
+
+    effect: Effect
+    names: tuple[str, ...] = eqx.field(static=True)
+    bounds: tuple[tuple[float, float], ...] = eqx.field(static=True)
+    shapes: tuple[tuple[int, ...], ...] = eqx.field(static=True)
+    frame_weights: tuple[float, ...] = eqx.field(static=True)
+    loss: str = eqx.field(static=True)
+    space: str = eqx.field(static=True)
+
+    def effect_at(self, y):
+        """The effect with the fitted fields set from the flat unit-scaled unknowns `y`."""
+        values, offset = [], 0
+        for name, (low, high), shape in zip(self.names, self.bounds, self.shapes):
+            size = math.prod(shape)
+            unit = jnp.reshape(y[offset : offset + size], shape)
+            values.append(from_unit(unit, low, high).astype(getattr(self.effect, name).dtype))
+            offset += size
+        return eqx.tree_at(lambda e: [getattr(e, n) for n in self.names], self.effect, values)
+
+    def rendered(self, candidate, frame_data):
+        for frame, light, image, front, depth in zip(*frame_data):
+            yield _match_channels(candidate(frame, light, light_in_front=front, light_depth=depth), image)
+
+    def residuals(self, y, frame_data):
+        parts = [
+            jnp.ravel(to_space(image, self.space) - to_space(reference, self.space)) * math.sqrt(weight / reference.size)
+            for (image, reference), weight in zip(self.rendered(self.effect_at(y), frame_data), self.frame_weights)
+        ]
+        return jnp.concatenate(parts)
+
+    def objective(self, candidate, frame_data):
+        return sum(
+            weight * LOSSES[self.loss](image, reference, space=self.space)
+            for (image, reference), weight in zip(self.rendered(candidate, frame_data), self.frame_weights)
+        )
+
+
+def check_inside_bounds(effect: Effect) -> None:
+    """`ValueError` naming the first fittable field outside its fitting range (`fitted_bounds`)."""
+    for name, (low, high) in fitted_bounds(effect).items():
+        value = np.asarray(getattr(effect, name))
+        if not np.all((value >= low) & (value <= high)):
+            raise ValueError(f"effect.{name} = {value.tolist()} lies outside its fitting range [{low:g}, {high:g}]")
+
+
+@eqx.filter_jit
+def start_point(problem, dtype):
+    """The flat unit-scaled unknowns of the starting effect."""
+    return jnp.concatenate([
+        jnp.ravel(to_unit(jnp.asarray(getattr(problem.effect, name), dtype), low, high))
+        for name, (low, high) in zip(problem.names, problem.bounds)
+    ])  # fmt: skip
+
+
+def strongly_typed(leaf):
+    """A weakly typed array (`jnp.asarray(0.5)`) as a strongly typed one; converted on the host (no compilation)."""
+    if isinstance(leaf, jax.Array) and leaf.weak_type:
+        return jax.device_put(np.asarray(leaf))
+    return leaf

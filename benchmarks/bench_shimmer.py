@@ -120,8 +120,8 @@ def converged(effect, oversample: int, *, same_target: bool = False):
     static = {name: value for name, value in static.items() if hasattr(changed, name)}
     # Loops longer than a user may ask for: the ranges bound what fits, the tuner and params files set.
     with (
-        mock.patch("godrays_jax.effects.base._check_static"),
-        mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}),
+        mock.patch("godrays_jax.effects.fields._check_static"),
+        mock.patch("godrays_jax.effects.fields.parameter_bounds", lambda effect: {}),
     ):
         return dataclasses.replace(changed, **static)
 

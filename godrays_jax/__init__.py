@@ -78,12 +78,12 @@ from godrays_jax.kernels.volumetric import volumetric_fog_terms as volumetric_fo
 
 # Effects: parameter sets (equinox Modules), presets, serialisation.
 from godrays_jax.effects.base import Effect as Effect
-from godrays_jax.effects.base import FieldInfo as FieldInfo
-from godrays_jax.effects.base import field_metadata as field_metadata
 from godrays_jax.effects.base import light_visibility as light_visibility
 from godrays_jax.effects.base import needs_depth as needs_depth
-from godrays_jax.effects.base import parameter_bounds as parameter_bounds
-from godrays_jax.effects.base import size_fields as size_fields
+from godrays_jax.effects.fields import FieldInfo as FieldInfo
+from godrays_jax.effects.fields import field_metadata as field_metadata
+from godrays_jax.effects.fields import parameter_bounds as parameter_bounds
+from godrays_jax.effects.fields import size_fields as size_fields
 from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
 from godrays_jax.effects.volumetric import VolumetricFog as VolumetricFog
 from godrays_jax.effects.glow import Bloom as Bloom

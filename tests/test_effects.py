@@ -11,7 +11,7 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from godrays_jax.effects.base import parameter_bounds
+from godrays_jax.effects.fields import parameter_bounds
 from frames import HEIGHT, LIGHT, WIDTH, make_frame, small
 
 LIGHT_DEPTH = 1000.0

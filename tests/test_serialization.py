@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.effects.base import effect_class, plain_value, renamed_fields
+from godrays_jax.effects.base import effect_class
+from godrays_jax.effects.fields import plain_value, renamed_fields
 
 
 def test_saved_json_holds_the_shortest_decimals_that_read_back_to_the_same_float32(tmp_path):

@@ -54,8 +54,8 @@ def _converged(effect):
     if isinstance(effect, gr.GodRays):
         values |= dict(weight=effect.weight / OVERSAMPLE, method="exact")
     with (
-        mock.patch("godrays_jax.effects.base._check_static"),
-        mock.patch("godrays_jax.effects.base.parameter_bounds", lambda effect: {}),
+        mock.patch("godrays_jax.effects.fields._check_static"),
+        mock.patch("godrays_jax.effects.fields.parameter_bounds", lambda effect: {}),
     ):
         return dataclasses.replace(effect, max_samples=count, **values)
 

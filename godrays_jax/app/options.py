@@ -10,7 +10,8 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from godrays_jax.effects.base import MAX_TEXTURE_SIDE, Effect
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.fields import MAX_TEXTURE_SIDE
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.primitives.buffers import Buffers

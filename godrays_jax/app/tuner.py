@@ -21,7 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
-from godrays_jax.effects.base import Effect, count_fields, size_fields
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.fields import count_fields, size_fields
 from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import (
     effect_from_dict,

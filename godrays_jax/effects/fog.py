@@ -7,7 +7,8 @@ from typing import ClassVar
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from godrays_jax.effects.base import Effect, count_param, frame_ray_depth, light_visibility, param, static
+from godrays_jax.effects.base import Effect, frame_ray_depth, light_visibility
+from godrays_jax.effects.fields import count_param, param, static
 from godrays_jax.kernels.masks import coverage_mask
 from godrays_jax.kernels.media import apply_fog, in_scattering
 from godrays_jax.kernels.rays import radial_rays

@@ -9,20 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from godrays_jax.effects.base import (
-    MAX_SEED,
-    Effect,
-    Units,
-    count_param,
-    frame_ray_depth,
-    light_visibility,
-    param,
-    pixels_per_unit,
-    reach_taps,
-    size_param,
-    size_reach,
-    static,
-)
+from godrays_jax.effects.base import Effect, Units, frame_ray_depth, light_visibility, pixels_per_unit, reach_taps
+from godrays_jax.effects.fields import MAX_SEED, count_param, param, size_param, size_reach, static
 from godrays_jax.kernels.blur import bloom, gaussian_blur, poisson_blur
 from godrays_jax.kernels.composite import BlendMode
 from godrays_jax.kernels.lens import (

@@ -7,7 +7,8 @@ import warnings
 
 import numpy as np
 
-from godrays_jax.effects.base import Effect, effect_class, field_metadata, plain_value, renamed_fields
+from godrays_jax.effects.base import Effect, effect_class
+from godrays_jax.effects.fields import field_metadata, plain_value, renamed_fields
 from godrays_jax.primitives.files import atomic_write
 
 

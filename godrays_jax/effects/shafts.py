@@ -14,18 +14,13 @@ from godrays_jax.effects.base import (
     SceneMask,
     Source,
     Units,
-    count_param,
     emitter_inputs,
     flare_size_px,
-    param,
     pixels_per_unit,
     planar_light_depth,
     reach_taps,
-    size_param,
-    size_reach,
-    static,
-    texture_field,
 )
+from godrays_jax.effects.fields import count_param, param, size_param, size_reach, static, texture_field
 from godrays_jax.kernels.blur import bloom_level_shape, draw_at_uv, gaussian_blur
 from godrays_jax.kernels.composite import BlendMode
 from godrays_jax.kernels.fast import fast_radial_rays, radial_rays_multipass

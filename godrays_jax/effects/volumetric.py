@@ -6,7 +6,8 @@ from typing import ClassVar
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from godrays_jax.effects.base import Effect, frame_ray_depth, param, static
+from godrays_jax.effects.base import Effect, frame_ray_depth
+from godrays_jax.effects.fields import param, static
 from godrays_jax.kernels.volumetric import volumetric_fog_terms
 from godrays_jax.primitives.checks import check_light
 

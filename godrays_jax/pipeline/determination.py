@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from godrays_jax.effects.base import Effect, parameter_bounds
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.fields import parameter_bounds
 from godrays_jax.kernels.losses import Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import (

@@ -43,7 +43,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 
-from godrays_jax.effects.base import Effect, count_fields
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.fields import count_fields
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import (

@@ -9,7 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from godrays_jax.effects.base import Effect, field_metadata, parameter_bounds
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.fields import field_metadata, parameter_bounds
 from godrays_jax.kernels.losses import LOSSES, to_space
 from godrays_jax.primitives.buffers import Buffers
 

@@ -49,11 +49,14 @@ PREFIX = "cycles_"  # scene names in scenes.json, apart from Mitsuba's
 
 
 def _to_blender(matrix):
-    """A 4x4 world matrix of our y-up frame in Blender's z-up frame: C M C^-1 with C = (x, y, z) -> (x, -z, y)."""
+    """A shape's 4x4 to-world matrix (its own frame to our y-up world) into Blender's z-up world: C M.
+
+    C maps our `(x, y, z)` to Blender's `(x, -z, y)`; the shape's own frame stays as it is.
+    """
     from mathutils import Matrix
 
     axes = Matrix(((1, 0, 0, 0), (0, 0, -1, 0), (0, 1, 0, 0), (0, 0, 0, 1)))
-    return axes @ Matrix(matrix) @ axes.inverted()
+    return axes @ Matrix(matrix)
 
 
 def _point(p):

@@ -1,14 +1,17 @@
-"""Fit every reference scene with `godrays-jax fit` and `apply --params`, defaults only, as a user would.
+"""Fit every reference scene with `godrays-jax fit` and `apply --params` from one preset, as a user would.
 
-    python benchmarks/references/baseline.py [SCENE ...] [--pictures DIR]
+    python benchmarks/references/baseline.py [SCENE ...] [--preset participating_media] [--pictures DIR]
 
-Per scene: `godrays-jax fit CLEAN FOG_A -o params.json`, then `godrays-jax
-apply CLEAN --params params.json -o out.exr`; prints the display-space MSE
+Per scene: `godrays-jax fit CLEAN FOG_A --preset PRESET -o params.json`,
+then `godrays-jax apply CLEAN --params params.json -o out.exr`, every other
+option at its default; prints the display-space MSE
 (`x / (1 + |x|)` per channel, the fit's loss) of `out.exr` against both fog
 renders, each as a ratio to the scene's noise floor (`scenes.py`), and the
 seconds the two commands took. Against FOG_B, which the fit never saw, a
-perfect model scores 1. The figures also go to `baseline.json` (by scene,
-for `scenes.py`'s table). `--pictures DIR`: also each fit's report PNG and
+perfect model scores 1. The default preset, `participating_media`
+(`ScatteringFog`), was `fit`'s default start before `VolumetricFog`'s
+(benchmarks/fit_volumetric.py measures that one): the figures, "today's
+model", go to `baseline.json` (by scene, for `scenes.py`'s table). `--pictures DIR`: also each fit's report PNG and
 parameters there.
 """
 
@@ -53,6 +56,7 @@ def display_mse(a: np.ndarray, b: np.ndarray) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("scenes", nargs="*", help=f"default: all of {', '.join(BY_NAME)}")
+    parser.add_argument("--preset", default="participating_media", help="the fit's start (default: %(default)s)")
     parser.add_argument("--pictures", type=Path, help="write each fit's report PNG here")
     args = parser.parse_args()
     scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)
@@ -64,8 +68,8 @@ def main() -> None:
             report = ["--report", str(args.pictures / f"{scene.name}_fit.png")] if args.pictures else []
             start = time.perf_counter()
             light = [] if scene.renderer == "mitsuba" else light_options(scene)  # Blender's headers lack it
-            subprocess.run(["godrays-jax", "fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *report,
-                            *light[:2]], check=True, capture_output=True, text=True)
+            subprocess.run(["godrays-jax", "fit", str(scene.clean), str(scene.fog_a), "--preset", args.preset,
+                            "-o", str(params), *report, *light], check=True, capture_output=True, text=True)
             subprocess.run(["godrays-jax", "apply", str(scene.clean), "--params", str(params), "-o", str(out), *light],
                            check=True, capture_output=True, text=True)
             seconds = time.perf_counter() - start

@@ -368,7 +368,7 @@ def test_effects_vmap_over_frames_equals_loop(name):
         (lambda: gr.scale_iterated_flares(jnp.ones((0, 4, 3)), jnp.zeros(2), num_iters=2, scale_step=1.1),
          "masked must be at least 1x1"),
         (lambda: gr.poisson_blur(jnp.ones((4, 4, 3)), blur_power=0.1, num_passes=-1), "num_passes must be >= 0"),
-        (lambda: gr.gaussian_blur(jnp.ones((4, 4, 3)), sigma=jnp.float32(1.0)), "radius must be given"),
+        (lambda: gr.gaussian_blur(jnp.ones((4, 4, 3)), sigma=jnp.float32(1.0)), "reach must be given"),
         (lambda: gr.Buffers(color=jnp.ones((4, 4)), depth=jnp.ones((4, 4)), coverage=jnp.ones((4, 4))),
          "buffers.color must have shape"),
         (lambda: gr.Buffers(color=jnp.ones((4, 4, 3)), depth=jnp.ones((4, 5)), coverage=jnp.ones((4, 4))),

@@ -41,7 +41,7 @@ def test_float64_values_keep_their_precision():
 
 def test_an_effect_prints_its_values():
     text = repr(gr.preset("xna_crepuscular"))
-    assert text.startswith("GodRays(density=0.5, decay=0.95, weight=1.0, exposure=0.15,")
+    assert text.startswith("GodRays(flare_size=") and "density=0.5, decay=0.95, weight=1.0, exposure=0.15," in text
     assert "tint=[1.0, 0.85, 0.6]" in text and "source='disc'" in text and "f32[]" not in text
     assert str(gr.preset("xna_crepuscular")) == text
 

@@ -3,6 +3,7 @@
 import math
 from typing import ClassVar, Literal
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -94,7 +95,35 @@ def _check_clip_planes(owner: str, near_plane, far_plane) -> None:
         raise ValueError(f"{owner}.near_plane and far_plane must satisfy 0 < near_plane < far_plane, got {near_plane}, {far_plane}")
 
 
-class GodRays(Effect):
+class Emitter(eqx.Module):
+    """The emitter fields `GodRays` and `FlareOuts` share, declared once: what shines before the rays or the copies
+    spread it, with the camera the XNA depth test reads and the off-screen fade.
+
+    `source`: `"disc"` (a flare of half-extent `flare_size` at the light:
+    `flare_texture`, else by `flare_shape` the procedural glow or the cone),
+    `"sky"` (the frame's own colour) or `"light_pass"`; `scene_mask` lets it
+    through (`SCENE_MASKS`, not for `"light_pass"`; `"depth"` the XNA
+    article's hardware-depth test with `depth_bias`, `near_plane`,
+    `far_plane` and `fov_x_deg`). The fields are the effect's own, under their
+    own names; `emitter_inputs` draws the emitter.
+    """
+
+    flare_size: Float[Array, ""] = size_param(0.1, low=1e-3, high=4.0, px_high=8192.0)
+    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
+    flare_texture: Float[Array, "h w C"] | None = texture_field()
+    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
+    flare_shape: FlareShape = static("glow")
+    depth_bias: float = static(0.00025)
+    near_plane: float = static(XNA_NEAR_PLANE)
+    far_plane: float = static(XNA_FAR_PLANE)
+    source: Source = static("disc")
+    scene_mask: SceneMask = static("coverage")
+
+    def __check_init__(self):
+        _check_clip_planes(type(self).__name__, self.near_plane, self.far_plane)
+
+
+class GodRays(Effect, Emitter):
     """Radial light shafts, the XNA crepuscular-rays and galaxy-engine VLS articles (GPU Gems 3 ch. 13).
 
     Passes, as the XNA article's five shaders:
@@ -147,31 +176,18 @@ class GodRays(Effect):
     decay: Float[Array, ""] = param(0.95, low=0.5, high=1.0)
     weight: Float[Array, ""] = param(1.0, low=0.0, high=10.0)
     exposure: Float[Array, ""] = param(0.15, low=0.0, high=5.0)
-    flare_size: Float[Array, ""] = size_param(0.1, low=1e-3, high=4.0, px_high=8192.0)
     sun_size: Float[Array, ""] = param(1500.0, low=1e-3, high=1e7)
-    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     threshold: Float[Array, ""] = param(0.25, low=0.0, high=0.99)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
     num_samples: Float[Array, ""] = count_param(128.0, low=1.0, high=4096.0, cap="max_samples")
-    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    flare_texture: Float[Array, "h w C"] | None = texture_field()
-    flare_shape: FlareShape = static("glow")
     flare_sizing: FlareSizing = static("fixed")
-    depth_bias: float = static(0.00025)
-    near_plane: float = static(XNA_NEAR_PLANE)
-    far_plane: float = static(XNA_FAR_PLANE)
     max_samples: int = static(128, low=1, high=4096)
-    source: Source = static("disc")
-    scene_mask: SceneMask = static("coverage")
     step_clamp: bool = static(False)
     use_bright_pass: bool = static(False)
     blend_mode: BlendMode = static("add")
     method: RayMethod = static("exact")
     resolution_factor: int = static(2, low=1, high=64)
     units: Units = static("frame")
-
-    def __check_init__(self):
-        _check_clip_planes("GodRays", self.near_plane, self.far_plane)
 
     def light_clip_depth(self, height: int, width: int, light_xy, light_depth, dtype) -> Float[Array, ""]:
         """The light's clip-space z (scene units; `masks.clip_space_depth`) from its distance along its ray."""
@@ -223,7 +239,7 @@ class GodRays(Effect):
         return rays * self.tint.astype(rays.dtype)
 
 
-class FlareOuts(Effect):
+class FlareOuts(Effect, Emitter):
     """kbEngine's screen-space god rays.
 
     1. The masked flare: a flare texture as sampled (`masks.flare_image`:
@@ -250,27 +266,14 @@ class FlareOuts(Effect):
     scale_step: Float[Array, ""] = param(1.03, low=0.8, high=1.5)
     intensity: Float[Array, ""] = param(0.1, low=0.0, high=10.0)
     copy_decay: Float[Array, ""] = param(1.0, low=0.5, high=1.0)
-    flare_size: Float[Array, ""] = size_param(0.1, low=1e-3, high=4.0, px_high=8192.0)
     blur_sigma: Float[Array, ""] = size_param(0.00625, low=0.0, high=0.2, px_high=200.0)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0)
     num_iters: Float[Array, ""] = count_param(20.0, low=1.0, high=64.0, cap="max_iters")
-    offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    flare_texture: Float[Array, "h w C"] | None = texture_field()
-    fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
-    flare_shape: FlareShape = static("glow")
-    depth_bias: float = static(0.00025)
-    near_plane: float = static(XNA_NEAR_PLANE)
-    far_plane: float = static(XNA_FAR_PLANE)
     max_iters: int = static(20, low=1, high=64)
     blur_reach: float = size_reach(0.01875)
     resolution_factor: int = static(1, low=1, high=64, formerly=("target_factor",))
-    source: Source = static("disc")
-    scene_mask: SceneMask = static("coverage")
     blend_mode: BlendMode = static("add")
     units: Units = static("frame")
-
-    def __check_init__(self):
-        _check_clip_planes("FlareOuts", self.near_plane, self.far_plane)
 
     def flare_size_in_px(self, height: int, width: int, light_xy, light_depth, dtype) -> Float[Array, "2"]:
         """The flare's half-extent `(rx, ry)` in pixels: `flare_size` (the article does not size its base texture)."""

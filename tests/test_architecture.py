@@ -98,6 +98,15 @@ def test_the_scaled_copies_are_private_to_the_kernels():
     assert not offenders
 
 
+MAX_MODULE_LINES = 600
+"""A module longer than this holds more than one concern: split it (docs/ARCHITECTURE.md, one line per module)."""
+
+
+def test_no_module_is_over_600_lines():
+    long = {str(path.relative_to(ROOT)): count for path in SOURCES if (count := len(path.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+
+
 def test_version_comes_from_the_installed_metadata():
     import importlib.metadata
 

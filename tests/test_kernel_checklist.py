@@ -170,6 +170,46 @@ CASES = {
     "view_directions": Case(
         lambda fov: gr.view_directions(HEIGHT, WIDTH, fov_x_deg=fov, dtype=fov.dtype), lambda r, t: (_scalar(r, t, 40.0, 70.0),)
     ),
+    "apply_volumetric_fog": Case(
+        lambda image, depth, light, extinction: gr.apply_volumetric_fog(
+            image, depth, light, light_color=(1.0, 0.9, 0.8), ambient_color=(0.1, 0.1, 0.1), fov_x_deg=50.0,
+            extinction=extinction, max_distance=60.0, anisotropy=0.7, num_view_steps=4, num_shadow_samples=6),
+        lambda r, t: (_image(r, t), _depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
+    ),  # fmt: skip
+    "bright_sky": Case(
+        lambda luminance, light, threshold: gr.bright_sky(luminance, light, threshold=threshold),
+        lambda r, t: (_plane(r, t), _light(r, t), _scalar(r, t, 0.3, 0.7)),
+    ),
+    "clip_space_depth": Case(
+        lambda depth: gr.clip_space_depth(depth, near_plane=0.5, far_plane=100.0), lambda r, t: (_depth(r, t),)
+    ),
+    "hardware_depth": Case(lambda depth: gr.hardware_depth(depth, near_plane=0.5, far_plane=100.0), lambda r, t: (_depth(r, t),)),
+    "light_transmittance": Case(
+        lambda points, toward, extinction: gr.light_transmittance(
+            points, toward / jnp.linalg.norm(toward), light_depth=jnp.inf, extinction=extinction, max_distance=60.0),
+        lambda r, t: (r.uniform(-10.0, 10.0, (HEIGHT, WIDTH, 3)).astype(t), np.asarray([0.2, 0.5, -1.0], t) + r.uniform(
+            0.0, 0.1, 3).astype(t), _scalar(r, t, 0.01, 0.05)),
+    ),  # fmt: skip
+    "optical_depth": Case(
+        lambda origin, direction, start, length, extinction: gr.optical_depth(
+            origin, direction / jnp.linalg.norm(direction, axis=-1, keepdims=True), start, start + length,
+            extinction=extinction, height_falloff=0.05),
+        lambda r, t: (r.uniform(-5.0, 5.0, (HEIGHT, WIDTH, 3)).astype(t), r.uniform(0.5, 1.0, (HEIGHT, WIDTH, 3)).astype(t),
+                      _plane(r, t, 0.0, 5.0), _plane(r, t, 1.0, 20.0), _scalar(r, t, 0.01, 0.05)),
+    ),  # fmt: skip
+    "segment_visibility": Case(
+        lambda depth, light, distances, thickness: gr.segment_visibility(
+            depth, light, jnp.stack(jnp.meshgrid(jnp.arange(WIDTH) + 0.5, jnp.arange(HEIGHT) + 0.5), -1).astype(depth.dtype),
+            distances, fov_x_deg=50.0, thickness=thickness, edge_softness=0.05, num_shadow_samples=6),
+        lambda r, t: (_depth(r, t), _light(r, t), r.uniform(1.0, 40.0, (HEIGHT, WIDTH, 4)).astype(t),
+                      _scalar(r, t, 0.1, 0.3)),
+    ),  # fmt: skip
+    "volumetric_fog_terms": Case(
+        lambda depth, light, extinction: jnp.stack(gr.volumetric_fog_terms(
+            depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, anisotropy=0.7, num_view_steps=4,
+            num_shadow_samples=6), axis=-1),
+        lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
+    ),  # fmt: skip
 }
 
 WITHOUT_ARRAY_INPUTS = {"dirt_texture", "procedural_flare"}

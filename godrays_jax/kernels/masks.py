@@ -4,6 +4,7 @@ Masks are `(H, W)` planes in [0, 1] unless said otherwise; multiply them into an
 `(H, W, C)` image with `mask[..., None]`.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
@@ -272,7 +273,7 @@ def bright_sky(
     over `threshold -+ softness / 2`: with the default 0.5, brighter than
     the geometric mean of the two ends. Returns `(H, W)` in [0, 1], 1 on open
     sky, 0 on what is darker (the occluders); a black window gives no sky.
-    Not differentiated (it prepares an input).
+    Differentiated through the smoothstep only: the window's quantiles are held constant.
     """
     if jnp.ndim(luminance) != 2:
         raise ValueError(f"luminance must have shape (H, W), got shape {jnp.shape(luminance)}")
@@ -287,7 +288,11 @@ def bright_sky(
     centre_x = jnp.clip(light_xy[0], 0.5, width - 0.5)
     centre_y = jnp.clip(light_xy[1], 0.5, height - 0.5)
     near = (x - centre_x) ** 2 + (y - centre_y) ** 2 <= (window * max(height, width)) ** 2
-    low, high = jnp.nanquantile(jnp.where(near, luminance, jnp.nan), jnp.asarray([0.05, 0.9], dtype))
+    # The window's two quantiles only set the scale: held constant, so the gradient (through the NaN-padded sort,
+    # which differs under vmap) is the smoothstep's alone and the same for a frame alone or in a batch.
+    low, high = jax.lax.stop_gradient(
+        jnp.nanquantile(jnp.where(near, luminance, jnp.nan), jnp.asarray([0.05, 0.9], dtype))
+    )
     low = jnp.clip(low, high / 1000.0, high / 16.0)
     positive = (high > 0) & (luminance > 0)
     place = jnp.log(jnp.where(positive, luminance, 1.0) / jnp.where(high > 0, low, 1.0)) / jnp.log(

@@ -100,9 +100,10 @@ def medium_interval(
     start = jnp.where(inside_ball, jnp.maximum(-along - root, 0.0), 0.0)
     end = jnp.where(inside_ball, jnp.minimum(-along + root, length), 0.0)
     height, rise = origin[..., 1], direction[..., 1]
-    # The height crosses layer_top at u = (top - height) / rise: below it on one side only.
-    crossing = _safe_divide(top - height, rise, jnp.inf)
+    # The height crosses layer_top at u = (top - height) / rise: below it on one side only. Without a top the
+    # crossing is computed from 0 and never selected: an infinite numerator would make its gradient NaN.
     finite_top = jnp.isfinite(top)
+    crossing = _safe_divide(jnp.where(finite_top, top, 0.0) - height, rise, jnp.inf)
     below_now = height < top
     start = jnp.where(finite_top & (rise < 0) & ~below_now, jnp.maximum(start, crossing), start)
     end = jnp.where(finite_top & (rise > 0) & below_now, jnp.minimum(end, crossing), end)
@@ -231,7 +232,7 @@ def segment_visibility(
         raise ValueError(f"num_shadow_samples must be a Python int >= 1, got {num_shadow_samples!r}")
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     for name, value in (("fov_x_deg", fov_x_deg), ("light_depth", light_depth), ("thickness", thickness),
                         ("edge_softness", edge_softness)):  # fmt: skip
         check_scalar(value, name)
@@ -429,7 +430,7 @@ def volumetric_fog_terms(
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
-    check_light(light_xy)
+    light_xy = check_light(light_xy)
     for name, value in (("num_view_steps", num_view_steps), ("resolution_factor", resolution_factor)):
         if not is_static_int(value) or value < 1:
             raise ValueError(f"{name} must be a Python int >= 1, got {value!r}")

@@ -46,8 +46,7 @@ def buffers_without_depth(
         `Buffers(color, depth=None, coverage)`: coverage 1 on what hides the
         light, 0 on open sky.
     """
-    light_xy = jnp.asarray(light_xy, jnp.float32)
-    check_light(light_xy)
+    light_xy = jnp.asarray(check_light(light_xy), jnp.float32)  # bounded before float32 could overflow
     color = jnp.asarray(color)
     if color.ndim != 3 or color.shape[-1] not in (3, 4):
         raise ValueError(f"color must have shape (H, W, 3), got {color.shape}")

@@ -67,7 +67,7 @@ class VolumetricFog(Effect):
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """`(surface, scattered, opacity)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""
-        check_light(light_xy)
+        light_xy = check_light(light_xy)
         depth = frame_ray_depth(self, buffers)
         factor = march_factor(buffers.height, buffers.width, self.resolution_factor)
         return volumetric_fog_terms(

@@ -36,7 +36,8 @@ def _rays(**values):
                          "num_samples": 8.0, **values})  # fmt: skip
 
 
-FIXED_RAYS = ("weight", "flare_size", "threshold", "tint", "offscreen_fade", "num_samples")
+# Also the XNA flare's SunSize and the camera's field of view: this disc has a fixed size, so neither moves the image.
+FIXED_RAYS = ("weight", "flare_size", "threshold", "tint", "offscreen_fade", "num_samples", "sun_size", "fov_x_deg")
 
 
 TRUTH = dict(density=0.8, decay=0.85, exposure=0.3)

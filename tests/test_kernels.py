@@ -298,7 +298,7 @@ def test_gaussian_blur_matches_loop_and_keeps_constants(x64, rng):
     constant = jnp.full((4, 3, 1), 2.5)
     np.testing.assert_allclose(gr.gaussian_blur(constant, sigma=2.0), constant, rtol=1e-12)
     check_grads(jax.jit(lambda i, s: gr.gaussian_blur(i, sigma=s, reach=2)), (jnp.asarray(image[:5, :6]), 0.9), order=1, modes=("rev",))
-    with pytest.raises(ValueError, match="radius"):
+    with pytest.raises(ValueError, match="reach"):
         jax.jit(lambda s: gr.gaussian_blur(jnp.asarray(image), sigma=s))(1.0)
 
 

@@ -81,7 +81,7 @@ def tile_loads(geometry: Geometry, camera: Camera, tile_size: int) -> Int[Array,
     _, drawn = triangle_setup(geometry, camera)
     in_y, in_x = _rows_and_columns(triangle_bounds(geometry, camera, drawn), tile_size, tiles_y, tiles_x)
     # A product of the row and column tables counts the pairs without the (T, N) table.
-    loads = in_y.astype(jnp.float32) @ in_x.astype(jnp.float32).T
+    loads = jnp.matmul(in_y.astype(jnp.float32), in_x.astype(jnp.float32).T, precision="highest")
     return -jnp.sort(-loads.reshape(-1)).astype(jnp.int32)
 
 

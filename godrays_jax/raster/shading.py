@@ -39,8 +39,9 @@ _TOWNS = _sphere_waves(64, 120.0, 400.0, 0.0, _WAVES)
 
 def _field(normal: Float[Array, "3 *P"], waves) -> Float[Array, "*P"]:
     vectors, phases, amplitudes = (jnp.asarray(part) for part in waves)
-    along = jnp.tensordot(vectors, normal, axes=(1, 0))
-    return jnp.tensordot(amplitudes, jnp.sin(along + phases.reshape(-1, *([1] * (along.ndim - 1)))), axes=1)
+    along = jnp.tensordot(vectors, normal, axes=(1, 0), precision="highest")
+    waves = jnp.sin(along + phases.reshape(-1, *([1] * (along.ndim - 1))))
+    return jnp.tensordot(amplitudes, waves, axes=1, precision="highest")
 
 
 def _smoothstep(low: float, high: float, x):

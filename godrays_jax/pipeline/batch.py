@@ -23,7 +23,7 @@ which are already done) and then executed (`run_batch`):
   whose output exists.
 - Runs may overlap on one output folder (two shells, shards, a retry while
   the first run goes on): each frame is claimed before it is read
-  (`files.claim`, a lock the OS drops when its process ends), so a frame is
+  (`files.claim`, a file lock the OS drops when its process ends), so a frame is
   computed by one run only; the others leave it (`BatchReport.held`). Outputs
   are placed without replacing anything unless the plan says overwrite, so
   an output that appears meanwhile is never replaced, whoever wrote it.
@@ -195,14 +195,11 @@ def plan_batch(
 def remove_stale_temporaries(jobs: Sequence[Job]) -> list[str]:
     """Delete the temporary files that dead runs left beside these jobs' outputs (done or not); returns them.
 
-    A live run's temporaries are kept (`files.is_stale`), and so are its
-    claims; lock files nobody holds any more are removed.
+    A live run's temporaries are kept (`files.is_stale`); lock files stay (`files.claim` says why).
     """
     removed = []
     for job in jobs:
         removed += remove_stale(temporaries_of(job.output))
-        if job.done:  # a run killed after placing this frame but before letting it go left its lock file
-            release(claim(job.output))
     return removed
 
 

@@ -7,9 +7,7 @@ left (`is_stale`), never a live run's file in progress.
 """
 
 import contextlib
-import dataclasses
 import errno
-import fcntl
 import glob
 import os
 import re
@@ -18,6 +16,8 @@ import socket
 import stat
 import time
 from collections.abc import Iterator
+
+import filelock
 
 STALE_AGE_S = 6 * 3600.0
 """A temporary this old is stale even if its process seems alive (the pid may have been reused) or runs on
@@ -207,43 +207,30 @@ def atomic_write(
         raise
 
 
-@dataclasses.dataclass(frozen=True)
-class Claim:
-    """A path this process holds (`claim`): an open, locked lock file."""
-
-    lock_path: str
-    fd: int
+Claim = filelock.BaseFileLock
+"""A path this process holds (`claim`): an acquired lock on its lock file."""
 
 
 def claim(path: str | os.PathLike) -> Claim | None:
     """Take `path` for this process, or None if another process holds it; hand the claim to `release`.
 
-    The claim is an exclusive `flock` on a hidden lock file `.BASE.lock`
-    beside `path`. The OS drops it when the process ends however it ends, so
-    a killed run never keeps a frame from the next one.
+    The claim is an exclusive `filelock.FileLock` (on Unix an `flock`) on a
+    hidden lock file `.BASE.lock` beside `path`; the OS drops it when the
+    process ends however it ends, so a killed run never keeps a frame from
+    the next one. Lock files are never deleted here: deleting one while
+    another process waits on it lets two processes hold the same path, and
+    filelock keeps or deletes them itself depending on its version.
     """
     folder, base = os.path.split(os.path.abspath(os.fspath(path)))
-    lock_path = os.path.join(folder, f".{base}.lock")
-    while True:
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            return None
-        try:
-            current = os.path.samestat(os.fstat(fd), os.stat(lock_path))
-        except FileNotFoundError:
-            current = False
-        if current:
-            return Claim(lock_path, fd)
-        os.close(fd)  # its holder released it (and removed the file) between our open and our lock: try again
+    lock = filelock.FileLock(os.path.join(folder, f".{base}.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except filelock.Timeout:
+        return None
+    return lock
 
 
 def release(held: Claim | None) -> None:
-    """Give up a claim from `claim` (None: nothing to do); its lock file is removed."""
-    if held is None:
-        return
-    with contextlib.suppress(FileNotFoundError):
-        os.remove(held.lock_path)  # while still locked, so nobody can lock the removed file and think they hold it
-    os.close(held.fd)
+    """Give up a claim from `claim` (None: nothing to do)."""
+    if held is not None:
+        held.release()

@@ -1,4 +1,9 @@
-"""Frame sequences as render pipelines name them, and the light's position per frame (fixed, metadata or a track)."""
+"""Frame sequences as render pipelines name them, and the light's position per frame (fixed, metadata or a track).
+
+Not fileseq (3.4): its `findSequenceOnDisk` ignores a range in the pattern (`shot.1001-1002#.exr` gives 1001-1003),
+finds nothing under a folder with glob characters (`b[1]/shot.####.exr`), takes `shot.7.exr` for `shot.####.exr`
+(padding here is a minimum), and reads `#` as 4 digits each or 1 each, never both (Nuke's `####`, oiiotool's `#`).
+"""
 
 import bisect
 import csv

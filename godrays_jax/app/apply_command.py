@@ -6,22 +6,15 @@ import jax
 import numpy as np
 
 from godrays_jax.app.options import (
-    NO_SKY,
-    CommandError,
     check_output_path,
-    effect_for_frame,
     effect_option,
-    frame_field_of_view,
+    frame_for_command,
     frame_reading,
-    has_sky,
-    resolve_light,
     resolve_light_depth,
-    warn,
-    with_field_of_view,
-    with_frame_clip_planes,
     with_flare_texture,
+    with_frame_camera,
 )
-from godrays_jax.pipeline.batch import dither_seed_of, frames_function, ready_frame
+from godrays_jax.pipeline.batch import dither_seed_of, frames_function
 from godrays_jax.primitives.frame_files import read_frame, write_frame_like
 from godrays_jax.primitives.images import write_image
 
@@ -34,16 +27,8 @@ def run(args) -> int:
     check_output_path(args.output, args.buffers)
     effect = with_flare_texture(effect_option(args.preset, args.params), args.flare_texture)
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
-    effect = with_field_of_view(effect, frame_field_of_view(args, args.buffers))
-    effect = with_frame_clip_planes(effect, args.buffers)
-    effect = effect_for_frame("apply", effect, buffers, args.buffers)
-    light_xy, in_front = resolve_light(args.light, args.buffers)
-    try:
-        buffers = ready_frame(effect, buffers, light_xy, args.buffers)
-    except ValueError as error:
-        raise CommandError(str(error)) from None
-    if not has_sky(buffers):
-        warn("apply", f"{args.buffers} has {NO_SKY}")
+    effect = with_frame_camera(effect, args, args.buffers)
+    effect, buffers, light_xy, in_front = frame_for_command("apply", effect, buffers, args.buffers, args.light)
     light_depth = resolve_light_depth(args.light_depth, args.buffers)
     # The program `batch` runs, on a group of one frame, stored traced: a later `apply` neither traces nor compiles it.
     apply = frames_function(effect, layer_only=args.layer_only, light_depth=light_depth, stored=True)

@@ -9,12 +9,10 @@ from godrays_jax.app.options import (
     NO_SKY,
     effect_for_frame,
     effect_option,
-    frame_field_of_view,
     frame_reading,
     resolve_light_depth,
     warn,
-    with_field_of_view,
-    with_frame_clip_planes,
+    with_frame_camera,
 )
 from godrays_jax.pipeline.batch import BatchError, describe_plan, plan_batch, run_batch
 from godrays_jax.pipeline.sequences import (
@@ -84,8 +82,7 @@ def run(args) -> int:
     effect = effect_option(args.preset, args.params)
     inputs = expand_frames(args.pattern)
     # The camera and the light's distance come from the first frame: one compiled program for the shot.
-    effect = with_field_of_view(effect, frame_field_of_view(args, inputs[0]))
-    effect = with_frame_clip_planes(effect, inputs[0])
+    effect = with_frame_camera(effect, args, inputs[0])
     light_depth = resolve_light_depth(args.light_depth, inputs[0])
     if args.light_depth is None and (moved := _other_light_depth(inputs, light_depth)) is not None:
         warn("batch", f"{moved[0]} stores the light's distance {moved[1]:g}, the first frame {light_depth:g}: every "

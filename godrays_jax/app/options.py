@@ -1,4 +1,4 @@
-"""What the commands share: their user errors, the light, the effect and output-path options."""
+"""What the commands share: their user errors, the light, the effect and output-path options, a frame made ready."""
 
 import argparse
 import contextlib
@@ -14,6 +14,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import MAX_TEXTURE_SIDE
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import load_effect
+from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, error_line
 from godrays_jax.primitives.camera_metadata import read_clip_planes, read_frame_camera
@@ -245,3 +246,29 @@ def effect_for_frame(command: str, effect: Effect, buffers: Buffers, name: str) 
         return effect
     warn(command, f"{name} has no light pass (light.Y): using the disc emitter at the light instead (source='disc')")
     return dataclasses.replace(effect, source="disc")
+
+
+def with_frame_camera(effect: Effect, args: argparse.Namespace, path: str) -> Effect:
+    """`effect` with the camera of the frame at `path`: its field of view (`--fov-x-deg`, else its header) and clip planes."""
+    return with_frame_clip_planes(with_field_of_view(effect, frame_field_of_view(args, path)), path)
+
+
+def frame_for_command(
+    command: str, effect: Effect, buffers: Buffers, path: str, light: tuple[float, float] | None
+) -> tuple[Effect, Buffers, tuple[float, float], bool]:
+    """One frame made ready for `effect` (`ready_frame`): `(effect, buffers, light pixel, light in front)`.
+
+    The effect falls back to the disc emitter when the frame lacks its light
+    pass (`effect_for_frame`); the light is `light` or the frame's header
+    (`resolve_light`); a frame without sky gets a warning. Raises
+    `CommandError` for a frame the effect cannot use (no depth).
+    """
+    effect = effect_for_frame(command, effect, buffers, path)
+    light_xy, in_front = resolve_light(light, path)
+    try:
+        buffers = ready_frame(effect, buffers, light_xy, path)
+    except ValueError as error:
+        raise CommandError(str(error)) from None
+    if not has_sky(buffers):
+        warn(command, f"{path} has {NO_SKY}")
+    return effect, buffers, light_xy, in_front

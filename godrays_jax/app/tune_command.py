@@ -1,24 +1,17 @@
 """`godrays-jax tune`: serve the live tuner for one frame until Ctrl-C."""
 
 from godrays_jax.app.options import (
-    NO_SKY,
     CommandError,
     check_output_path,
-    effect_for_frame,
     effect_option,
-    frame_field_of_view,
+    frame_for_command,
     frame_reading,
-    has_sky,
     read_target,
-    resolve_light,
     resolve_light_depth,
-    warn,
-    with_field_of_view,
-    with_frame_clip_planes,
+    with_frame_camera,
 )
 from godrays_jax.app.server import HOST, TuneServer
 from godrays_jax.app.tuner import Tuner
-from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.primitives.frame_reading import read_buffers
 
 
@@ -31,17 +24,9 @@ def run(args) -> int:
         raise CommandError(f"--fit-steps must be >= 1, got {args.fit_steps}")
     effect = effect_option(args.preset, args.params)
     buffers = read_buffers(args.buffers, **frame_reading(args))
-    effect = with_field_of_view(effect, frame_field_of_view(args, args.buffers))
-    effect = with_frame_clip_planes(effect, args.buffers)
-    effect = effect_for_frame("tune", effect, buffers, args.buffers)
-    light_xy, in_front = resolve_light(args.light, args.buffers)
-    try:
-        # A frame without depth keeps the open sky found around the starting light while the light is dragged.
-        buffers = ready_frame(effect, buffers, light_xy, args.buffers)
-    except ValueError as error:
-        raise CommandError(str(error)) from None
-    if not has_sky(buffers):
-        warn("tune", f"{args.buffers} has {NO_SKY}")
+    effect = with_frame_camera(effect, args, args.buffers)
+    # A frame without depth keeps the open sky found around the starting light while the light is dragged.
+    effect, buffers, light_xy, in_front = frame_for_command("tune", effect, buffers, args.buffers, args.light)
     target = None if args.target is None else read_target(args.target)
     if target is not None and target.shape[:2] != (buffers.height, buffers.width):
         raise CommandError(

@@ -195,11 +195,14 @@ def plan_batch(
 def remove_stale_temporaries(jobs: Sequence[Job]) -> list[str]:
     """Delete the temporary files that dead runs left beside these jobs' outputs (done or not); returns them.
 
-    A live run's temporaries are kept (`files.is_stale`); lock files stay (`files.claim` says why).
+    A live run's temporaries are kept (`files.is_stale`), and so are its
+    claims; lock files nobody holds any more are removed.
     """
     removed = []
     for job in jobs:
         removed += remove_stale(temporaries_of(job.output))
+        if job.done:  # a run killed after placing this frame but before letting it go left its lock file
+            release(claim(job.output))
     return removed
 
 

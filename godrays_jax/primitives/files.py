@@ -217,9 +217,7 @@ def claim(path: str | os.PathLike) -> Claim | None:
     The claim is an exclusive `filelock.FileLock` (on Unix an `flock`) on a
     hidden lock file `.BASE.lock` beside `path`; the OS drops it when the
     process ends however it ends, so a killed run never keeps a frame from
-    the next one. Lock files are never deleted here: deleting one while
-    another process waits on it lets two processes hold the same path, and
-    filelock keeps or deletes them itself depending on its version.
+    the next one.
     """
     folder, base = os.path.split(os.path.abspath(os.fspath(path)))
     lock = filelock.FileLock(os.path.join(folder, f".{base}.lock"))
@@ -231,6 +229,15 @@ def claim(path: str | os.PathLike) -> Claim | None:
 
 
 def release(held: Claim | None) -> None:
-    """Give up a claim from `claim` (None: nothing to do)."""
-    if held is not None:
-        held.release()
+    """Give up a claim from `claim` (None: nothing to do); its lock file is removed.
+
+    Removed while still locked: a process that opened the file before sees
+    the lock it then takes is on a removed file and starts again (filelock
+    3.29.5 on: from 3.20.4 to 3.29.4 filelock itself removed the file on
+    release, after this removal possibly another process's new one).
+    """
+    if held is None:
+        return
+    with contextlib.suppress(FileNotFoundError):
+        os.remove(held.lock_file)
+    held.release()

@@ -3,7 +3,6 @@
 import dataclasses
 import os
 from collections.abc import Mapping
-from typing import Literal
 
 import numpy as np
 import OpenImageIO as oiio
@@ -18,7 +17,7 @@ from godrays_jax.primitives.channels import (
     OBJECT_ID_NAME,
     channels_text,
 )
-from godrays_jax.primitives.frame_reading import SKY_DEPTH, DepthKindOption, decode_buffers, reads_straight_alpha
+from godrays_jax.primitives.frame_reading import decode_buffers, reads_straight_alpha
 from godrays_jax.primitives.image_files import EXR_EXTENSIONS, read_pixels, set_attribute, write_pixels
 from godrays_jax.primitives.light_metadata import LIGHT_IN_FRONT_ATTR, LIGHT_PX_ATTR
 
@@ -120,31 +119,23 @@ class FrameFile:
     color_channels: tuple[str, str, str] = ("R", "G", "B")
 
 
-def read_frame(
-    path: str | os.PathLike,
-    *,
-    depth_channel: str | None = None,
-    color_layer: str | None = None,
-    sky_depth: float = SKY_DEPTH,
-    coverage: Literal["auto", "alpha", "depth"] = "auto",
-    depth_kind: DepthKindOption = "auto",
-    fov_x_deg: float | None = None,
-    without_depth: bool = False,
-) -> tuple[Buffers, FrameFile]:
+def read_frame(path: str | os.PathLike, **options) -> tuple[Buffers, FrameFile]:
     """`read_buffers` that also returns the file as stored, reading it once.
+
+    Args:
+        path: the frame, as for `read_buffers`.
+        **options: `read_buffers`' keywords (`depth_channel`, `color_layer`,
+            `sky_depth`, `coverage`, `depth_kind`, `fov_x_deg`, `without_depth`).
 
     Returns:
         `(buffers, frame_file)`: the `Buffers` exactly as `read_buffers` gives
         them, and the `FrameFile` to pass to `write_frame_like`.
 
     Raises:
-        As `read_buffers`.
+        As `read_buffers`; `TypeError` for a keyword it does not take.
     """
     pixels, spec = read_pixels(path, straight_alpha=reads_straight_alpha(path))
-    buffers, color_channels = decode_buffers(
-        path, pixels, spec, depth_channel=depth_channel, color_layer=color_layer, sky_depth=sky_depth, coverage=coverage,
-        depth_kind=depth_kind, fov_x_deg=fov_x_deg, without_depth=without_depth,
-    )  # fmt: skip
+    buffers, color_channels = decode_buffers(path, pixels, spec, **options)
     return buffers, FrameFile(path=os.fspath(path), pixels=pixels, spec=spec, color_channels=color_channels)
 
 

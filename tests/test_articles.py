@@ -231,11 +231,11 @@ def test_lens_dirt_depth_after_the_power_is_ours_and_dims_to_the_floor():
 def test_vbex_sun_spot_adds_its_glow_at_full_strength():
     buffers, frame = article_frame(), host(article_frame())
     effect = gr.preset("vbex_sun_spot")
-    assert float(effect.bloom_intensity) == 1.0
+    assert float(effect.bloom.intensity) == 1.0
     spot = shaders.sun_spot(HEIGHT, WIDTH, _to_light(50.0), 50.0, 1.0, 1.0)
     spot = spot[..., None] * (frame["coverage"] == 0)[..., None] * np.asarray(effect.tint)
     side = max(HEIGHT, WIDTH)
-    glow = shaders.bright_glow(spot, float(effect.bloom_blur_sigma) * side / 2, math.ceil(effect.bloom_blur_reach * side / 2 - 1e-9))
+    glow = shaders.bright_glow(spot, float(effect.bloom.blur_sigma) * side / 2, math.ceil(effect.bloom.blur_reach * side / 2 - 1e-9))
     np.testing.assert_allclose(effect.layer(buffers, jnp.asarray(LIGHT)), spot + glow, rtol=1e-4, atol=1e-4)
 
 

@@ -9,7 +9,7 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.effects.base import effect_class
-from godrays_jax.effects.fields import plain_value, renamed_fields
+from godrays_jax.effects.fields import field_value, plain_value, renamed_fields
 
 
 def test_saved_json_holds_the_shortest_decimals_that_read_back_to_the_same_float32(tmp_path):
@@ -70,9 +70,23 @@ def test_a_params_file_with_old_names_loads_and_warns_with_the_new_name(tmp_path
     for old, value in OLD_NAMES[kind].items():
         new = renamed[old]
         assert any(f"{kind}.{old} is now named {new}" in message for message in messages), messages
-        np.testing.assert_allclose(np.asarray(plain_value(getattr(effect, new)), np.float64), value, rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(plain_value(field_value(effect, new)), np.float64), value, rtol=1e-6)
     saved = gr.effect_to_dict(effect)
     assert not set(OLD_NAMES[kind]) & set(saved), "files are written with the new names"
+
+
+def test_a_part_saves_as_part_dot_field_and_names_its_fields_from_the_effect(tmp_path):
+    spot = gr.SunSpot(bloom=gr.Bloom(intensity=0.5, blur_sigma=0.02, bloom_source="glow_target"))
+    saved = gr.effect_to_dict(spot)
+    assert saved["bloom.intensity"] == 0.5 and saved["bloom.blur_sigma"] == 0.02 and "bloom" not in saved
+    gr.save_effect(tmp_path / "spot.json", spot)
+    loaded = gr.load_effect(tmp_path / "spot.json")
+    assert float(loaded.bloom.intensity) == 0.5 and loaded.bloom.bloom_source == "glow_target"
+    assert {"bloom.intensity", "bloom.blur_sigma", "bloom.blur_reach"} <= set(gr.field_metadata(gr.SunSpot))
+    with pytest.raises(ValueError, match=r"SunSpot\.bloom\.intensity must lie in \[0, 10\]"):
+        gr.effect_from_dict({"effect": "SunSpot", "bloom.intensity": 99})
+    with pytest.raises(ValueError, match="unknown parameter.*bloom.sigmaa"):
+        gr.effect_from_dict({"effect": "SunSpot", "bloom.sigmaa": 1})
 
 
 def test_an_old_name_beside_its_new_name_is_refused():

@@ -5,7 +5,6 @@ docs/tuner.md says how renders are coalesced, previewed and displayed, and how "
 """
 
 import base64
-import dataclasses
 import json
 import math
 import os
@@ -22,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import count_fields, size_fields
+from godrays_jax.effects.fields import count_fields, field_value, replace_fields, size_fields, units_of
 from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import (
     effect_from_dict,
@@ -38,8 +37,9 @@ from godrays_jax.primitives.images import encode_png
 from godrays_jax.primitives.resample import box_pool, downsample_box
 
 def pixel_fields(effect: Effect) -> tuple[str, ...]:
-    """The fields measured in pixels: an effect's sizes (`size_fields`) under `units="px"`, else none."""
-    return size_fields(effect) if getattr(effect, "units", "frame") == "px" else ()
+    """The fields measured in pixels: an effect's sizes (`size_fields`) whose owner (the effect or a part) has
+    `units="px"`."""
+    return tuple(name for name in size_fields(effect) if units_of(effect, name) == "px")
 
 
 VIEWS: tuple[str, ...] = ("after", "before", "layer", "difference", "target")
@@ -115,7 +115,7 @@ def scale_pixel_fields(effect: Effect, scale: float) -> Effect:
     names = pixel_fields(effect)
     if not names or scale == 1:
         return effect
-    return dataclasses.replace(effect, **{name: getattr(effect, name) * scale for name in names})
+    return replace_fields(effect, {name: field_value(effect, name) * scale for name in names})
 
 
 def display_encode(
@@ -526,8 +526,7 @@ class Tuner:
 
 def _clip_to_bounds(effect: Effect, bounds: Mapping[str, tuple[float, float]]) -> Effect:
     names = list(bounds)
-    return eqx.tree_at(
-        lambda e: [getattr(e, n) for n in names], effect, [jnp.clip(getattr(effect, n), *bounds[n]) for n in names]
-    )
+    clipped = [jnp.clip(field_value(effect, n), *bounds[n]) for n in names]
+    return eqx.tree_at(lambda e: [field_value(e, n) for n in names], effect, clipped)
 
 

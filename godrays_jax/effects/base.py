@@ -25,20 +25,18 @@ the light is behind the camera (`light_in_front` false: the frame comes back
 unchanged). `Bloom` does not depend on the light and ignores both.
 """
 
-import dataclasses
 import functools
 import math
 import typing
 from typing import Literal
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.effects.fields import check_fields, plain_value
+from godrays_jax.effects.fields import Part
 from godrays_jax.kernels.composite import blend
 from godrays_jax.kernels.masks import (
     coverage_mask,
@@ -91,7 +89,7 @@ def flare_size_px(size, units: str, height: int, width: int, dtype) -> Float[Arr
     return jnp.stack([size * width, size * height])
 
 
-class Effect(eqx.Module):
+class Effect(Part):
     """Base class: subclasses define `layer` and a static `blend_mode` field.
 
     `NEEDS_DEPTH` (a class constant) says whether the effect measures
@@ -103,14 +101,6 @@ class Effect(eqx.Module):
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
         _EFFECT_CLASSES[cls.__name__] = cls
-
-    def __check_init__(self):
-        check_fields(self)
-
-    def __repr__(self) -> str:
-        """`GodRays(density=0.5, ...)`: every field with its value (equinox shows `f32[]` placeholders)."""
-        fields = ", ".join(f"{field.name}={plain_value(getattr(self, field.name))!r}" for field in dataclasses.fields(self))
-        return f"{type(self).__name__}({fields})"
 
     def layer(
         self,

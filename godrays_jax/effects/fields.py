@@ -1,6 +1,6 @@
 """Effects' fields: how they are declared (`param`, `count_param`, `size_param`, `static`, `size_reach`,
-`texture_field`), what the declarations say (`field_metadata`, `FieldInfo`), and `check_fields`, which checks an
-effect's fields against them.
+`texture_field`, `part`), what the declarations say (`field_metadata`, `FieldInfo`), and `Part`, the base class that
+checks every field against its declaration (effects and the parts they hold).
 
 One source for each fact about a field: its range, whether it is a count and
 which static field caps it, whether it is a size, its old names. The
@@ -50,6 +50,18 @@ def _array(value) -> Array:
 
 _SHOWN = reprlib.Repr()
 _SHOWN.maxlevel, _SHOWN.maxstring, _SHOWN.maxother = 3, 40, 40
+
+
+def _check_fittable(owner: str, name: str, value, bounds, size: bool) -> None:
+    """A fittable field's value: numbers (any shape the converter made an array of) inside `bounds`, sizes >= 0."""
+    if not isinstance(value, jax.Array):
+        raise ValueError(f"{owner}.{name} must be a number (a list of numbers for a vector), got {_SHOWN.repr(value)}")
+    values = np.asarray(value)
+    if size and not float(np.min(values)) >= 0:
+        raise ValueError(f"{owner}.{name} must be >= 0, got {value!r}")
+    low, high = bounds
+    if not (np.all(np.isfinite(values)) and np.all(values >= low) and np.all(values <= high)):
+        raise ValueError(f"{owner}.{name} must lie in [{low:g}, {high:g}], got {values.tolist()}")
 
 
 def _check_static(owner: str, name: str, annotation, value, bounds) -> None:
@@ -230,11 +242,23 @@ def texture_field():
     return eqx.field(default=None, converter=_texture, metadata={"kind": "data"})
 
 
+def part(default_factory, *, formerly: dict[str, str] | None = None):
+    """A part the effect is made of (a `Part` or an `Effect`, its fields declared with the functions above).
+
+    Its fields are the effect's, named `part.field` wherever fields are named
+    (`field_metadata`, params files, `fit(fixed=...)`, the tuner).
+    `formerly`: `{old name on the effect: the part's field}`, for params files
+    written before the part existed.
+    """
+    return eqx.field(default_factory=default_factory, metadata={"kind": "part", "formerly": formerly or {}})
+
+
 _type_hints = functools.cache(typing.get_type_hints)
 
 
 @functools.cache
-def _field_infos(cls) -> dict[str, FieldInfo]:
+def _own_field_infos(cls) -> dict[str, FieldInfo]:
+    """The class's own fields, parts as one entry each (kind `"part"`)."""
     hints = _type_hints(cls)
     infos = {}
     for field in dataclasses.fields(cls):
@@ -245,17 +269,70 @@ def _field_infos(cls) -> dict[str, FieldInfo]:
         bounds = metadata.get("bounds")
         if kind == "static" and annotation is int and bounds is None:
             bounds = (0, MAX_SEED)
+        formerly = () if kind == "part" else tuple(metadata.get("formerly", ()))
         infos[field.name] = FieldInfo(
             name=field.name, kind=kind, bounds=bounds, px_bounds=metadata.get("px_bounds"),
             size=metadata.get("size", False), count=metadata.get("count", False), cap=metadata.get("cap"),
-            choices=choices, formerly=tuple(metadata.get("formerly", ())),
+            choices=choices, formerly=formerly,
         )  # fmt: skip
     return infos
 
 
+@functools.cache
+def _field_infos(cls) -> dict[str, FieldInfo]:
+    infos = {}
+    for name, info in _own_field_infos(cls).items():
+        if info.kind != "part":
+            infos[name] = info
+            continue
+        renamed = next(f for f in dataclasses.fields(cls) if f.name == name).metadata["formerly"]
+        for inner, inner_info in _field_infos(_type_hints(cls)[name]).items():
+            olds = tuple(old for old, new in renamed.items() if new == inner)
+            infos[f"{name}.{inner}"] = dataclasses.replace(
+                inner_info,
+                name=f"{name}.{inner}",
+                cap=None if inner_info.cap is None else f"{name}.{inner_info.cap}",
+                formerly=olds + tuple(f"{name}.{old}" for old in inner_info.formerly),
+            )
+    return infos
+
+
 def field_metadata(effect: "Effect | type[Effect]") -> dict[str, FieldInfo]:
-    """`{field name: FieldInfo}` for every field of an effect (instance or class), in declaration order."""
+    """`{field name: FieldInfo}` for every field of an effect (instance or class), in declaration order.
+
+    A part's fields are listed as `part.field` (`part`), in place of the part.
+    """
     return _field_infos(effect if isinstance(effect, type) else type(effect))
+
+
+def field_value(effect: "Part", name: str):
+    """The value of a field named as `field_metadata` names it (`"bloom.intensity"`: the part's field)."""
+    return functools.reduce(getattr, name.split("."), effect)
+
+
+def by_part(values: dict) -> tuple[dict, dict[str, dict]]:
+    """`{name: value}` with names as `field_metadata` names them, split into the own fields' and each part's."""
+    own, parts = {}, {}
+    for name, value in values.items():
+        head, _, inner = name.partition(".")
+        if inner:
+            parts.setdefault(head, {})[inner] = value
+        else:
+            own[name] = value
+    return own, parts
+
+
+def replace_fields(effect: "Part", values: dict):
+    """The effect with fields (named as `field_metadata` names them) set to `values`, checked as when built."""
+    own, parts = by_part(values)
+    own |= {head: replace_fields(getattr(effect, head), inner) for head, inner in parts.items()}
+    return dataclasses.replace(effect, **own)
+
+
+def units_of(effect: "Part", name: str) -> str:
+    """The units (`"frame"` or `"px"`) a size field is in: those of its owner, the effect or the part holding it."""
+    owner = field_value(effect, name.rpartition(".")[0]) if "." in name else effect
+    return getattr(owner, "units", "frame")
 
 
 def renamed_fields(effect: "Effect | type[Effect]") -> dict[str, str]:
@@ -274,12 +351,13 @@ def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, 
     Sizes have their frame-unit bounds, or their pixel bounds for an instance
     built with `units="px"`.
     """
-    pixels = not isinstance(effect, type) and getattr(effect, "units", "frame") == "px"
-    return {
-        name: info.px_bounds if pixels and info.px_bounds is not None else info.bounds
-        for name, info in field_metadata(effect).items()
-        if info.kind == "fittable"
-    }
+    return {name: _bounds(effect, name, info) for name, info in field_metadata(effect).items() if info.kind == "fittable"}
+
+
+def _bounds(effect, name: str, info: FieldInfo) -> tuple[float, float]:
+    """A fittable field's bounds: a size's pixel bounds when its owner (the effect or the part) has `units="px"`."""
+    pixels = not isinstance(effect, type) and units_of(effect, name) == "px"
+    return info.px_bounds if pixels and info.px_bounds is not None else info.bounds
 
 
 def size_fields(effect: "Effect | type[Effect]") -> tuple[str, ...]:
@@ -287,34 +365,31 @@ def size_fields(effect: "Effect | type[Effect]") -> tuple[str, ...]:
     return tuple(name for name, info in field_metadata(effect).items() if info.size)
 
 
-def check_fields(effect) -> None:
-    """Every field of an effect against its declaration: static values, sizes, fittable values in their bounds.
+class Part(eqx.Module):
+    """Fields declared with `param`, `count_param`, `size_param`, `static`, `size_reach`, `texture_field` and `part`,
+    checked against their declarations when built: the base of effects and of the parts effects are made of."""
 
-    `ValueError` naming the field (`Effect`'s constructor calls it, so params files are checked too).
-    """
-    owner = type(effect).__name__
-    hints = _type_hints(type(effect))
-    infos = field_metadata(effect)
-    for name, info in infos.items():
-        if info.kind == "static":
-            _check_static(owner, name, hints[name], getattr(effect, name), info.bounds)
-    bias = getattr(effect, "depth_bias", 0.0)
-    if not 0.0 <= bias < 1.0:
-        raise ValueError(f"{owner}.depth_bias must be a number in [0, 1), got {bias!r}")
-    units = getattr(effect, "units", "frame")
-    for name in size_fields(effect):
-        value = getattr(effect, name)
-        if infos[name].kind == "static" and not 0 <= value <= MAX_REACH[units]:
-            raise ValueError(f"{owner}.{name} must lie in [0, {MAX_REACH[units]:g}] ({units} units), got {value!r}")
-        if isinstance(value, jax.Array) and not isinstance(value, jax.core.Tracer) and not float(np.min(value)) >= 0:
-            raise ValueError(f"{owner}.{name} must be >= 0, got {value!r}")
-    for name, (low, high) in parameter_bounds(effect).items():
-        value = getattr(effect, name)
-        if isinstance(value, jax.core.Tracer):
-            continue  # built inside a traced function: the kernels check what they must at run time
-        if not isinstance(value, jax.Array):
-            shown = _SHOWN.repr(value)
-            raise ValueError(f"{owner}.{name} must be a number (a list of numbers for a vector), got {shown}")
-        values = np.asarray(value)
-        if not (np.all(np.isfinite(values)) and np.all(values >= low) and np.all(values <= high)):
-            raise ValueError(f"{owner}.{name} must lie in [{low:g}, {high:g}], got {values.tolist()}")
+    def __check_init__(self):
+        owner = type(self).__name__
+        hints = _type_hints(type(self))
+        infos = _own_field_infos(type(self))
+        units = getattr(self, "units", "frame")
+        for name, info in infos.items():
+            value = getattr(self, name)
+            if info.kind == "static":
+                _check_static(owner, name, hints[name], value, info.bounds)
+                if info.size and not 0 <= value <= MAX_REACH[units]:
+                    raise ValueError(f"{owner}.{name} must lie in [0, {MAX_REACH[units]:g}] ({units} units), got {value!r}")
+            elif info.kind == "part" and not isinstance(value, hints[name]):
+                raise ValueError(f"{owner}.{name} must be a {hints[name].__name__}, got {_SHOWN.repr(value)}")
+            elif info.kind == "fittable" and not isinstance(value, jax.core.Tracer):
+                # A traced value (built inside a traced function): the kernels check what they must at run time.
+                _check_fittable(owner, name, value, _bounds(self, name, info), info.size)
+        bias = getattr(self, "depth_bias", 0.0)
+        if not 0.0 <= bias < 1.0:
+            raise ValueError(f"{owner}.depth_bias must be a number in [0, 1), got {bias!r}")
+
+    def __repr__(self) -> str:
+        """`GodRays(density=0.5, ...)`: every field with its value (equinox shows `f32[]` placeholders)."""
+        fields = ", ".join(f"{field.name}={plain_value(getattr(self, field.name))!r}" for field in dataclasses.fields(self))
+        return f"{type(self).__name__}({fields})"

@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import Effect, Units, frame_ray_depth, light_visibility, pixels_per_unit, reach_taps
-from godrays_jax.effects.fields import MAX_SEED, count_param, param, size_param, size_reach, static
+from godrays_jax.effects.fields import MAX_SEED, count_param, param, part, size_param, size_reach, static
 from godrays_jax.kernels.blur import bloom, gaussian_blur, poisson_blur
 from godrays_jax.kernels.composite import BlendMode
 from godrays_jax.kernels.lens import (
@@ -152,25 +152,26 @@ class SunSpot(Effect):
     """The VBex article's sky sun spot, `lens.sun_spot` on the sky in `tint` (the article's SunColor), plus its glow.
 
     As in the VBex article the spot is also written to a glow target (`glow`), which
-    the bloom pyramid spreads (`blur.bloom`, no threshold, `bloom_weights`;
-    `bloom_blur_sigma` and `bloom_blur_reach` as `Bloom.blur_sigma` and `Bloom.blur_reach`); the
-    layer is `spot + bloom_intensity * bloom(spot)`, and the article adds the
-    glow at full strength (`bloom_intensity = 1`).
+    its `bloom` (a `Bloom`, its fields `bloom.intensity`, `bloom.blur_sigma`, ...)
+    spreads: the layer is `spot + bloom.blurred(spot)`, the spot blurred as
+    `Bloom` blurs its glow target (no threshold), and the article adds the
+    glow at full strength (`bloom.intensity = 1`).
     """
 
     sun_distance: Float[Array, ""] = param(1.0, low=0.01, high=100.0)
     sun_sharpness: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0, formerly=("sun_color",))
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
-    bloom_intensity: Float[Array, ""] = param(1.0, low=0.0, high=10.0, formerly=("glow_intensity",))
-    bloom_weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0, formerly=("glow_weights",))
-    bloom_blur_sigma: Float[Array, ""] = size_param(
-        0.0125, low=1e-4, high=0.2, px_high=100.0, formerly=("glow_sigma",)
-    )
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    bloom_blur_reach: float = size_reach(0.0375, formerly=("glow_reach",))
+    bloom: "Bloom" = part(
+        lambda: Bloom(intensity=1.0, blur_sigma=0.0125, blur_reach=0.0375, bloom_source="glow_target"),
+        formerly={
+            "glow_intensity": "intensity", "bloom_intensity": "intensity", "glow_weights": "weights",
+            "bloom_weights": "weights", "glow_sigma": "blur_sigma", "bloom_blur_sigma": "blur_sigma",
+            "glow_reach": "blur_reach", "bloom_blur_reach": "blur_reach", "units": "units",
+        },
+    )  # fmt: skip
     blend_mode: BlendMode = static("add")
-    units: Units = static("frame")
 
     def glow(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W 3"]:
         """The glow target: the coloured spot on sky pixels (the VBex article's `Out.glow`), unblurred."""
@@ -189,8 +190,7 @@ class SunSpot(Effect):
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The spot and its bloom, `(H, W, 3)`."""
         spot = self.glow(buffers, light_xy, light_in_front=light_in_front)
-        glow = _pyramid(spot, self.bloom_blur_sigma, self.bloom_blur_reach, self.bloom_weights, self.units)
-        return spot + self.bloom_intensity * glow
+        return spot + self.bloom.blurred(spot)
 
 
 def _pyramid(image, sigma, reach, weights, units):
@@ -275,13 +275,17 @@ class Bloom(Effect):
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The glow alone, `(H, W, 3)` (1 channel for a 1-channel frame without a glow target)."""
-        light_xy = check_light(light_xy)
-        glowing = self.glowing(buffers)
+        check_light(light_xy)
+        return self.blurred(self.glowing(buffers))
+
+    def blurred(self, glowing: Float[Array, "H W C"]) -> Float[Array, "H W C"]:
+        """What glows, blurred by `method` and times `intensity` (what `SunSpot` adds to its spot)."""
         if self.method == "pyramid":
             glow = _pyramid(glowing, self.blur_sigma, self.blur_reach, self.weights, self.units)
         else:
-            scale = pixels_per_unit(self.units, buffers.height, buffers.width)
-            taps = reach_taps(self.wide_blur_reach, self.units, buffers.height, buffers.width)
+            height, width = glowing.shape[0], glowing.shape[1]
+            scale = pixels_per_unit(self.units, height, width)
+            taps = reach_taps(self.wide_blur_reach, self.units, height, width)
             glow = gaussian_blur(glowing, sigma=self.wide_blur_sigma * scale, reach=taps)
         return glow * self.intensity.astype(glow.dtype)
 

@@ -69,8 +69,8 @@ def _vbex_lens_dirt() -> LensDirt:
 def _vbex_sun_spot() -> SunSpot:
     """The VBex article: `pow(dot, SunDistance * 2000) * SunSharpness * 30` on the sky, bloomed through the glow target."""
     return SunSpot(
-        sun_distance=1.0, sun_sharpness=1.0, tint=(1.0, 0.85, 0.6), bloom_intensity=1.0, bloom_blur_sigma=0.0125,
-        bloom_blur_reach=0.0375,
+        sun_distance=1.0, sun_sharpness=1.0, tint=(1.0, 0.85, 0.6),
+        bloom=Bloom(intensity=1.0, blur_sigma=0.0125, blur_reach=0.0375, bloom_source="glow_target"),
     )  # fmt: skip
 
 

@@ -3,28 +3,32 @@
 import dataclasses
 import json
 import os
+import typing
 import warnings
 
 import numpy as np
 
 from godrays_jax.effects.base import Effect, effect_class
-from godrays_jax.effects.fields import field_metadata, plain_value, renamed_fields
+from godrays_jax.effects.fields import (
+    by_part,
+    field_metadata,
+    field_value,
+    plain_value,
+    renamed_fields,
+    replace_fields,
+)
 from godrays_jax.primitives.files import atomic_write
 
 
-def _field_names(cls) -> list[str]:
-    return [field.name for field in dataclasses.fields(cls)]
-
-
 def effect_to_dict(effect: Effect) -> dict:
-    """A JSON-ready description: `{"effect": class name, field: value, ...}`.
+    """A JSON-ready description: `{"effect": class name, field: value, ...}`, a part's fields as `"part.field"`.
 
     Numbers are the shortest decimals that read back to the same float32
     (`plain_value`), so saved files carry `0.95`, not `0.949999988079071`.
     """
     fields = {"effect": type(effect).__name__}
-    for name in _field_names(type(effect)):
-        fields[name] = plain_value(getattr(effect, name))
+    for name in field_metadata(effect):
+        fields[name] = plain_value(field_value(effect, name))
     return fields
 
 
@@ -33,8 +37,9 @@ def effect_from_dict(fields: dict) -> Effect:
 
     Raises `ValueError` naming the field for an unknown effect or key, a value
     of the wrong JSON type (`"0.5"` for a number, `"false"` for a boolean), a
-    vector of the wrong length, or a value out of its range (`field_metadata`). A field's old name (`renamed_fields`) is read as its
-    new one, with a `FutureWarning` naming the new name.
+    vector of the wrong length, or a value out of its range (`field_metadata`).
+    A field's old name (`renamed_fields`; a field now in a part included) is
+    read as its new one, with a `FutureWarning` naming the new name.
     """
     fields = dict(fields)
     kind = fields.pop("effect", None)
@@ -48,17 +53,38 @@ def effect_from_dict(fields: dict) -> Effect:
             raise ValueError(f"{kind} has both {old!r} and its new name {new!r}: keep {new!r}")
         warnings.warn(f"{kind}.{old} is now named {new}: read as {new}", FutureWarning, stacklevel=2)
         fields[new] = fields.pop(old)
-    unknown = sorted(set(fields) - set(_field_names(cls)))
+    infos = field_metadata(cls)
+    unknown = sorted(set(fields) - set(infos))
     if unknown:
         raise ValueError(f"unknown parameter(s) for {kind}: {', '.join(unknown)}")
-    effect = cls(**fields)
-    for field in dataclasses.fields(cls):
-        expected = np.shape(field.default) if field_metadata(cls)[field.name].kind == "fittable" else None
-        if field.name in fields and expected is not None and np.shape(getattr(effect, field.name)) != expected:
-            raise ValueError(
-                f"{kind}.{field.name} must have shape {list(expected)}, got {np.shape(getattr(effect, field.name))}"
-            )
+    effect = _built(cls, fields)
+    for name, value in fields.items():
+        expected = _default_shape(cls, name) if infos[name].kind == "fittable" else None
+        if expected is not None and np.shape(field_value(effect, name)) != expected:
+            raise ValueError(f"{kind}.{name} must have shape {list(expected)}, got {np.shape(field_value(effect, name))}")
     return effect
+
+
+def _built(cls, fields: dict):
+    """`cls(**fields)`, the fields named `part.field` set on the part's declared default first."""
+    own, parts = by_part(fields)
+    declared = {field.name: field for field in dataclasses.fields(cls)}
+    for head, inner in parts.items():
+        default = declared[head].default_factory()
+        try:
+            own[head] = replace_fields(default, inner)
+        except ValueError as error:  # named from the effect: `SunSpot.bloom.intensity`, not `Bloom.intensity`
+            text, prefix = str(error), f"{type(default).__name__}."
+            raise ValueError(f"{cls.__name__}.{head}.{text[len(prefix):]}" if text.startswith(prefix) else text) from None
+    return cls(**own)
+
+
+def _default_shape(cls, name: str) -> tuple[int, ...]:
+    """The shape of a field's declared default (`"part.field"`: the part's own default)."""
+    head, _, inner = name.partition(".")
+    if inner:
+        return _default_shape(typing.get_type_hints(cls)[head], inner)
+    return np.shape(next(field.default for field in dataclasses.fields(cls) if field.name == name))
 
 
 def save_effect(path: str | os.PathLike, effect: Effect) -> None:

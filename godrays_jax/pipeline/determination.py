@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import parameter_bounds
+from godrays_jax.effects.fields import field_value, parameter_bounds
 from godrays_jax.kernels.losses import Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import (
@@ -126,7 +126,7 @@ def determination(
         effect=effect,
         names=names,
         bounds=tuple(bounds[name] for name in names),
-        shapes=tuple(tuple(np.shape(getattr(effect, name))) for name in names),
+        shapes=tuple(tuple(np.shape(field_value(effect, name))) for name in names),
         frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
         loss="mse",
         space=space,

@@ -44,7 +44,7 @@ import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import count_fields
+from godrays_jax.effects.fields import count_fields, field_value
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import (
@@ -95,7 +95,9 @@ def round_counts(effect: Effect) -> Effect:
     names = count_fields(effect)
     if not names:
         return effect
-    return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [jnp.round(getattr(effect, n)) for n in names])
+    return eqx.tree_at(
+        lambda e: [field_value(e, n) for n in names], effect, [jnp.round(field_value(effect, n)) for n in names]
+    )
 
 
 def _solver(solver, loss, rtol, atol):
@@ -272,7 +274,7 @@ def fit(
         effect=effect,
         names=names,
         bounds=tuple(bounds[name] for name in names),
-        shapes=tuple(tuple(np.shape(getattr(effect, name))) for name in names),
+        shapes=tuple(tuple(np.shape(field_value(effect, name))) for name in names),
         frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
         loss=loss,
         space=space,
@@ -298,7 +300,7 @@ def fit(
             if progress is not None:
                 progress(steps, history[-1])
         fitted_effect, rounded = _fitted_effects(problem, y)
-        if not all(np.all(np.isfinite(np.asarray(getattr(fitted_effect, n)))) for n in names):
+        if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
         loss_after = float(exported.call("fit_loss", _evaluate, fitted_effect, data))
         loss_rounded = float(exported.call("fit_loss", _evaluate, rounded, data))

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import field_metadata, parameter_bounds
+from godrays_jax.effects.fields import field_metadata, field_value, parameter_bounds
 from godrays_jax.kernels.losses import LOSSES, to_space
 from godrays_jax.primitives.buffers import Buffers
 
@@ -32,7 +32,7 @@ def fitted_bounds(effect: Effect, *, fixed: Sequence[str] = ()) -> dict[str, tup
         if name in fixed:
             continue
         if infos[name].cap is not None:
-            high = min(high, float(getattr(effect, infos[name].cap)))
+            high = min(high, float(field_value(effect, infos[name].cap)))
         result[name] = (float(low), float(high))
     if not result:
         raise ValueError("fixed leaves no parameter to fit")
@@ -132,9 +132,9 @@ class FitProblem(eqx.Module):
         for name, (low, high), shape in zip(self.names, self.bounds, self.shapes):
             size = math.prod(shape)
             unit = jnp.reshape(y[offset : offset + size], shape)
-            values.append(from_unit(unit, low, high).astype(getattr(self.effect, name).dtype))
+            values.append(from_unit(unit, low, high).astype(field_value(self.effect, name).dtype))
             offset += size
-        return eqx.tree_at(lambda e: [getattr(e, n) for n in self.names], self.effect, values)
+        return eqx.tree_at(lambda e: [field_value(e, n) for n in self.names], self.effect, values)
 
     def rendered(self, candidate, frame_data):
         for frame, light, image, front, depth in zip(*frame_data):
@@ -157,7 +157,7 @@ class FitProblem(eqx.Module):
 def check_inside_bounds(effect: Effect) -> None:
     """`ValueError` naming the first fittable field outside its fitting range (`fitted_bounds`)."""
     for name, (low, high) in fitted_bounds(effect).items():
-        value = np.asarray(getattr(effect, name))
+        value = np.asarray(field_value(effect, name))
         if not np.all((value >= low) & (value <= high)):
             raise ValueError(f"effect.{name} = {value.tolist()} lies outside its fitting range [{low:g}, {high:g}]")
 
@@ -166,7 +166,7 @@ def check_inside_bounds(effect: Effect) -> None:
 def start_point(problem, dtype):
     """The flat unit-scaled unknowns of the starting effect."""
     return jnp.concatenate([
-        jnp.ravel(to_unit(jnp.asarray(getattr(problem.effect, name), dtype), low, high))
+        jnp.ravel(to_unit(jnp.asarray(field_value(problem.effect, name), dtype), low, high))
         for name, (low, high) in zip(problem.names, problem.bounds)
     ])  # fmt: skip
 

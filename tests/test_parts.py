@@ -1,0 +1,62 @@
+"""Effects built from parts: a part's fields named `part.field` in metadata, params files, fit, determination, tuner."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.app.tuner import pixel_fields, scale_pixel_fields
+from godrays_jax.effects.fields import field_value, plain_value, replace_fields
+
+
+def _spot(**bloom):
+    return gr.SunSpot(sun_distance=0.2, bloom=gr.Bloom(**{"bloom_source": "glow_target", **bloom}))
+
+
+def test_a_part_field_is_read_and_set_by_its_dotted_name():
+    spot = _spot(intensity=0.5)
+    assert float(field_value(spot, "bloom.intensity")) == 0.5
+    changed = replace_fields(spot, {"bloom.intensity": 2.0, "sun_sharpness": 3.0})
+    assert float(changed.bloom.intensity) == 2.0 and float(changed.sun_sharpness) == 3.0
+    assert changed.bloom.bloom_source == "glow_target", "the part's other fields stay"
+    with pytest.raises(ValueError, match=r"Bloom\.intensity must lie in \[0, 10\]"):
+        replace_fields(spot, {"bloom.intensity": 99.0})
+    with pytest.raises(ValueError, match="SunSpot.bloom must be a Bloom"):
+        gr.SunSpot(bloom=gr.LensDirt())
+
+
+FLAT_BLOOM = {"bloom_intensity": 0.5, "bloom_weights": [1.0, 0.5, 0.25, 0.125], "bloom_blur_sigma": 0.02,
+              "bloom_blur_reach": 0.05, "units": "frame"}  # fmt: skip
+"""`SunSpot`'s bloom as its own flat fields, as params files held it before the bloom was a part."""
+
+
+def test_the_flat_bloom_names_load_into_the_part_with_one_warning_each(tmp_path):
+    path = tmp_path / "spot.json"
+    path.write_text(json.dumps({"effect": "SunSpot", **FLAT_BLOOM}))
+    with pytest.warns(FutureWarning) as caught:
+        spot = gr.load_effect(path)
+    messages = [str(warning.message) for warning in caught]
+    assert len(messages) == len(FLAT_BLOOM), messages
+    for old in FLAT_BLOOM:
+        new = "bloom." + old.removeprefix("bloom_")
+        assert sum(f"SunSpot.{old} is now named {new}" in message for message in messages) == 1, messages
+        if old != "units":
+            np.testing.assert_allclose(np.asarray(plain_value(field_value(spot, new))), FLAT_BLOOM[old], rtol=1e-6)
+    assert spot.bloom.bloom_source == "glow_target", "fields the file does not name keep the part's declared default"
+    saved = gr.effect_to_dict(spot)
+    assert "bloom.intensity" in saved and not set(FLAT_BLOOM) & set(saved)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert gr.effect_to_dict(gr.effect_from_dict(saved)) == saved
+
+
+def test_the_tuner_scales_a_parts_pixel_sizes():
+    spot = _spot(units="px", blur_sigma=4.0, blur_reach=12.0)
+    assert pixel_fields(spot) == ("bloom.blur_sigma", "bloom.wide_blur_sigma", "bloom.blur_reach", "bloom.wide_blur_reach")
+    half = scale_pixel_fields(spot, 0.5)
+    assert float(half.bloom.blur_sigma) == 2.0 and half.bloom.blur_reach == 6.0
+    assert gr.parameter_bounds(spot)["bloom.blur_sigma"] == (0.0, 100.0), "pixel bounds: the part's units"
+    assert pixel_fields(_spot()) == ()
+    assert scale_pixel_fields(spot, 1.0) is spot

@@ -3,12 +3,15 @@
 import json
 import warnings
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import godrays_jax as gr
 from godrays_jax.app.tuner import pixel_fields, scale_pixel_fields
 from godrays_jax.effects.fields import field_value, plain_value, replace_fields
+from godrays_jax.pipeline.problem import FitProblem, fitted_bounds, start_point
+from frames import LIGHT, make_frame
 
 
 def _spot(**bloom):
@@ -50,6 +53,18 @@ def test_the_flat_bloom_names_load_into_the_part_with_one_warning_each(tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert gr.effect_to_dict(gr.effect_from_dict(saved)) == saved
+
+
+def test_a_fit_problem_maps_its_unknowns_onto_a_parts_field():
+    start = _spot(intensity=1.0)
+    fixed = [name for name in gr.parameter_bounds(start) if name not in ("bloom.intensity", "bloom.weights")]
+    problem = FitProblem.of(start, fitted_bounds(start, fixed=fixed), [make_frame()], loss="mse", space="display")
+    assert problem.names == ("bloom.intensity", "bloom.weights") and problem.shapes == ((), (4,))
+    np.testing.assert_allclose(start_point(problem, np.float32), [0.1] * 5, rtol=1e-6)
+    moved = problem.effect_at(jnp.asarray([0.3, 0.2, 0.2, 0.1, 0.1]))
+    np.testing.assert_allclose(moved.bloom.intensity, 3.0, rtol=1e-6)
+    np.testing.assert_allclose(moved.bloom.weights, [2.0, 2.0, 1.0, 1.0], rtol=1e-6)
+    assert moved.bloom.bloom_source == "glow_target" and moved.sun_distance is start.sun_distance
 
 
 def test_the_tuner_scales_a_parts_pixel_sizes():

@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import field_value, parameter_bounds
+from godrays_jax.effects.fields import parameter_bounds
 from godrays_jax.kernels.losses import Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import (
@@ -121,16 +121,7 @@ def determination(
     check_inside_bounds(effect)
     bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
     names = tuple(bounds)
-    total_pixels = sum(frame.height * frame.width for frame in frames)
-    problem = FitProblem(
-        effect=effect,
-        names=names,
-        bounds=tuple(bounds[name] for name in names),
-        shapes=tuple(tuple(np.shape(field_value(effect, name))) for name in names),
-        frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
-        loss="mse",
-        space=space,
-    )
+    problem = FitProblem.of(effect, bounds, frames, loss="mse", space=space)
     # The unknowns map into the fields' bounds (as in `fit`): no run-time range check, so the cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         y = start_point(problem, np.dtype(frames[0].color.dtype))

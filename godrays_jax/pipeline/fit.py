@@ -269,16 +269,7 @@ def fit(
     names = tuple(bounds)
     check_inside_bounds(effect)
     dtype = frames[0].color.dtype
-    total_pixels = sum(frame.height * frame.width for frame in frames)
-    problem = FitProblem(
-        effect=effect,
-        names=names,
-        bounds=tuple(bounds[name] for name in names),
-        shapes=tuple(tuple(np.shape(field_value(effect, name))) for name in names),
-        frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
-        loss=loss,
-        space=space,
-    )
+    problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
     data = (problem, (frames, lights, targets, in_front, depths))
     function = _residual_function if least_squares else _objective_function
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.

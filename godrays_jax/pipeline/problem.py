@@ -126,6 +126,20 @@ class FitProblem(eqx.Module):
     loss: str = eqx.field(static=True)
     space: str = eqx.field(static=True)
 
+    @classmethod
+    def of(cls, effect: Effect, bounds: dict[str, tuple[float, float]], frames, *, loss: str, space: str):
+        """The problem of fitting `bounds`' fields of `effect` to `frames`, each frame weighted by its pixel count."""
+        total_pixels = sum(frame.height * frame.width for frame in frames)
+        return cls(
+            effect=effect,
+            names=tuple(bounds),
+            bounds=tuple(bounds.values()),
+            shapes=tuple(tuple(np.shape(field_value(effect, name))) for name in bounds),
+            frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
+            loss=loss,
+            space=space,
+        )
+
     def effect_at(self, y):
         """The effect with the fitted fields set from the flat unit-scaled unknowns `y`."""
         values, offset = [], 0

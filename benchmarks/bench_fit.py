@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
+from godrays_jax.effects.fields import field_value
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.kernels.losses import mse_loss, ssim
 
@@ -207,7 +208,7 @@ def bench_recovery(lines, steps):
                   "| field | true | start | fitted | relative error |", "|---|---|---|---|---|"]  # fmt: skip
         for field in result.fitted:
             chosen = result.rounded if field in COUNTS else result.effect
-            true, first, got = (np.asarray(getattr(e, field), np.float64) for e in (truth, start, chosen))
+            true, first, got = (np.asarray(field_value(e, field), np.float64) for e in (truth, start, chosen))
             error = float(np.max(np.abs(got - true) / np.maximum(np.abs(true), 1e-12)))
             ok = (got == true).all() if field in COUNTS else error <= 0.02
             all_passed &= bool(ok)
@@ -219,7 +220,7 @@ def bench_recovery(lines, steps):
     print(lines[-2], flush=True)
 
 
-SIX = ("extinction", "max_distance", "anisotropy", "light_color")
+SIX = ("medium.extinction", "medium.max_distance", "medium.anisotropy", "medium.light_color")
 """Six unknowns (light_color is RGB). The shaft fields (density, decay, shadow_strength) are left out of the
 timing fit: they change few pixels and made 50 Levenberg-Marquardt steps end unconverged (23 % off)."""
 
@@ -228,9 +229,10 @@ def bench_time(lines, repeats, height, width):
     """A 6-parameter ScatteringFog fit at `width`x`height` to a frame rendered with known parameters."""
     frame, _, light, fov = colonnade()
     frame, light = resized(frame, height, width), light * jnp.array([width / 320, height / 180])
-    truth = gr.ScatteringFog(extinction=0.015, max_distance=60.0, anisotropy=0.85, shadow_strength=0.7, density=0.8,
-                             decay=0.95, fov_x_deg=fov, ambient_color=(0.05, 0.03, 0.02), light_color=(0.6, 0.45, 0.27))  # fmt: skip
-    start = eqx.tree_at(lambda e: [getattr(e, n) for n in SIX], truth,
+    medium = gr.Medium(extinction=0.015, max_distance=60.0, anisotropy=0.85, light_color=(0.6, 0.45, 0.27),
+                       ambient_color=(0.05, 0.03, 0.02))  # fmt: skip
+    truth = gr.ScatteringFog(medium=medium, shadow_strength=0.7, density=0.8, decay=0.95, fov_x_deg=fov)
+    start = eqx.tree_at(lambda e: [field_value(e, n) for n in SIX], truth,
                         [jnp.asarray(v) for v in (0.01, 100.0, 0.76, (1.0, 0.9, 0.75))])  # fmt: skip
     target = truth(frame, light)
     fixed = tuple(n for n in gr.parameter_bounds(truth) if n not in SIX)
@@ -239,7 +241,7 @@ def bench_time(lines, repeats, height, width):
         started = time.perf_counter()
         results.append(fit(start, frame, light, target, fixed=fixed, max_steps=50))
         seconds.append(time.perf_counter() - started)
-    errors = max(float(np.max(np.abs(np.asarray(getattr(results[-1].effect, n)) / np.asarray(getattr(truth, n)) - 1)))
+    errors = max(float(np.max(np.abs(np.asarray(field_value(results[-1].effect, n)) / np.asarray(field_value(truth, n)) - 1)))
                  for n in SIX)  # fmt: skip
     warm = statistics.median(seconds[1:])
     lines += [f"## Fit time: 6 parameters at {width}x{height} (ScatteringFog, 32 samples, {device_name()})", "",
@@ -273,10 +275,10 @@ def bench_gradient(lines, sizes):
         target = resized(gr.Buffers(color=fog, depth=frame.depth, coverage=frame.coverage), height, width).color
         scaled_light = light * jnp.array([width / 320, height / 180])
         for model, (effect, names) in models.items():
-            values = {n: getattr(effect, n) for n in names}
+            values = {n: field_value(effect, n) for n in names}
 
             def loss(values, effect=effect, names=names):
-                candidate = eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [values[n] for n in names])
+                candidate = eqx.tree_at(lambda e: [field_value(e, n) for n in names], effect, [values[n] for n in names])
                 return mse_loss(candidate(buffers, scaled_light), target)
 
             def forward_mode(values, loss=loss):

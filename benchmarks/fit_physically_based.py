@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
+from godrays_jax.effects.fields import replace_fields
 from godrays_jax.kernels.losses import mse_loss, ssim
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -32,9 +33,8 @@ FIXED = ("fov_x_deg", "offscreen_fade", "num_samples")
 
 def with_samples(effect: gr.ScatteringFog, samples: int) -> gr.ScatteringFog:
     """The same medium summed over `samples` steps: the decay per step rescaled so the shafts keep their reach."""
-    fields = {name: getattr(effect, name) for name in gr.parameter_bounds(effect)}
-    fields["decay"] = float(effect.decay) ** (float(effect.num_samples) / samples)
-    return gr.ScatteringFog(**{**fields, "num_samples": float(samples)}, max_samples=samples)
+    decay = float(effect.decay) ** (float(effect.num_samples) / samples)
+    return replace_fields(effect, {"decay": decay, "num_samples": float(samples), "max_samples": samples})
 
 
 def main() -> None:

@@ -85,6 +85,7 @@ from godrays_jax.effects.fields import field_metadata as field_metadata
 from godrays_jax.effects.fields import parameter_bounds as parameter_bounds
 from godrays_jax.effects.fields import size_fields as size_fields
 from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
+from godrays_jax.effects.medium import Medium as Medium
 from godrays_jax.effects.volumetric import VolumetricFog as VolumetricFog
 from godrays_jax.effects.glow import Bloom as Bloom
 from godrays_jax.effects.glow import LensDirt as LensDirt

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from godrays_jax.effects.fields import field_value
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.problem import fitted_bounds
 
@@ -66,8 +67,9 @@ def test_bad_arguments_are_named(case):
 
 
 FOG_SOLUTION = {
-    "effect": "ScatteringFog", "extinction": 5.543232e-05, "max_distance": 238.63605, "anisotropy": 0.9499991,
-    "ambient_color": [0.00047683716, 0.00086634967, 0.016395919], "light_color": [1.6154666, 1.4604614, 1.1586595],
+    "effect": "ScatteringFog", "medium.extinction": 5.543232e-05, "medium.max_distance": 238.63605,
+    "medium.anisotropy": 0.9499991, "medium.ambient_color": [0.00047683716, 0.00086634967, 0.016395919],
+    "medium.light_color": [1.6154666, 1.4604614, 1.1586595],
     "fov_x_deg": 55.907333, "shadow_strength": 0.9961381, "density": 1.009448, "decay": 0.97105277,
     "num_samples": 32.0, "offscreen_fade": 0.5, "max_samples": 32,
 }  # fmt: skip
@@ -83,7 +85,7 @@ def test_offsets_are_cut_off_at_the_jacobians_own_tolerance(case):
     found = determination(fog, frame, light, target, fitted=tuple(gr.parameter_bounds(fog)))
     assert "fov_x_deg" in found.poorly_determined
     steps = found.offsets["fov_x_deg"]
-    assert set(steps) == {"fov_x_deg", "light_color[0]", "light_color[1]"}, steps
+    assert set(steps) == {"fov_x_deg", "medium.light_color[0]", "medium.light_color[1]"}, steps
     assert steps["fov_x_deg"] == pytest.approx(16.9, abs=0.1)
 
 
@@ -95,13 +97,13 @@ def test_every_offset_keeps_every_field_inside_its_range_and_fields_on_a_bound_a
     target = gr.preset("xna_crepuscular")(frame, light)
     found = determination(fog, frame, light, target, fitted=tuple(gr.parameter_bounds(fog)))
     bounds = fitted_bounds(fog)
-    assert found.on_bound["num_samples"] == 32.0 and found.on_bound["anisotropy"] == pytest.approx(0.95)
-    assert found.on_bound["extinction"] == 0.0 and "shadow_strength" not in found.on_bound  # .996: near, not on
+    assert found.on_bound["num_samples"] == 32.0 and found.on_bound["medium.anisotropy"] == pytest.approx(0.95)
+    assert found.on_bound["medium.extinction"] == 0.0 and "shadow_strength" not in found.on_bound  # .996: near, not on
     assert {"shadow_strength", "num_samples", "decay"} <= set(found.poorly_determined)
     for name in found.poorly_determined:
         for label, step in found.offsets[name].items():
             field, _, component = label.partition("[")
-            value = np.asarray(getattr(fog, field), np.float64)
+            value = np.asarray(field_value(fog, field), np.float64)
             value = value[int(component[:-1])] if component else float(value)
             low, high = bounds[field]
             assert low <= value + step <= high, (name, label, value, step)

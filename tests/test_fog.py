@@ -11,14 +11,18 @@ from jax.test_util import check_grads
 from reference import radial_rays as reference_rays
 
 import godrays_jax as gr
+from godrays_jax.effects.fields import field_value
 from godrays_jax.kernels.media import apply_fog, henyey_greenstein, in_scattering, transmittance
 
 HEIGHT, WIDTH = 6, 8
 LIGHT = (3.3, 1.7)
-FOG = dict(
-    fov_x_deg=60.0, extinction=0.05, max_distance=30.0, ambient_color=(0.1, 0.2, 0.3),
-    light_color=(2.0, 1.5, 1.0), anisotropy=0.7,
-)  # fmt: skip
+MEDIUM = dict(extinction=0.05, max_distance=30.0, ambient_color=(0.1, 0.2, 0.3), light_color=(2.0, 1.5, 1.0), anisotropy=0.7)
+FOG = dict(fov_x_deg=60.0, **MEDIUM)
+"""The kernels' options; the effect holds `MEDIUM` in its `medium` part (`_fog`)."""
+
+
+def _fog(**fields):
+    return gr.ScatteringFog(medium=gr.Medium(**MEDIUM), fov_x_deg=FOG["fov_x_deg"], **fields)
 
 
 def _frame(rng, dtype=np.float64):
@@ -80,7 +84,7 @@ def test_transmittance_sky_sees_max_distance_and_layer_completes_the_frame(rng):
     np.testing.assert_allclose(t[0, :5], math.exp(-1.5), rtol=1e-6)  # sky
     np.testing.assert_allclose(t[:, 5], math.exp(-0.6), rtol=1e-6)  # pillar at 12 units
     fog = gr.ScatteringFog(num_samples=3.0, max_samples=3)
-    t_fog = transmittance(frame.depth, extinction=fog.extinction, max_distance=fog.max_distance)
+    t_fog = transmittance(frame.depth, extinction=fog.medium.extinction, max_distance=fog.medium.max_distance)
     np.testing.assert_allclose(
         fog(frame, jnp.asarray(LIGHT))[..., :3], frame.color[..., :3] * t_fog[..., None] + fog.layer(frame, jnp.asarray(LIGHT)),
         rtol=1e-5, atol=1e-6,
@@ -95,13 +99,13 @@ def _expected_effect(effect, frame, light, in_front=True):
     rays = reference_rays(sky, light, **options)[..., 0]
     normaliser = 1.0 + sum(float(effect.decay) ** i for i in range(n))
     lit = 1.0 - float(effect.shadow_strength) * (1.0 - rays / normaliser) * (1.0 if in_front else 0.0)
-    fog = {name: np.asarray(getattr(effect, name)).tolist() for name in FOG}
+    fog = {name: np.asarray(getattr(effect.medium, name)).tolist() for name in MEDIUM} | {"fov_x_deg": float(effect.fov_x_deg)}
     return reference_fog(np.asarray(frame.color), np.asarray(frame.depth), light, lit=lit, in_front=in_front, **fog)
 
 
 def test_scattering_fog_effect_matches_loop_with_shafts_and_behind_camera(x64, rng):
     frame = _frame(rng)
-    effect = gr.ScatteringFog(**FOG, shadow_strength=0.8, density=0.9, decay=0.9, num_samples=5.0, max_samples=6)
+    effect = _fog(shadow_strength=0.8, density=0.9, decay=0.9, num_samples=5.0, max_samples=6)
     call = eqx.filter_jit(lambda e, f, light, front: e(f, light, light_in_front=front))
     np.testing.assert_allclose(call(effect, frame, jnp.asarray(LIGHT), True), _expected_effect(effect, frame, LIGHT), rtol=1e-9, atol=1e-12)
     behind = call(effect, frame, jnp.asarray(LIGHT), False)
@@ -113,17 +117,17 @@ def test_scattering_fog_effect_matches_loop_with_shafts_and_behind_camera(x64, r
     assert np.all(np.asarray(effect(frame, jnp.asarray(LIGHT))) <= np.asarray(unshadowed(frame, jnp.asarray(LIGHT))) + 1e-12)
 
 
-FITTED = ("extinction", "max_distance", "anisotropy", "ambient_color", "light_color", "fov_x_deg", "shadow_strength",
-          "density", "decay", "num_samples", "offscreen_fade")  # fmt: skip
+FITTED = ("medium.extinction", "medium.max_distance", "medium.anisotropy", "medium.light_color", "medium.ambient_color",
+          "fov_x_deg", "shadow_strength", "density", "decay", "num_samples", "offscreen_fade")  # fmt: skip
 
 
 def test_scattering_fog_gradients_float64(x64, rng):
     frame = _frame(rng)
-    effect = gr.ScatteringFog(**FOG, shadow_strength=0.8, density=0.9, decay=0.9, num_samples=4.6, max_samples=6)
-    values = tuple(getattr(effect, name) for name in FITTED)
+    effect = _fog(shadow_strength=0.8, density=0.9, decay=0.9, num_samples=4.6, max_samples=6)
+    values = tuple(field_value(effect, name) for name in FITTED)
 
     def render(*values):
-        return jnp.sum(eqx.tree_at(lambda e: [getattr(e, n) for n in FITTED], effect, list(values))(frame, jnp.asarray(LIGHT)) ** 2)
+        return jnp.sum(eqx.tree_at(lambda e: [field_value(e, n) for n in FITTED], effect, list(values))(frame, jnp.asarray(LIGHT)) ** 2)
 
     check_grads(jax.jit(render), values, order=1, modes=("fwd", "rev"), eps=1e-6)
 
@@ -132,8 +136,8 @@ def test_degenerate_inputs_give_finite_values_and_gradients():
     # All sky; the light on a pixel centre, far off screen or behind the camera; no medium or an empty one.
     frame = gr.Buffers(color=jnp.ones((4, 5, 3)), depth=jnp.full((4, 5), jnp.inf), coverage=jnp.zeros((4, 5)))
     small = dict(num_samples=3.0, max_samples=3)
-    effects = [gr.ScatteringFog(extinction=0.0, **small), gr.ScatteringFog(max_distance=0.0, **small),
-               gr.ScatteringFog(anisotropy=0.95, **small)]  # fmt: skip
+    effects = [gr.ScatteringFog(medium=gr.Medium(**{name: value}), **small)
+               for name, value in (("extinction", 0.0), ("max_distance", 0.0), ("anisotropy", 0.95))]  # fmt: skip
     value_and_grad = eqx.filter_jit(eqx.filter_value_and_grad(lambda e, light, front: jnp.sum(e(frame, light, light_in_front=front))))
     for effect in effects:
         for light, front in (((2.5, 1.5), True), ((-400.0, 90.0), True), ((2.5, 1.5), False)):

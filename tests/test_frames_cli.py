@@ -13,6 +13,7 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
+from godrays_jax.effects.fields import replace_fields
 from godrays_jax.primitives.color import quantize, srgb_encode
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -90,7 +91,7 @@ def test_apply_blender_frame_reads_ray_depth_and_the_frames_camera(tmp_path):
 
 def test_fit_keeps_the_frames_field_of_view(tmp_path, capsys):
     fog = gr.preset("participating_media")
-    truth = dataclasses.replace(fog, fov_x_deg=BLENDER_FOV, extinction=0.05)
+    truth = replace_fields(fog, {"fov_x_deg": BLENDER_FOV, "medium.extinction": 0.05})
     target = tmp_path / "target.exr"
     gr.write_image(target, truth(gr.read_buffers(BLENDER), jnp.asarray(LIGHT)))
     params = tmp_path / "params.json"

@@ -10,6 +10,7 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.app.tuner import pixel_fields, scale_pixel_fields
 from godrays_jax.effects.fields import field_value, plain_value, replace_fields
+from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.problem import FitProblem, fitted_bounds, start_point
 from frames import LIGHT, make_frame
 
@@ -75,3 +76,34 @@ def test_the_tuner_scales_a_parts_pixel_sizes():
     assert gr.parameter_bounds(spot)["bloom.blur_sigma"] == (0.0, 100.0), "pixel bounds: the part's units"
     assert pixel_fields(_spot()) == ()
     assert scale_pixel_fields(spot, 1.0) is spot
+
+
+FLAT_MEDIUM = {"extinction": 0.02, "max_distance": 60.0, "anisotropy": 0.5, "light_color": [2.0, 1.5, 1.0],
+               "ambient_color": [0.1, 0.1, 0.2]}  # fmt: skip
+"""The medium's fields as the media held them flat before `Medium` was a part."""
+
+
+@pytest.mark.parametrize("kind", ["ScatteringFog"])
+def test_a_medium_round_trips_and_its_flat_names_load_with_one_warning_each(tmp_path, kind):
+    path = tmp_path / "fog.json"
+    path.write_text(json.dumps({"effect": kind, **FLAT_MEDIUM}))
+    with pytest.warns(FutureWarning) as caught:
+        fog = gr.load_effect(path)
+    messages = [str(warning.message) for warning in caught]
+    assert sorted(messages) == sorted(f"{kind}.{old} is now named medium.{old}: read as medium.{old}" for old in FLAT_MEDIUM)
+    assert fog.medium == gr.Medium(**FLAT_MEDIUM)
+    gr.save_effect(path, fog)
+    saved = json.loads(path.read_text())
+    assert {f"medium.{name}" for name in FLAT_MEDIUM} <= set(saved) and not set(FLAT_MEDIUM) & set(saved)
+    assert gr.load_effect(path) == fog
+    assert {f"medium.{name}" for name in FLAT_MEDIUM} <= set(gr.parameter_bounds(fog))
+
+
+def test_a_fit_recovers_a_medium_field():
+    frame = make_frame()
+    start = gr.ScatteringFog(num_samples=2.0, max_samples=2, medium=gr.Medium(extinction=0.05))
+    target = replace_fields(start, {"medium.extinction": 0.1})(frame, LIGHT)
+    fixed = [name for name in gr.parameter_bounds(start) if name != "medium.extinction"]
+    result = fit(start, frame, LIGHT, target, fixed=fixed, space="linear", max_steps=10)
+    assert result.fitted == ("medium.extinction",)
+    np.testing.assert_allclose(float(result.effect.medium.extinction), 0.1, rtol=1e-3)

@@ -90,8 +90,8 @@ def test_a_part_saves_as_part_dot_field_and_names_its_fields_from_the_effect(tmp
 
 
 def test_an_old_name_beside_its_new_name_is_refused():
-    with pytest.raises(ValueError, match="'ambient' and its new name 'ambient_color'"):
-        gr.effect_from_dict({"effect": "ScatteringFog", "ambient": [0, 0, 0], "ambient_color": [0, 0, 0]})
+    with pytest.raises(ValueError, match="'ambient' and its new name 'medium.ambient_color'"):
+        gr.effect_from_dict({"effect": "ScatteringFog", "ambient": [0, 0, 0], "medium.ambient_color": [0, 0, 0]})
 
 
 def test_the_cli_names_the_new_name_in_one_warning_line(tmp_path, capsys):

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import Effect, frame_ray_depth, light_visibility
-from godrays_jax.effects.fields import count_param, param, static
+from godrays_jax.effects.fields import count_param, param, part, static
+from godrays_jax.effects.medium import FLAT_NAMES, Medium
 from godrays_jax.kernels.masks import coverage_mask
 from godrays_jax.kernels.media import apply_fog, in_scattering
 from godrays_jax.kernels.rays import radial_rays
@@ -20,14 +21,16 @@ class ScatteringFog(Effect):
     """A homogeneous participating medium: extinction of the frame plus in-scattered sky and sun light.
 
     The frame becomes `color * T + (1 - T) * (ambient_color + light_color * p(theta) * lit)`
-    (`media.apply_fog`, single scattering in closed form): `T = exp(-extinction *
-    min(depth, max_distance))` with `depth` the distance along the camera ray in
-    scene units (`buffers.ray_depth(fov_x_deg)`: planar depth converted with
-    the effect's field of view; sky: `max_distance`), `extinction` per scene unit, `p` the
-    Henyey-Greenstein phase function (per steradian) of `anisotropy` at the
+    (`media.apply_fog`, single scattering in closed form) with the fields of
+    its `medium` (a `Medium`: `medium.extinction`, `medium.max_distance`,
+    `medium.anisotropy`, `medium.light_color`, `medium.ambient_color`):
+    `T = exp(-extinction * min(depth, max_distance))` with `depth` the distance
+    along the camera ray in scene units (`buffers.ray_depth(fov_x_deg)`: planar
+    depth converted with the effect's field of view; sky: `max_distance`), `p`
+    the Henyey-Greenstein phase function (per steradian) of `anisotropy` at the
     angle between each pixel's view ray and the sun (from `fov_x_deg`, the
-    horizontal field of view in degrees), `ambient_color` and `light_color` RGB
-    (albedo times sky radiance and times sun irradiance).
+    horizontal field of view in degrees).
+    `ScatteringFog(medium=Medium(extinction=0.02), shadow_strength=0.5)`.
 
     `lit` is the screen-space estimate of how much of each ray the sun
     reaches, so occluders cast shafts of shadow into the medium:
@@ -43,11 +46,7 @@ class ScatteringFog(Effect):
     frame is `color * media.transmittance(...) + layer`).
     """
 
-    extinction: Float[Array, ""] = param(0.01, low=0.0, high=1.0)
-    max_distance: Float[Array, ""] = param(100.0, low=0.0, high=1e4)
-    anisotropy: Float[Array, ""] = param(0.76, low=-0.95, high=0.95)
-    ambient_color: Float[Array, "3"] = param((0.05, 0.06, 0.08), low=0.0, high=10.0, formerly=("ambient",))
-    light_color: Float[Array, "3"] = param((1.0, 0.9, 0.75), low=0.0, high=100.0, formerly=("sun_irradiance",))
+    medium: Medium = part(Medium, formerly=FLAT_NAMES | {"ambient": "ambient_color", "sun_irradiance": "light_color"})
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     shadow_strength: Float[Array, ""] = param(1.0, low=0.0, high=1.0, formerly=("shaft_strength",))
     density: Float[Array, ""] = param(1.0, low=0.0, high=2.0)
@@ -77,8 +76,9 @@ class ScatteringFog(Effect):
 
     def _fog_options(self, buffers, light_xy, light_in_front):
         return dict(
-            fov_x_deg=self.fov_x_deg, extinction=self.extinction, max_distance=self.max_distance,
-            ambient_color=self.ambient_color, light_color=self.light_color, anisotropy=self.anisotropy,
+            fov_x_deg=self.fov_x_deg, extinction=self.medium.extinction, max_distance=self.medium.max_distance,
+            ambient_color=self.medium.ambient_color, light_color=self.medium.light_color,
+            anisotropy=self.medium.anisotropy,
             light_in_front=light_in_front,
             lit=self.lit(buffers, light_xy, light_in_front=light_in_front),
         )  # fmt: skip

@@ -6,6 +6,7 @@ from godrays_jax.effects.base import Effect, needs_depth
 from godrays_jax.effects.fog import ScatteringFog
 from godrays_jax.effects.volumetric import VolumetricFog
 from godrays_jax.effects.glow import Bloom, LensDirt, SunOvercast, SunSpot
+from godrays_jax.effects.medium import Medium
 from godrays_jax.effects.shafts import FlareOuts, GodRays
 from godrays_jax.kernels.lens import LENS_DIRT_ABERRATION
 
@@ -99,9 +100,11 @@ def _participating_media() -> ScatteringFog:
     # 128 samples, the shadow's falloff of 32 samples at decay .97 (.97 per 4 samples): fewer
     # step over thin occluders, and the shafts shimmer as the camera moves.
     return ScatteringFog(
-        extinction=0.01, max_distance=100.0, anisotropy=0.76, ambient_color=(0.05, 0.06, 0.08),
-        light_color=(1.0, 0.9, 0.75), fov_x_deg=50.0, shadow_strength=1.0, density=1.0, decay=0.97**0.25,
-        num_samples=128.0, max_samples=128,
+        medium=Medium(
+            extinction=0.01, max_distance=100.0, anisotropy=0.76, light_color=(1.0, 0.9, 0.75),
+            ambient_color=(0.05, 0.06, 0.08),
+        ),
+        fov_x_deg=50.0, shadow_strength=1.0, density=1.0, decay=0.97**0.25, num_samples=128.0, max_samples=128,
     )  # fmt: skip
 
 
@@ -173,9 +176,11 @@ def _physically_based() -> ScatteringFog:
     single-scattering reference). Distances are in scene units; `fov_x_deg` is the colonnade camera's.
     """
     return ScatteringFog(
-        extinction=0.0073, max_distance=183.33, anisotropy=0.8948, ambient_color=(0.0525, 0.0249, 0.0),
-        light_color=(0.5271, 0.4038, 0.2397), fov_x_deg=50.0, shadow_strength=0.6084, density=1.0209,
-        decay=0.99681, num_samples=128.0, max_samples=128,
+        medium=Medium(
+            extinction=0.0073, max_distance=183.33, anisotropy=0.8948, light_color=(0.5271, 0.4038, 0.2397),
+            ambient_color=(0.0525, 0.0249, 0.0),
+        ),
+        fov_x_deg=50.0, shadow_strength=0.6084, density=1.0209, decay=0.99681, num_samples=128.0, max_samples=128,
     )  # fmt: skip
 
 

@@ -66,10 +66,10 @@ def main() -> None:
         forward = jax.jit(lambda b, l, effect=effect: effect(b, l)).lower(buffers, light).compile()
 
         def tangent(extinction, effect=effect):
-            return jax.jvp(lambda x: eqx.tree_at(lambda e: e.extinction, effect, x)(buffers, light), (extinction,),
+            return jax.jvp(lambda x: eqx.tree_at(lambda e: e.medium.extinction, effect, x)(buffers, light), (extinction,),
                            (jnp.ones_like(extinction),))[1]  # fmt: skip
 
-        derivative = jax.jit(tangent).lower(effect.extinction).compile()
+        derivative = jax.jit(tangent).lower(effect.medium.extinction).compile()
         mib = [c.memory_analysis().temp_size_in_bytes / 2**20 for c in (forward, derivative)]
         print(f"| {steps} view steps x {samples} shadow samples | {mib[0]:.1f} | {mib[1]:.1f} |", flush=True)
 

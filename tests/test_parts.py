@@ -83,7 +83,7 @@ FLAT_MEDIUM = {"extinction": 0.02, "max_distance": 60.0, "anisotropy": 0.5, "lig
 """The medium's fields as the media held them flat before `Medium` was a part."""
 
 
-@pytest.mark.parametrize("kind", ["ScatteringFog"])
+@pytest.mark.parametrize("kind", ["ScatteringFog", "VolumetricFog"])
 def test_a_medium_round_trips_and_its_flat_names_load_with_one_warning_each(tmp_path, kind):
     path = tmp_path / "fog.json"
     path.write_text(json.dumps({"effect": kind, **FLAT_MEDIUM}))

@@ -24,20 +24,22 @@ def _frame(rng):
     return gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(np.isfinite(depth), jnp.float32))
 
 
-EFFECT = dict(extinction=0.04, max_distance=40.0, anisotropy=0.7, light_color=(2.0, 1.6, 1.2),
-              ambient_color=(0.1, 0.12, 0.15), direct_fraction=0.6, fov_x_deg=60.0, num_view_steps=8,
-              num_shadow_samples=12, resolution_factor=2)  # fmt: skip
+MEDIUM = dict(extinction=0.04, max_distance=40.0, anisotropy=0.7, light_color=(2.0, 1.6, 1.2),
+              ambient_color=(0.1, 0.12, 0.15))  # fmt: skip
+EFFECT = dict(direct_fraction=0.6, fov_x_deg=60.0, num_view_steps=8, num_shadow_samples=12, resolution_factor=2)
 LIGHT = (7.3, 1.6)
+
+
+def _fog(**medium):
+    return gr.VolumetricFog(medium=gr.Medium(**{**MEDIUM, **medium}), **EFFECT)
 
 
 def test_effect_is_the_kernel_composited(rng):
     buffers = _frame(rng)
-    effect = gr.VolumetricFog(**EFFECT)
-    options = {k: v for k, v in EFFECT.items() if k not in ("light_color", "ambient_color")}
+    effect = _fog()
     expected = gr.apply_volumetric_fog(
-        buffers.color, buffers.depth, jnp.asarray(LIGHT), light_color=EFFECT["light_color"],
-        ambient_color=EFFECT["ambient_color"], light_depth=20.0, height_falloff=0.0, layer_top=1e4,
-        thickness=0.15, edge_softness=0.05, **options,
+        buffers.color, buffers.depth, jnp.asarray(LIGHT), light_depth=20.0, height_falloff=0.0, layer_top=1e4,
+        thickness=0.15, edge_softness=0.05, **MEDIUM, **EFFECT,
     )  # fmt: skip
     np.testing.assert_allclose(effect(buffers, jnp.asarray(LIGHT), light_depth=20.0), expected, rtol=1e-6)
     layer = effect.layer(buffers, jnp.asarray(LIGHT), light_depth=20.0)
@@ -68,20 +70,20 @@ def test_static_counts_are_checked():
 
 def test_fit_recovers_the_medium(rng):
     buffers = _frame(rng)
-    truth = gr.VolumetricFog(**EFFECT)
+    truth = _fog()
     target = render_compiled(truth, buffers, jnp.asarray(LIGHT), True, 20.0)
-    start = gr.VolumetricFog(**dict(EFFECT, extinction=0.02, anisotropy=0.5, light_color=(1.0, 1.0, 1.0)))
-    fixed = ("fov_x_deg", "max_distance", "height_falloff", "layer_top", "thickness", "edge_softness", "direct_fraction",
-             "ambient_color")  # fmt: skip
+    start = _fog(extinction=0.02, anisotropy=0.5, light_color=(1.0, 1.0, 1.0))
+    fixed = ("fov_x_deg", "medium.max_distance", "height_falloff", "layer_top", "thickness", "edge_softness",
+             "direct_fraction", "medium.ambient_color")  # fmt: skip
     result = fit(start, buffers, jnp.asarray(LIGHT), target, fixed=fixed, light_depth=20.0, max_steps=30)
     assert result.loss_after < 1e-3 * result.loss_before
-    assert float(result.effect.extinction) == pytest.approx(0.04, rel=0.02)
-    assert float(result.effect.anisotropy) == pytest.approx(0.7, rel=0.02)
+    assert float(result.effect.medium.extinction) == pytest.approx(0.04, rel=0.02)
+    assert float(result.effect.medium.anisotropy) == pytest.approx(0.7, rel=0.02)
 
 
 def test_light_depth_reaches_the_effect_through_fit(rng):
     buffers = _frame(rng)
-    effect = gr.VolumetricFog(**EFFECT)
+    effect = _fog()
     near = render_compiled(effect, buffers, jnp.asarray(LIGHT), True, 15.0)
     sun = render_compiled(effect, buffers, jnp.asarray(LIGHT), True, math.inf)
     assert not np.allclose(near, sun)

@@ -118,8 +118,11 @@ def _volumetric_haze() -> VolumetricFog:
     depth buffer's surfaces 15 % of their depth thick.
     """
     return VolumetricFog(
-        extinction=0.01, max_distance=100.0, anisotropy=0.76, light_color=(1.0, 0.9, 0.75),
-        ambient_color=(0.05, 0.06, 0.08), direct_fraction=0.5, thickness=0.15, edge_softness=0.05, fov_x_deg=50.0,
+        medium=Medium(
+            extinction=0.01, max_distance=100.0, anisotropy=0.76, light_color=(1.0, 0.9, 0.75),
+            ambient_color=(0.05, 0.06, 0.08),
+        ),
+        direct_fraction=0.5, thickness=0.15, edge_softness=0.05, fov_x_deg=50.0,
     )  # fmt: skip
 
 # Presets beyond the articles: the looks people expect from a light-shaft library. The articles'

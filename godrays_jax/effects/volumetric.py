@@ -7,7 +7,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import Effect, frame_ray_depth
-from godrays_jax.effects.fields import param, static
+from godrays_jax.effects.fields import param, part, static
+from godrays_jax.effects.medium import FLAT_NAMES, Medium
 from godrays_jax.kernels.volumetric import volumetric_fog_terms
 from godrays_jax.primitives.checks import check_light
 
@@ -30,7 +31,8 @@ class VolumetricFog(Effect):
     `edge_softness` of its depth), times the light dimmed by the medium on its
     way in, times the Henyey-Greenstein phase of `anisotropy`.
 
-    The medium: `extinction` per scene unit at the camera's height, falling
+    The medium is the `medium` part (a `Medium`, its fields `medium.extinction`,
+    ...): `extinction` per scene unit at the camera's height, falling
     off as `exp(-height_falloff * height)` (per scene unit, the height above
     the camera along its up axis), inside a ball of radius `max_distance`
     (scene units) around the camera and below `layer_top` (scene units above
@@ -45,16 +47,13 @@ class VolumetricFog(Effect):
     and is upsampled with depth-aware weights; memory is O(march pixels x
     `num_view_steps`) whatever `num_shadow_samples` is.
 
-    `effect(...)` is the fogged frame, `effect.layer(...)` the scattered light alone.
+    `effect(...)` is the fogged frame, `effect.layer(...)` the scattered light alone. Built as
+    `VolumetricFog(medium=Medium(extinction=0.02, anisotropy=0.8), thickness=0.2, num_view_steps=24)`.
     """
 
-    extinction: Float[Array, ""] = param(0.01, low=0.0, high=1.0)
-    max_distance: Float[Array, ""] = param(100.0, low=0.0, high=1e4)
+    medium: Medium = part(Medium, formerly=FLAT_NAMES)
     height_falloff: Float[Array, ""] = param(0.0, low=0.0, high=1.0)
     layer_top: Float[Array, ""] = param(1e4, low=-1e3, high=1e4)
-    anisotropy: Float[Array, ""] = param(0.76, low=-0.95, high=0.95)
-    light_color: Float[Array, "3"] = param((1.0, 0.9, 0.75), low=0.0, high=100.0)
-    ambient_color: Float[Array, "3"] = param((0.05, 0.06, 0.08), low=0.0, high=10.0)
     direct_fraction: Float[Array, ""] = param(0.5, low=0.0, high=1.0)
     thickness: Float[Array, ""] = param(0.15, low=0.0, high=4.0)
     edge_softness: Float[Array, ""] = param(0.05, low=0.005, high=1.0)
@@ -72,14 +71,15 @@ class VolumetricFog(Effect):
         factor = march_factor(buffers.height, buffers.width, self.resolution_factor)
         return volumetric_fog_terms(
             depth, light_xy, fov_x_deg=self.fov_x_deg, light_depth=light_depth, light_in_front=light_in_front,
-            extinction=self.extinction, max_distance=self.max_distance, height_falloff=self.height_falloff,
-            layer_top=self.layer_top, anisotropy=self.anisotropy, direct_fraction=self.direct_fraction,
-            thickness=self.thickness, edge_softness=self.edge_softness, num_view_steps=self.num_view_steps,
-            num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
+            extinction=self.medium.extinction, max_distance=self.medium.max_distance,
+            height_falloff=self.height_falloff, layer_top=self.layer_top, anisotropy=self.medium.anisotropy,
+            direct_fraction=self.direct_fraction, thickness=self.thickness, edge_softness=self.edge_softness,
+            num_view_steps=self.num_view_steps, num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
         )  # fmt: skip
 
     def _light(self, scattered, opacity, dtype):
-        light = scattered[..., None] * self.light_color.astype(dtype) + opacity[..., None] * self.ambient_color.astype(dtype)
+        medium = self.medium
+        light = scattered[..., None] * medium.light_color.astype(dtype) + opacity[..., None] * medium.ambient_color.astype(dtype)
         return light.astype(dtype)
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.app.tuner import pixel_fields, scale_pixel_fields
 from godrays_jax.effects.fields import field_value, plain_value, replace_fields
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.problem import FitProblem, fitted_bounds, start_point
+from godrays_jax.pipeline.reduced import pixel_fields, scale_pixel_fields
 from frames import LIGHT, make_frame
 
 

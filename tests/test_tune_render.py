@@ -8,14 +8,8 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.app.tuner import (
-    RenderQueue,
-    Superseded,
-    downsample_buffers,
-    pixel_fields,
-    preview_factor,
-    scale_pixel_fields,
-)
+from godrays_jax.app.tuner import RenderQueue, Superseded, preview_factor
+from godrays_jax.pipeline.reduced import downsample_buffers, pixel_fields, scale_pixel_fields
 
 from tune_support import next_waiting, small_frame
 

@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import count_fields, field_value, replace_fields, size_fields, units_of
+from godrays_jax.effects.fields import count_fields
 from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import (
     effect_from_dict,
@@ -30,17 +30,12 @@ from godrays_jax.effects.serialization import (
 )
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.problem import fitted_bounds
+from godrays_jax.pipeline.reduced import clip_to_bounds, downsample_buffers, pixel_fields, scale_pixel_fields
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, error_line, ranges_guaranteed
 from godrays_jax.primitives.color import display_map, to_srgb8
 from godrays_jax.primitives.images import encode_png
-from godrays_jax.primitives.resample import box_pool, downsample_box
-
-def pixel_fields(effect: Effect) -> tuple[str, ...]:
-    """The fields measured in pixels: an effect's sizes (`size_fields`) whose owner (the effect or a part) has
-    `units="px"`."""
-    return tuple(name for name in size_fields(effect) if units_of(effect, name) == "px")
-
+from godrays_jax.primitives.resample import downsample_box
 
 VIEWS: tuple[str, ...] = ("after", "before", "layer", "difference", "target")
 
@@ -75,47 +70,6 @@ def preview_factor(height: int, width: int, *, max_pixels: int = 40_000) -> int:
     while math.ceil(height / factor) * math.ceil(width / factor) > max_pixels:
         factor += 1
     return factor
-
-
-def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
-    """The frame at `1 / factor` of its resolution, `ceil(H / factor) x ceil(W / factor)` pixels.
-
-    Colour, coverage and the light and glow passes are box-averaged
-    (`downsample_box`); depth takes each block's nearest surface (sky only
-    where the whole block is sky); normals and object ids take each block's
-    top-left pixel. Full-resolution pixel position `x` is position `x / factor`.
-    """
-    if factor == 1:
-        return buffers
-
-    def box(image):
-        return None if image is None else downsample_box(image, factor)
-
-    def plane(image):
-        return None if image is None else downsample_box(image[..., None], factor)[..., 0]
-
-    return Buffers(
-        color=box(buffers.color),
-        depth=None if buffers.depth is None else box_pool(buffers.depth, factor, pooling="min"),
-        coverage=plane(buffers.coverage),
-        normal=None if buffers.normal is None else buffers.normal[::factor, ::factor],
-        object_id=None if buffers.object_id is None else buffers.object_id[::factor, ::factor],
-        light_pass=plane(buffers.light_pass),
-        glow_pass=box(buffers.glow_pass),
-        glow_target=box(buffers.glow_target),
-        depth_kind=buffers.depth_kind,
-    )
-
-
-def scale_pixel_fields(effect: Effect, scale: float) -> Effect:
-    """The effect with every field in `pixel_fields` multiplied by `scale` (to render at another resolution).
-
-    Frame-unit sizes (the default) describe the same picture at any resolution and are left alone.
-    """
-    names = pixel_fields(effect)
-    if not names or scale == 1:
-        return effect
-    return replace_fields(effect, {name: field_value(effect, name) * scale for name in names})
 
 
 def display_encode(
@@ -506,7 +460,7 @@ class Tuner:
             )
             # Counts rounded, as `godrays-jax fit` saves them, unless the page asks for the relaxation's values.
             chosen = result.effect if fractional else result.rounded
-            fitted = _clip_to_bounds(scale_pixel_fields(chosen, float(self.factor)), bounds)
+            fitted = clip_to_bounds(scale_pixel_fields(chosen, float(self.factor)), bounds)
             with self._lock:
                 self.effect = fitted
             outcome = {"result": {
@@ -522,11 +476,5 @@ class Tuner:
             outcome = {"error": error_line(error)}
         with self._fit_lock:
             self._fit_progress.update(running=False, **outcome)
-
-
-def _clip_to_bounds(effect: Effect, bounds: Mapping[str, tuple[float, float]]) -> Effect:
-    names = list(bounds)
-    clipped = [jnp.clip(field_value(effect, n), *bounds[n]) for n in names]
-    return eqx.tree_at(lambda e: [field_value(e, n) for n in names], effect, clipped)
 
 

@@ -1,12 +1,17 @@
 """`VolumetricFog`'s forward pass at 1920x1080 on this machine, and its compiled memory against the sample counts.
 
     python benchmarks/bench_volumetric.py [--repeats 3]
+    python benchmarks/bench_volumetric.py --fit
 
 Forward: the `hidden_sun` reference's clean frame upscaled (nearest) to 1920x1080, the
 `volumetric_haze` preset at `resolution_factor` 4 and 8, jitted; the median of `--repeats` runs
 after one warm-up. Memory: XLA's compiled temporary bytes (`memory_analysis`) of the forward pass
 and of one forward-mode derivative (what `fit`'s Jacobian takes per parameter) at 480x270 for
-several `num_view_steps` x `num_shadow_samples`. `uptime` first: the machine is shared.
+several `num_view_steps` x `num_shadow_samples`. `--fit` times the 480x270 fit instead: the reference's
+clean frame and fog render upscaled (nearest), `fit` from `volumetric_haze` with the field of view
+fixed (the frame gives it), once as `godrays-jax fit` runs it (its default coarse phase and plateau
+stop) and once as before both (50 steps at full resolution, no plateau stop); each fit twice, the
+first compiling, and the final display-space MSE. `uptime` first: the machine is shared.
 """
 
 import argparse
@@ -23,27 +28,57 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
+from godrays_jax.app.options import auto_coarse_factor
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
 from scenes import BY_NAME  # noqa: E402  (the references' folder joins the path first)
 
 
+SCENE = BY_NAME["hidden_sun"]
+
+
+def upscaled(image: np.ndarray, height: int, width: int) -> jnp.ndarray:
+    """`image` at `height x width`, nearest."""
+    rows = (np.arange(height) * image.shape[0]) // height
+    cols = (np.arange(width) * image.shape[1]) // width
+    return jnp.asarray(np.asarray(image)[rows][:, cols])
+
+
 def frame(height: int, width: int) -> tuple[gr.Buffers, jnp.ndarray]:
-    scene = BY_NAME["hidden_sun"]
-    small = gr.read_buffers(str(scene.clean))
-    rows = (np.arange(height) * small.height) // height
-    cols = (np.arange(width) * small.width) // width
-    pick = lambda a: jnp.asarray(np.asarray(a)[rows][:, cols])  # noqa: E731
-    light = jnp.asarray([scene.light_px[0] * width / small.width, scene.light_px[1] * height / small.height])
+    small = gr.read_buffers(str(SCENE.clean))
+    pick = lambda a: upscaled(a, height, width)  # noqa: E731
+    light = jnp.asarray([SCENE.light_px[0] * width / small.width, SCENE.light_px[1] * height / small.height])
     return gr.Buffers(color=pick(small.color), depth=pick(small.depth), coverage=pick(small.coverage)), light
+
+
+def fit_row(label: str, **options) -> None:
+    """Time `fit` at 480x270 twice (the first compiles) with `options`; print the row."""
+    buffers, light = frame(270, 480)
+    target = upscaled(gr.read_image(str(SCENE.fog_a))[..., :3], 270, 480)
+    start = eqx.tree_at(lambda e: e.fov_x_deg, gr.preset("volumetric_haze"), jnp.asarray(SCENE.fov_x_deg, jnp.float32))
+    times = []
+    for _ in range(2):
+        began = time.perf_counter()
+        result = gr.fit(start, buffers, light, target, fixed=("fov_x_deg",), light_depth=SCENE.light_depth, **options)
+        times.append(time.perf_counter() - began)
+    steps = f"{result.coarse_steps} + {result.steps}" if result.coarse_steps else str(result.steps)
+    print(f"| {label} | {steps} | {times[0]:.1f} | {times[1]:.1f} | {result.loss_after:.4g} |", flush=True)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--fit", action="store_true", help="time the 480x270 fit instead, as fit runs it and as before")
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
+    if args.fit:
+        print("| 480x270 fit | steps (coarse + full) | seconds, compiling | seconds, again | display MSE |")
+        print("|---|---|---|---|---|")
+        fit_row(f"godrays-jax fit's way (coarse factor {auto_coarse_factor(270, 480)})", coarse_factor=auto_coarse_factor(270, 480))
+        fit_row("before: 50 steps at full resolution", plateau_steps=0)
+        print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
+        return
     buffers, light = frame(1080, 1920)
     print("| 1920x1080 forward | median seconds |")
     print("|---|---|")

@@ -10,6 +10,7 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
+from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.pipeline.fit import fit, round_counts
 from godrays_jax.pipeline.problem import fitted_bounds, from_unit, to_unit
 
@@ -148,6 +149,30 @@ def test_a_repeated_fit_traces_and_compiles_nothing(caplog, monkeypatch):
     assert result.loss_after < result.loss_before
 
 
+def test_a_coarse_phase_then_the_full_resolution_recovers_the_parameters():
+    """The coarse phase fits the frame halved (the light and the disc's pixel size halved too); the fine phase ends it."""
+    frame = _frame()
+    target = _rays(**TRUTH)(frame, LIGHT)
+    result = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, coarse_factor=2)
+    assert result.coarse_steps > 0 and result.effect.flare_size == 6.0  # pixel sizes scaled back
+    assert result.loss_history[0] == pytest.approx(result.loss_before)
+    assert result.loss_history[1] < 0.1 * result.loss_history[0]  # the coarse phase's result, at full resolution
+    for name in result.fitted:
+        np.testing.assert_allclose(getattr(result.effect, name), TRUTH[name], rtol=0.02, err_msg=name)
+
+
+def test_the_fit_stops_once_the_loss_stops_moving():
+    """Any fall under 100 % of the loss over 2 steps counts as a plateau: the fit stops after its third step."""
+    frame = _frame()
+    target = _rays(**TRUTH)(frame, LIGHT)
+    result = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, plateau_steps=2, plateau_rtol=1.0)
+    assert result.plateaued and not result.converged and result.steps == 3
+
+
+def test_the_fit_command_fits_large_frames_at_a_reduced_resolution_first():
+    assert [auto_coarse_factor(h, w) for h, w in ((180, 320), (256, 256), (270, 480), (1080, 1920))] == [1, 1, 2, 6]
+
+
 def test_minimiser_with_ssim_loss_improves_and_counts_round():
     frame = _frame()
     target = _rays(density=0.8, decay=0.9, exposure=0.3, num_samples=8.0)(frame, LIGHT)
@@ -193,6 +218,10 @@ def test_errors_name_the_argument():
         fit(_rays(), [frame, frame], [LIGHT], [target, target])
     with pytest.raises(ValueError, match="num_samples"):
         fit(gr.GodRays(num_samples=200.0, max_samples=128), frame, LIGHT, target)
+    with pytest.raises(ValueError, match="coarse_factor"):
+        fit(_rays(), frame, LIGHT, target, coarse_factor=0)
+    with pytest.raises(ValueError, match="plateau_steps"):
+        fit(_rays(), frame, LIGHT, target, plateau_steps=-1)
 
 
 def test_fit_command_fits_two_frames_and_apply_reproduces(tmp_path, capsys):

@@ -262,7 +262,12 @@ def _add_fit(subparsers) -> None:
         help="auto: Levenberg-Marquardt for mse, BFGS otherwise; gauss_newton needs a start near the solution",
     )  # fmt: skip
     parser.add_argument("--fixed", metavar="A,B", help="comma-separated fields to keep as they are")
-    parser.add_argument("--max-steps", type=int, default=50, help="solver steps at most (default 50)")
+    parser.add_argument("--max-steps", type=int, default=50, help="solver steps at most, in each phase (default 50)")
+    parser.add_argument(
+        "--coarse-factor", type=int, metavar="N",
+        help="fit first at 1/N of the frames' resolution, then at full resolution from there; default: the smallest N "
+        "that brings the first frame to 256x256 pixels or fewer (1: no coarse phase)",
+    )  # fmt: skip
     parser.add_argument(
         "--fractional-counts", action="store_true",
         help="save counts (num_samples, ...) as fitted; by default they are rounded to integers",

@@ -9,6 +9,7 @@ import tqdm
 from godrays_jax.app.options import (
     NO_SKY,
     CommandError,
+    auto_coarse_factor,
     check_output_path,
     default_fit_effect,
     effect_for_frame,
@@ -71,7 +72,11 @@ def run(args) -> int:
     if fov is not None and hasattr(effect, "fov_x_deg") and "fov_x_deg" not in fixed:
         fixed += ("fov_x_deg",)  # the frame's camera says it: not a parameter to fit
 
-    bar = tqdm.tqdm(total=args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
+    coarse_factor = auto_coarse_factor(frames[0].height, frames[0].width) if args.coarse_factor is None else args.coarse_factor
+    if coarse_factor < 1:
+        raise CommandError(f"--coarse-factor must be an integer >= 1, got {coarse_factor}")
+    phases = 2 if coarse_factor > 1 else 1
+    bar = tqdm.tqdm(total=phases * args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
 
     def progress(step, value):
         bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
@@ -81,13 +86,14 @@ def run(args) -> int:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
             fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, progress=progress,
+            coarse_factor=coarse_factor,
         )  # fmt: skip
     finally:
         bar.close()
     chosen = result.effect if args.fractional_counts else result.rounded
     save_effect(args.output, chosen)
     values = effect_to_dict(chosen)
-    print(f"fitted {type(chosen).__name__} ({result.steps} steps, {'converged' if result.converged else 'stopped at --max-steps'}):")
+    print(f"fitted {type(chosen).__name__} ({_steps_line(result, coarse_factor)}):")
     for name in result.fitted:
         print(f"  {name} = {values[name]}")
     loss_name = f"{args.loss} ({args.space})"
@@ -103,6 +109,18 @@ def run(args) -> int:
         print(f"wrote {args.report}")
     print(f"wrote {args.output}")
     return 0
+
+
+def _steps_line(result, coarse_factor: int) -> str:
+    """How many steps the fit took, in which phases, and why it stopped."""
+    coarse = f"{result.coarse_steps} steps at 1/{coarse_factor} resolution, then " if coarse_factor > 1 else ""
+    if result.converged:
+        why = "converged"
+    elif result.plateaued:
+        why = "stopped: the loss had stopped moving"
+    else:
+        why = "stopped at --max-steps"
+    return f"{coarse}{result.steps} steps, {why}"
 
 
 def _metrics_line(start, fitted_images, frame_data, targets) -> str:

@@ -41,6 +41,21 @@ def default_fit_effect() -> Effect:
     return preset("volumetric_haze")
 
 
+COARSE_FIT_PIXELS = 256 * 256
+"""Without `--coarse-factor`, `fit` first fits at a reduced resolution frames larger than this many pixels.
+
+Below it a coarse phase saves little: `VolumetricFog` marches at a quarter of the frame's resolution, so
+a frame of the references' size (320x180) halved marches on the same grid (`benchmarks/README.md`)."""
+
+
+def auto_coarse_factor(height: int, width: int) -> int:
+    """The smallest factor that brings a `height x width` frame to at most `COARSE_FIT_PIXELS` pixels (1: no coarse phase)."""
+    factor = 1
+    while -(-height // factor) * -(-width // factor) > COARSE_FIT_PIXELS:
+        factor += 1
+    return factor
+
+
 class CommandError(Exception):
     """A user error the CLI reports as one line (no traceback)."""
 

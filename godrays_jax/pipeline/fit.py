@@ -55,8 +55,10 @@ from godrays_jax.pipeline.problem import (
     start_point,
     strongly_typed,
 )
+from godrays_jax.pipeline.reduced import clip_to_bounds, downsample_buffers, scale_pixel_fields
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
+from godrays_jax.primitives.resample import downsample_box
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
@@ -70,13 +72,18 @@ class FitResult:
             counts may be fractional (the relaxation).
         rounded: `effect` with every fitted count rounded to the nearest integer.
         loss_history: the loss at the solver's last accepted parameters after
-            each step; `loss_history[0]` is the starting loss.
+            each step; `loss_history[0]` is the starting loss. After a coarse
+            phase, `loss_history[1]` is the loss of its result (at the frames'
+            own resolution, as every entry) and the rest follow the fine phase.
         loss_before: the loss of the starting effect.
         loss_after: the loss of `effect`.
         loss_rounded: the loss of `rounded`.
         fitted: the names of the fields that were fitted.
-        steps: solver steps taken.
+        steps: solver steps taken at the frames' own resolution.
         converged: whether the solver met its tolerances within `max_steps`.
+        plateaued: whether the fit stopped because the loss had stopped moving
+            (`plateau_steps`, `plateau_rtol`).
+        coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`).
     """
 
     effect: Effect
@@ -88,6 +95,8 @@ class FitResult:
     fitted: tuple[str, ...]
     steps: int
     converged: bool
+    plateaued: bool = False
+    coarse_steps: int = 0
 
 
 def round_counts(effect: Effect) -> Effect:
@@ -219,6 +228,9 @@ def fit(
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
     light_depth: float | Sequence[float] = math.inf,
     progress: Callable[[int, float], None] | None = None,
+    coarse_factor: int = 1,
+    plateau_steps: int = 5,
+    plateau_rtol: float = 1e-3,
 ) -> FitResult:
     """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
 
@@ -248,7 +260,20 @@ def fit(
         light_in_front: whether each frame's light is in front of the camera.
         light_depth: each frame's light distance along its camera ray, scene units
             (`inf`: the sun), one or one per frame; effects that measure depth read it.
-        progress: called as `progress(step, loss)` after every step.
+        progress: called as `progress(step, loss)` after every step (steps
+            counted through both phases; the coarse phase's losses are at its
+            resolution).
+        coarse_factor: a Python int >= 1; above 1 the fit first runs on every
+            frame and target at `1 / coarse_factor` of its resolution
+            (`reduced.downsample_buffers`: colour box-averaged, each block's
+            nearest depth; the light and sizes in pixels scaled), up to
+            `max_steps` steps, then goes on at full resolution from there, up
+            to `max_steps` more. Each coarse step costs about `coarse_factor**2`
+            times less, and the fine phase starts near its minimum.
+        plateau_steps, plateau_rtol: stop (in each phase) once the loss, having
+            fallen below the phase's start, has fallen by less than
+            `plateau_rtol` of itself over the last `plateau_steps` steps;
+            `plateau_steps=0` runs until the solver converges or `max_steps`.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and
@@ -258,6 +283,12 @@ def fit(
         raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
     if not (isinstance(max_steps, int) and max_steps >= 0):
         raise ValueError(f"max_steps must be an int >= 0, got {max_steps!r}")
+    if not (isinstance(coarse_factor, int) and coarse_factor >= 1):
+        raise ValueError(f"coarse_factor must be an int >= 1, got {coarse_factor!r}")
+    if not (isinstance(plateau_steps, int) and plateau_steps >= 0):
+        raise ValueError(f"plateau_steps must be an int >= 0, got {plateau_steps!r}")
+    if not plateau_rtol >= 0:
+        raise ValueError(f"plateau_rtol must be >= 0, got {plateau_rtol!r}")
     check_space(space)
     optimiser = _solver(solver, loss, rtol, atol)
     least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
@@ -268,6 +299,16 @@ def fit(
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
     check_inside_bounds(effect)
+    start_effect, coarse_steps = effect, 0
+    if coarse_factor > 1:
+        coarse = fit(
+            scale_pixel_fields(effect, 1.0 / coarse_factor), [downsample_buffers(f, coarse_factor) for f in frames],
+            [light / coarse_factor for light in lights], [downsample_box(t, coarse_factor) for t in targets],
+            loss=loss, space=space, solver=optimiser, fixed=fixed, max_steps=max_steps, light_in_front=in_front,
+            light_depth=depths, progress=progress, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
+        )  # fmt: skip
+        effect = clip_to_bounds(scale_pixel_fields(coarse.effect, float(coarse_factor)), bounds)
+        coarse_steps = coarse.steps
     dtype = frames[0].color.dtype
     problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
     data = (problem, (frames, lights, targets, in_front, depths))
@@ -276,12 +317,14 @@ def fit(
     # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
-        loss_before = float(exported.call("fit_loss", _evaluate, effect, data))
+        loss_before = float(exported.call("fit_loss", _evaluate, start_effect, data))
         history = [loss_before]
+        if coarse_factor > 1:
+            history.append(float(exported.call("fit_loss", _evaluate, effect, data)))
         y = start_point(problem, np.dtype(dtype))
         state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, data)
-        steps = 0
-        while steps < max_steps and not bool(done):
+        steps, plateaued, phase_start = 0, False, history[-1]
+        while steps < max_steps and not bool(done) and not plateaued:
             y, state, done, succeeded, accepted_loss = exported.call(
                 "fit_step", _step, optimiser, function, y, state, data, least_squares
             )
@@ -289,7 +332,11 @@ def fit(
             if steps > 1:  # after the first step the state holds the start's loss, already recorded
                 history.append(float(accepted_loss))
             if progress is not None:
-                progress(steps, history[-1])
+                progress(coarse_steps + steps, history[-1])
+            # Only once the loss has moved: BFGS may backtrack its first step several times, the loss unchanged.
+            if plateau_steps and steps > plateau_steps and history[-1] < phase_start:
+                earlier = history[-1 - plateau_steps]
+                plateaued = earlier - history[-1] <= plateau_rtol * earlier
         fitted_effect, rounded = _fitted_effects(problem, y)
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
@@ -305,4 +352,6 @@ def fit(
         fitted=names,
         steps=steps,
         converged=bool(done) and bool(succeeded),
+        plateaued=plateaued,
+        coarse_steps=coarse_steps,
     )

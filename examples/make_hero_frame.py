@@ -7,8 +7,8 @@ with 4-7 branches ending in 2-4 leaf clumps; deterministic) from the seed
 below. The frame is rendered by the project's rasterizer, exactly as
 `godrays-jax render examples/scenes/forest_hero.json -o X.exr --light` does,
 and written with half-float colour (about 1 MB): colour, depth, coverage,
-seed 004's light pass and seed 000's glow pass, the light's pixel position in
-the metadata. Runs from any directory.
+seed 004's light pass and seed 000's glow pass; the light's pixel position and
+distance and the camera's field of view and clip planes in the metadata. Runs from any directory.
 """
 
 import argparse
@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import godrays_jax as gr
+from godrays_jax.app.render_command import frame_metadata
 
 EXAMPLES = Path(__file__).resolve().parent
 SCENE = EXAMPLES / "scenes" / "forest_hero.json"
@@ -116,7 +117,8 @@ def main() -> None:
     shipped = gr.Buffers(color=buffers.color, depth=buffers.depth, coverage=buffers.coverage,
                          light_pass=buffers.light_pass, glow_pass=buffers.glow_pass)  # fmt: skip
     light = (float(light_xy[0]), float(light_xy[1]))
-    gr.write_buffers(args.out, shipped, light_xy=light, light_in_front=bool(in_front), half=True)
+    gr.write_buffers(args.out, shipped, light_xy=light, light_in_front=bool(in_front), half=True,
+                     metadata=frame_metadata(scene, camera))  # fmt: skip
     print(f"wrote {args.out}: {camera.width}x{camera.height}, light at ({light[0]:.1f}, {light[1]:.1f}) px")
 
 

@@ -9,6 +9,7 @@ pixel, and every bilinear resampling on the grid blurs by an amount that follows
 """
 
 import dataclasses
+from pathlib import Path
 from unittest import mock
 
 import jax
@@ -17,6 +18,11 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from godrays_jax.effects.base import planar_light_depth
+from godrays_jax.kernels.masks import hardware_depth
+from godrays_jax.raster import light_distance, light_pixel
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 HEIGHT, WIDTH, OVERSAMPLE, PAN_PX = 36, 64, 16, 0.6
 
@@ -120,3 +126,24 @@ def test_kbengine_flare_outs_hold_still_in_their_low_resolution_target():
     rms, p99 = float(np.sqrt(np.mean(change**2))), float(np.percentile(np.abs(change), 99))
     assert rms <= 0.3 and p99 <= 1.5, f"change of the error {rms:.2f} RMS, {p99:.2f} at the 99th percentile"
 
+
+def test_the_forest_puts_its_sun_where_the_xna_article_puts_it():
+    """The shipped forest's sun (a directional light's disc) 5000 units away, as seed 003's scene puts the article's,
+    with the author's sample camera's clip planes: the XNA preset's `SunSize / z` flare is the article's .3 UV, and
+    its hardware-depth test blanks every trunk. With the sun 121 units away the flare was 13 UV: it filled the sky,
+    the rays saturated it, and its steep shadow edges shimmered on a slow pan (benchmarks/bench_shimmer.py)."""
+
+    scene, camera = gr.load_scene(EXAMPLES / "scenes" / "forest_hero.json")
+    planes = dict(near_plane=float(camera.near), far_plane=float(camera.far))
+    effect = dataclasses.replace(gr.preset("xna_crepuscular"), fov_x_deg=jnp.float32(camera.fov_x_deg), **planes)
+    distance = light_distance(scene, camera)
+    xy, _, _ = light_pixel(scene, camera)
+    flare_uv = np.asarray(effect.flare_size_in_px(camera.height, camera.width, xy, distance, jnp.float32)) / np.array(
+        [camera.width, camera.height]
+    )
+    assert np.all(flare_uv < 0.4), f"the XNA flare is {flare_uv} UV"
+    vertices = np.array([line.split()[1:] for line in (EXAMPLES / "scenes" / "forest.obj").read_text().splitlines()
+                         if line.startswith("v ")], float)  # fmt: skip
+    farthest = float(np.max(np.linalg.norm(vertices - np.asarray(camera.position), axis=1)))  # >= any planar depth
+    light_planar = planar_light_depth(distance, xy, camera.height, camera.width, effect.fov_x_deg, jnp.float32)
+    assert float(hardware_depth(farthest, **planes)) < float(hardware_depth(light_planar, **planes)) - effect.depth_bias

@@ -61,7 +61,7 @@ def _converged(effect):
         values |= dict(weight=effect.weight / OVERSAMPLE, method="exact")
     with (
         mock.patch("godrays_jax.effects.fields._check_static"),
-        mock.patch("godrays_jax.effects.fields.parameter_bounds", lambda effect: {}),
+        mock.patch("godrays_jax.effects.fields._check_fittable"),
     ):
         return dataclasses.replace(effect, max_samples=count, **values)
 

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from closeness import assert_trees_close
 
 HEIGHT, WIDTH = 24, 36
 BATCH = 2
@@ -58,12 +59,7 @@ def _frame_loss(values, static, frame, color, light, cotangent):
 
 def _assert_close(actual, expected, rtol=1e-3):
     """Within float32 accumulation: an effect's gradient sums over whole frames and pyramids, in another order."""
-    for a, e in zip(jax.tree_util.tree_leaves(actual), jax.tree_util.tree_leaves(expected)):
-        a, e = np.asarray(a), np.asarray(e)
-        assert a.shape == e.shape, (a.shape, e.shape)
-        assert np.all(np.isfinite(a)), "non-finite values"
-        scale = max(float(np.max(np.abs(e))), 1e-6)
-        assert np.max(np.abs(a - e)) <= rtol * scale, (np.max(np.abs(a - e)), scale)
+    assert_trees_close(actual, expected, rtol=rtol)
 
 
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))

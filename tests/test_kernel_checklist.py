@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from closeness import assert_trees_close
 
 HEIGHT, WIDTH = 11, 14  # SSIM needs 11x11
 BATCH = 3
@@ -232,12 +233,7 @@ def _batch(name, dtype=np.float32):
 
 
 def _assert_close(actual, expected, rtol=2e-4):
-    for a, e in zip(jax.tree_util.tree_leaves(actual), jax.tree_util.tree_leaves(expected)):
-        a, e = np.asarray(a), np.asarray(e)
-        assert a.shape == e.shape, (a.shape, e.shape)
-        assert np.all(np.isfinite(a)), "non-finite values"
-        scale = max(float(np.max(np.abs(e))), 1e-6)
-        assert np.max(np.abs(a - e)) <= rtol * scale, (np.max(np.abs(a - e)), scale)
+    assert_trees_close(actual, expected, rtol=rtol)
 
 
 def _loss_of(call):

@@ -1,15 +1,16 @@
 """Shimmer of the shaft presets on a slow camera pan: how much their error against a converged version changes per frame.
 
-    python benchmarks/bench_shimmer.py [--size 320x180] [--frames 12] [--pan 0.35] [--oversample 32] [--presets a,b]
+    python benchmarks/bench_shimmer.py [--size 320x180] [--frames 12] [--pan 0.35] [--oversample 32] [--fog-oversample 4]
+        [--presets a,b] [--method fast] [--same-target] [--cache FILE]
 
 The shipped forest (examples/scenes/forest_hero.json) is rendered by the
 project's rasterizer at `--size` for `--frames` frames while the camera turns
 about its vertical axis by `--pan` pixels per frame at the image centre (the
 scene, the sun and its shafts slide sideways; the pixel grid stays). Every
-shaft preset (every preset of `GodRays`, `FlareOuts` and `ScatteringFog`) is
-applied at its defaults, with the light's pixel position and distance as
-`render` stores them and the camera's field of view (as `apply` reads them
-from the frame), and so is its converged version:
+shaft preset (every preset of `GodRays`, `FlareOuts`, `ScatteringFog` and
+`VolumetricFog`) is applied at its defaults, with the light's pixel position
+and distance as `render` stores them and the camera's field of view and clip
+planes (as `apply` reads them from the frame), and so is its converged version:
 
 - the same effect with every sample of its loop replaced by `--oversample`
   (K) samples spread over the sample's interval: `num_samples` (or
@@ -19,7 +20,9 @@ from the frame), and so is its converged version:
   fields as they are (`--same-target`: flare-outs stay in the effect's own
   low-resolution target, so only their copies are oversampled). Its weights
   are the same continuous density along the ray sampled K times as densely,
-  so its only departure from the effect's own integral is the sampling.
+  so its only departure from the effect's own integral is the sampling;
+- for `VolumetricFog`, `--fog-oversample` times its view steps and shadow
+  samples, its march at full resolution (`resolution_factor=1`).
 
 Both are encoded as `apply` writes a PNG (linear colour clipped to [0, 1],
 sRGB-encoded, times 255), kept unrounded so that rounding does not hide or
@@ -48,6 +51,7 @@ import godrays_jax as gr
 from godrays_jax.raster import light_distance
 from godrays_jax.app.options import with_field_of_view
 from godrays_jax.effects.fog import ScatteringFog
+from godrays_jax.effects.volumetric import VolumetricFog
 from godrays_jax.effects.presets import PRESETS
 from godrays_jax.effects.shafts import FlareOuts, GodRays
 
@@ -86,7 +90,8 @@ def render_pan(*, width: int, height: int, frames: int, pan_px: float) -> list:
 def shaft_presets() -> list[str]:
     """Every preset whose effect draws shafts."""
     shaft_classes = tuple(
-        cls for cls in (GodRays, FlareOuts, ScatteringFog, getattr(gr, "VolumetricShafts", None)) if cls is not None
+        cls for cls in (GodRays, FlareOuts, ScatteringFog, VolumetricFog, getattr(gr, "VolumetricShafts", None))
+        if cls is not None
     )
     return [name for name, make in PRESETS.items() if isinstance(make(), shaft_classes)]
 
@@ -97,13 +102,20 @@ def _replace(effect, **values):
     return eqx.tree_at(lambda e: [getattr(e, n) for n in names], effect, [values[n] for n in names])
 
 
-def converged(effect, oversample: int, *, same_target: bool = False):
+def converged(effect, oversample: int, *, same_target: bool = False, fog_oversample: int = 4):
     """The effect with every sample of its loop spread over `oversample` samples (see the module's docstring).
 
-    `same_target`: flare-outs stay in the effect's own (low-resolution) target.
+    `same_target`: flare-outs stay in the effect's own (low-resolution) target. `VolumetricFog` takes
+    `fog_oversample` times its view steps and shadow samples, at full resolution.
     """
     k = oversample
-    if isinstance(effect, FlareOuts):
+    if isinstance(effect, VolumetricFog):
+        changed = effect
+        static = dict(
+            num_view_steps=effect.num_view_steps * fog_oversample,
+            num_shadow_samples=effect.num_shadow_samples * fog_oversample, resolution_factor=1,
+        )  # fmt: skip
+    elif isinstance(effect, FlareOuts):
         count = int(round(float(effect.num_iters))) * k
         changed = _replace(
             effect, num_iters=float(count), scale_step=effect.scale_step ** (1.0 / k),
@@ -121,7 +133,7 @@ def converged(effect, oversample: int, *, same_target: bool = False):
     # Loops longer than a user may ask for: the ranges bound what fits, the tuner and params files set.
     with (
         mock.patch("godrays_jax.effects.fields._check_static"),
-        mock.patch("godrays_jax.effects.fields.parameter_bounds", lambda effect: {}),
+        mock.patch("godrays_jax.effects.fields._check_fittable"),
     ):
         return dataclasses.replace(changed, **static)
 
@@ -142,12 +154,21 @@ def shimmer(errors: list[np.ndarray]) -> tuple[float, float, float]:
     )
 
 
+def with_camera(effect, camera: gr.Camera):
+    """The effect with the camera's field of view and clip planes, as `apply` gives it those of a frame `render` wrote."""
+    effect = with_field_of_view(effect, float(camera.fov_x_deg))
+    if {"near_plane", "far_plane"} <= {field.name for field in dataclasses.fields(effect)}:
+        effect = dataclasses.replace(effect, near_plane=float(camera.near), far_plane=float(camera.far))
+    return effect
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="320x180", help="WIDTHxHEIGHT (default 320x180)")
     parser.add_argument("--frames", type=int, default=12)
     parser.add_argument("--pan", type=float, default=0.35, help="pixels per frame at the image centre (default 0.35)")
     parser.add_argument("--oversample", type=int, default=32, help="samples of the converged version per sample")
+    parser.add_argument("--fog-oversample", type=int, default=4, help="VolumetricFog's view steps and shadow samples x this")
     parser.add_argument("--presets", default=None, help="comma-separated presets (default: every shaft preset)")
     parser.add_argument("--method", default=None, help="also measure GodRays presets with this method (e.g. fast)")
     parser.add_argument("--same-target", action="store_true", help="converged flare-outs stay in the effect's target")
@@ -170,17 +191,17 @@ def main() -> None:
     print(f"{args.frames} frames of {width}x{height} in {rendered:.1f} s; "
           f"light x {float(frames[0][1][0]):.2f} .. {float(frames[-1][1][0]):.2f} px")  # fmt: skip
 
-    fov_x_deg = float(gr.load_scene(SCENE)[1].fov_x_deg)
+    camera = gr.load_scene(SCENE)[1]
     cases = []
     for name in args.presets.split(",") if args.presets else shaft_presets():
-        effect = with_field_of_view(PRESETS[name](), fov_x_deg)  # as `apply` gives it the frame's
+        effect = with_camera(PRESETS[name](), camera)
         cases.append((name, effect))
         if args.method and isinstance(effect, GodRays) and effect.method != args.method:
             cases.append((f"{name} (method={args.method})", dataclasses.replace(effect, method=args.method)))
     print(f"| preset | change RMS | change p99 | error RMS | within target |")
     print(f"|---|---|---|---|---|")
     for name, effect in cases:
-        reference = converged(effect, args.oversample, same_target=args.same_target)
+        reference = converged(effect, args.oversample, same_target=args.same_target, fog_oversample=args.fog_oversample)
         run = jax.jit(lambda b, xy, front, depth, e=effect: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
         run_reference = jax.jit(lambda b, xy, front, depth, e=reference: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
         errors = []

@@ -19,39 +19,8 @@ outside a field's range (`fit.fitted_bounds`: the effect's bounds, counts
 capped by their static loop lengths), unknown fields, malformed JSON, unknown
 presets, views or tonemaps get a 400 with a message; the server keeps running.
 
-Only the page this server served can drive it, not another web page the user has open:
-
-- Every request must name 127.0.0.1 or localhost in its `Host` header (403
-  otherwise): a foreign page whose own name resolves to 127.0.0.1 (DNS
-  rebinding) sends its own name.
-- Every `/api/` request must carry the per-launch token in the header
-  `X-Godrays-Token` (403 otherwise). The token is put into the page when it is
-  served; other origins cannot read the page (no CORS headers), so they
-  cannot learn it.
-- `POST` requests must also come from the tuner's own origin (an `Origin`
-  header other than `http://127.0.0.1:PORT` or `http://localhost:PORT` is
-  403; clients that are not browsers send none) and declare
-  `Content-Type: application/json` (415 otherwise), which a cross-site form
-  or a "simple" `fetch` cannot send without a preflight, which is refused.
-- Every answer carries `X-Frame-Options: DENY` and a Content-Security-Policy
-  that lets the page run only its own inline script and style (a per-answer
-  nonce), load images only from itself or `data:` URLs, connect only to
-  itself, and never be framed.
-
-The body's size is checked before a byte of it is read: a `POST` without a
-`Content-Length` (411), with a malformed or negative one (400), or over
-`MAX_BODY_BYTES` (413) is answered at once, also for unknown endpoints, and
-the connection closed. A connection holds no worker until its request's
-head (request line and headers) has arrived: one thread waits on all such
-connections at once (`_WaitingRoom`, at most `MAX_WAITING` of them), closing
-those that send nothing within `KEEP_ALIVE_S` or no whole head within
-`SOCKET_TIMEOUT_S`, so idle or half-sent connections, however many one client
-opens, never keep the page and its state from being answered. Each
-connection carries one request (`Connection: close`). A body that stalls
-times out after `SOCKET_TIMEOUT_S` (a body shorter than its `Content-Length`
-gets 408); at most `MAX_WORKERS` requests are served at once.
-Every malformed body or bad value is a 400 with a message; clients that
-disconnect are not reported.
+Only the page this server served can drive it; how (host, token, origin, content type, CSP, size checks,
+timeouts, the waiting room, the worker pool): docs/tuner.md, "Security".
 """
 
 import functools

@@ -1,45 +1,12 @@
-"""Batch processing of frame sequences: plan, run, resume; what `godrays-jax batch` runs.
+"""Frame sequences in batches, what `godrays-jax batch` runs (the user's guide: README, "Batch processing a shot").
 
-A run is planned first (`plan_batch`: which frames, where each output goes,
-which are already done) and then executed (`run_batch`):
-
-- Frames are read on background threads ahead of the computation and written
-  on background threads behind it, so the effect, reading and writing overlap.
-- Every frame of the run has the same size and passes, so the effect is
-  compiled once: frames are processed in groups of one frame per JAX device
-  (`jax.local_devices()`), the group's frames stacked, sharded over the
-  devices along the frame axis (`jax.sharding.NamedSharding`) and mapped with
-  `jax.vmap`; the last group is padded by repeating a frame.
-- Each EXR output keeps its input's file name, channels, per-channel formats
-  and metadata (`write_frame_like`: only `R, G, B` change) unless another
-  extension is asked for; then, and for frames in other formats (photographs
-  and plates without depth), `write_image` writes the colour alone,
-  display-encoded, 8-bit outputs dithered per frame (`dither`).
-- Every output is written to a hidden temporary file that is synced to disk
-  and renamed into place, so an interrupted run leaves only complete frames.
-  A temporary's name carries its process (`files.temporary_path`); the next
-  run removes those whose process is gone (`files.is_stale`), also beside
-  frames already done, and never a live run's. `resume=True` skips frames
-  whose output exists.
-- Runs may overlap on one output folder (two shells, shards, a retry while
-  the first run goes on): each frame is claimed before it is read
-  (`files.claim`, a file lock the OS drops when its process ends), so a frame is
-  computed by one run only; the others leave it (`BatchReport.held`). Outputs
-  are placed without replacing anything unless the plan says overwrite, so
-  an output that appears meanwhile is never replaced, whoever wrote it.
-- A frame that cannot be used (unreadable, a different size or different
-  passes than the run's frames, no depth channel, NaN or infinite colour, no
-  light, an effect result that is not finite) is reported and skipped; the
-  others go on. `BatchReport.failures` names each one with its reason.
-
-Several machines: give each host a share of the frames (`shard=(index,
-count)`, CLI `--shard I/N`, or `--distributed`, which calls
-`jax.distributed.initialize()` (cluster auto-detection, or `--coordinator`,
-`--num-processes`, `--process-id`) and takes the share from
-`jax.process_index()` / `jax.process_count()`); each host computes on its own
-local devices and writes its own frames into the shared output folder.
-Importing `godrays_jax` creates no JAX array, so the backend is still
-uninitialised when the CLI calls `jax.distributed.initialize()`.
+A run is planned (`plan_batch`: the frames, where each output goes, which are done) and run (`run_batch`):
+frames are read on threads ahead of the effect and written behind it; the effect is compiled once for the shot
+and mapped over groups of one frame per local device, sharded along the frame axis (the last group padded by
+repeating a frame). Each frame is claimed before it is read (`files.claim`), so overlapping runs share the
+frames, and written atomically (`files.atomic_write`); a frame that cannot be used is skipped and named in
+`BatchReport.failures`. Importing this module creates no JAX array, so the command line can still call
+`jax.distributed.initialize()` for `--distributed`.
 """
 
 import collections

@@ -82,7 +82,9 @@ from godrays_jax.effects.base import light_visibility as light_visibility
 from godrays_jax.effects.base import needs_depth as needs_depth
 from godrays_jax.effects.fields import FieldInfo as FieldInfo
 from godrays_jax.effects.fields import field_metadata as field_metadata
+from godrays_jax.effects.fields import field_value as field_value
 from godrays_jax.effects.fields import parameter_bounds as parameter_bounds
+from godrays_jax.effects.fields import replace_fields as replace_fields
 from godrays_jax.effects.fields import size_fields as size_fields
 from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
 from godrays_jax.effects.medium import Medium as Medium

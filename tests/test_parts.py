@@ -21,8 +21,8 @@ def _spot(**bloom):
 
 def test_a_part_field_is_read_and_set_by_its_dotted_name():
     spot = _spot(intensity=0.5)
-    assert float(field_value(spot, "bloom.intensity")) == 0.5
-    changed = replace_fields(spot, {"bloom.intensity": 2.0, "sun_sharpness": 3.0})
+    assert float(gr.field_value(spot, "bloom.intensity")) == 0.5
+    changed = gr.replace_fields(spot, {"bloom.intensity": 2.0, "sun_sharpness": 3.0})
     assert float(changed.bloom.intensity) == 2.0 and float(changed.sun_sharpness) == 3.0
     assert changed.bloom.bloom_source == "glow_target", "the part's other fields stay"
     with pytest.raises(ValueError, match=r"Bloom\.intensity must lie in \[0, 10\]"):

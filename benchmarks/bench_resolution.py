@@ -1,7 +1,8 @@
 """Does a preset give the same picture at any resolution? (issue 17, part 2)
 
 Renders shipped scenes with the library's own rasterizer at a small and a 3x
-larger size, applies every preset to both, box-downsamples the large results
+larger size, applies every preset to both (with the camera's field of view and clip planes, as
+`apply` reads them from a frame `render` wrote), box-downsamples the large results
 3x and prints the PSNR between them, next to the PSNR of the two inputs (the
 frames themselves, rendered at both sizes and compared the same way). The
 requirement: each preset agrees to at least 35 dB, or within 3 dB of its
@@ -26,6 +27,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import godrays_jax as gr  # noqa: E402
 from godrays_jax.primitives.resample import downsample_box  # noqa: E402
 from godrays_jax.raster import light_distance, light_pixel, load_scene, render  # noqa: E402
+from bench_shimmer import with_camera  # noqa: E402  (this script's folder is on the path)
 
 SCENES = ("examples/scenes/crepuscular_003.json", "examples/scenes/occluders_002.json")
 FACTOR = 3
@@ -72,8 +74,9 @@ def main(argv=None) -> int:
         small = frame_at(path, width, height)
         large = frame_at(path, FACTOR * width, FACTOR * height)
         inputs = agreement(small[0].color, large[0].color)
+        camera = load_scene(path)[1]
         for name in sorted(gr.PRESETS):
-            effect = gr.preset(name)
+            effect = with_camera(gr.preset(name), camera)  # the frame's field of view and clip planes, as `apply`
             results = []
             for buffers, light, in_front, depth in (small, large):
                 results.append(effect(buffers, light, light_in_front=in_front, light_depth=depth))

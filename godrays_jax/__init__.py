@@ -90,6 +90,7 @@ from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
 from godrays_jax.effects.medium import Medium as Medium
 from godrays_jax.effects.volumetric import VolumetricFog as VolumetricFog
 from godrays_jax.effects.glow import Bloom as Bloom
+from godrays_jax.effects.glow import BloomBlur as BloomBlur
 from godrays_jax.effects.glow import LensDirt as LensDirt
 from godrays_jax.effects.glow import SunOvercast as SunOvercast
 from godrays_jax.effects.glow import SunSpot as SunSpot

@@ -16,7 +16,7 @@ from frames import LIGHT, make_frame
 
 
 def _spot(**bloom):
-    return gr.SunSpot(sun_distance=0.2, bloom=gr.Bloom(**{"bloom_source": "glow_target", **bloom}))
+    return gr.SunSpot(sun_distance=0.2, bloom=gr.BloomBlur(**bloom))
 
 
 def test_a_part_field_is_read_and_set_by_its_dotted_name():
@@ -24,10 +24,11 @@ def test_a_part_field_is_read_and_set_by_its_dotted_name():
     assert float(gr.field_value(spot, "bloom.intensity")) == 0.5
     changed = gr.replace_fields(spot, {"bloom.intensity": 2.0, "sun_sharpness": 3.0})
     assert float(changed.bloom.intensity) == 2.0 and float(changed.sun_sharpness) == 3.0
-    assert changed.bloom.bloom_source == "glow_target", "the part's other fields stay"
-    with pytest.raises(ValueError, match=r"Bloom\.intensity must lie in \[0, 10\]"):
+    assert changed.bloom.blur_sigma is spot.bloom.blur_sigma, "the part's other fields stay"
+    with pytest.raises(ValueError, match=r"BloomBlur\.intensity must lie in \[0, 10\]"):
         replace_fields(spot, {"bloom.intensity": 99.0})
-    with pytest.raises(ValueError, match="SunSpot.bloom must be a Bloom"):
+    assert "bloom.threshold" not in gr.field_metadata(spot), "the spot's bloom blurs the spot: no bright pass"
+    with pytest.raises(ValueError, match="SunSpot.bloom must be a BloomBlur,"):
         gr.SunSpot(bloom=gr.LensDirt())
 
 
@@ -48,7 +49,7 @@ def test_the_flat_bloom_names_load_into_the_part_with_one_warning_each(tmp_path)
         assert sum(f"SunSpot.{old} is now named {new}" in message for message in messages) == 1, messages
         if old != "units":
             np.testing.assert_allclose(np.asarray(plain_value(field_value(spot, new))), FLAT_BLOOM[old], rtol=1e-6)
-    assert spot.bloom.bloom_source == "glow_target", "fields the file does not name keep the part's declared default"
+    assert spot.bloom.method == "pyramid", "fields the file does not name keep the part's declared default"
     saved = gr.effect_to_dict(spot)
     assert "bloom.intensity" in saved and not set(FLAT_BLOOM) & set(saved)
     with warnings.catch_warnings():
@@ -65,7 +66,7 @@ def test_a_fit_problem_maps_its_unknowns_onto_a_parts_field():
     moved = problem.effect_at(jnp.asarray([0.3, 0.2, 0.2, 0.1, 0.1]))
     np.testing.assert_allclose(moved.bloom.intensity, 3.0, rtol=1e-6)
     np.testing.assert_allclose(moved.bloom.weights, [2.0, 2.0, 1.0, 1.0], rtol=1e-6)
-    assert moved.bloom.bloom_source == "glow_target" and moved.sun_distance is start.sun_distance
+    assert moved.bloom.blur_sigma is start.bloom.blur_sigma and moved.sun_distance is start.sun_distance
 
 
 def test_the_tuner_scales_a_parts_pixel_sizes():

@@ -76,12 +76,12 @@ def test_a_params_file_with_old_names_loads_and_warns_with_the_new_name(tmp_path
 
 
 def test_a_part_saves_as_part_dot_field_and_names_its_fields_from_the_effect(tmp_path):
-    spot = gr.SunSpot(bloom=gr.Bloom(intensity=0.5, blur_sigma=0.02, bloom_source="glow_target"))
+    spot = gr.SunSpot(bloom=gr.BloomBlur(intensity=0.5, blur_sigma=0.02, method="gaussian"))
     saved = gr.effect_to_dict(spot)
     assert saved["bloom.intensity"] == 0.5 and saved["bloom.blur_sigma"] == 0.02 and "bloom" not in saved
     gr.save_effect(tmp_path / "spot.json", spot)
     loaded = gr.load_effect(tmp_path / "spot.json")
-    assert float(loaded.bloom.intensity) == 0.5 and loaded.bloom.bloom_source == "glow_target"
+    assert float(loaded.bloom.intensity) == 0.5 and loaded.bloom.method == "gaussian"
     assert {"bloom.intensity", "bloom.blur_sigma", "bloom.blur_reach"} <= set(gr.field_metadata(gr.SunSpot))
     with pytest.raises(ValueError, match=r"SunSpot\.bloom\.intensity must lie in \[0, 10\]"):
         gr.effect_from_dict({"effect": "SunSpot", "bloom.intensity": 99})

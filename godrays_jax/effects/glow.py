@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import Effect, Units, frame_ray_depth, light_visibility, pixels_per_unit, reach_taps
-from godrays_jax.effects.fields import MAX_SEED, count_param, param, part, size_param, size_reach, static
+from godrays_jax.effects.fields import MAX_SEED, Part, count_param, param, part, size_param, size_reach, static
 from godrays_jax.kernels.blur import bloom, gaussian_blur, poisson_blur
 from godrays_jax.kernels.composite import BlendMode
 from godrays_jax.kernels.lens import (
@@ -152,7 +152,7 @@ class SunSpot(Effect):
     """The VBex article's sky sun spot, `lens.sun_spot` on the sky in `tint` (the article's SunColor), plus its glow.
 
     As in the VBex article the spot is also written to a glow target (`glow`), which
-    its `bloom` (a `Bloom`, its fields `bloom.intensity`, `bloom.blur_sigma`, ...)
+    its `bloom` (a `BloomBlur`, its fields `bloom.intensity`, `bloom.blur_sigma`, ...)
     spreads: the layer is `spot + bloom.blurred(spot)`, the spot blurred as
     `Bloom` blurs its glow target (no threshold), and the article adds the
     glow at full strength (`bloom.intensity = 1`).
@@ -163,8 +163,8 @@ class SunSpot(Effect):
     tint: Float[Array, "3"] = param((1.0, 1.0, 1.0), low=0.0, high=10.0, formerly=("sun_color",))
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     offscreen_fade: Float[Array, ""] = param(0.5, low=0.01, high=10.0)
-    bloom: "Bloom" = part(
-        lambda: Bloom(intensity=1.0, blur_sigma=0.0125, blur_reach=0.0375, bloom_source="glow_target"),
+    bloom: "BloomBlur" = part(
+        lambda: BloomBlur(intensity=1.0, blur_sigma=0.0125, blur_reach=0.0375),
         formerly={
             "glow_intensity": "intensity", "bloom_intensity": "intensity", "glow_weights": "weights",
             "bloom_weights": "weights", "glow_sigma": "blur_sigma", "bloom_blur_sigma": "blur_sigma",
@@ -233,26 +233,19 @@ BloomMethod = Literal["pyramid", "gaussian"]
 BloomSource = Literal["glow_target", "frame"]
 
 
-class Bloom(Effect):
-    """The VBex article's bright glow: what glows, blurred at 1/2 .. 1/16 resolution, summed, added.
+class BloomBlur(Part):
+    """How a bloom spreads what glows (the VBex article's four targets, or one wide Gaussian), and how much of it.
 
-    What glows (`bloom_source`): `"glow_target"`, the article's glow target
-    (`buffers.glow_target`: the sky's sun spot, emissive surfaces and night
-    lights, the atmosphere's shell, as the rasterizer renders them), or for buffers
-    without one (and for `"frame"`) the frame's bright part
-    (`bright_part(colour, threshold)`, luminance above `threshold`, hue kept).
     `method="pyramid"` is the article's four targets (`blur.bloom`: box-reduced
     to 1/2, 1/4, 1/8 and 1/16, each blurred by the same Gaussian of `blur_sigma`
     at the finest level, frame units, taps to `blur_reach`; see `_pyramid`),
     weighted by `weights` and summed; `method="gaussian"` is the single large
     Gaussian the article compares it with, `wide_blur_sigma` at full
     resolution (taps to `wide_blur_reach`). Sizes are fractions of the frame's
-    larger side (pixels under `units="px"`). The layer is `intensity` times
-    either. Bloom does not depend on the light: `light_xy`, `light_in_front`
-    and `light_depth` are accepted and ignored.
+    larger side (pixels under `units="px"`). `blurred` is `intensity` times
+    either. `Bloom` has these fields; `SunSpot` holds them as its `bloom` part.
     """
 
-    threshold: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
     intensity: Float[Array, ""] = param(0.25, low=0.0, high=10.0)
     weights: Float[Array, "4"] = param((1.0, 1.0, 1.0, 1.0), low=0.0, high=10.0)
     blur_sigma: Float[Array, ""] = size_param(0.0125, low=1e-4, high=0.2, px_high=100.0, formerly=("sigma",))
@@ -262,9 +255,36 @@ class Bloom(Effect):
     blur_reach: float = size_reach(0.0375, formerly=("reach",))
     wide_blur_reach: float = size_reach(0.1125, formerly=("gaussian_reach",))
     method: BloomMethod = static("pyramid")
+    units: Units = static("frame")
+
+    def blurred(self, glowing: Float[Array, "H W C"]) -> Float[Array, "H W C"]:
+        """What glows, blurred by `method` and times `intensity`."""
+        if self.method == "pyramid":
+            glow = _pyramid(glowing, self.blur_sigma, self.blur_reach, self.weights, self.units)
+        else:
+            height, width = glowing.shape[0], glowing.shape[1]
+            scale = pixels_per_unit(self.units, height, width)
+            taps = reach_taps(self.wide_blur_reach, self.units, height, width)
+            glow = gaussian_blur(glowing, sigma=self.wide_blur_sigma * scale, reach=taps)
+        return glow * self.intensity.astype(glow.dtype)
+
+
+class Bloom(Effect, BloomBlur):
+    """The VBex article's bright glow: what glows, blurred at 1/2 .. 1/16 resolution, summed, added.
+
+    What glows (`bloom_source`): `"glow_target"`, the article's glow target
+    (`buffers.glow_target`: the sky's sun spot, emissive surfaces and night
+    lights, the atmosphere's shell, as the rasterizer renders them), or for buffers
+    without one (and for `"frame"`) the frame's bright part
+    (`bright_part(colour, threshold)`, luminance above `threshold`, hue kept).
+    It is blurred as its `BloomBlur` fields say (`method`, `blur_sigma`, ...,
+    `intensity`). Bloom does not depend on the light: `light_xy`,
+    `light_in_front` and `light_depth` are accepted and ignored.
+    """
+
+    threshold: Float[Array, ""] = param(1.0, low=0.0, high=100.0)
     bloom_source: BloomSource = static("frame")
     blend_mode: BlendMode = static("add")
-    units: Units = static("frame")
 
     def glowing(self, buffers: Buffers) -> Float[Array, "H W C"]:
         """What blooms, unblurred: the glow target, or the frame's bright part (see the class docstring)."""
@@ -277,16 +297,3 @@ class Bloom(Effect):
         """The glow alone, `(H, W, 3)` (1 channel for a 1-channel frame without a glow target)."""
         check_light(light_xy)
         return self.blurred(self.glowing(buffers))
-
-    def blurred(self, glowing: Float[Array, "H W C"]) -> Float[Array, "H W C"]:
-        """What glows, blurred by `method` and times `intensity` (what `SunSpot` adds to its spot)."""
-        if self.method == "pyramid":
-            glow = _pyramid(glowing, self.blur_sigma, self.blur_reach, self.weights, self.units)
-        else:
-            height, width = glowing.shape[0], glowing.shape[1]
-            scale = pixels_per_unit(self.units, height, width)
-            taps = reach_taps(self.wide_blur_reach, self.units, height, width)
-            glow = gaussian_blur(glowing, sigma=self.wide_blur_sigma * scale, reach=taps)
-        return glow * self.intensity.astype(glow.dtype)
-
-

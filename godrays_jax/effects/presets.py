@@ -5,7 +5,7 @@ from typing import Any
 from godrays_jax.effects.base import Effect, needs_depth
 from godrays_jax.effects.fog import ScatteringFog
 from godrays_jax.effects.volumetric import VolumetricFog
-from godrays_jax.effects.glow import Bloom, LensDirt, SunOvercast, SunSpot
+from godrays_jax.effects.glow import Bloom, BloomBlur, LensDirt, SunOvercast, SunSpot
 from godrays_jax.effects.medium import Medium
 from godrays_jax.effects.shafts import FlareOuts, GodRays
 from godrays_jax.kernels.lens import LENS_DIRT_ABERRATION
@@ -74,7 +74,7 @@ def _vbex_sun_spot() -> SunSpot:
     """The VBex article: `pow(dot, SunDistance * 2000) * SunSharpness * 30` on the sky, bloomed through the glow target."""
     return SunSpot(
         sun_distance=1.0, sun_sharpness=1.0, tint=(1.0, 0.85, 0.6),
-        bloom=Bloom(intensity=1.0, blur_sigma=0.0125, blur_reach=0.0375, bloom_source="glow_target"),
+        bloom=BloomBlur(intensity=1.0, blur_sigma=0.0125, blur_reach=0.0375),
     )  # fmt: skip
 
 

@@ -22,6 +22,12 @@ BLENDER_FOV = 2 * math.degrees(math.atan(18 / 30))
 LIGHT = (40.0, 8.0)
 
 
+def _flat_frame(depth: np.ndarray, grey: float) -> gr.Buffers:
+    """A frame of one grey over `depth` (`inf` is sky), covered where the depth is finite."""
+    return gr.Buffers(color=jnp.full((*depth.shape, 3), grey), depth=jnp.asarray(depth),
+                      coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+
+
 def _photo(path, height=18, width=32):
     """A photograph: a bright sky with a sun at (16, 5), dark trunks, dark ground; sRGB 8-bit."""
     colour = np.full((height, width, 3), 0.45, np.float32) * np.asarray([1.0, 0.9, 0.75], np.float32)
@@ -138,8 +144,7 @@ def test_vbex_presets_take_the_frames_field_of_view(tmp_path, command):
     height, width = 18, 32
     depth = np.full((height, width), np.inf, np.float32)
     depth[12:] = 4.0
-    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.1), depth=jnp.asarray(depth),
-                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    frame = _flat_frame(depth, 0.1)
     folder = tmp_path / "in"
     folder.mkdir()
     path = folder / "frame.0001.exr"
@@ -166,8 +171,7 @@ def test_fit_reads_the_lights_distance(tmp_path, capsys):
     depth = np.full((height, width), np.inf, np.float32)
     depth[10:, :] = 2.0
     depth[:, 20:23] = 0.2  # a post nearer than the light: the XNA depth test blanks it
-    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.2), depth=jnp.asarray(depth),
-                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    frame = _flat_frame(depth, 0.2)
     effect = gr.preset("xna_crepuscular")
     light = jnp.asarray([21.0, 5.0])
     target = render_compiled(effect, frame, light, True, 0.4)
@@ -193,8 +197,7 @@ def test_tuner_renders_with_the_lights_distance():
     height, width = 18, 32
     depth = np.full((height, width), np.inf, np.float32)
     depth[:, 20:23] = 0.2
-    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.2), depth=jnp.asarray(depth),
-                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    frame = _flat_frame(depth, 0.2)
     effect = gr.preset("xna_crepuscular")
     light = jnp.asarray([21.0, 5.0])
     tonemap = TONEMAPS[0]
@@ -232,8 +235,7 @@ def test_batch_says_when_frames_store_other_light_distances(tmp_path, capsys):
     height, width = 9, 16
     depth = np.full((height, width), np.inf, np.float32)
     depth[6:] = 3.0
-    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.2), depth=jnp.asarray(depth),
-                       coverage=jnp.asarray(np.isfinite(depth).astype(np.float32)))  # fmt: skip
+    frame = _flat_frame(depth, 0.2)
     folder = tmp_path / "in"
     folder.mkdir()
     for number, distance in ((1, 10.0), (2, 10.0), (3, 12.5)):

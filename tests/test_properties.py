@@ -422,7 +422,7 @@ def test_nan_and_inf_colour_reported_and_inf_depth_is_sky():
 
 
 def test_every_integer_static_field_declares_its_range_and_every_cap_is_a_static_field():
-    for cls in (gr.GodRays, gr.FlareOuts, gr.SunOvercast, gr.LensDirt, gr.SunSpot, gr.Bloom, gr.ScatteringFog):
+    for cls in sorted({type(gr.preset(name)) for name in gr.PRESETS}, key=lambda cls: cls.__name__):  # new effects join
         infos = gr.field_metadata(cls)
         for field in dataclasses.fields(cls):
             if field.metadata.get("kind") == "static" and field.type is int:

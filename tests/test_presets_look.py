@@ -1,5 +1,5 @@
 """The presets beyond the articles: `gpu_gems` (Babylon.js' GPU Gems 3 constants, shafts that reach
-across the frame) and `physically_based` (ScatteringFog fitted to a path-traced fog frame), whose halo
+across the frame) and `physically_based` (VolumetricFog fitted to a path-traced fog frame), whose halo
 must stay smooth when an object hides the sun, as a path tracer's does."""
 
 import sys
@@ -111,6 +111,6 @@ def test_physically_based_halo_has_no_spikes_when_the_sun_is_hidden(hidden_sun_f
 
 def test_full_shadowing_or_a_sky_emitter_spikes_from_the_corners(hidden_sun_frame):
     """The measure sees spikes: shadowing the haze wholly, or summing the open sky, doubles the error."""
-    fully_shadowed = eqx.tree_at(lambda e: e.shadow_strength, gr.preset("physically_based"), jnp.asarray(1.0))
+    fully_shadowed = eqx.tree_at(lambda e: e.shadow_strength, gr.preset("participating_media"), jnp.asarray(1.0))
     assert _halo_error(fully_shadowed, hidden_sun_frame, 1.0, 1.25) > 0.1
     assert _halo_error(gr.preset("gpu_gems"), hidden_sun_frame, 1.0, 1.25) > 0.1

@@ -168,25 +168,24 @@ def _gpu_gems() -> GodRays:
     )  # fmt: skip
 
 
-def _physically_based() -> ScatteringFog:
-    """`ScatteringFog` fitted to a path tracer's fog frame: haze whose halo stays smooth when an object hides the sun.
+def _physically_based() -> VolumetricFog:
+    """`VolumetricFog` fitted to a path tracer's fog frame: haze lit segment by segment, in shadow behind the colonnade.
 
-    Fitted (Levenberg-Marquardt, display-space MSE, field of view fixed at the camera's 50 degrees,
-    128 samples) to the Mitsuba 3 frames of a colonnade in a homogeneous medium (sigma_t .02 per
-    unit, albedo .95, Henyey-Greenstein g .8, a sphere of radius 40 around the camera); the frames
-    live beside the checkout (`shared/data/colonnade_*`), so the constants are baked in and
-    `benchmarks/fit_physically_based.py` re-derives them. The fitted shadowing (`shadow_strength` .61)
-    is what keeps the halo smooth: a path tracer's shadow of an object that hides the sun dims the
-    haze in front of it by the medium's optical depth there, not wholly, so spikes from the
-    silhouette's corners stay faint (`tests/test_presets_look.py` measures them against a
-    single-scattering reference). Distances are in scene units; `fov_x_deg` is the colonnade camera's.
+    Fitted (`benchmarks/fit_physically_based.py`: Levenberg-Marquardt on the display-space MSE from
+    `volumetric_haze`, as `godrays-jax fit` runs, the field of view fixed at the camera's 50 degrees,
+    the sun at infinity) to the Mitsuba 3 frames of a colonnade in a homogeneous medium (sigma_t .02
+    per unit, albedo .95, Henyey-Greenstein g .8, a sphere of radius 40 around the camera); the
+    frames live beside the checkout (`shared/data/colonnade_*`), so the constants are baked in and
+    the script re-derives them. The fitted extinction lands near the rendered medium's; the medium
+    reaches past the rendered sphere and scatters more forward, standing in for the light scattered
+    more than once. Distances are in scene units; `fov_x_deg` is the colonnade camera's.
     """
-    return ScatteringFog(
+    return VolumetricFog(
         medium=Medium(
-            extinction=0.0073, max_distance=183.33, anisotropy=0.8948, light_color=(0.5271, 0.4038, 0.2397),
-            ambient_color=(0.0525, 0.0249, 0.0),
+            extinction=0.01874, max_distance=114.29, anisotropy=0.8922, light_color=(1.2093, 0.9226, 0.5732),
+            ambient_color=(0.0461, 0.0291, 0.0060),
         ),
-        fov_x_deg=50.0, shadow_strength=0.6084, density=1.0209, decay=0.99681, num_samples=128.0, max_samples=128,
+        height_falloff=0.00067, direct_fraction=0.5, thickness=0.1115, edge_softness=0.0523, fov_x_deg=50.0,
     )  # fmt: skip
 
 

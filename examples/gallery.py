@@ -13,9 +13,7 @@ and seed-000 presets read. Runs from any directory.
 import argparse
 from pathlib import Path
 
-import equinox as eqx
-import jax.numpy as jnp
-from pictures import HERO_FRAME, contact_sheet, display, labelled, output_folder, resized, write_display
+from pictures import HERO_FRAME, apply_command, contact_sheet, display, labelled, output_folder, resized, write_display
 
 import godrays_jax as gr
 
@@ -24,21 +22,20 @@ TILE_WIDTH = 480
 
 
 def make_gallery(frame: Path = HERO_FRAME, *, docs: bool = False, out: Path | None = None) -> None:
-    """One PNG per preset in out/gallery/ (or `out`) and the labelled contact sheet (in docs/images/ with `docs`)."""
+    """One PNG per preset in out/gallery/ (or `out`) and the labelled contact sheet (in docs/images/ with `docs`).
+
+    Each PNG is `godrays-jax apply FRAME --preset NAME -o NAME.png`, so the
+    gallery shows what the command makes: the frame's light, its distance and
+    camera from the header, the disc emitter where the frame has no light pass.
+    """
     buffers = gr.read_buffers(frame)
-    light_xy, in_front = gr.read_light(frame)
-    light = jnp.asarray(light_xy, jnp.float32)
     folder = output_folder(False, "gallery", out)
     tiles = [labelled(resized(display(buffers.color), TILE_WIDTH), "input frame (no effect)")]
     for name in sorted(gr.PRESETS):
-        effect = gr.preset(name)
-        if getattr(effect, "source", None) == "light_pass" and buffers.light_pass is None:
-            print(f"skipped {name}: the frame has no light pass (render it with godrays-jax render)")
-            continue
-        image = eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=in_front))(effect, buffers, light)
-        gr.write_image(folder / f"{name}.png", image)
-        print(f"wrote {folder / (name + '.png')}")
-        tiles.append(labelled(resized(display(image), TILE_WIDTH), f"{name} ({type(effect).__name__})"))
+        picture = apply_command(frame, name, folder / f"{name}.png")
+        print(f"wrote {picture}")
+        label = f"{name} ({type(gr.preset(name)).__name__})"
+        tiles.append(labelled(resized(display(gr.read_image(picture)), TILE_WIDTH), label))
     write_display(output_folder(docs, "gallery", out) / "gallery.png", contact_sheet(tiles, COLUMNS))
 
 

@@ -5,6 +5,7 @@ Pictures go to `out/` at the repository root unless a script is given
 `--docs`, which writes the README's pictures in `docs/images/`, or `--out DIR`.
 """
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +61,9 @@ def write_display(path: Path, picture: np.ndarray) -> None:
         raise OSError(f"cannot write {temporary}")
     temporary.replace(path)
     print(f"wrote {path}")
+
+
+def apply_command(frame: Path, preset: str, output: Path, *options: str) -> Path:
+    """Run `godrays-jax apply FRAME --preset PRESET -o OUTPUT [options]`: pictures show what the command makes."""
+    subprocess.run(["godrays-jax", "apply", str(frame), "--preset", preset, "-o", str(output), *options], check=True)
+    return output

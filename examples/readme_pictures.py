@@ -26,7 +26,7 @@ import hidden_sun
 import jax.numpy as jnp
 import numpy as np
 from gallery import make_gallery
-from pictures import HERO_FRAME, contact_sheet, display, labelled, output_folder, write_display
+from pictures import HERO_FRAME, apply_command, contact_sheet, display, labelled, output_folder, write_display
 from render_seeds import make_seed_pictures
 
 import godrays_jax as gr
@@ -37,15 +37,11 @@ HIDDEN_SUN_PRESETS = ("physically_based", "participating_media", "gpu_gems")
 """The presets whose layers `hidden_sun.png` shows beside the reference and `VolumetricFog`, in this order."""
 
 
-def _apply(effect, buffers, light, in_front=True):
-    return eqx.filter_jit(lambda e, b, l: e(b, l, light_in_front=in_front))(effect, buffers, light)
-
-
 def make_hero(folder) -> None:
     """Before and after: the README's main command on the hero frame."""
     buffers = gr.read_buffers(HERO_FRAME)
-    light_xy, in_front = gr.read_light(HERO_FRAME)
-    after = _apply(gr.preset(HERO_PRESET), buffers, jnp.asarray(light_xy, jnp.float32), in_front)
+    with tempfile.TemporaryDirectory() as scratch:
+        after = gr.read_image(apply_command(HERO_FRAME, HERO_PRESET, Path(scratch) / "after.exr"))
     tiles = [labelled(display(buffers.color), "before: the rendered frame"),
              labelled(display(after), f"after: --preset {HERO_PRESET}")]  # fmt: skip
     write_display(folder / "hero.png", contact_sheet(tiles, 2))
@@ -88,8 +84,9 @@ def make_plate(folder) -> None:
         photo_path = Path(scratch) / "photo.png"
         gr.write_image(photo_path, buffers.color, dither_seed=0)  # sRGB, 8 bits: a photograph, no depth, no alpha
         photo = gr.read_buffers(photo_path, without_depth=True)
-    plate = gr.buffers_without_depth(photo.color, light_xy, alpha=photo.coverage)
-    after = _apply(gr.preset(HERO_PRESET), plate, jnp.asarray(light_xy, jnp.float32))
+        plate = gr.buffers_without_depth(photo.color, light_xy, alpha=photo.coverage)
+        light = f"{light_xy[0]},{light_xy[1]}"
+        after = gr.read_image(apply_command(photo_path, HERO_PRESET, Path(scratch) / "after.exr", "--light", light))
     tiles = [labelled(display(photo.color), "a photograph: no depth, no alpha"),
              labelled(display(np.repeat(1.0 - np.asarray(plate.coverage)[..., None], 3, axis=-1)), "the open sky found around the light"),
              labelled(display(after), f"--preset {HERO_PRESET} on it")]  # fmt: skip

@@ -24,7 +24,7 @@ import numpy as np
 
 import godrays_jax as gr
 from godrays_jax.primitives.buffers import Buffers
-from godrays_jax.app.server import HOST, TuneServer
+from godrays_jax.app.server import HOST, TOKEN_HEADER, TuneServer
 from godrays_jax.app.tuner import Tuner
 
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
@@ -45,10 +45,12 @@ def upscaled_frame(scale: int) -> tuple[Buffers, tuple[float, float]]:
     )
 
 
-def post(port: int, body: dict) -> tuple[int, dict, float]:
-    connection = http.client.HTTPConnection(HOST, port, timeout=600)
+def post(server: TuneServer, body: dict) -> tuple[int, dict, float]:
+    """One render request as the page sends it (JSON, the server's per-launch token): status, answer, round-trip ms."""
+    connection = http.client.HTTPConnection(HOST, server.port, timeout=600)
     started = time.perf_counter()
-    connection.request("POST", "/api/render", body=json.dumps(body), headers={"Content-Type": "application/json"})
+    headers = {"Content-Type": "application/json", TOKEN_HEADER: server.token}
+    connection.request("POST", "/api/render", body=json.dumps(body), headers=headers)
     response = connection.getresponse()
     answer = json.loads(response.read())
     elapsed = (time.perf_counter() - started) * 1000.0
@@ -68,7 +70,8 @@ def main() -> None:
         effect = gr.preset(name)
         field = next(iter(gr.parameter_bounds(effect)))
         low, high = gr.parameter_bounds(effect)[field]
-        values = np.linspace(float(getattr(effect, field)), (float(getattr(effect, field)) + high) / 2, args.repeats)
+        start = float(gr.field_value(effect, field))
+        values = np.linspace(start, (start + high) / 2, args.repeats)
         tuner = Tuner(frame, light, effect=effect, max_preview_pixels=args.preview_pixels)
         with TuneServer(tuner) as server:
             started = time.perf_counter()
@@ -78,7 +81,7 @@ def main() -> None:
             for quality in ("preview", "full"):
                 render, encode, trip = [], [], []
                 for value in values:
-                    status, answer, elapsed = post(server.port, {"quality": quality, "params": {field: float(value)}})
+                    status, answer, elapsed = post(server, {"quality": quality, "params": {field: float(value)}})
                     assert status == 200, answer
                     render.append(answer["render_ms"])
                     encode.append(answer["encode_ms"])
@@ -89,7 +92,7 @@ def main() -> None:
             np.asarray(jitted(effect, frame, light_array))
             bare = []
             for value in values:
-                moved = eqx.tree_at(lambda e: getattr(e, field), effect, jnp.asarray(value, jnp.float32))
+                moved = gr.replace_fields(effect, {field: jnp.asarray(value, jnp.float32)})
                 t0 = time.perf_counter()
                 np.asarray(jitted(moved, frame, light_array))
                 bare.append((time.perf_counter() - t0) * 1000.0)
@@ -97,7 +100,7 @@ def main() -> None:
 
             answers = []
             threads = [
-                threading.Thread(target=lambda v=v: answers.append(post(server.port, {"quality": "preview",
+                threading.Thread(target=lambda v=v: answers.append(post(server, {"quality": "preview",
                                                                                        "params": {field: float(v)}})[0]))
                 for v in values[:8]
             ]  # fmt: skip

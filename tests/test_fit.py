@@ -161,6 +161,18 @@ def test_a_coarse_phase_then_the_full_resolution_recovers_the_parameters():
         np.testing.assert_allclose(getattr(result.effect, name), TRUTH[name], rtol=0.02, err_msg=name)
 
 
+def test_the_fit_begins_from_the_start_with_the_lowest_loss():
+    """Of the effect given and `starts` (their fitted fields, clipped to the fitting ranges), the best one starts."""
+    frame = _frame()
+    target = _rays(**TRUTH)(frame, LIGHT)
+    far, truth = _rays(density=0.2, decay=0.5, exposure=0.9), _rays(**TRUTH, tint=(0.0, 0.0, 0.0))  # tint is fixed
+    result = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=1, starts=[far, truth])
+    assert result.start == 2 and result.loss_history[1] < 1e-9 < result.loss_before
+    np.testing.assert_array_equal(result.effect.tint, _rays().tint)
+    with pytest.raises(ValueError, match="starts"):
+        fit(_rays(), frame, LIGHT, target, starts=[gr.preset("volumetric_haze")])
+
+
 def test_the_fit_stops_once_the_loss_stops_moving():
     """Any fall under 100 % of the loss over 2 steps counts as a plateau: the fit stops after its third step."""
     frame = _frame()

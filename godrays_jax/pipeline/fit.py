@@ -44,7 +44,7 @@ import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import count_fields, field_value
+from godrays_jax.effects.fields import count_fields, field_value, replace_fields
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import (
@@ -72,10 +72,11 @@ class FitResult:
             counts may be fractional (the relaxation).
         rounded: `effect` with every fitted count rounded to the nearest integer.
         loss_history: the loss at the solver's last accepted parameters after
-            each step; `loss_history[0]` is the starting loss. After a coarse
-            phase, `loss_history[1]` is the loss of its result (at the frames'
-            own resolution, as every entry) and the rest follow the fine phase.
-        loss_before: the loss of the starting effect.
+            each step; `loss_history[0]` is the starting loss. From another of
+            `starts` or after a coarse phase, `loss_history[1]` is the loss the
+            full-resolution phase starts from (every entry at the frames' own
+            resolution) and the rest follow that phase.
+        loss_before: the loss of the effect given as the start.
         loss_after: the loss of `effect`.
         loss_rounded: the loss of `rounded`.
         fitted: the names of the fields that were fitted.
@@ -84,6 +85,7 @@ class FitResult:
         plateaued: whether the fit stopped because the loss had stopped moving
             (`plateau_steps`, `plateau_rtol`).
         coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`).
+        start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
     """
 
     effect: Effect
@@ -97,6 +99,7 @@ class FitResult:
     converged: bool
     plateaued: bool = False
     coarse_steps: int = 0
+    start: int = 0
 
 
 def round_counts(effect: Effect) -> Effect:
@@ -107,6 +110,14 @@ def round_counts(effect: Effect) -> Effect:
     return eqx.tree_at(
         lambda e: [field_value(e, n) for n in names], effect, [jnp.round(field_value(effect, n)) for n in names]
     )
+
+
+def _start_like(effect: Effect, other: Effect, bounds: dict[str, tuple[float, float]]) -> Effect:
+    """`effect` with the fitted fields (`bounds`) taken from `other`, a start of the same type, clipped to them."""
+    if type(other) is not type(effect):
+        raise ValueError(f"starts must be {type(effect).__name__}s like the effect, got a {type(other).__name__}")
+    start = replace_fields(effect, {name: jnp.asarray(field_value(other, name)) for name in bounds})
+    return jax.tree.map(strongly_typed, clip_to_bounds(start, bounds))
 
 
 def _solver(solver, loss, rtol, atol):
@@ -228,6 +239,7 @@ def fit(
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
     light_depth: float | Sequence[float] = math.inf,
     progress: Callable[[int, float], None] | None = None,
+    starts: Sequence[Effect] = (),
     coarse_factor: int = 1,
     plateau_steps: int = 5,
     plateau_rtol: float = 1e-3,
@@ -263,6 +275,10 @@ def fit(
         progress: called as `progress(step, loss)` after every step (steps
             counted through both phases; the coarse phase's losses are at its
             resolution).
+        starts: other starts, effects of `effect`'s type (a model's presets):
+            the fit begins from whichever of `effect` and these (their fitted
+            fields clipped to their fitting ranges, the rest `effect`'s) has the lowest loss, so it does not
+            depend on which of them it was given. One evaluation each.
         coarse_factor: a Python int >= 1; above 1 the fit first runs on every
             frame and target at `1 / coarse_factor` of its resolution
             (`reduced.downsample_buffers`: colour box-averaged, each block's
@@ -299,7 +315,15 @@ def fit(
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
     check_inside_bounds(effect)
-    start_effect, coarse_steps = effect, 0
+    frame_data = (frames, lights, targets, in_front, depths)
+    start_effect, coarse_steps, start_index = effect, 0, 0
+    if starts:
+        candidates = [effect, *[_start_like(effect, other, bounds) for other in starts]]
+        with jax.default_matmul_precision("highest"), ranges_guaranteed():
+            probe = (FitProblem.of(effect, bounds, frames, loss=loss, space=space), frame_data)
+            losses = [float(exported.call("fit_loss", _evaluate, candidate, probe)) for candidate in candidates]
+        start_index = int(np.argmin(losses))
+        effect = candidates[start_index]
     if coarse_factor > 1:
         coarse = fit(
             scale_pixel_fields(effect, 1.0 / coarse_factor), [downsample_buffers(f, coarse_factor) for f in frames],
@@ -311,7 +335,7 @@ def fit(
         coarse_steps = coarse.steps
     dtype = frames[0].color.dtype
     problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
-    data = (problem, (frames, lights, targets, in_front, depths))
+    data = (problem, frame_data)
     function = _residual_function if least_squares else _objective_function
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
     # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
@@ -319,7 +343,7 @@ def fit(
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         loss_before = float(exported.call("fit_loss", _evaluate, start_effect, data))
         history = [loss_before]
-        if coarse_factor > 1:
+        if effect is not start_effect:
             history.append(float(exported.call("fit_loss", _evaluate, effect, data)))
         y = start_point(problem, np.dtype(dtype))
         state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, data)
@@ -354,4 +378,5 @@ def fit(
         converged=bool(done) and bool(succeeded),
         plateaued=plateaued,
         coarse_steps=coarse_steps,
+        start=start_index,
     )

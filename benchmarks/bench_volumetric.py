@@ -9,8 +9,8 @@ after one warm-up. Memory: XLA's compiled temporary bytes (`memory_analysis`) of
 and of one forward-mode derivative (what `fit`'s Jacobian takes per parameter) at 480x270 for
 several `num_view_steps` x `num_shadow_samples`. `--fit` times the 480x270 fit instead: the reference's
 clean frame and fog render upscaled (nearest), `fit` from `volumetric_haze` with the field of view
-fixed (the frame gives it), once as `godrays-jax fit` runs it (its default coarse phase and plateau
-stop) and once as before both (50 steps at full resolution, no plateau stop); each fit twice, the
+fixed (the frame gives it), once as `godrays-jax fit` runs it (the model's presets as other starts,
+its default coarse phase and plateau stop) and once as before them (50 steps at full resolution, no plateau stop); each fit twice, the
 first compiling, and the final display-space MSE. `uptime` first: the machine is shared.
 """
 
@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.app.options import auto_coarse_factor
+from godrays_jax.app.options import auto_coarse_factor, model_presets
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
@@ -75,7 +75,9 @@ def main() -> None:
     if args.fit:
         print("| 480x270 fit | steps (coarse + full) | seconds, compiling | seconds, again | display MSE |")
         print("|---|---|---|---|---|")
-        fit_row(f"godrays-jax fit's way (coarse factor {auto_coarse_factor(270, 480)})", coarse_factor=auto_coarse_factor(270, 480))
+        starts = [gr.preset(name) for name in model_presets(gr.preset("volumetric_haze"))]
+        fit_row(f"godrays-jax fit's way (coarse factor {auto_coarse_factor(270, 480)}, {len(starts)} starts)",
+                coarse_factor=auto_coarse_factor(270, 480), starts=starts)  # fmt: skip
         fit_row("before: 50 steps at full resolution", plateau_steps=0)
         print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
         return

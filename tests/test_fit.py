@@ -162,7 +162,7 @@ def test_a_coarse_phase_then_the_full_resolution_recovers_the_parameters():
 
 
 def test_the_fit_begins_from_the_start_with_the_lowest_loss():
-    """Of the effect given and `starts` (their fitted fields, clipped to the fitting ranges), the best one starts."""
+    """The effect given and each of `starts` (their fitted fields, clipped to the fitting ranges) are fitted: the best wins."""
     frame = _frame()
     target = _rays(**TRUTH)(frame, LIGHT)
     far, truth = _rays(density=0.2, decay=0.5, exposure=0.9), _rays(**TRUTH, tint=(0.0, 0.0, 0.0))  # tint is fixed

@@ -17,6 +17,7 @@ from godrays_jax.app.options import (
     frame_field_of_view,
     frame_reading,
     has_sky,
+    model_presets,
     read_target,
     resolve_light,
     resolve_light_depth,
@@ -24,7 +25,7 @@ from godrays_jax.app.options import (
     with_field_of_view,
     with_frame_clip_planes,
 )
-from godrays_jax.effects.presets import PRESETS, preset
+from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.compiled import render_compiled
@@ -85,7 +86,7 @@ def run(args) -> int:
 
     # The model's presets as other starts: the fit begins from whichever fits the frames best, so its result
     # does not hang on the start it was given (`benchmarks/fit_volumetric.py --starts`).
-    start_names = [name for name in sorted(PRESETS) if type(preset(name)) is type(effect)]
+    start_names = model_presets(effect)
     try:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,

@@ -12,7 +12,7 @@ import numpy as np
 
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import MAX_TEXTURE_SIDE
-from godrays_jax.effects.presets import preset
+from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import load_effect
 from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.primitives.buffers import Buffers
@@ -46,6 +46,11 @@ COARSE_FIT_PIXELS = 256 * 256
 
 Below it a coarse phase saves little: `VolumetricFog` marches at a quarter of the frame's resolution, so
 a frame of the references' size (320x180) halved marches on the same grid (`benchmarks/README.md`)."""
+
+
+def model_presets(effect: Effect) -> list[str]:
+    """The presets of `effect`'s model (its type), by name: `fit` tries them as starts beside the one it is given."""
+    return [name for name in sorted(PRESETS) if type(preset(name)) is type(effect)]
 
 
 def auto_coarse_factor(height: int, width: int) -> int:

@@ -84,7 +84,7 @@ class FitResult:
         converged: whether the solver met its tolerances within `max_steps`.
         plateaued: whether the fit stopped because the loss had stopped moving
             (`plateau_steps`, `plateau_rtol`).
-        coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`).
+        coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`), every start's.
         start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
     """
 
@@ -110,6 +110,17 @@ def round_counts(effect: Effect) -> Effect:
     return eqx.tree_at(
         lambda e: [field_value(e, n) for n in names], effect, [jnp.round(field_value(effect, n)) for n in names]
     )
+
+
+class _StepCounter:
+    """`progress` with the steps of the fits run before added (several starts, a coarse phase), or None."""
+
+    def __init__(self, progress):
+        self.progress, self.offset = progress, 0
+
+    def __call__(self, step, value):
+        if self.progress is not None:
+            self.progress(self.offset + step, value)
 
 
 def _start_like(effect: Effect, other: Effect, bounds: dict[str, tuple[float, float]]) -> Effect:
@@ -317,22 +328,37 @@ def fit(
     check_inside_bounds(effect)
     frame_data = (frames, lights, targets, in_front, depths)
     start_effect, coarse_steps, start_index = effect, 0, 0
-    if starts:
-        candidates = [effect, *[_start_like(effect, other, bounds) for other in starts]]
-        with jax.default_matmul_precision("highest"), ranges_guaranteed():
-            probe = (FitProblem.of(effect, bounds, frames, loss=loss, space=space), frame_data)
-            losses = [float(exported.call("fit_loss", _evaluate, candidate, probe)) for candidate in candidates]
-        start_index = int(np.argmin(losses))
-        effect = candidates[start_index]
+    candidates = [effect, *[_start_like(effect, other, bounds) for other in starts]]
+    counted = _StepCounter(progress)
+    options = dict(
+        loss=loss, space=space, solver=optimiser, fixed=fixed, max_steps=max_steps, light_in_front=in_front,
+        light_depth=depths, progress=counted, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
+    )  # fmt: skip
+    if len(candidates) > 1 and coarse_factor == 1:
+        # Each start fitted in full; the best result wins.
+        results = []
+        for candidate in candidates:
+            results.append(fit(candidate, frames, lights, targets, **options))
+            counted.offset += results[-1].steps
+        start_index = int(np.argmin([result.loss_after for result in results]))
+        best = results[start_index]
+        if start_index == 0:
+            return best
+        history = np.concatenate([[results[0].loss_before], best.loss_history])
+        return dataclasses.replace(best, loss_history=history, loss_before=results[0].loss_before, start=start_index)
     if coarse_factor > 1:
-        coarse = fit(
-            scale_pixel_fields(effect, 1.0 / coarse_factor), [downsample_buffers(f, coarse_factor) for f in frames],
-            [light / coarse_factor for light in lights], [downsample_box(t, coarse_factor) for t in targets],
-            loss=loss, space=space, solver=optimiser, fixed=fixed, max_steps=max_steps, light_in_front=in_front,
-            light_depth=depths, progress=progress, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
+        # Each start fitted at the reduced resolution; the best result goes on at full resolution.
+        reduced = (
+            [downsample_buffers(frame, coarse_factor) for frame in frames], [light / coarse_factor for light in lights],
+            [downsample_box(image, coarse_factor) for image in targets],
         )  # fmt: skip
-        effect = clip_to_bounds(scale_pixel_fields(coarse.effect, float(coarse_factor)), bounds)
-        coarse_steps = coarse.steps
+        results = []
+        for candidate in candidates:
+            results.append(fit(scale_pixel_fields(candidate, 1.0 / coarse_factor), *reduced, **options))
+            counted.offset += results[-1].steps
+        start_index = int(np.argmin([result.loss_after for result in results]))
+        effect = clip_to_bounds(scale_pixel_fields(results[start_index].effect, float(coarse_factor)), bounds)
+        coarse_steps = counted.offset
     dtype = frames[0].color.dtype
     problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
     data = (problem, frame_data)

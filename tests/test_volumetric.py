@@ -96,21 +96,28 @@ class _Loop:
         if not math.isfinite(reach) or reach == 0:
             return 1.0
         visible = 1.0
-        for k in range(self.samples):
-            q = p + reach * (k + 0.5) / self.samples * step
+        previous = t  # the shadow ray crosses the pixel's own camera ray at the point
+        for k in range(self.samples + 1):  # the last one at the segment's end: the light's pixel when on screen
+            q = p + reach * min((k + 0.5) / self.samples, 1.0) * step
             col = min(max(int(math.floor(q[0])), 0), self.width - 1)
             row = min(max(int(math.floor(q[1])), 0), self.height - 1)
             front = self.depth[row, col]
+            ray = self.ray(*q)
+            if k == self.samples and self.in_front and reach == 1.0:
+                crossing = self.light_depth  # every shadow ray reaches the light there
+            else:
+                # mu' * ray - u * shadow = point, least squares (exact: the three lie in one plane)
+                (mu, _), *_ = np.linalg.lstsq(np.stack([ray, -shadow], axis=1), point, rcond=None)
+                crossing = mu * np.linalg.norm(ray)
+            # the shadow ray's depths between this sample's crossing and the previous one's
+            span = sorted((crossing, previous)) if crossing > 0 and previous > 0 else (crossing, crossing)
+            previous = crossing
             if not math.isfinite(front):
                 continue
             if light_point is not None and front * (1 + self.thickness) >= self.light_depth:
                 continue
-            ray = self.ray(*q)
-            # mu' * ray - u * shadow = point, least squares (exact: the three lie in one plane)
-            (mu, _), *_ = np.linalg.lstsq(np.stack([ray, -shadow], axis=1), point, rcond=None)
-            crossing = mu * np.linalg.norm(ray)
             width = self.softness * front
-            inside = _ramp((crossing - front) / width) * _ramp((front * (1 + self.thickness) - crossing) / width)
+            inside = _ramp((span[1] - front) / width) * _ramp((front * (1 + self.thickness) - span[0]) / width)
             visible = min(visible, 1.0 - inside)
         return visible
 
@@ -120,11 +127,10 @@ class _Loop:
             end = min(end, self.top / view[1])
         return end
 
-    def pixel(self, row, col):
+    def pixel(self, row, col, depth):
         x, y = col + 0.5, row + 0.5
         view = self.ray(x, y)
         view /= np.linalg.norm(view)
-        depth = self.depth[row, col]
         end = self.end_of_medium(view, depth)
         bounds = np.linspace(0.0, end, self.steps + 1)
         transmittance = [math.exp(-self.optical_depth(np.zeros(3), view, b)) for b in bounds]
@@ -149,8 +155,19 @@ class _Loop:
             surface *= 1 - self.share + self.share * self.light_transmittance(depth * view)
         return surface, scattered, 1 - transmittance[-1]
 
-    def terms(self):
-        rows = [[self.pixel(row, col) for col in range(self.width)] for row in range(self.height)]
+    def covered_pixel(self, row, col, coverage):
+        """`coverage` of the surface's terms (on sky, its nearest neighbour's surface) and the rest of the sky's."""
+        depth = self.depth[row, col]
+        if coverage is None:
+            return self.pixel(row, col, depth)
+        if not math.isfinite(depth):
+            depth = self.depth[max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2].min()
+        c = coverage[row, col]
+        surface, sky = self.pixel(row, col, depth), self.pixel(row, col, math.inf)
+        return tuple(c * a + (1 - c) * b for a, b in zip(surface, sky))
+
+    def terms(self, coverage=None):
+        rows = [[self.covered_pixel(row, col, coverage) for col in range(self.width)] for row in range(self.height)]
         return tuple(np.array([[pixel[i] for pixel in row] for row in rows]) for i in range(3))
 
 
@@ -174,6 +191,20 @@ def test_terms_match_loop(x64, case):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
 
 
+def test_partly_covered_pixels_match_loop(x64):
+    """A silhouette's pixels blend the surface's terms (a sky pixel: its neighbour's surface) with the sky's."""
+    depth = _depth()
+    coverage = np.isfinite(depth).astype(float)
+    coverage[1, 1], coverage[1, 2], coverage[0, 3], coverage[3, 4] = 0.3, 0.6, 0.45, 0.8
+    expected = _Loop(depth, (2.3, 0.7), light_depth=12.0, in_front=True, **MEDIUM).terms(coverage)
+    got = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), light_depth=12.0,
+                               coverage=jnp.asarray(coverage), **MEDIUM)  # fmt: skip
+    for name, want, have in zip(("surface", "scattered", "opacity"), expected, got):
+        np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
+    plain = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), light_depth=12.0, **MEDIUM)
+    assert not np.allclose(np.asarray(got[1]), np.asarray(plain[1]))
+
+
 def test_occluder_shadows_the_haze_in_front_of_it(x64):
     """A post below the sun shades the haze in front of it; a ray whose shadow rays miss it stays as in open sky."""
     depth = np.full((HEIGHT, WIDTH), np.inf)
@@ -184,6 +215,18 @@ def test_occluder_shadows_the_haze_in_front_of_it(x64):
     _, open_sky, _ = volumetric_fog_terms(jnp.asarray(np.full((HEIGHT, WIDTH), np.inf)), light, **options)
     assert float(shadowed[3, 2]) < 0.8 * float(open_sky[3, 2])
     assert float(shadowed[0, 5]) == pytest.approx(float(open_sky[0, 5]), rel=1e-12)
+
+
+def test_box_hiding_the_sun_shades_the_whole_ray_in_front_of_it(x64):
+    """Near the camera the shadow ray crosses the box's camera rays only close to the sun's pixel, in long depth
+    steps between shadow samples: a slab between two samples still blocks it."""
+    depth = np.full((12, 16), np.inf)
+    depth[2:10, 4:12] = 10.0
+    options = dict(MEDIUM, layer_top=math.inf, height_falloff=0.0, max_distance=30.0, thickness=0.1, edge_softness=0.01,
+                   num_view_steps=8, num_shadow_samples=6)  # fmt: skip
+    _, scattered, _ = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([8.2, 5.7]), **options)
+    _, open_sky, _ = volumetric_fog_terms(jnp.full((12, 16), jnp.inf), jnp.asarray([8.2, 5.7]), **options)
+    assert float(jnp.max(scattered[3:9, 5:11])) < 1e-3 * float(jnp.min(open_sky[3:9, 5:11]))
 
 
 def _fog(image, depth, light_xy, **overrides):

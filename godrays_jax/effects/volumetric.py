@@ -75,6 +75,7 @@ class VolumetricFog(Effect):
             height_falloff=self.height_falloff, layer_top=self.layer_top, anisotropy=self.medium.anisotropy,
             direct_fraction=self.direct_fraction, thickness=self.thickness, edge_softness=self.edge_softness,
             num_view_steps=self.num_view_steps, num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
+            coverage=buffers.coverage,
         )  # fmt: skip
 
     def _light(self, scattered, opacity, dtype):

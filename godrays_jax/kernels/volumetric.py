@@ -27,12 +27,17 @@ from `p` toward the light's position (away from the light's true projection
 when it is behind the camera), clipped to the screen: at each of
 `num_shadow_samples` samples `q`, the shadow ray from the segment's midpoint
 crosses `q`'s camera ray at a distance `mu` (closed form in the plane of the
-camera, the point and the light); the surface at `q` blocks it when `mu` lies
-inside its slab `[D_q, D_q * (1 + thickness)]` (a depth buffer is a height
-field of unknown thickness), with linear ramps `edge_softness * D_q` wide at
+camera, the point and the light); the surface at `q` blocks it when the depths
+`[mu_prev, mu]` the ray runs through since the previous sample (the first:
+since the point itself) meet its slab `[D_q, D_q * (1 + thickness)]` (a depth
+buffer is a height field of unknown thickness; near the light's screen
+position one step covers a long stretch in depth), with linear ramps `edge_softness * D_q` wide at
 both faces so that the thickness, the light and the field of view have
-gradients. Surfaces whose slab reaches the light (the emitter) and sky block
-nothing; off screen nothing is known and nothing blocks. The samples are
+gradients. A last sample sits at the segment's end: on screen, the light's
+own pixel, where every shadow ray reaches the light's distance (the sun's:
+beyond every slab), so an object that hides the light shades the whole view
+ray in front of it. Surfaces whose slab reaches the light (the emitter) and
+sky block nothing; off screen nothing is known and nothing blocks. The samples are
 shared by every segment; the march runs on every `resolution_factor`-th pixel
 and its in-scattering is upsampled with depth-aware weights.
 """
@@ -54,6 +59,8 @@ from godrays_jax.primitives.checks import check_image, check_light, check_plane,
 _MAX_EXPONENT = 60.0
 # Relative width of the depth-aware upsampling's weights (how different two ray lengths may be and still blend).
 _UPSAMPLE_DEPTH_SIGMA = 0.1
+# The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
+_BEYOND_EVERY_SLAB = 1e30
 # A point light's irradiance is floored as if it were a ball of this fraction of its distance.
 _POINT_LIGHT_RADIUS = 1e-3
 
@@ -223,7 +230,8 @@ def segment_visibility(
         light_in_front: whether the light is in front of the camera.
         thickness: each surface's slab depth as a fraction of its own depth, >= 0.
         edge_softness: the width of the slab's soft faces, a fraction of depth, > 0.
-        num_shadow_samples: depth samples along the screen segment (static int, >= 1).
+        num_shadow_samples: depth samples along the screen segment (static int, >= 1), besides
+            the one at its end.
 
     The loop runs over the samples, so memory is that of `distances` whatever
     `num_shadow_samples` is.
@@ -268,8 +276,9 @@ def segment_visibility(
     thickness = jnp.asarray(thickness, dtype)
     softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
 
-    def sample(visibility, k):
-        s = reach * (k + 0.5) / num_shadow_samples
+    def sample(carry, k):
+        visibility, previous = carry
+        s = reach * jnp.minimum((k + 0.5) / num_shadow_samples, 1.0)
         q = pixel_xy + s[..., None] * step
         col = jnp.clip(jnp.floor(q[..., 0]), 0, width - 1).astype(jnp.int32)
         row = jnp.clip(jnp.floor(q[..., 1]), 0, height - 1).astype(jnp.int32)
@@ -287,18 +296,30 @@ def segment_visibility(
         denominator = b1 - 2 * t * b2 + t * t * b3
         # Parallel rays never cross: 0, at the camera, lies in no slab.
         crossing = _safe_divide(numerator, denominator, 0.0, tiny=1e-12) * jnp.linalg.norm(ray, axis=-1)[..., None]
+        # The last sample is the light's own pixel when it is on screen: every shadow ray ends there, at the
+        # light's distance (the sun's: beyond every slab).
+        at_light = (k == num_shadow_samples) & in_front & (reach[..., None] >= 1.0)
+        crossing = jnp.where(at_light, _safe_divide(1.0, inverse, _BEYOND_EVERY_SLAB), crossing)
+        # The shadow ray covers every depth between its crossings of this sample's camera ray and the previous
+        # one's: near the light's screen position each step moves it far in depth, and a slab it passes
+        # between two samples still blocks it. (A crossing behind the camera, or none, is taken alone.)
+        both = (crossing > 0) & (previous > 0)
+        nearest = jnp.where(both, jnp.minimum(crossing, previous), crossing)
+        farthest = jnp.where(both, jnp.maximum(crossing, previous), crossing)
         front = surface[..., None]
         # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
         blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
         front = jnp.where(blocks, front, 1.0)
         width_ = softness * front
-        inside = _ramp((crossing - front) / width_) * _ramp((front * (1 + thickness) - crossing) / width_)
+        inside = _ramp((farthest - front) / width_) * _ramp((front * (1 + thickness) - nearest) / width_)
         inside = jnp.where(blocks, inside, 0.0)
-        return jnp.minimum(visibility, 1.0 - inside), None
+        return (jnp.minimum(visibility, 1.0 - inside), crossing), None
 
-    visibility, _ = jax.lax.scan(
-        jax.checkpoint(sample), jnp.ones(distances.shape, dtype), jnp.arange(num_shadow_samples, dtype=dtype)
-    )
+    # At the pixel itself the shadow ray crosses the pixel's camera ray at the point's own distance.
+    (visibility, _), _ = jax.lax.scan(
+        jax.checkpoint(sample), (jnp.ones(distances.shape, dtype), distances),
+        jnp.arange(num_shadow_samples + 1, dtype=dtype),
+    )  # fmt: skip
     return visibility
 
 
@@ -382,6 +403,16 @@ def _upsample_by_depth(values, coarse_key, fine_key, factor):
     return total / weights
 
 
+def _covering_depth(depth):
+    """Each pixel's depth, or on sky the nearest depth among its eight neighbours (`inf` where they are all sky)."""
+    padded = jnp.pad(depth, 1, constant_values=jnp.inf)
+    height, width = depth.shape
+    nearest = functools.reduce(
+        jnp.minimum, [padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3)]
+    )  # fmt: skip
+    return jnp.where(jnp.isfinite(depth), depth, nearest)
+
+
 def volumetric_fog_terms(
     depth: Float[Array, "H W"],
     light_xy: Float[ArrayLike, "2"],
@@ -400,6 +431,7 @@ def volumetric_fog_terms(
     num_view_steps: int = 16,
     num_shadow_samples: int = 32,
     resolution_factor: int = 1,
+    coverage: Float[Array, "H W"] | None = None,
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"], Float[Array, "H W"]]:
     """`(surface, scattered, opacity)`: the fogged frame is `C * surface + light_color * scattered + ambient_color * opacity`.
 
@@ -427,6 +459,11 @@ def volumetric_fog_terms(
         num_shadow_samples: depth samples per screen segment (static int, >= 1).
         resolution_factor: the march runs on every `resolution_factor`-th pixel
             in each direction (static int, a divisor of H and W).
+        coverage: the fraction of each pixel covered by geometry, in [0, 1]
+            (`Buffers.coverage`); each term is then `coverage` times the term
+            of the surface (on a sky pixel, of its nearest neighbour's) plus
+            the rest times the sky's, as a renderer's pixel filter blends a
+            silhouette. None: the depth alone says (finite: covered).
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
@@ -440,35 +477,53 @@ def volumetric_fog_terms(
     for name, value in (("extinction", extinction), ("max_distance", max_distance), ("height_falloff", height_falloff),
                         ("layer_top", layer_top), ("anisotropy", anisotropy), ("direct_fraction", direct_fraction)):  # fmt: skip
         check_scalar(value, name)
+    if coverage is not None:
+        check_plane(coverage, "coverage", height, width)
     dtype = jnp.result_type(depth, jnp.float32)
     depth = jnp.asarray(depth, dtype)
     medium = dict(extinction=extinction, height_falloff=height_falloff)
     bounds = dict(max_distance=max_distance, layer_top=layer_top)
     view = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype)
-    origin = jnp.zeros_like(view)
-    start, end = medium_interval(origin, view, jnp.where(jnp.isfinite(depth), depth, jnp.inf), **bounds)
-    opacity = -jnp.expm1(-optical_depth(origin, view, start, end, **medium))
     toward, _ = _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
-    finite = jnp.isfinite(depth)
-    surface_points = view * jnp.where(finite, depth, 0.0)[..., None]
-    dimmed = light_transmittance(surface_points, toward, light_depth=light_depth, **medium, **bounds)
     share = jnp.asarray(direct_fraction, dtype)
-    surface = (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0)
+
+    def surface_and_opacity(ray_end):
+        origin = jnp.zeros_like(view)
+        start, end = medium_interval(origin, view, jnp.where(jnp.isfinite(ray_end), ray_end, jnp.inf), **bounds)
+        opacity = -jnp.expm1(-optical_depth(origin, view, start, end, **medium))
+        finite = jnp.isfinite(ray_end)
+        surface_points = view * jnp.where(finite, ray_end, 0.0)[..., None]
+        dimmed = light_transmittance(surface_points, toward, light_depth=light_depth, **medium, **bounds)
+        return (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0), opacity
+
     options = (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
                thickness, edge_softness, num_view_steps, num_shadow_samples)  # fmt: skip
     factor = resolution_factor
-    if factor == 1:
-        x, y = _march_grid(height, width, 1, dtype)
-        scattered = _in_scattered(view, depth, depth, light_xy, jnp.stack([x, y], axis=-1), options)
-        return surface, scattered, opacity
     x, y = _march_grid(height, width, factor, dtype)
-    rows, cols = (y - 0.5).astype(jnp.int32), (x - 0.5).astype(jnp.int32)
-    coarse_depth = depth[rows, cols]
-    coarse = _in_scattered(view[rows, cols], coarse_depth, depth, light_xy, jnp.stack([x, y], axis=-1), options)
-    distance = jnp.asarray(max_distance, dtype)
-    key = functools.partial(_ray_length, max_distance=jax.lax.stop_gradient(distance))
-    scattered = _upsample_by_depth(coarse, key(coarse_depth), key(depth), factor)
-    return surface, scattered, opacity
+    if factor == 1:
+        march = functools.partial(_in_scattered, view, depth=depth, light_xy=light_xy,
+                                  pixel_xy=jnp.stack([x, y], axis=-1), options=options)  # fmt: skip
+    else:
+        rows, cols = (y - 0.5).astype(jnp.int32), (x - 0.5).astype(jnp.int32)
+        coarse_depth = depth[rows, cols]
+        coarse = _in_scattered(view[rows, cols], coarse_depth, depth, light_xy, jnp.stack([x, y], axis=-1), options)
+        key = functools.partial(_ray_length, max_distance=jax.lax.stop_gradient(jnp.asarray(max_distance, dtype)))
+
+        def march(ray_end):
+            return _upsample_by_depth(coarse, key(coarse_depth), key(ray_end), factor)
+
+    if coverage is None:
+        surface, opacity = surface_and_opacity(depth)
+        return surface, march(depth), opacity
+    # A silhouette's pixel is partly the surface (on sky: its nearest neighbour's) and partly the sky behind.
+    covered = jnp.asarray(coverage, dtype)
+    surface_depth = _covering_depth(depth)
+    sky = jnp.full_like(depth, jnp.inf)
+    terms = []
+    for ray_end in (surface_depth, sky):
+        surface, opacity = surface_and_opacity(ray_end)
+        terms.append((surface, march(ray_end), opacity))
+    return tuple(covered * on_surface + (1.0 - covered) * on_sky for on_surface, on_sky in zip(*terms))
 
 
 def apply_volumetric_fog(

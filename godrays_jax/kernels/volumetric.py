@@ -59,6 +59,8 @@ from godrays_jax.primitives.checks import check_image, check_light, check_plane,
 _MAX_EXPONENT = 60.0
 # Relative width of the depth-aware upsampling's weights (how different two ray lengths may be and still blend).
 _UPSAMPLE_DEPTH_SIGMA = 0.1
+# Below this sum of bilinear weights times likeness no bilinear neighbour is alike: the wider tent takes over.
+_UPSAMPLE_ALIKE = 0.05
 # The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
 _BEYOND_EVERY_SLAB = 1e30
 # A point light's irradiance is floored as if it were a ball of this fraction of its distance.
@@ -377,30 +379,35 @@ def _ray_length(depth, max_distance):
 
 
 def _upsample_by_depth(values, coarse_key, fine_key, factor):
-    """`values` on the march grid to every pixel: bilinear weights times how alike the ray lengths are."""
+    """`values` on the march grid to every pixel: bilinear weights times how alike the ray lengths are.
+
+    Where none of the four bilinear neighbours is alike (a silhouette the march grid missed: a sky pixel
+    beside an object the march saw, or the reverse), the sixteen around it with a wider tent instead.
+    """
     height, width = fine_key.shape
     small_h, small_w = values.shape
     offset = factor // 2 + 0.5
     dtype = values.dtype
     x = (jnp.arange(width, dtype=dtype) + 0.5 - offset) / factor
     y = (jnp.arange(height, dtype=dtype) + 0.5 - offset) / factor
-    x0 = jnp.clip(jnp.floor(x), 0, small_w - 1).astype(jnp.int32)
-    y0 = jnp.clip(jnp.floor(y), 0, small_h - 1).astype(jnp.int32)
-    fx = jnp.clip(x - x0, 0.0, 1.0)
-    fy = jnp.clip(y - y0, 0.0, 1.0)
-    x1 = jnp.minimum(x0 + 1, small_w - 1)
-    y1 = jnp.minimum(y0 + 1, small_h - 1)
-    total = jnp.zeros((height, width), dtype)
-    weights = jnp.zeros((height, width), dtype)
+    x0, y0 = jnp.floor(x), jnp.floor(y)
     scale = _UPSAMPLE_DEPTH_SIGMA * jnp.maximum(fine_key, 1e-6)
-    for rows, wy in ((y0, 1 - fy), (y1, fy)):
-        for cols, wx in ((x0, 1 - fx), (x1, fx)):
+    sums = {reach: [jnp.zeros((height, width), dtype), jnp.zeros((height, width), dtype)] for reach in (1.0, 1.5)}
+    for dy in (-1, 0, 1, 2):
+        rows = jnp.clip(y0 + dy, 0, small_h - 1).astype(jnp.int32)
+        for dx in (-1, 0, 1, 2):
+            cols = jnp.clip(x0 + dx, 0, small_w - 1).astype(jnp.int32)
             key = coarse_key[rows[:, None], cols[None, :]]
             alike = jax.lax.stop_gradient(jnp.exp(-jnp.abs(key - fine_key) / scale))
-            weight = wy[:, None] * wx[None, :] * alike + 1e-12
-            total = total + weight * values[rows[:, None], cols[None, :]]
-            weights = weights + weight
-    return total / weights
+            value = values[rows[:, None], cols[None, :]]
+            for reach, (total, weights) in sums.items():
+                tent = jnp.maximum(reach - jnp.abs(y - y0 - dy), 0.0)[:, None] * jnp.maximum(
+                    reach - jnp.abs(x - x0 - dx), 0.0
+                )[None, :]  # fmt: skip
+                weight = tent * (alike + 1e-12)
+                sums[reach] = [total + weight * value, weights + weight]
+    (near_total, near_weights), (wide_total, wide_weights) = sums[1.0], sums[1.5]
+    return jnp.where(near_weights > _UPSAMPLE_ALIKE, near_total / near_weights, wide_total / wide_weights)
 
 
 def _covering_depth(depth):

@@ -27,7 +27,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
-from baseline import display_mse, read_rgb  # noqa: E402  (the references' folder joins the path first)
+from baseline import display_mse, light_options, read_rgb  # noqa: E402  (the references' folder joins the path first)
 from scenes import BY_NAME, HERE as REFERENCES, SCENES  # noqa: E402
 
 RESULTS = HERE / "fit_volumetric.json"
@@ -40,12 +40,14 @@ def _run(*arguments: str) -> float:
 
 
 def fit_scene(scene, folder: Path, preset: str | None, report: Path | None) -> dict:
+    folder = folder if report is None else report  # the report's folder also keeps the parameters and the frame
     params, output = folder / f"{scene.name}_{preset or 'default'}.json", folder / f"{scene.name}.exr"
     options = ["--preset", preset] if preset else []
     if report is not None:
         options += ["--report", str(report / f"fit_report_{scene.name}.png")]
-    seconds = _run("fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *options)
-    seconds += _run("apply", str(scene.clean), "--params", str(params), "-o", str(output))
+    light = [] if scene.renderer == "mitsuba" else light_options(scene)  # Blender's headers lack the light
+    seconds = _run("fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *options, *light)
+    seconds += _run("apply", str(scene.clean), "--params", str(params), "-o", str(output), *light)
     fogged = read_rgb(output)
     return {
         "ratio_fog_a": display_mse(fogged, read_rgb(scene.fog_a)) / scene.noise_floor,
@@ -58,7 +60,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("scenes", nargs="*", help=f"default: all of {', '.join(BY_NAME)}")
     parser.add_argument("--starts", nargs="*", default=[], help="presets to fit from besides the default")
-    parser.add_argument("--report", type=Path, help="write each fit's report PNG here")
+    parser.add_argument("--report", type=Path, help="write each fit's report PNG, parameters and fogged frame here")
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)

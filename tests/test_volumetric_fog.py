@@ -9,7 +9,7 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.effects.serialization import load_effect, save_effect
-from godrays_jax.effects.volumetric import march_factor
+from godrays_jax.effects.volumetric import filtered_coverage, march_factor
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.fit import fit
 
@@ -39,12 +39,22 @@ def test_effect_is_the_kernel_composited(rng):
     effect = _fog()
     expected = gr.apply_volumetric_fog(
         buffers.color, buffers.depth, jnp.asarray(LIGHT), light_depth=20.0, height_falloff=0.0, layer_top=1e4,
-        thickness=0.15, edge_softness=0.05, **MEDIUM, **EFFECT,
+        thickness=0.15, edge_softness=0.05, coverage=filtered_coverage(buffers.coverage, buffers.depth), **MEDIUM,
+        **EFFECT,
     )  # fmt: skip
     np.testing.assert_allclose(effect(buffers, jnp.asarray(LIGHT), light_depth=20.0), expected, rtol=1e-6)
     layer = effect.layer(buffers, jnp.asarray(LIGHT), light_depth=20.0)
     surface, _, _ = effect.terms(buffers, jnp.asarray(LIGHT), light_depth=20.0)
     np.testing.assert_allclose(buffers.color * surface[..., None] + layer, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_coverage_from_depth_alone_is_spread_like_a_pixel_filter(rng):
+    buffers = _frame(rng)
+    spread = np.asarray(filtered_coverage(buffers.coverage, buffers.depth))
+    assert spread[6, 3] == pytest.approx(0.25) and spread[7, 3] == pytest.approx(0.75)  # the ground's edge
+    assert spread[12 - 1, 0] == 1.0 and spread[0, 0] == 0.0
+    measured = buffers.coverage.at[6, 3].set(0.4)  # a coverage pass: kept as it is
+    np.testing.assert_array_equal(filtered_coverage(measured, buffers.depth), measured)
 
 
 def test_march_factor_divides_both_sides():

@@ -18,6 +18,26 @@ def march_factor(height: int, width: int, resolution_factor: int) -> int:
     return max(d for d in range(1, resolution_factor + 1) if height % d == 0 and width % d == 0)
 
 
+def filtered_coverage(coverage: Float[Array, "H W"], depth: Float[Array, "H W"]) -> Float[Array, "H W"]:
+    """The frame's coverage, or where it only repeats the depth (1 on geometry, 0 on sky) that spread by a pixel filter.
+
+    A frame without a coverage pass (Blender writes alpha 1 through an opaque
+    film; `Buffers` then takes coverage from the depth) has hard silhouettes,
+    while the renderer's pixel filter (Cycles' Blackman-Harris, 1.5 pixels
+    wide) blends each silhouette pixel with its neighbours: a `[1, 2, 1] / 4`
+    tent in each direction stands in for it. A real coverage pass (any value
+    strictly between 0 and 1, or a covered sky pixel) is used as it is.
+    """
+    hard = jnp.all(coverage == jnp.isfinite(depth).astype(coverage.dtype))
+    height, width = coverage.shape
+    padded = jnp.pad(coverage, 1, mode="edge")
+    taps = (0.25, 0.5, 0.25)
+    spread = sum(
+        wy * wx * padded[dy : dy + height, dx : dx + width] for dy, wy in enumerate(taps) for dx, wx in enumerate(taps)
+    )  # fmt: skip
+    return jnp.where(hard, spread, coverage)
+
+
 class VolumetricFog(Effect):
     """A medium around the camera, each view ray lit only where the depth buffer lets the light through.
 
@@ -75,7 +95,7 @@ class VolumetricFog(Effect):
             height_falloff=self.height_falloff, layer_top=self.layer_top, anisotropy=self.medium.anisotropy,
             direct_fraction=self.direct_fraction, thickness=self.thickness, edge_softness=self.edge_softness,
             num_view_steps=self.num_view_steps, num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
-            coverage=buffers.coverage,
+            coverage=filtered_coverage(buffers.coverage, depth),
         )  # fmt: skip
 
     def _light(self, scattered, opacity, dtype):

@@ -5,9 +5,10 @@
 The reference frames live beside the checkout (`../shared/data/colonnade_*`,
 Mitsuba 3, a homogeneous medium with sigma_t .02, albedo .95, g .8 in a
 sphere of radius 40 around the camera), so the preset holds the fitted
-constants; this script fits `VolumetricFog` as `godrays-jax fit` does (from
-`volumetric_haze`, the camera's field of view fixed, the sun at infinity,
-Levenberg-Marquardt on the display-space MSE, the plateau stop), then prints
+constants; this script fits `VolumetricFog` as `godrays-jax fit` does but from
+`volumetric_haze` alone (the preset is not its own start): the camera's field of
+view fixed, the sun at infinity, Levenberg-Marquardt on the display-space MSE,
+the plateau stop. It prints
 the fitted values beside the preset's, the losses (display-space MSE and SSIM)
 of the start, the fit and the preset, and the largest relative difference. The
 preset is current when that difference is well under 1 %.

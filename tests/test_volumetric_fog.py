@@ -51,7 +51,7 @@ def test_effect_is_the_kernel_composited(rng):
 def test_coverage_from_depth_alone_is_spread_like_a_pixel_filter(rng):
     buffers = _frame(rng)
     spread = np.asarray(filtered_coverage(buffers.coverage, buffers.depth))
-    assert spread[6, 3] == pytest.approx(0.25) and spread[7, 3] == pytest.approx(0.75)  # the ground's edge
+    assert spread[6, 3] == pytest.approx(0.15) and spread[7, 3] == pytest.approx(0.85)  # the ground's edge
     assert spread[12 - 1, 0] == 1.0 and spread[0, 0] == 0.0
     measured = buffers.coverage.at[6, 3].set(0.4)  # a coverage pass: kept as it is
     np.testing.assert_array_equal(filtered_coverage(measured, buffers.depth), measured)

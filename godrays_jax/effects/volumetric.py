@@ -18,20 +18,25 @@ def march_factor(height: int, width: int, resolution_factor: int) -> int:
     return max(d for d in range(1, resolution_factor + 1) if height % d == 0 and width % d == 0)
 
 
+# The share of a pixel's filter that falls on each neighbour in each direction (filtered_coverage).
+_FILTER_SPILL = 0.15
+
+
 def filtered_coverage(coverage: Float[Array, "H W"], depth: Float[Array, "H W"]) -> Float[Array, "H W"]:
     """The frame's coverage, or where it only repeats the depth (1 on geometry, 0 on sky) that spread by a pixel filter.
 
     A frame without a coverage pass (Blender writes alpha 1 through an opaque
     film; `Buffers` then takes coverage from the depth) has hard silhouettes,
     while the renderer's pixel filter (Cycles' Blackman-Harris, 1.5 pixels
-    wide) blends each silhouette pixel with its neighbours: a `[1, 2, 1] / 4`
-    tent in each direction stands in for it. A real coverage pass (any value
+    wide) blends each silhouette pixel with its neighbours: taps `[.15, .7,
+    .15]` in each direction stand in for it (`.15`: what Cycles' frames of
+    `benchmarks/references/blender` blend across a silhouette, on average). A real coverage pass (any value
     strictly between 0 and 1, or a covered sky pixel) is used as it is.
     """
     hard = jnp.all(coverage == jnp.isfinite(depth).astype(coverage.dtype))
     height, width = coverage.shape
     padded = jnp.pad(coverage, 1, mode="edge")
-    taps = (0.25, 0.5, 0.25)
+    taps = (_FILTER_SPILL, 1.0 - 2.0 * _FILTER_SPILL, _FILTER_SPILL)
     spread = sum(
         wy * wx * padded[dy : dy + height, dx : dx + width] for dy, wy in enumerate(taps) for dx, wx in enumerate(taps)
     )  # fmt: skip

@@ -234,6 +234,22 @@ def _step(optimiser, function, y, state_leaves, data, least_squares):
     return y, state_leaves, done, result == optx.RESULTS.successful, accepted_loss
 
 
+def _plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
+    """Whether the loss has stopped moving: it fell by less than `plateau_rtol` of itself over the last
+    `plateau_steps` steps, all taken since it first fell.
+
+    `solver_losses[i]` is the loss at the solver's last accepted point after step `i + 1`; the first is the
+    start's, as the solver computes it (the loss evaluated before the fit may differ in its last bits). Steps
+    before the first fall do not count: Levenberg-Marquardt may reject its first steps and BFGS backtrack
+    its first, the loss unchanged, while the solver is still looking for a way down.
+    """
+    first_fall = next((i for i, value in enumerate(solver_losses) if value < solver_losses[0]), None)
+    earlier = len(solver_losses) - 1 - plateau_steps
+    if first_fall is None or earlier < first_fall - 1:
+        return False
+    return solver_losses[earlier] - solver_losses[-1] <= plateau_rtol * solver_losses[earlier]
+
+
 def fit(
     effect: Effect,
     buffers: Buffers | Sequence[Buffers],
@@ -297,10 +313,12 @@ def fit(
             `max_steps` steps, then goes on at full resolution from there, up
             to `max_steps` more. Each coarse step costs about `coarse_factor**2`
             times less, and the fine phase starts near its minimum.
-        plateau_steps, plateau_rtol: stop (in each phase) once the loss, having
-            fallen below the phase's start, has fallen by less than
-            `plateau_rtol` of itself over the last `plateau_steps` steps;
-            `plateau_steps=0` runs until the solver converges or `max_steps`.
+        plateau_steps, plateau_rtol: stop (in each phase) once the loss has
+            fallen by less than `plateau_rtol` of itself over the last
+            `plateau_steps` steps, every one of them taken since the loss first
+            fell below the phase's start (steps the solver rejected before
+            that do not count); `plateau_steps=0` runs until the solver
+            converges or `max_steps`.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and
@@ -373,20 +391,18 @@ def fit(
             history.append(float(exported.call("fit_loss", _evaluate, effect, data)))
         y = start_point(problem, np.dtype(dtype))
         state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, data)
-        steps, plateaued, phase_start = 0, False, history[-1]
+        steps, plateaued, solver_losses = 0, False, []
         while steps < max_steps and not bool(done) and not plateaued:
             y, state, done, succeeded, accepted_loss = exported.call(
                 "fit_step", _step, optimiser, function, y, state, data, least_squares
             )
             steps += 1
+            solver_losses.append(float(accepted_loss))
             if steps > 1:  # after the first step the state holds the start's loss, already recorded
-                history.append(float(accepted_loss))
+                history.append(solver_losses[-1])
             if progress is not None:
                 progress(coarse_steps + steps, history[-1])
-            # Only once the loss has moved: BFGS may backtrack its first step several times, the loss unchanged.
-            if plateau_steps and steps > plateau_steps and history[-1] < phase_start:
-                earlier = history[-1 - plateau_steps]
-                plateaued = earlier - history[-1] <= plateau_rtol * earlier
+            plateaued = bool(plateau_steps) and _plateaued(solver_losses, plateau_steps, plateau_rtol)
         fitted_effect, rounded = _fitted_effects(problem, y)
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")

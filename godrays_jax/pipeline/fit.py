@@ -74,13 +74,13 @@ class FitResult:
         loss_history: the loss at the solver's last accepted parameters after
             each step; `loss_history[0]` is the starting loss. From another of
             `starts` or after a coarse phase, `loss_history[1]` is the loss the
-            full-resolution phase starts from (every entry at the frames' own
-            resolution) and the rest follow that phase.
+            winning start's full-resolution descent starts from (every entry at
+            the frames' own resolution) and the rest follow that descent.
         loss_before: the loss of the effect given as the start.
         loss_after: the loss of `effect`.
         loss_rounded: the loss of `rounded`.
         fitted: the names of the fields that were fitted.
-        steps: solver steps taken at the frames' own resolution.
+        steps: solver steps taken at the frames' own resolution, every start's.
         converged: whether the solver met its tolerances within `max_steps`.
         plateaued: whether the fit stopped because the loss had stopped moving
             (`plateau_steps`, `plateau_rtol`).
@@ -113,14 +113,15 @@ def round_counts(effect: Effect) -> Effect:
 
 
 class _StepCounter:
-    """`progress` with the steps of the fits run before added (several starts, a coarse phase), or None."""
+    """Counts solver steps over every start and phase and reports each to `progress` (or None)."""
 
     def __init__(self, progress):
-        self.progress, self.offset = progress, 0
+        self.progress, self.steps = progress, 0
 
-    def __call__(self, step, value):
+    def __call__(self, value):
+        self.steps += 1
         if self.progress is not None:
-            self.progress(self.offset + step, value)
+            self.progress(self.steps, value)
 
 
 def _start_like(effect: Effect, other: Effect, bounds: dict[str, tuple[float, float]]) -> Effect:
@@ -234,6 +235,73 @@ def _step(optimiser, function, y, state_leaves, data, least_squares):
     return y, state_leaves, done, result == optx.RESULTS.successful, accepted_loss
 
 
+@dataclasses.dataclass
+class _Run:
+    """One start's descent: its problem, unknowns and solver state, its losses so far, whether it stopped."""
+
+    problem: FitProblem
+    y: jax.Array
+    state: list
+    done: jax.Array
+    succeeded: jax.Array
+    history: list[float]  # the start's loss, then the loss at the last accepted point after each step but the first
+    solver_losses: list[float] = dataclasses.field(default_factory=list)
+    steps: int = 0
+    plateaued: bool = False
+
+    @property
+    def stopped(self) -> bool:
+        return bool(self.done) or self.plateaued
+
+
+def _descend(
+    candidates, bounds, frame_data, counter, *, optimiser, least_squares, loss, space, max_steps, probe_steps,
+    plateau_steps, plateau_rtol,
+) -> tuple[list[_Run], int]:
+    """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
+    half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
+    goes on to `max_steps`. Returns the runs and the winner's index.
+
+    The starts differ only in their fitted fields, so they share one problem and its compiled steps; each
+    keeps its own solver state, so a start that goes on is not started again.
+    """
+    frames = frame_data[0]
+    problems = [FitProblem.of(candidate, bounds, frames, loss=loss, space=space) for candidate in candidates]
+    function = _residual_function if least_squares else _objective_function
+    dtype = np.dtype(frames[0].color.dtype)
+    runs = []
+    for problem in problems:
+        data = (problem, frame_data)
+        y = start_point(problem, dtype)
+        state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, data)
+        start_loss = float(exported.call("fit_loss", _evaluate, problem.effect, data))
+        runs.append(_Run(problems[0], y, state, done, succeeded, [start_loss]))
+    data = (problems[0], frame_data)
+
+    def advance(run, until):
+        while run.steps < until and not run.stopped:
+            run.y, run.state, run.done, run.succeeded, accepted_loss = exported.call(
+                "fit_step", _step, optimiser, function, run.y, run.state, data, least_squares
+            )
+            run.steps += 1
+            run.solver_losses.append(float(accepted_loss))
+            if run.steps > 1:  # after the first step the state holds the start's loss, already recorded
+                run.history.append(run.solver_losses[-1])
+            counter(run.history[-1])
+            run.plateaued = bool(plateau_steps) and _plateaued(run.solver_losses, plateau_steps, plateau_rtol)
+
+    alive, budget = list(range(len(runs))), probe_steps
+    while len(alive) > 1:
+        budget = min(budget, max_steps)
+        for index in alive:
+            advance(runs[index], budget)
+        keep = 1 if budget == max_steps else (len(alive) + 1) // 2
+        alive = sorted(alive, key=lambda index: runs[index].history[-1])[:keep]
+        budget *= 2
+    advance(runs[alive[0]], max_steps)
+    return runs, alive[0]
+
+
 def _plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
     """Whether the loss has stopped moving: it fell by less than `plateau_rtol` of itself over the last
     `plateau_steps` steps, all taken since it first fell.
@@ -267,6 +335,7 @@ def fit(
     light_depth: float | Sequence[float] = math.inf,
     progress: Callable[[int, float], None] | None = None,
     starts: Sequence[Effect] = (),
+    probe_steps: int = 5,
     coarse_factor: int = 1,
     plateau_steps: int = 5,
     plateau_rtol: float = 1e-3,
@@ -300,12 +369,18 @@ def fit(
         light_depth: each frame's light distance along its camera ray, scene units
             (`inf`: the sun), one or one per frame; effects that measure depth read it.
         progress: called as `progress(step, loss)` after every step (steps
-            counted through both phases; the coarse phase's losses are at its
-            resolution).
-        starts: other starts, effects of `effect`'s type (a model's presets):
-            the fit begins from whichever of `effect` and these (their fitted
-            fields clipped to their fitting ranges, the rest `effect`'s) has the lowest loss, so it does not
-            depend on which of them it was given. One evaluation each.
+            counted over every start and both phases; the coarse phase's losses
+            are at its resolution).
+        starts: other starts, effects of `effect`'s type (a model's presets, a
+            start read from the frame): their fitted fields clipped to their
+            fitting ranges, the rest `effect`'s. `effect` and each of them race
+            by successive halving (in the coarse phase when there is one): each
+            takes `probe_steps` steps, the better half by loss goes on to twice
+            as many steps, and so on until one is left, which goes on to
+            `max_steps`; the result does not depend on which of them it was
+            given, for a fraction of the cost of a fit from each.
+        probe_steps: a Python int >= 1, the steps every start takes before the
+            first halving.
         coarse_factor: a Python int >= 1; above 1 the fit first runs on every
             frame and target at `1 / coarse_factor` of its resolution
             (`reduced.downsample_buffers`: colour box-averaged, each block's
@@ -328,6 +403,8 @@ def fit(
         raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
     if not (isinstance(max_steps, int) and max_steps >= 0):
         raise ValueError(f"max_steps must be an int >= 0, got {max_steps!r}")
+    if not (isinstance(probe_steps, int) and probe_steps >= 1):
+        raise ValueError(f"probe_steps must be an int >= 1, got {probe_steps!r}")
     if not (isinstance(coarse_factor, int) and coarse_factor >= 1):
         raise ValueError(f"coarse_factor must be an int >= 1, got {coarse_factor!r}")
     if not (isinstance(plateau_steps, int) and plateau_steps >= 0):
@@ -345,67 +422,40 @@ def fit(
     names = tuple(bounds)
     check_inside_bounds(effect)
     frame_data = (frames, lights, targets, in_front, depths)
-    start_effect, coarse_steps, start_index = effect, 0, 0
     candidates = [effect, *[_start_like(effect, other, bounds) for other in starts]]
-    counted = _StepCounter(progress)
-    options = dict(
-        loss=loss, space=space, solver=optimiser, fixed=fixed, max_steps=max_steps, light_in_front=in_front,
-        light_depth=depths, progress=counted, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
+    descend = dict(
+        optimiser=optimiser, least_squares=least_squares, loss=loss, space=space, max_steps=max_steps,
+        probe_steps=probe_steps, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
     )  # fmt: skip
-    if len(candidates) > 1 and coarse_factor == 1:
-        # Each start fitted in full; the best result wins.
-        results = []
-        for candidate in candidates:
-            results.append(fit(candidate, frames, lights, targets, **options))
-            counted.offset += results[-1].steps
-        start_index = int(np.argmin([result.loss_after for result in results]))
-        best = results[start_index]
-        if start_index == 0:
-            return best
-        history = np.concatenate([[results[0].loss_before], best.loss_history])
-        return dataclasses.replace(best, loss_history=history, loss_before=results[0].loss_before, start=start_index)
-    if coarse_factor > 1:
-        # Each start fitted at the reduced resolution; the best result goes on at full resolution.
-        reduced = (
-            [downsample_buffers(frame, coarse_factor) for frame in frames], [light / coarse_factor for light in lights],
-            [downsample_box(image, coarse_factor) for image in targets],
-        )  # fmt: skip
-        results = []
-        for candidate in candidates:
-            results.append(fit(scale_pixel_fields(candidate, 1.0 / coarse_factor), *reduced, **options))
-            counted.offset += results[-1].steps
-        start_index = int(np.argmin([result.loss_after for result in results]))
-        effect = clip_to_bounds(scale_pixel_fields(results[start_index].effect, float(coarse_factor)), bounds)
-        coarse_steps = counted.offset
-    dtype = frames[0].color.dtype
-    problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
-    data = (problem, frame_data)
-    function = _residual_function if least_squares else _objective_function
+    counter = _StepCounter(progress)
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
     # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
-        loss_before = float(exported.call("fit_loss", _evaluate, start_effect, data))
-        history = [loss_before]
-        if effect is not start_effect:
-            history.append(float(exported.call("fit_loss", _evaluate, effect, data)))
-        y = start_point(problem, np.dtype(dtype))
-        state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, data)
-        steps, plateaued, solver_losses = 0, False, []
-        while steps < max_steps and not bool(done) and not plateaued:
-            y, state, done, succeeded, accepted_loss = exported.call(
-                "fit_step", _step, optimiser, function, y, state, data, least_squares
-            )
-            steps += 1
-            solver_losses.append(float(accepted_loss))
-            if steps > 1:  # after the first step the state holds the start's loss, already recorded
-                history.append(solver_losses[-1])
-            if progress is not None:
-                progress(coarse_steps + steps, history[-1])
-            plateaued = bool(plateau_steps) and _plateaued(solver_losses, plateau_steps, plateau_rtol)
-        fitted_effect, rounded = _fitted_effects(problem, y)
+        problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
+        loss_before = float(exported.call("fit_loss", _evaluate, effect, (problem, frame_data)))
+        coarse_steps = 0
+        if coarse_factor > 1:
+            # The starts race at the reduced resolution; the winner's result goes on at full resolution.
+            reduced = (
+                [downsample_buffers(frame, coarse_factor) for frame in frames],
+                [light / coarse_factor for light in lights], [downsample_box(image, coarse_factor) for image in targets],
+                in_front, depths,
+            )  # fmt: skip
+            scaled = [scale_pixel_fields(candidate, 1.0 / coarse_factor) for candidate in candidates]
+            coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **descend)
+            coarse_steps = counter.steps
+            fine_start = coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y)
+            candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
+        runs, winner = _descend(candidates, bounds, frame_data, counter, **descend)
+        if coarse_factor == 1:
+            start_index = winner
+        run = runs[winner]
+        history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
+        fitted_effect, rounded = _fitted_effects(run.problem, run.y)
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
+        data = (run.problem, frame_data)
         loss_after = float(exported.call("fit_loss", _evaluate, fitted_effect, data))
         loss_rounded = float(exported.call("fit_loss", _evaluate, rounded, data))
     return FitResult(
@@ -416,9 +466,9 @@ def fit(
         loss_after=loss_after,
         loss_rounded=loss_rounded,
         fitted=names,
-        steps=steps,
-        converged=bool(done) and bool(succeeded),
-        plateaued=plateaued,
+        steps=counter.steps - coarse_steps,
+        converged=bool(run.done) and bool(run.succeeded),
+        plateaued=run.plateaued,
         coarse_steps=coarse_steps,
         start=start_index,
     )

@@ -31,6 +31,7 @@ from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.fit import fit
+from godrays_jax.pipeline.frame_start import ground_layer_start
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
 from godrays_jax.primitives.images import write_image
@@ -84,14 +85,20 @@ def run(args) -> int:
         bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
         bar.update(step - bar.n)
 
-    # The model's presets as other starts: the fit begins from whichever fits the frames best, so its result
-    # does not hang on the start it was given (`benchmarks/fit_volumetric.py --starts`).
-    start_names = model_presets(effect)
+    # The model's presets and a fog layer read from the frames as other starts: the fit begins from whichever
+    # fits the frames best, so its result does not hang on the start it was given
+    # (`benchmarks/fit_volumetric.py --starts`).
+    start_names = [f"preset {name}" for name in model_presets(effect)]
+    starts = [preset(name) for name in model_presets(effect)]
+    layer = ground_layer_start(effect, frames)
+    if layer is not None:
+        start_names.append("the ground layer estimated from the frame")
+        starts.append(layer)
     try:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
             fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, progress=progress,
-            coarse_factor=coarse_factor, starts=[preset(name) for name in start_names],
+            coarse_factor=coarse_factor, starts=starts,
         )  # fmt: skip
     finally:
         bar.close()
@@ -102,7 +109,7 @@ def run(args) -> int:
     for name in result.fitted:
         print(f"  {name} = {values[name]}")
     if result.start:
-        print(f"started from the fitted fields of preset {start_names[result.start - 1]} (a lower loss than the start given)")
+        print(f"started from the fitted fields of {start_names[result.start - 1]} (a lower loss than the start given)")
     loss_name = f"{args.loss} ({args.space})"
     after = result.loss_after if args.fractional_counts else result.loss_rounded
     print(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")

@@ -1,0 +1,78 @@
+"""A fit's start estimated from the frame itself: a medium bounded to a layer near the ground.
+
+The shipped presets of a layered medium (`VolumetricFog`) start with no top
+(`layer_top` on its upper bound), where the top has no gradient: a fit from
+them can never find a fog bank that the camera stands in. `ground_layer_start`
+reads a finite layer from the frames' geometry, so `fit` has a start from which
+the top moves (`godrays-jax fit` adds it to the model's presets).
+"""
+
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.fields import field_metadata, field_value, replace_fields
+from godrays_jax.kernels.lens import view_directions
+from godrays_jax.primitives.buffers import Buffers
+
+GROUND_LAYER_FIELDS: tuple[str, ...] = ("layer_top", "medium.extinction", "medium.max_distance", "fov_x_deg")
+"""The fields an effect needs for `ground_layer_start` (scene units; the field of view in degrees)."""
+
+GROUND_PERCENTILE = 5.0
+"""The percentile of the visible surfaces' heights taken as the ground: the lowest surfaces, not a stray pixel."""
+
+
+def _surfaces(frames: Sequence[Buffers], fov_x_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ray depth and height above the camera (its up axis), scene units, of every pixel mostly covered by a surface."""
+    depths, heights = [], []
+    for frame in frames:
+        depth = np.asarray(frame.ray_depth(jnp.asarray(fov_x_deg, jnp.float32)), np.float64)
+        up = np.asarray(view_directions(frame.height, frame.width, fov_x_deg=fov_x_deg))[..., 1]
+        covered = np.isfinite(depth) & (np.asarray(frame.coverage) >= 0.5)
+        depths.append(depth[covered])
+        heights.append((depth * up)[covered])
+    return np.concatenate(depths), np.concatenate(heights)
+
+
+def ground_layer_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effect | None:
+    """`effect` with a fog layer near the ground read from the frames' depth: a start for `fit(..., starts=...)`.
+
+    The frames' visible surfaces (coverage at least one half, finite depth),
+    placed by ray depth and `effect.fov_x_deg` in the camera's frame (scene
+    units, height along the camera's up axis), give:
+
+    - `layer_top`: as far above the camera as the ground (the
+      `GROUND_PERCENTILE`th percentile of the surfaces' heights) is below
+      it, a layer the camera stands in, with a top that has a gradient;
+    - `medium.extinction`: one over the surfaces' median depth (an optical
+      depth of one to the median surface);
+    - `medium.max_distance`: the farthest surface's depth (the medium holds
+      every visible surface).
+
+    Each is clipped into its field's bounds; every other field is `effect`'s.
+    `None` when the effect lacks one of `GROUND_LAYER_FIELDS`, when no pixel
+    shows a surface, or when the ground is not below the camera (no layer
+    to estimate). Not differentiable: a start, read once on the host.
+    """
+    frames = [frames] if isinstance(frames, Buffers) else list(frames)
+    infos = field_metadata(effect)
+    if any(name not in infos for name in GROUND_LAYER_FIELDS) or any(frame.depth is None for frame in frames):
+        return None
+    depths, heights = _surfaces(frames, float(field_value(effect, "fov_x_deg")))
+    if depths.size == 0:
+        return None
+    ground = float(np.percentile(heights, GROUND_PERCENTILE))
+    if not ground < 0.0:
+        return None
+    values = {
+        "layer_top": -ground,
+        "medium.extinction": 1.0 / max(float(np.median(depths)), 1e-6),
+        "medium.max_distance": float(np.max(depths)),
+    }
+    dtype = jnp.result_type(field_value(effect, "layer_top"))
+    return replace_fields(
+        effect,
+        {name: jnp.asarray(np.clip(value, *infos[name].bounds), dtype) for name, value in values.items()},
+    )

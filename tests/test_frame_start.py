@@ -1,0 +1,54 @@
+"""ground_layer_start: a fog layer read from a frame's depth (a ground plane below the camera)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.effects.fields import field_value
+from godrays_jax.kernels.lens import view_directions
+from godrays_jax.pipeline.frame_start import ground_layer_start
+
+HEIGHT, WIDTH, FOV = 18, 32, 50.0
+
+
+def _frame(camera_height=1.5, far=60.0):
+    """Ground `camera_height` below the camera up to `far` away along the ray, sky beyond and above the horizon."""
+    up = np.asarray(view_directions(HEIGHT, WIDTH, fov_x_deg=FOV))[..., 1]
+    with np.errstate(divide="ignore"):
+        depth = np.where(up < 0, camera_height / -up, np.inf)
+    depth = np.where(depth <= far, depth, np.inf).astype(np.float32)
+    coverage = np.isfinite(depth).astype(np.float32)
+    color = np.full((HEIGHT, WIDTH, 3), 0.2, np.float32)
+    return gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(coverage)), depth
+
+
+def _values(effect):
+    return [float(field_value(effect, name)) for name in ("layer_top", "medium.extinction", "medium.max_distance")]
+
+
+def test_the_layer_reaches_as_high_above_the_camera_as_the_ground_lies_below():
+    frame, depth = _frame()
+    start = ground_layer_start(gr.preset("volumetric_haze"), frame)
+    surfaces = depth[np.isfinite(depth)]
+    np.testing.assert_allclose(_values(start), [1.5, 1 / np.median(surfaces), surfaces.max()], rtol=1e-4)
+    # Everything else is the effect's; several frames pool their surfaces.
+    assert float(start.medium.anisotropy) == pytest.approx(0.76) and start.num_view_steps == 16
+    twice = ground_layer_start(gr.preset("volumetric_haze"), [frame, _frame(camera_height=3.0)[0]])
+    assert 1.5 < _values(twice)[0] <= 3.0
+
+
+def test_values_are_clipped_into_their_bounds():
+    near = _values(ground_layer_start(gr.preset("physically_based"), _frame(camera_height=0.01)[0]))
+    high = _values(ground_layer_start(gr.preset("physically_based"), _frame(camera_height=500.0, far=1e6)[0]))
+    assert near[0] == pytest.approx(0.01, rel=1e-3) and near[1] == 1.0  # an optical depth of 1 in 2 cm: above 1
+    assert high[0] == pytest.approx(500.0, rel=1e-3) and high[2] == 1e4  # the horizon's ground 3e4 away
+
+
+def test_no_layer_without_surfaces_below_the_camera_or_the_fields():
+    frame, depth = _frame()
+    sky = gr.Buffers(color=frame.color, depth=jnp.full_like(frame.depth, jnp.inf), coverage=jnp.zeros_like(frame.coverage))
+    ceiling = gr.Buffers(color=frame.color, depth=jnp.asarray(depth[::-1].copy()), coverage=frame.coverage[::-1])
+    assert ground_layer_start(gr.preset("volumetric_haze"), sky) is None
+    assert ground_layer_start(gr.preset("volumetric_haze"), ceiling) is None
+    assert ground_layer_start(gr.GodRays(), frame) is None

@@ -33,9 +33,11 @@ from scenes import BY_NAME, HERE as REFERENCES, SCENES  # noqa: E402
 RESULTS = HERE / "fit_volumetric.json"
 
 
-def _run(*arguments: str) -> float:
+def _run(*arguments: str, log: Path | None = None) -> float:
     start = time.perf_counter()
-    subprocess.run(["godrays-jax", *arguments], check=True, capture_output=True, text=True)
+    done = subprocess.run(["godrays-jax", *arguments], check=True, capture_output=True, text=True)
+    if log is not None:
+        log.write_text(done.stdout)
     return time.perf_counter() - start
 
 
@@ -46,7 +48,8 @@ def fit_scene(scene, folder: Path, preset: str | None, report: Path | None) -> d
     if report is not None:
         options += ["--report", str(report / f"fit_report_{scene.name}.png")]
     light = [] if scene.renderer == "mitsuba" else light_options(scene)  # Blender's headers lack the light
-    seconds = _run("fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *options, *light)
+    log = None if report is None else report / f"fit_{scene.name}.txt"  # what the command printed: steps, start
+    seconds = _run("fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *options, *light, log=log)
     seconds += _run("apply", str(scene.clean), "--params", str(params), "-o", str(output), *light)
     fogged = read_rgb(output)
     return {
@@ -60,7 +63,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("scenes", nargs="*", help=f"default: all of {', '.join(BY_NAME)}")
     parser.add_argument("--starts", nargs="*", default=[], help="presets to fit from besides the default")
-    parser.add_argument("--report", type=Path, help="write each fit's report PNG, parameters and fogged frame here")
+    parser.add_argument(
+        "--report", type=Path, help="write each fit's report PNG, printed lines, parameters and fogged frame here"
+    )
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)

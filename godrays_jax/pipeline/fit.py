@@ -132,6 +132,11 @@ def _start_like(effect: Effect, other: Effect, bounds: dict[str, tuple[float, fl
     return jax.tree.map(strongly_typed, clip_to_bounds(start, bounds))
 
 
+def _same_values(effect: Effect, other: Effect, names: Sequence[str]) -> bool:
+    """Whether two effects hold equal values in the fields `names`."""
+    return all(np.array_equal(np.asarray(field_value(effect, n)), np.asarray(field_value(other, n))) for n in names)
+
+
 def _solver(solver, loss, rtol, atol):
     if not isinstance(solver, str):
         if not isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
@@ -422,7 +427,12 @@ def fit(
     names = tuple(bounds)
     check_inside_bounds(effect)
     frame_data = (frames, lights, targets, in_front, depths)
-    candidates = [effect, *[_start_like(effect, other, bounds) for other in starts]]
+    # A start that repeats an earlier one (the effect given is often one of the model's presets) is raced once.
+    candidates, origins = [], []
+    for index, candidate in enumerate([effect, *[_start_like(effect, other, bounds) for other in starts]]):
+        if not any(_same_values(candidate, other, names) for other in candidates):
+            candidates.append(candidate)
+            origins.append(index)
     descend = dict(
         optimiser=optimiser, least_squares=least_squares, loss=loss, space=space, max_steps=max_steps,
         probe_steps=probe_steps, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
@@ -450,6 +460,7 @@ def fit(
         runs, winner = _descend(candidates, bounds, frame_data, counter, **descend)
         if coarse_factor == 1:
             start_index = winner
+        start_index = origins[start_index]
         run = runs[winner]
         history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
         fitted_effect, rounded = _fitted_effects(run.problem, run.y)

@@ -344,6 +344,7 @@ def fit(
     coarse_factor: int = 1,
     plateau_steps: int = 5,
     plateau_rtol: float = 1e-3,
+    coarse_plateau_rtol: float = 1e-2,
 ) -> FitResult:
     """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
 
@@ -399,6 +400,10 @@ def fit(
             fell below the phase's start (steps the solver rejected before
             that do not count); `plateau_steps=0` runs until the solver
             converges or `max_steps`.
+        coarse_plateau_rtol: `plateau_rtol` of the coarse phase, whose
+            result only starts the full-resolution phase: polishing it costs
+            steps that the full resolution's own minimum, a little apart, does
+            not repay.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and
@@ -414,8 +419,8 @@ def fit(
         raise ValueError(f"coarse_factor must be an int >= 1, got {coarse_factor!r}")
     if not (isinstance(plateau_steps, int) and plateau_steps >= 0):
         raise ValueError(f"plateau_steps must be an int >= 0, got {plateau_steps!r}")
-    if not plateau_rtol >= 0:
-        raise ValueError(f"plateau_rtol must be >= 0, got {plateau_rtol!r}")
+    if not (plateau_rtol >= 0 and coarse_plateau_rtol >= 0):
+        raise ValueError(f"plateau_rtol and coarse_plateau_rtol must be >= 0, got {plateau_rtol!r}, {coarse_plateau_rtol!r}")
     check_space(space)
     optimiser = _solver(solver, loss, rtol, atol)
     least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
@@ -453,7 +458,9 @@ def fit(
                 in_front, depths,
             )  # fmt: skip
             scaled = [scale_pixel_fields(candidate, 1.0 / coarse_factor) for candidate in candidates]
-            coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **descend)
+            coarse_runs, start_index = _descend(
+                scaled, bounds, reduced, counter, **{**descend, "plateau_rtol": coarse_plateau_rtol}
+            )
             coarse_steps = counter.steps
             fine_start = coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y)
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]

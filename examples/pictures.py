@@ -5,11 +5,12 @@ Pictures go to `out/` at the repository root unless a script is given
 `--docs`, which writes the README's pictures in `docs/images/`, or `--out DIR`.
 """
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
+
+from godrays_jax.app.cli import main as godrays_jax_command
 
 ROOT = Path(__file__).resolve().parents[1]
 HERO_FRAME = ROOT / "examples" / "data" / "forest_hero.exr"
@@ -64,6 +65,10 @@ def write_display(path: Path, picture: np.ndarray) -> None:
 
 
 def apply_command(frame: Path, preset: str, output: Path, *options: str) -> Path:
-    """Run `godrays-jax apply FRAME --preset PRESET -o OUTPUT [options]`: pictures show what the command makes."""
-    subprocess.run(["godrays-jax", "apply", str(frame), "--preset", preset, "-o", str(output), *options], check=True)
+    """Run `godrays-jax apply FRAME --preset PRESET -o OUTPUT [options]`: pictures show what the command makes.
+
+    In this process (the command's own entry point), so a script that applies every preset starts JAX once.
+    """
+    if godrays_jax_command(["apply", str(frame), "--preset", preset, "-o", str(output), *options]) != 0:
+        raise RuntimeError(f"godrays-jax apply {frame} --preset {preset} failed (its message is above)")
     return output

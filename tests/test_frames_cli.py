@@ -158,7 +158,9 @@ def test_vbex_presets_take_the_frames_field_of_view(tmp_path, command):
     spot = gr.preset("vbex_sun_spot")
     expected = dataclasses.replace(spot, fov_x_deg=80.0)(gr.read_buffers(path), jnp.asarray([20.0, 6.0]))
     written = np.asarray(gr.read_buffers(output).color)
-    np.testing.assert_allclose(written, np.asarray(expected), rtol=1e-5, atol=1e-6)
+    # The command's compiled program and the eager effect round differently; the spot's twentieth power turns that
+    # into about 1e-4 of its value. The preset's own 50 degrees differ by far more (the check below).
+    np.testing.assert_allclose(written, np.asarray(expected), rtol=1e-3, atol=1e-6)
     assert not np.allclose(written, np.asarray(spot(gr.read_buffers(path), jnp.asarray([20.0, 6.0]))), atol=1e-4)
 
 

@@ -101,7 +101,8 @@ def test_fit_keeps_the_frames_field_of_view(tmp_path, capsys):
     target = tmp_path / "target.exr"
     gr.write_image(target, truth(gr.read_buffers(BLENDER), jnp.asarray(LIGHT)))
     params = tmp_path / "params.json"
-    assert main(["fit", str(BLENDER), str(target), "--light", "40,8", "--max-steps", "2", "-o", str(params)]) == 0
+    assert main(["fit", str(BLENDER), str(target), "--light", "40,8", "--preset", "participating_media", "--max-steps", "2",
+                 "-o", str(params)]) == 0  # fmt: skip
     fitted = json.loads(params.read_text())
     assert fitted["fov_x_deg"] == pytest.approx(BLENDER_FOV, rel=1e-6)
     assert "fov_x_deg =" not in capsys.readouterr().out  # fixed, not fitted

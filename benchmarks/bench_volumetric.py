@@ -9,8 +9,8 @@ after one warm-up. Memory: XLA's compiled temporary bytes (`memory_analysis`) of
 and of one forward-mode derivative (what `fit`'s Jacobian takes per parameter) at 480x270 for
 several `num_view_steps` x `num_shadow_samples`. `--fit` times the 480x270 fit instead: the reference's
 clean frame and fog render upscaled (nearest), `fit` from `volumetric_haze` with the field of view
-fixed (the frame gives it), once as `godrays-jax fit` runs it (the model's presets and the ground
-layer read from the frame as other starts, raced by successive halving, its default coarse phase and
+fixed (the frame gives it), once as `godrays-jax fit` runs it (the model's presets and a ground
+layer read from the frame on each start as other starts (`fit_command.fit_starts`), raced by successive halving, its default coarse phase and
 plateau stop) and once as at 8905696 (the presets each fitted to the end in the coarse phase, its
 plateau stop as tight as the full resolution's); each
 fit twice, the first compiling, the second's seconds split into its coarse phase and the rest, and the
@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
+from godrays_jax.app.fit_command import fit_starts
 from godrays_jax.app.options import auto_coarse_factor, model_presets
-from godrays_jax.pipeline.frame_start import ground_layer_start
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
@@ -88,10 +88,11 @@ def main() -> None:
               "display MSE | winning start |")  # fmt: skip
         print("|---|---|---|---|---|---|")
         presets = [gr.preset(name) for name in model_presets(gr.preset("volumetric_haze"))]
-        layer = ground_layer_start(gr.preset("volumetric_haze"), frame(270, 480)[0])
+        given = dataclasses.replace(gr.preset("volumetric_haze"), fov_x_deg=np.float32(SCENE.fov_x_deg))
+        starts = fit_starts(given, [frame(270, 480)[0]], SCENE.fov_x_deg)[1]
         factor = auto_coarse_factor(270, 480)
-        fit_row(f"godrays-jax fit's way: coarse factor {factor}, {len(presets)} presets and the ground layer raced "
-                "by successive halving", coarse_factor=factor, starts=[*presets, layer])  # fmt: skip
+        fit_row(f"godrays-jax fit's way: coarse factor {factor}, {len(presets)} presets and a ground layer on each "
+                "start raced by successive halving", coarse_factor=factor, starts=starts)  # fmt: skip
         fit_row(f"as at 8905696: coarse factor {factor}, each of {len(presets)} presets fitted to the end",
                 coarse_factor=factor, starts=presets, probe_steps=50, coarse_plateau_rtol=1e-3)  # fmt: skip
         print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())

@@ -1,5 +1,7 @@
 """ground_layer_start: a fog layer read from a frame's depth (a ground plane below the camera)."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -7,6 +9,7 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.effects.fields import field_value
 from godrays_jax.kernels.lens import view_directions
+from godrays_jax.app.fit_command import fit_starts
 from godrays_jax.pipeline.frame_start import ground_layer_start
 
 HEIGHT, WIDTH, FOV = 18, 32, 50.0
@@ -52,3 +55,18 @@ def test_no_layer_without_surfaces_below_the_camera_or_the_fields():
     assert ground_layer_start(gr.preset("volumetric_haze"), sky) is None
     assert ground_layer_start(gr.preset("volumetric_haze"), ceiling) is None
     assert ground_layer_start(gr.GodRays(), frame) is None
+
+
+def test_the_fit_command_races_the_presets_and_a_ground_layer_on_each():
+    frame, _ = _frame()
+    given = dataclasses.replace(gr.preset("volumetric_haze"), fov_x_deg=np.float32(60.0))  # as the command sets it
+    names, starts = fit_starts(given, [frame], 60.0)
+    assert names == [
+        "preset physically_based", "preset volumetric_haze",
+        *[f"the ground layer estimated from the frame, on the other fields of {name}"
+          for name in ("the start given", "preset physically_based", "preset volumetric_haze")],
+    ]  # fmt: skip
+    assert all(float(start.fov_x_deg) == 60.0 for start in starts[:2])  # the frame's, for the layers' heights
+    assert float(starts[3].medium.anisotropy) == float(gr.preset("physically_based").medium.anisotropy)
+    assert len({float(start.layer_top) for start in starts[2:]}) == 1  # each read with the frame's field of view
+    assert not any("ground layer" in name for name in fit_starts(gr.GodRays(), [frame], None)[0])  # no layer to read

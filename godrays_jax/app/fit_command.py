@@ -85,15 +85,7 @@ def run(args) -> int:
         bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
         bar.update(step - bar.n)
 
-    # The model's presets and a fog layer read from the frames as other starts: the fit begins from whichever
-    # fits the frames best, so its result does not hang on the start it was given
-    # (`benchmarks/fit_volumetric.py --starts`).
-    start_names = [f"preset {name}" for name in model_presets(effect)]
-    starts = [preset(name) for name in model_presets(effect)]
-    layer = ground_layer_start(effect, frames)
-    if layer is not None:
-        start_names.append("the ground layer estimated from the frame")
-        starts.append(layer)
+    start_names, starts = fit_starts(effect, frames, fov)
     try:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
@@ -123,6 +115,23 @@ def run(args) -> int:
         print(f"wrote {args.report}")
     print(f"wrote {args.output}")
     return 0
+
+
+def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
+    """The other starts `fit` races beside `effect`, and their names: the model's presets (`model_presets`),
+    then a fog layer read from the frames (`ground_layer_start`) on the fields of `effect` and of each preset.
+
+    So the result does not hang on the start given (`benchmarks/fit_volumetric.py --starts`); the presets take
+    the frame's field of view `fov_x_deg` (or keep theirs when it is `None`), which the layer's heights need.
+    """
+    names = [f"preset {name}" for name in model_presets(effect)]
+    starts = [with_field_of_view(preset(name), fov_x_deg) for name in model_presets(effect)]
+    for name, base in [("the start given", effect), *zip(list(names), list(starts))]:
+        layer = ground_layer_start(base, frames)
+        if layer is not None:
+            names.append(f"the ground layer estimated from the frame, on the other fields of {name}")
+            starts.append(layer)
+    return names, starts
 
 
 def _steps_line(result, coarse_factor: int) -> str:

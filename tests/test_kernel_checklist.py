@@ -91,9 +91,10 @@ CASES = {
         lambda mask, radius: gr.erode(mask, radius=radius, max_radius=1), lambda r, t: (_plane(r, t), _scalar(r, t, 0.6, 0.95))
     ),
     "fast_radial_rays": Case(
-        lambda image, light, decay: gr.fast_radial_rays(image, light, density=0.8, decay=decay, **RAYS),
+        lambda image, light, decay: gr.fast_radial_rays(image, light, density=0.8, decay=decay, num_passes=2, num_taps=3,
+                                                        **RAYS),
         lambda r, t: (_image(r, t), _light(r, t), _scalar(r, t, 0.8, 0.95)),
-    ),
+    ),  # fmt: skip
     "flare_image": Case(
         lambda light, size: gr.flare_image(HEIGHT, WIDTH, light, flare_size=size, dtype=size.dtype),
         lambda r, t: (_light(r, t), _scalar(r, t, 2.0, 4.0)),

@@ -1,5 +1,7 @@
 """Kernels against the slow NumPy loops in reference.py: eager, jit, vmap, gradients, degenerate inputs."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -168,16 +170,18 @@ def test_radial_rays_window_gradients(x64):
     def windowed(im, xy):
         return gr.radial_rays(im, xy, source_radius=4.0, **options)
 
-    check_grads(lambda im: windowed(im, light), (image,), order=1, modes=["fwd", "rev"])
+    # Compiled: check_grads evaluates many times, and eagerly each evaluation runs op by op.
+    check_grads(jax.jit(lambda im: windowed(im, light)), (image,), order=1, modes=["fwd", "rev"])
     # The light's derivative (bilinear sampling is only piecewise smooth in
     # the positions, so compare with the whole-frame loop, both modes).
     def loss(xy, **window):
         return jnp.sum(gr.radial_rays(image, xy, **window, **options) ** 2)
 
-    full = jax.grad(loss)(light)
+    full = jax.jit(jax.grad(loss))(light)
     assert np.all(np.abs(full) > 1e-3)
-    np.testing.assert_allclose(jax.grad(lambda xy: loss(xy, source_radius=4.0))(light), full, rtol=1e-9)
-    np.testing.assert_allclose(jax.jacfwd(lambda xy: loss(xy, source_radius=4.0))(light), full, rtol=1e-9)
+    windowed_loss = functools.partial(loss, source_radius=4.0)
+    np.testing.assert_allclose(jax.jit(jax.grad(windowed_loss))(light), full, rtol=1e-9)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(windowed_loss))(light), full, rtol=1e-9)
     with pytest.raises(ValueError, match="source_radius"):
         gr.radial_rays(image, light, source_radius=-1.0, **options)
 

@@ -186,7 +186,7 @@ def test_second_derivatives_through_the_adjoint(x64, rng):
         return jnp.sum(gr.scaled_copies(image, light, jnp.asarray([0.9, 0.6]), jnp.asarray([1.0, 0.5])) ** 2)
 
     image_gradient = jax.grad(loss)
-    check_grads(lambda light: image_gradient(image, light), (jnp.asarray(LIGHTS["on_screen"]),), order=1,
+    check_grads(jax.jit(lambda light: image_gradient(image, light)), (jnp.asarray(LIGHTS["on_screen"]),), order=1,
                 modes=("fwd",), eps=1e-6)  # fmt: skip
 
 

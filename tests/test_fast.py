@@ -138,8 +138,8 @@ def test_radial_rays_gradients_float64(x64, rng, light):
         return gr.radial_rays(image, light, num_samples=count, max_samples=6, density=density, decay=decay, weight=weight, exposure=exposure)
 
     args = (image, jnp.asarray(light), 0.37, 0.9, 0.8, 0.6, 4.6)
-    check_grads(rays, args, order=1, modes=("rev", "fwd"), eps=1e-6)
-    check_grads(lambda i, l, d: gr.radial_rays(i, l, num_samples=5, density=d, decay=0.9, weight=1.0, exposure=1.0),
+    check_grads(jax.jit(rays), args, order=1, modes=("rev", "fwd"), eps=1e-6)
+    check_grads(jax.jit(lambda i, l, d: gr.radial_rays(i, l, num_samples=5, density=d, decay=0.9, weight=1.0, exposure=1.0)),
                 args[:3], order=1, modes=("rev",), eps=1e-6)  # fmt: skip
 
 
@@ -147,11 +147,11 @@ def test_radial_rays_gradients_with_light_on_a_pixel_centre(x64, rng):
     image = jnp.asarray(rng.random((7, 8, 1)))
     light = jnp.array([3.5, 2.5])
     scalars = lambda i, d, dec, w, e, n: gr.radial_rays(i, light, num_samples=n, max_samples=5, density=d, decay=dec, weight=w, exposure=e)
-    check_grads(scalars, (image, 0.37, 0.9, 0.8, 0.6, 3.3), order=1, modes=("rev",), eps=1e-6)
+    check_grads(jax.jit(scalars), (image, 0.37, 0.9, 0.8, 0.6, 3.3), order=1, modes=("rev",), eps=1e-6)
     # Bilinear sampling has kinks at texel centres; a linear ramp has none, so the light gradient is checkable there.
     y, x = np.mgrid[0:7, 0:8] + 0.5
     ramp = jnp.asarray((0.3 * x + 0.2 * y)[..., None])
-    check_grads(lambda l: gr.radial_rays(ramp, l, num_samples=4, **RAYS), (light,), order=1, modes=("rev", "fwd"), eps=1e-6)
+    check_grads(jax.jit(lambda l: gr.radial_rays(ramp, l, num_samples=4, **RAYS)), (light,), order=1, modes=("rev", "fwd"), eps=1e-6)
 
 
 def test_flare_and_fast_path_gradients_float64(x64, rng):

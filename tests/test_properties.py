@@ -166,7 +166,7 @@ def test_radial_rays_gradients_match_finite_differences():
             return gr.radial_rays(image, light, num_samples=num_samples, max_samples=MAX_SAMPLES, density=0.7,
                                   decay=decay, weight=weight, exposure=exposure)  # fmt: skip
 
-        check_grads(rays, (image, 0.9, 1.2, 0.3, 3.4), order=1, modes=("rev", "fwd"), eps=1e-5)
+        check_grads(jax.jit(rays), (image, 0.9, 1.2, 0.3, 3.4), order=1, modes=("rev", "fwd"), eps=1e-5)
 
 
 def test_kernels_accept_numpy_images():

@@ -394,16 +394,17 @@ def fit(
             `max_steps` steps, then goes on at full resolution from there, up
             to `max_steps` more. Each coarse step costs about `coarse_factor**2`
             times less, and the fine phase starts near its minimum.
-        plateau_steps, plateau_rtol: stop (in each phase) once the loss has
+        plateau_steps, plateau_rtol: stop (in each phase; with a coarse phase
+            `coarse_plateau_rtol` replaces `plateau_rtol`) once the loss has
             fallen by less than `plateau_rtol` of itself over the last
             `plateau_steps` steps, every one of them taken since the loss first
             fell below the phase's start (steps the solver rejected before
             that do not count); `plateau_steps=0` runs until the solver
             converges or `max_steps`.
-        coarse_plateau_rtol: `plateau_rtol` of the coarse phase, whose
-            result only starts the full-resolution phase: polishing it costs
-            steps that the full resolution's own minimum, a little apart, does
-            not repay.
+        coarse_plateau_rtol: `plateau_rtol` of both phases of a fit with a
+            coarse phase: the coarse result only starts the full resolution,
+            which then starts near its own minimum, where the last tenths of a
+            percent cost many full-resolution steps.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and
@@ -440,7 +441,8 @@ def fit(
             origins.append(index)
     descend = dict(
         optimiser=optimiser, least_squares=least_squares, loss=loss, space=space, max_steps=max_steps,
-        probe_steps=probe_steps, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
+        probe_steps=probe_steps, plateau_steps=plateau_steps,
+        plateau_rtol=plateau_rtol if coarse_factor == 1 else coarse_plateau_rtol,
     )  # fmt: skip
     counter = _StepCounter(progress)
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
@@ -458,9 +460,7 @@ def fit(
                 in_front, depths,
             )  # fmt: skip
             scaled = [scale_pixel_fields(candidate, 1.0 / coarse_factor) for candidate in candidates]
-            coarse_runs, start_index = _descend(
-                scaled, bounds, reduced, counter, **{**descend, "plateau_rtol": coarse_plateau_rtol}
-            )
+            coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **descend)
             coarse_steps = counter.steps
             fine_start = coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y)
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]

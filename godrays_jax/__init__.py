@@ -28,6 +28,8 @@ from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
 from godrays_jax.kernels.blur import bloom as bloom
 from godrays_jax.kernels.blur import gaussian_blur as gaussian_blur
 from godrays_jax.kernels.blur import poisson_blur as poisson_blur
+from godrays_jax.kernels.bounded_medium import light_transmittance as light_transmittance
+from godrays_jax.kernels.bounded_medium import optical_depth as optical_depth
 from godrays_jax.kernels.composite import BLEND_MODES as BLEND_MODES
 from godrays_jax.kernels.composite import add as add
 from godrays_jax.kernels.composite import alpha_over as alpha_over
@@ -71,8 +73,6 @@ from godrays_jax.kernels.rays import radial_rays as radial_rays
 from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
 from godrays_jax.kernels.rays import scaled_copies as scaled_copies
 from godrays_jax.kernels.volumetric import apply_volumetric_fog as apply_volumetric_fog
-from godrays_jax.kernels.volumetric import light_transmittance as light_transmittance
-from godrays_jax.kernels.volumetric import optical_depth as optical_depth
 from godrays_jax.kernels.volumetric import segment_visibility as segment_visibility
 from godrays_jax.kernels.volumetric import volumetric_fog_terms as volumetric_fog_terms
 

@@ -49,143 +49,27 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.kernels.lens import light_direction, view_directions
+from godrays_jax.kernels.bounded_medium import (
+    dot,
+    light_geometry,
+    light_transmittance,
+    medium_interval,
+    optical_depth,
+    safe_divide,
+    segment_irradiance,
+    toward_light,
+)
+from godrays_jax.kernels.lens import view_directions
 from godrays_jax.kernels.media import henyey_greenstein
 from godrays_jax.primitives.camera import focal_length_px
 from godrays_jax.primitives.checks import check_image, check_light, check_plane, check_scalar, is_static_int
 
-# exp() arguments are clipped here: a height falloff that would make the medium e^60 times denser than at
-# the camera is outside any fog, and float32 overflows near e^88.
-_MAX_EXPONENT = 60.0
 # Relative width of the depth-aware upsampling's weights (how different two ray lengths may be and still blend).
 _UPSAMPLE_DEPTH_SIGMA = 0.1
 # Below this sum of bilinear weights times likeness no bilinear neighbour is alike: the wider tent takes over.
 _UPSAMPLE_ALIKE = 0.05
 # The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
 _BEYOND_EVERY_SLAB = 1e30
-# A point light's irradiance is floored as if it were a ball of this fraction of its distance.
-_POINT_LIGHT_RADIUS = 1e-3
-
-
-def _safe_divide(numerator, denominator, fallback, tiny=1e-20):
-    ok = jnp.abs(denominator) > tiny
-    return jnp.where(ok, numerator / jnp.where(ok, denominator, 1.0), fallback)
-
-
-def _exp_ratio(x):
-    """`(1 - exp(-x)) / x`, 1 at 0, finite with finite gradients everywhere (x clipped at -`_MAX_EXPONENT`)."""
-    x = jnp.maximum(x, -_MAX_EXPONENT)
-    small = jnp.abs(x) < 1e-3
-    safe = jnp.where(small, 1.0, x)
-    return jnp.where(small, 1.0 - x / 2 + x * x / 6, -jnp.expm1(-safe) / safe)
-
-
-def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
-
-
-def medium_interval(
-    origin: Float[Array, "*S 3"],
-    direction: Float[Array, "*S 3"],
-    length: Float[ArrayLike, "*S"],
-    *,
-    max_distance: Float[ArrayLike, ""],
-    layer_top: Float[ArrayLike, ""] = math.inf,
-) -> tuple[Float[Array, "*S"], Float[Array, "*S"]]:
-    """`(start, end)` of the part of the ray `origin + u * direction`, `u` in `[0, length]`, inside the medium.
-
-    The medium is the ball of radius `max_distance` around the camera (the
-    origin) below `layer_top` (height above the camera along its up axis,
-    scene units; `inf`: no top). `direction` is a unit vector; distances are in
-    scene units; an empty intersection gives `start == end`.
-    """
-    dtype = origin.dtype
-    radius = jnp.asarray(max_distance, dtype)
-    top = jnp.asarray(layer_top, dtype)
-    along = _dot(origin, direction)
-    discriminant = along * along - _dot(origin, origin) + radius * radius
-    root = jnp.sqrt(jnp.maximum(discriminant, 0.0))
-    inside_ball = discriminant > 0
-    start = jnp.where(inside_ball, jnp.maximum(-along - root, 0.0), 0.0)
-    end = jnp.where(inside_ball, jnp.minimum(-along + root, length), 0.0)
-    height, rise = origin[..., 1], direction[..., 1]
-    # The height crosses layer_top at u = (top - height) / rise: below it on one side only. Without a top the
-    # crossing is computed from 0 and never selected: an infinite numerator would make its gradient NaN.
-    finite_top = jnp.isfinite(top)
-    crossing = _safe_divide(jnp.where(finite_top, top, 0.0) - height, rise, jnp.inf)
-    below_now = height < top
-    start = jnp.where(finite_top & (rise < 0) & ~below_now, jnp.maximum(start, crossing), start)
-    end = jnp.where(finite_top & (rise > 0) & below_now, jnp.minimum(end, crossing), end)
-    end = jnp.where(finite_top & (rise >= 0) & ~below_now, start, end)
-    return start, jnp.maximum(end, start)
-
-
-def optical_depth(
-    origin: Float[Array, "*S 3"],
-    direction: Float[Array, "*S 3"],
-    start: Float[ArrayLike, "*S"],
-    end: Float[ArrayLike, "*S"],
-    *,
-    extinction: Float[ArrayLike, ""],
-    height_falloff: Float[ArrayLike, ""] = 0.0,
-) -> Float[Array, "*S"]:
-    """`integral_start^end extinction * exp(-height_falloff * y(u)) du` along `origin + u * direction`.
-
-    `y` is the height above the camera (the origin's frame, y up), scene units;
-    `extinction` per scene unit at the camera's height, `height_falloff` per
-    scene unit (0: homogeneous). Closed form: `exp(-b * y(start)) * (end -
-    start) * (1 - exp(-x)) / x` with `x = b * rise * (end - start)`.
-    """
-    dtype = origin.dtype
-    falloff = jnp.asarray(height_falloff, dtype)
-    start = jnp.asarray(start, dtype)
-    length = jnp.asarray(end, dtype) - start
-    height = origin[..., 1] + start * direction[..., 1]
-    density = jnp.exp(jnp.clip(-falloff * height, -_MAX_EXPONENT, _MAX_EXPONENT))
-    return jnp.asarray(extinction, dtype) * density * length * _exp_ratio(falloff * direction[..., 1] * length)
-
-
-def _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype):
-    """The unit direction toward the light and `1 / light_depth` (0 for the sun)."""
-    toward = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
-    light_depth = jnp.asarray(light_depth, dtype)
-    inverse = jnp.where(jnp.isfinite(light_depth), 1.0 / jnp.where(jnp.isfinite(light_depth), light_depth, 1.0), 0.0)
-    return toward, inverse
-
-
-def _toward_light(points, toward, inverse_depth):
-    """Unit direction from each point toward the light, and the distance to it (`inf` for the sun)."""
-    finite = inverse_depth > 0
-    light_point = toward * _safe_divide(1.0, inverse_depth, 0.0)
-    # The sun's branch never divides: a far off-screen sun's direction is tiny where float32 overflows.
-    offset = jnp.where(finite, light_point - points, 1.0)
-    distance = jnp.sqrt(jnp.maximum(_dot(offset, offset), 1e-30))
-    direction = jnp.where(finite, offset / distance[..., None], toward)
-    return direction, jnp.where(finite, distance, jnp.inf)
-
-
-def light_transmittance(
-    points: Float[Array, "*S 3"],
-    light_toward: Float[Array, "3"],
-    *,
-    light_depth: Float[ArrayLike, ""],
-    extinction: Float[ArrayLike, ""],
-    max_distance: Float[ArrayLike, ""],
-    height_falloff: Float[ArrayLike, ""] = 0.0,
-    layer_top: Float[ArrayLike, ""] = math.inf,
-) -> Float[Array, "*S"]:
-    """The fraction of the light that reaches each point (camera-space, scene units) through the medium.
-
-    `light_toward` is the unit direction from the camera to the light, the
-    light at `light_depth` along it (`inf`: the sun). A light inside the
-    medium is dimmed only over its distance to the point.
-    """
-    dtype = points.dtype
-    inverse = jnp.where(jnp.isfinite(light_depth), 1.0 / jnp.where(jnp.isfinite(light_depth), light_depth, 1.0), 0.0)
-    direction, distance = _toward_light(points, jnp.asarray(light_toward, dtype), jnp.asarray(inverse, dtype))
-    start, end = medium_interval(points, direction, distance, max_distance=max_distance, layer_top=layer_top)
-    depth = optical_depth(points, direction, start, end, extinction=extinction, height_falloff=height_falloff)
-    return jnp.exp(-depth)
 
 
 def _ramp(x):
@@ -256,7 +140,7 @@ def segment_visibility(
     pixel_xy = jnp.asarray(pixel_xy, dtype)
     distances = jnp.asarray(distances, dtype)
     focal = focal_length_px(width, fov_x_deg, dtype)
-    toward, inverse = _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     light_xy = jnp.asarray(light_xy, dtype)
     in_front = jnp.asarray(light_in_front)
     # Behind the camera the shadow ray runs from p away from the light's true projection (the point
@@ -288,20 +172,20 @@ def segment_visibility(
         ray = _rays_at(q[..., 0], q[..., 1], height, width, focal)
         ray_cross_light, ray_cross_view = jnp.cross(ray, toward), jnp.cross(ray, view)
         # mu' * ray = X + u (S - X), X = t * view, S = toward / inverse: crossed with (S - X), in t.
-        a1 = _dot(view_cross_light, ray_cross_light)[..., None]
-        a2 = _dot(view_cross_light, ray_cross_view)[..., None] * inverse
-        b1 = _dot(ray_cross_light, ray_cross_light)[..., None]
-        b2 = _dot(ray_cross_light, ray_cross_view)[..., None] * inverse
-        b3 = _dot(ray_cross_view, ray_cross_view)[..., None] * inverse * inverse
+        a1 = dot(view_cross_light, ray_cross_light)[..., None]
+        a2 = dot(view_cross_light, ray_cross_view)[..., None] * inverse
+        b1 = dot(ray_cross_light, ray_cross_light)[..., None]
+        b2 = dot(ray_cross_light, ray_cross_view)[..., None] * inverse
+        b3 = dot(ray_cross_view, ray_cross_view)[..., None] * inverse * inverse
         t = distances
         numerator = t * a1 - t * t * a2
         denominator = b1 - 2 * t * b2 + t * t * b3
         # Parallel rays never cross: 0, at the camera, lies in no slab.
-        crossing = _safe_divide(numerator, denominator, 0.0, tiny=1e-12) * jnp.linalg.norm(ray, axis=-1)[..., None]
+        crossing = safe_divide(numerator, denominator, 0.0, tiny=1e-12) * jnp.linalg.norm(ray, axis=-1)[..., None]
         # The last sample is the light's own pixel when it is on screen: every shadow ray ends there, at the
         # light's distance (the sun's: beyond every slab).
         at_light = (k == num_shadow_samples) & in_front & (reach[..., None] >= 1.0)
-        crossing = jnp.where(at_light, _safe_divide(1.0, inverse, _BEYOND_EVERY_SLAB), crossing)
+        crossing = jnp.where(at_light, safe_divide(1.0, inverse, _BEYOND_EVERY_SLAB), crossing)
         # The shadow ray covers every depth between its crossings of this sample's camera ray and the previous
         # one's: near the light's screen position each step moves it far in depth, and a slab it passes
         # between two samples still blocks it. (A crossing behind the camera, or none, is taken alone.)
@@ -325,27 +209,13 @@ def segment_visibility(
     return visibility
 
 
-def _segment_irradiance(view, start, end, toward, inverse):
-    """The mean over `[start, end]` of `(light_depth / |S - t * view|)^2` (1 for the sun)."""
-    cosine = _dot(view, toward)[..., None]
-    light_depth = _safe_divide(1.0, inverse, 1.0)
-    along = light_depth * cosine
-    # Closest approach of the ray to the light, floored by the light's own size.
-    miss = jnp.sqrt(jnp.maximum(light_depth**2 * (1.0 - cosine * cosine), 0.0) + (_POINT_LIGHT_RADIUS * light_depth) ** 2)
-    integral = (jnp.arctan((end - along) / miss) - jnp.arctan((start - along) / miss)) / miss
-    middle = 0.5 * (start + end) - along
-    at_middle = light_depth**2 / (middle * middle + miss * miss)
-    mean = _safe_divide(light_depth**2 * integral, end - start, at_middle, tiny=1e-9)
-    return jnp.where(inverse > 0, mean, 1.0)
-
-
 def _in_scattered(view, ray_end, depth, light_xy, pixel_xy, options):
     """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) up to `ray_end`: `(h, w)`."""
     (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
      thickness, edge_softness, num_view_steps, num_shadow_samples) = options  # fmt: skip
     height, width = depth.shape
     dtype = view.dtype
-    toward, inverse = _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     origin = jnp.zeros_like(view)
     start, end = medium_interval(origin, view, ray_end, max_distance=max_distance, layer_top=layer_top)
     fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
@@ -361,9 +231,9 @@ def _in_scattered(view, ray_end, depth, light_xy, pixel_xy, options):
         points, toward, light_depth=light_depth, extinction=extinction, max_distance=max_distance,
         height_falloff=height_falloff, layer_top=layer_top,
     )  # fmt: skip
-    to_light, _ = _toward_light(points, toward, inverse)
-    phase = henyey_greenstein(_dot(view[..., None, :], to_light), anisotropy=anisotropy)
-    irradiance = _segment_irradiance(view, bounds[..., :-1], bounds[..., 1:], toward, inverse)
+    to_light, _ = toward_light(points, toward, inverse)
+    phase = henyey_greenstein(dot(view[..., None, :], to_light), anisotropy=anisotropy)
+    irradiance = segment_irradiance(view, bounds[..., :-1], bounds[..., 1:], toward, inverse)
     visible = segment_visibility(
         depth, light_xy, pixel_xy, middles, fov_x_deg=fov_x_deg, light_depth=light_depth,
         light_in_front=light_in_front, thickness=thickness, edge_softness=edge_softness,
@@ -491,7 +361,7 @@ def volumetric_fog_terms(
     medium = dict(extinction=extinction, height_falloff=height_falloff)
     bounds = dict(max_distance=max_distance, layer_top=layer_top)
     view = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype)
-    toward, _ = _light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    toward, _ = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     share = jnp.asarray(direct_fraction, dtype)
 
     def surface_and_opacity(ray_end):

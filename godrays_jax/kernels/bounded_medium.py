@@ -1,0 +1,159 @@
+"""A bounded medium's closed forms: where a ray runs inside it, its optical depth, the light that reaches a point.
+
+The medium fills a sphere of radius `max_distance` around the camera; its
+extinction is `extinction * exp(-height_falloff * y)` (`y` the height above
+the camera along its up axis, scene units: engines' height fog) below
+`layer_top` (scene units above the camera, `inf`: no top). The light is the
+point `S = light_depth * d_L` (`d_L` = `lens.light_direction`) or, for
+`light_depth = inf`, the sun in direction `d_L`. Distances are in scene units,
+points camera-space (y up). Everything is finite with finite gradients, also
+on sky (`inf`), for the sun and for a light at the camera.
+"""
+
+import math
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from godrays_jax.kernels.lens import light_direction
+
+# exp() arguments are clipped here: a height falloff that would make the medium e^60 times denser than at
+# the camera is outside any fog, and float32 overflows near e^88.
+_MAX_EXPONENT = 60.0
+# A point light's irradiance is floored as if it were a ball of this fraction of its distance.
+_POINT_LIGHT_RADIUS = 1e-3
+
+
+def safe_divide(numerator, denominator, fallback, tiny=1e-20):
+    ok = jnp.abs(denominator) > tiny
+    return jnp.where(ok, numerator / jnp.where(ok, denominator, 1.0), fallback)
+
+
+def exp_ratio(x):
+    """`(1 - exp(-x)) / x`, 1 at 0, finite with finite gradients everywhere (x clipped at -`_MAX_EXPONENT`)."""
+    x = jnp.maximum(x, -_MAX_EXPONENT)
+    small = jnp.abs(x) < 1e-3
+    safe = jnp.where(small, 1.0, x)
+    return jnp.where(small, 1.0 - x / 2 + x * x / 6, -jnp.expm1(-safe) / safe)
+
+
+def dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def medium_interval(
+    origin: Float[Array, "*S 3"],
+    direction: Float[Array, "*S 3"],
+    length: Float[ArrayLike, "*S"],
+    *,
+    max_distance: Float[ArrayLike, ""],
+    layer_top: Float[ArrayLike, ""] = math.inf,
+) -> tuple[Float[Array, "*S"], Float[Array, "*S"]]:
+    """`(start, end)` of the part of the ray `origin + u * direction`, `u` in `[0, length]`, inside the medium.
+
+    The medium is the ball of radius `max_distance` around the camera (the
+    origin) below `layer_top` (height above the camera along its up axis,
+    scene units; `inf`: no top). `direction` is a unit vector; distances are in
+    scene units; an empty intersection gives `start == end`.
+    """
+    dtype = origin.dtype
+    radius = jnp.asarray(max_distance, dtype)
+    top = jnp.asarray(layer_top, dtype)
+    along = dot(origin, direction)
+    discriminant = along * along - dot(origin, origin) + radius * radius
+    root = jnp.sqrt(jnp.maximum(discriminant, 0.0))
+    inside_ball = discriminant > 0
+    start = jnp.where(inside_ball, jnp.maximum(-along - root, 0.0), 0.0)
+    end = jnp.where(inside_ball, jnp.minimum(-along + root, length), 0.0)
+    height, rise = origin[..., 1], direction[..., 1]
+    # The height crosses layer_top at u = (top - height) / rise: below it on one side only. Without a top the
+    # crossing is computed from 0 and never selected: an infinite numerator would make its gradient NaN.
+    finite_top = jnp.isfinite(top)
+    crossing = safe_divide(jnp.where(finite_top, top, 0.0) - height, rise, jnp.inf)
+    below_now = height < top
+    start = jnp.where(finite_top & (rise < 0) & ~below_now, jnp.maximum(start, crossing), start)
+    end = jnp.where(finite_top & (rise > 0) & below_now, jnp.minimum(end, crossing), end)
+    end = jnp.where(finite_top & (rise >= 0) & ~below_now, start, end)
+    return start, jnp.maximum(end, start)
+
+
+def optical_depth(
+    origin: Float[Array, "*S 3"],
+    direction: Float[Array, "*S 3"],
+    start: Float[ArrayLike, "*S"],
+    end: Float[ArrayLike, "*S"],
+    *,
+    extinction: Float[ArrayLike, ""],
+    height_falloff: Float[ArrayLike, ""] = 0.0,
+) -> Float[Array, "*S"]:
+    """`integral_start^end extinction * exp(-height_falloff * y(u)) du` along `origin + u * direction`.
+
+    `y` is the height above the camera (the origin's frame, y up), scene units;
+    `extinction` per scene unit at the camera's height, `height_falloff` per
+    scene unit (0: homogeneous). Closed form: `exp(-b * y(start)) * (end -
+    start) * (1 - exp(-x)) / x` with `x = b * rise * (end - start)`.
+    """
+    dtype = origin.dtype
+    falloff = jnp.asarray(height_falloff, dtype)
+    start = jnp.asarray(start, dtype)
+    length = jnp.asarray(end, dtype) - start
+    height = origin[..., 1] + start * direction[..., 1]
+    density = jnp.exp(jnp.clip(-falloff * height, -_MAX_EXPONENT, _MAX_EXPONENT))
+    return jnp.asarray(extinction, dtype) * density * length * exp_ratio(falloff * direction[..., 1] * length)
+
+
+def light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype):
+    """The unit direction toward the light and `1 / light_depth` (0 for the sun)."""
+    toward = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
+    light_depth = jnp.asarray(light_depth, dtype)
+    inverse = jnp.where(jnp.isfinite(light_depth), 1.0 / jnp.where(jnp.isfinite(light_depth), light_depth, 1.0), 0.0)
+    return toward, inverse
+
+
+def toward_light(points, toward, inverse_depth):
+    """Unit direction from each point toward the light, and the distance to it (`inf` for the sun)."""
+    finite = inverse_depth > 0
+    light_point = toward * safe_divide(1.0, inverse_depth, 0.0)
+    # The sun's branch never divides: a far off-screen sun's direction is tiny where float32 overflows.
+    offset = jnp.where(finite, light_point - points, 1.0)
+    distance = jnp.sqrt(jnp.maximum(dot(offset, offset), 1e-30))
+    direction = jnp.where(finite, offset / distance[..., None], toward)
+    return direction, jnp.where(finite, distance, jnp.inf)
+
+
+def light_transmittance(
+    points: Float[Array, "*S 3"],
+    light_toward: Float[Array, "3"],
+    *,
+    light_depth: Float[ArrayLike, ""],
+    extinction: Float[ArrayLike, ""],
+    max_distance: Float[ArrayLike, ""],
+    height_falloff: Float[ArrayLike, ""] = 0.0,
+    layer_top: Float[ArrayLike, ""] = math.inf,
+) -> Float[Array, "*S"]:
+    """The fraction of the light that reaches each point (camera-space, scene units) through the medium.
+
+    `light_toward` is the unit direction from the camera to the light, the
+    light at `light_depth` along it (`inf`: the sun). A light inside the
+    medium is dimmed only over its distance to the point.
+    """
+    dtype = points.dtype
+    inverse = jnp.where(jnp.isfinite(light_depth), 1.0 / jnp.where(jnp.isfinite(light_depth), light_depth, 1.0), 0.0)
+    direction, distance = toward_light(points, jnp.asarray(light_toward, dtype), jnp.asarray(inverse, dtype))
+    start, end = medium_interval(points, direction, distance, max_distance=max_distance, layer_top=layer_top)
+    depth = optical_depth(points, direction, start, end, extinction=extinction, height_falloff=height_falloff)
+    return jnp.exp(-depth)
+
+
+def segment_irradiance(view, start, end, toward, inverse):
+    """The mean over `[start, end]` of `(light_depth / |S - t * view|)^2` (1 for the sun)."""
+    cosine = dot(view, toward)[..., None]
+    light_depth = safe_divide(1.0, inverse, 1.0)
+    along = light_depth * cosine
+    # Closest approach of the ray to the light, floored by the light's own size.
+    miss = jnp.sqrt(jnp.maximum(light_depth**2 * (1.0 - cosine * cosine), 0.0) + (_POINT_LIGHT_RADIUS * light_depth) ** 2)
+    integral = (jnp.arctan((end - along) / miss) - jnp.arctan((start - along) / miss)) / miss
+    middle = 0.5 * (start + end) - along
+    at_middle = light_depth**2 / (middle * middle + miss * miss)
+    mean = safe_divide(light_depth**2 * integral, end - start, at_middle, tiny=1e-9)
+    return jnp.where(inverse > 0, mean, 1.0)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from godrays_jax.kernels.volumetric import apply_volumetric_fog, volumetric_fog_terms
+from godrays_jax.kernels.volumetric import apply_volumetric_fog, segment_visibility, volumetric_fog_terms
 
 HEIGHT, WIDTH = 4, 6
 MEDIUM = dict(
@@ -78,6 +78,16 @@ class _Loop:
         direction, distance = self.to_light(point)
         return math.exp(-self.optical_depth(point, direction, distance))
 
+    def inside_slab(self, row, col, span):
+        """How far the depths `span` of a shadow ray reach into the slab of a texel (clamped to the frame)."""
+        front = self.depth[min(max(row, 0), self.height - 1), min(max(col, 0), self.width - 1)]
+        if not math.isfinite(front):
+            return 0.0
+        if math.isfinite(self.light_depth) and front * (1 + self.thickness) >= self.light_depth:
+            return 0.0
+        width = self.softness * front
+        return _ramp((span[1] - front) / width) * _ramp((front * (1 + self.thickness) - span[0]) / width)
+
     def visibility(self, x, y, view, t):
         point = t * view
         light_point = self.light_depth * self.toward if math.isfinite(self.light_depth) else None
@@ -99,12 +109,11 @@ class _Loop:
         previous = t  # the shadow ray crosses the pixel's own camera ray at the point
         for k in range(self.samples + 1):  # the last one at the segment's end: the light's pixel when on screen
             q = p + reach * min((k + 0.5) / self.samples, 1.0) * step
-            col = min(max(int(math.floor(q[0])), 0), self.width - 1)
-            row = min(max(int(math.floor(q[1])), 0), self.height - 1)
-            front = self.depth[row, col]
             ray = self.ray(*q)
             if k == self.samples and self.in_front and reach == 1.0:
                 crossing = self.light_depth  # every shadow ray reaches the light there
+            elif np.linalg.norm(np.cross(ray, shadow)) < 1e-9 * np.linalg.norm(ray) * np.linalg.norm(shadow):
+                crossing = t  # the shadow ray runs along q's camera ray (the light's own): from the point on
             else:
                 # mu' * ray - u * shadow = point, least squares (exact: the three lie in one plane)
                 (mu, _), *_ = np.linalg.lstsq(np.stack([ray, -shadow], axis=1), point, rcond=None)
@@ -112,12 +121,14 @@ class _Loop:
             # the shadow ray's depths between this sample's crossing and the previous one's
             span = sorted((crossing, previous)) if crossing > 0 and previous > 0 else (crossing, crossing)
             previous = crossing
-            if not math.isfinite(front):
-                continue
-            if light_point is not None and front * (1 + self.thickness) >= self.light_depth:
-                continue
-            width = self.softness * front
-            inside = _ramp((span[1] - front) / width) * _ramp((front * (1 + self.thickness) - span[0]) / width)
+            # the four texels around q, by their bilinear weights
+            u, v = q - 0.5
+            col, row = math.floor(u), math.floor(v)
+            fx, fy = u - col, v - row
+            inside = sum(
+                wy * wx * self.inside_slab(row + dy, col + dx, span)
+                for dy, wy in ((0, 1 - fy), (1, fy)) for dx, wx in ((0, 1 - fx), (1, fx))
+            )  # fmt: skip
             visible = min(visible, 1.0 - inside)
         return visible
 
@@ -335,6 +346,24 @@ def test_reduced_resolution_equals_full_resolution_on_the_march_pixels(x64, rng)
     _, reduced, _ = volumetric_fog_terms(jnp.asarray(depth), light, resolution_factor=2, **MEDIUM)
     np.testing.assert_allclose(reduced[1::2, 1::2], full[1::2, 1::2], rtol=1e-9)
     assert np.all(np.isfinite(np.asarray(reduced)))
+
+
+def test_shadows_move_smoothly_with_the_light(x64):
+    """Each shadow sample reads the four texels around it: a light moved across a texel's edge moves the
+    shadow by as little (nearest texels made it jump from lit to dark)."""
+    depth = np.full((4, 8), np.inf)
+    depth[:, 3] = 5.0  # a post; the light's own pixel sample falls on its edge
+
+    def visibility(light_x):
+        return np.asarray(segment_visibility(
+            jnp.asarray(depth), jnp.asarray([light_x, 2.5]), jnp.asarray([[[6.5, 2.5]]]), jnp.asarray([[[2.0]]]),
+            fov_x_deg=60.0, thickness=0.3, edge_softness=0.05, num_shadow_samples=1,
+        ))  # fmt: skip
+
+    np.testing.assert_allclose(visibility(2.999), 0.5, atol=0.01)
+    np.testing.assert_allclose(visibility(3.001), 0.5, atol=0.01)
+    np.testing.assert_allclose(visibility(2.5), 1.0)
+    np.testing.assert_allclose(visibility(3.5), 0.0)
 
 
 def test_bad_options_name_the_argument():

@@ -27,13 +27,15 @@ from `p` toward the light's position (away from the light's true projection
 when it is behind the camera), clipped to the screen: at each of
 `num_shadow_samples` samples `q`, the shadow ray from the segment's midpoint
 crosses `q`'s camera ray at a distance `mu` (closed form in the plane of the
-camera, the point and the light); the surface at `q` blocks it when the depths
+camera, the point and the light); a surface near `q` blocks it when the depths
 `[mu_prev, mu]` the ray runs through since the previous sample (the first:
 since the point itself) meet its slab `[D_q, D_q * (1 + thickness)]` (a depth
 buffer is a height field of unknown thickness; near the light's screen
 position one step covers a long stretch in depth), with linear ramps `edge_softness * D_q` wide at
 both faces so that the thickness, the light and the field of view have
-gradients. A last sample sits at the segment's end: on screen, the light's
+gradients; the slab test is made at the four texels around `q` and blended
+with bilinear weights, so shadows move smoothly as `q` moves under the pixel
+grid. A last sample sits at the segment's end: on screen, the light's
 own pixel, where every shadow ray reaches the light's distance (the sun's:
 beyond every slab), so an object that hides the light shades the whole view
 ray in front of it. Surfaces whose slab reaches the light (the emitter) and
@@ -82,6 +84,17 @@ def _march_grid(height, width, factor, dtype):
     xs = jnp.arange(width // factor, dtype=dtype) * factor + offset
     ys = jnp.arange(height // factor, dtype=dtype) * factor + offset
     return jnp.meshgrid(xs, ys)
+
+
+def _bilinear(u, v, rows, cols):
+    """The four samples around the continuous indices `(u, v)` (column, row; integers on samples) of a
+    `rows x cols` grid, clamped at its borders: `(row, col, weight)`, each stacked along a new first axis of 4."""
+    col0, row0 = jnp.floor(u), jnp.floor(v)
+    fx, fy = u - col0, v - row0
+    corners = [(dy, dx, wy * wx) for dy, wy in ((0, 1.0 - fy), (1, fy)) for dx, wx in ((0, 1.0 - fx), (1, fx))]
+    row = jnp.stack([jnp.broadcast_to(jnp.clip(row0 + dy, 0, rows - 1), w.shape) for dy, _, w in corners])
+    col = jnp.stack([jnp.broadcast_to(jnp.clip(col0 + dx, 0, cols - 1), w.shape) for _, dx, w in corners])
+    return row.astype(jnp.int32), col.astype(jnp.int32), jnp.stack([w for _, _, w in corners])
 
 
 def _rays_at(x, y, height, width, focal):
@@ -166,9 +179,6 @@ def segment_visibility(
         visibility, previous = carry
         s = reach * jnp.minimum((k + 0.5) / num_shadow_samples, 1.0)
         q = pixel_xy + s[..., None] * step
-        col = jnp.clip(jnp.floor(q[..., 0]), 0, width - 1).astype(jnp.int32)
-        row = jnp.clip(jnp.floor(q[..., 1]), 0, height - 1).astype(jnp.int32)
-        surface = depth[row, col]
         ray = _rays_at(q[..., 0], q[..., 1], height, width, focal)
         ray_cross_light, ray_cross_view = jnp.cross(ray, toward), jnp.cross(ray, view)
         # mu' * ray = X + u (S - X), X = t * view, S = toward / inverse: crossed with (S - X), in t.
@@ -180,8 +190,9 @@ def segment_visibility(
         t = distances
         numerator = t * a1 - t * t * a2
         denominator = b1 - 2 * t * b2 + t * t * b3
-        # Parallel rays never cross: 0, at the camera, lies in no slab.
-        crossing = safe_divide(numerator, denominator, 0.0, tiny=1e-12) * jnp.linalg.norm(ray, axis=-1)[..., None]
+        # A shadow ray parallel to q's camera ray runs along it (q's ray is the point's own, toward the light):
+        # from the point itself on.
+        crossing = safe_divide(numerator * jnp.linalg.norm(ray, axis=-1)[..., None], denominator, t, tiny=1e-12)
         # The last sample is the light's own pixel when it is on screen: every shadow ray ends there, at the
         # light's distance (the sun's: beyond every slab).
         at_light = (k == num_shadow_samples) & in_front & (reach[..., None] >= 1.0)
@@ -192,13 +203,16 @@ def segment_visibility(
         both = (crossing > 0) & (previous > 0)
         nearest = jnp.where(both, jnp.minimum(crossing, previous), crossing)
         farthest = jnp.where(both, jnp.maximum(crossing, previous), crossing)
-        front = surface[..., None]
+        # The slab test at the four texels around q, blended with bilinear weights: visibility moves smoothly
+        # as q moves under the pixel grid (a pan, a light moved by a fraction of a pixel).
+        row, col, weight = _bilinear(q[..., 0] - 0.5, q[..., 1] - 0.5, height, width)
+        front = depth[row, col][..., None]
         # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
         blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
         front = jnp.where(blocks, front, 1.0)
-        width_ = softness * front
-        inside = _ramp((farthest - front) / width_) * _ramp((front * (1 + thickness) - nearest) / width_)
-        inside = jnp.where(blocks, inside, 0.0)
+        soft = softness * front
+        inside_slab = _ramp((farthest - front) / soft) * _ramp((front * (1 + thickness) - nearest) / soft)
+        inside = jnp.sum(weight[..., None] * jnp.where(blocks, inside_slab, 0.0), axis=0)
         return (jnp.minimum(visibility, 1.0 - inside), crossing), None
 
     # At the pixel itself the shadow ray crosses the pixel's camera ray at the point's own distance.

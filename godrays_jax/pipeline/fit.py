@@ -340,7 +340,7 @@ def fit(
     light_depth: float | Sequence[float] = math.inf,
     progress: Callable[[int, float], None] | None = None,
     starts: Sequence[Effect] = (),
-    probe_steps: int = 5,
+    probe_steps: int = 3,
     coarse_factor: int = 1,
     plateau_steps: int = 5,
     plateau_rtol: float = 1e-3,

@@ -71,6 +71,8 @@ def main() -> None:
     scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)
     baseline = json.loads((REFERENCES / "baseline.json").read_text())
     results = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    if args.report is not None:
+        args.report.mkdir(parents=True, exist_ok=True)
     print("| scene | floor | ScatteringFog / floor (fog A, B) | VolumetricFog / floor (fog A, B) | seconds |")
     print("|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as folder:

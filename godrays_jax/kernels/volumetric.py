@@ -31,8 +31,8 @@ camera, the point and the light); a surface near `q` blocks it when the depths
 `[mu_prev, mu]` the ray runs through since the previous sample (the first:
 since the point itself) meet its slab `[D_q, D_q * (1 + thickness)]` (a depth
 buffer is a height field of unknown thickness; near the light's screen
-position one step covers a long stretch in depth), with linear ramps `edge_softness * D_q` wide (at
-most half the slab, so a slab is opaque in its middle) at both faces so that the thickness, the light and the field of view have
+position one step covers a long stretch in depth), with linear ramps `edge_softness * D_q` wide at
+both faces so that the thickness, the light and the field of view have
 gradients; the slab test is made at the four texels around `q` and blended
 with bilinear weights, so shadows move smoothly as `q` moves under the pixel
 grid. A last sample sits at the segment's end: on screen, the light's
@@ -128,8 +128,7 @@ def segment_visibility(
         light_depth: the light's distance along its camera ray, scene units; `inf`: the sun.
         light_in_front: whether the light is in front of the camera.
         thickness: each surface's slab depth as a fraction of its own depth, >= 0.
-        edge_softness: the width of the slab's soft faces, a fraction of depth, > 0 (at most half the
-            thickness is used).
+        edge_softness: the width of the slab's soft faces, a fraction of depth, > 0.
         num_shadow_samples: depth samples along the screen segment (static int, >= 1), besides
             the one at its end.
 
@@ -211,8 +210,7 @@ def segment_visibility(
         # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
         blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
         front = jnp.where(blocks, front, 1.0)
-        # Faces at most half the slab wide, so that a slab is opaque in its middle however thin.
-        soft = jnp.maximum(jnp.minimum(softness, 0.5 * thickness), 1e-6) * front
+        soft = softness * front
         inside_slab = _ramp((farthest - front) / soft) * _ramp((front * (1 + thickness) - nearest) / soft)
         inside = jnp.sum(weight[..., None] * jnp.where(blocks, inside_slab, 0.0), axis=0)
         return (jnp.minimum(visibility, 1.0 - inside), crossing), None

@@ -10,7 +10,7 @@ import godrays_jax as gr
 from godrays_jax.effects.fields import field_value
 from godrays_jax.kernels.lens import view_directions
 from godrays_jax.app.fit_command import fit_starts
-from godrays_jax.pipeline.frame_start import ground_layer_start
+from godrays_jax.pipeline.frame_start import GROUND_PERCENTILE, ground_layer_start
 
 HEIGHT, WIDTH, FOV = 18, 32, 50.0
 
@@ -37,8 +37,14 @@ def test_the_layer_reaches_as_high_above_the_camera_as_the_ground_lies_below():
     np.testing.assert_allclose(_values(start), [1.5, 1 / np.median(surfaces), surfaces.max()], rtol=1e-4)
     # Everything else is the effect's; several frames pool their surfaces.
     assert float(start.medium.anisotropy) == pytest.approx(0.76) and start.num_view_steps == 16
-    twice = ground_layer_start(gr.preset("volumetric_haze"), [frame, _frame(camera_height=3.0)[0]])
-    assert 1.5 < _values(twice)[0] <= 3.0
+    higher, higher_depth = _frame(camera_height=3.0)
+    twice = ground_layer_start(gr.preset("volumetric_haze"), [frame, higher])
+    # Every ground pixel lies 1.5 (first frame) or 3.0 (second) below the camera; the median depth of the pooled
+    # surfaces is neither frame's own.
+    pooled = np.concatenate([surfaces, higher_depth[np.isfinite(higher_depth)]])
+    heights = np.concatenate([np.full(surfaces.size, -1.5), np.full(pooled.size - surfaces.size, -3.0)])
+    expected = [-np.percentile(heights, GROUND_PERCENTILE), 1 / np.median(pooled), pooled.max()]
+    np.testing.assert_allclose(_values(twice), expected, rtol=1e-4)
 
 
 def test_values_are_clipped_into_their_bounds():

@@ -9,7 +9,7 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.effects.serialization import load_effect, save_effect
-from godrays_jax.effects.volumetric import filtered_coverage, march_factor
+from godrays_jax.effects.volumetric import march_factor, silhouette_coverage
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.fit import fit
 
@@ -39,7 +39,7 @@ def test_effect_is_the_kernel_composited(rng):
     effect = _fog()
     expected = gr.apply_volumetric_fog(
         buffers.color, buffers.depth, jnp.asarray(LIGHT), light_depth=20.0, height_falloff=0.0, layer_top=1e4,
-        thickness=0.15, edge_softness=0.05, coverage=filtered_coverage(buffers.coverage, buffers.depth), **MEDIUM,
+        thickness=0.15, edge_softness=0.05, coverage=silhouette_coverage(buffers.coverage, buffers.depth, buffers.color), **MEDIUM,
         **EFFECT,
     )  # fmt: skip
     np.testing.assert_allclose(effect(buffers, jnp.asarray(LIGHT), light_depth=20.0), expected, rtol=1e-6)
@@ -50,11 +50,80 @@ def test_effect_is_the_kernel_composited(rng):
 
 def test_coverage_from_depth_alone_is_spread_like_a_pixel_filter(rng):
     buffers = _frame(rng)
-    spread = np.asarray(filtered_coverage(buffers.coverage, buffers.depth))
+    grey = jnp.full_like(buffers.color, 0.3)  # surface and sky alike: the colour cannot tell, the filter's spread stands in
+    spread = np.asarray(silhouette_coverage(buffers.coverage, buffers.depth, grey))
     assert spread[6, 3] == pytest.approx(0.15) and spread[7, 3] == pytest.approx(0.85)  # the ground's edge
     assert spread[12 - 1, 0] == 1.0 and spread[0, 0] == 0.0
     measured = buffers.coverage.at[6, 3].set(0.4)  # a coverage pass: kept as it is
-    np.testing.assert_array_equal(filtered_coverage(measured, buffers.depth), measured)
+    np.testing.assert_array_equal(silhouette_coverage(measured, buffers.depth, buffers.color), measured)
+
+
+def test_coverage_of_a_filtered_silhouette_is_read_from_its_colour():
+    # A dark wall (columns 0-4) over a bright sky, column 4 blended by a pixel filter with known coverage; its depth is
+    # one sample's (Cycles' Z): the wall's where it covers half or more. A bright emitter sits among the sky's pixels.
+    surface, sky = np.array([0.05, 0.04, 0.03]), np.array([0.8, 0.85, 0.9])
+    covered = np.array([0.3, 0.6, 0.2, 0.7, 0.45, 0.55, 0.35, 0.65])
+    depth = np.full((8, 8), np.inf)
+    depth[:, :4] = 5.0
+    depth[:, 4] = np.where(covered >= 0.5, 5.0, np.inf)
+    share = np.zeros((8, 8))
+    share[:, :4], share[:, 4] = 1.0, covered
+    color = share[..., None] * surface + (1 - share[..., None]) * sky
+    color[3, 5] = 50.0
+    estimate = np.asarray(silhouette_coverage(jnp.asarray(np.isfinite(depth), jnp.float32), jnp.asarray(depth, jnp.float32),
+                                              jnp.asarray(color, jnp.float32)))  # fmt: skip
+    np.testing.assert_allclose(estimate[:, 4], covered, atol=1e-5)
+    np.testing.assert_allclose(estimate[:, :4], 1.0, atol=1e-5)
+    np.testing.assert_allclose(estimate[:, 6:], 0.0, atol=1e-5)
+
+
+def _silhouette_coverage_loop(coverage, depth, color):
+    """`silhouette_coverage` pixel by pixel: the filter's spread, or at a silhouette the colour's unmixed share."""
+    if not np.all(coverage == np.isfinite(depth)):
+        return coverage
+    height, width = depth.shape
+    display = lambda c: c / (1 + np.abs(c))  # noqa: E731
+    out = np.zeros((height, width))
+    for y in range(height):
+        for x in range(width):
+            around = [(min(max(y + dy, 0), height - 1), min(max(x + dx, 0), width - 1))
+                      for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]  # fmt: skip
+            spread = sum(
+                (0.7 if dy == 0 else 0.15) * (0.7 if dx == 0 else 0.15)
+                * coverage[min(max(y + dy, 0), height - 1), min(max(x + dx, 0), width - 1)]
+                for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+            )  # fmt: skip
+            own = depth[y, x]
+            finite = [depth[p] for p in around if np.isfinite(depth[p])]
+            at = own if np.isfinite(own) else min(finite, default=np.inf)
+            if not np.isfinite(at) or (np.isfinite(own) and len(finite) == 8):
+                out[y, x] = spread
+                continue
+            same = [color[p] for p in around if np.isfinite(depth[p]) and abs(depth[p] - at) <= 0.05 * at]
+            skies = [color[p] for p in around if not np.isfinite(depth[p])]
+            if not same and np.isfinite(own):
+                same = [color[y, x]]
+            if not skies and not np.isfinite(own):
+                skies = [color[y, x]]
+            if not same or not skies:
+                out[y, x] = spread
+                continue
+            surface, sky = np.median(same, axis=0), np.median(skies, axis=0)
+            share = np.clip(np.dot(color[y, x] - sky, surface - sky) / max(np.dot(surface - sky, surface - sky), 1e-20), 0, 1)
+            trust = np.clip((np.mean(np.abs(display(surface) - display(sky))) - 0.02) / 0.03, 0, 1)
+            out[y, x] = trust * share + (1 - trust) * spread
+    return out
+
+
+def test_silhouette_coverage_matches_a_loop(rng):
+    buffers = _frame(rng)
+    color = np.asarray(buffers.color, np.float64) * rng.choice([0.02, 1.0], (HEIGHT, WIDTH, 1))  # some contrasts too low
+    depth, coverage = np.asarray(buffers.depth, np.float64), np.asarray(buffers.coverage, np.float64)
+    expected = _silhouette_coverage_loop(coverage, depth, color)
+    got = silhouette_coverage(jnp.asarray(coverage, jnp.float32), jnp.asarray(depth, jnp.float32), jnp.asarray(color, jnp.float32))
+    np.testing.assert_allclose(got, expected, atol=2e-5)
+    vmapped = jax.jit(jax.vmap(silhouette_coverage))(*(jnp.asarray(a, jnp.float32)[None] for a in (coverage, depth, color)))
+    np.testing.assert_allclose(vmapped[0], expected, atol=2e-5)
 
 
 def test_march_factor_divides_both_sides():

@@ -166,19 +166,22 @@ class _Loop:
             surface *= 1 - self.share + self.share * self.light_transmittance(depth * view)
         return surface, scattered, 1 - transmittance[-1]
 
-    def covered_pixel(self, row, col, coverage):
-        """`coverage` of the surface's terms (on sky, its nearest neighbour's surface) and the rest of the sky's."""
+    def covered_pixel(self, row, col, coverage, uncovered):
+        """`coverage` of the surface's terms (on sky, its nearest neighbour's surface) and the rest of the terms at
+        the uncovered depth (None: the sky's)."""
         depth = self.depth[row, col]
         if coverage is None:
             return self.pixel(row, col, depth)
         if not math.isfinite(depth):
             depth = self.depth[max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2].min()
         c = coverage[row, col]
-        surface, sky = self.pixel(row, col, depth), self.pixel(row, col, math.inf)
-        return tuple(c * a + (1 - c) * b for a, b in zip(surface, sky))
+        rest = math.inf if uncovered is None else uncovered[row, col]
+        surface, beside = self.pixel(row, col, depth), self.pixel(row, col, rest)
+        return tuple(c * a + (1 - c) * b for a, b in zip(surface, beside))
 
-    def terms(self, coverage=None):
-        rows = [[self.covered_pixel(row, col, coverage) for col in range(self.width)] for row in range(self.height)]
+    def terms(self, coverage=None, uncovered=None):
+        rows = [[self.covered_pixel(row, col, coverage, uncovered) for col in range(self.width)]
+                for row in range(self.height)]  # fmt: skip
         return tuple(np.array([[pixel[i] for pixel in row] for row in rows]) for i in range(3))
 
 
@@ -202,14 +205,21 @@ def test_terms_match_loop(x64, case):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
 
 
-def test_partly_covered_pixels_match_loop(x64):
-    """A silhouette's pixels blend the surface's terms (a sky pixel: its neighbour's surface) with the sky's."""
+@pytest.mark.parametrize("beside_surfaces", [False, True])
+def test_partly_covered_pixels_match_loop(x64, beside_surfaces):
+    """A silhouette's pixels blend the surface's terms (a sky pixel: its neighbour's surface) with the sky's, or
+    with the terms at the depth the rest of the pixel sees (a surface beside its own)."""
     depth = _depth()
     coverage = np.isfinite(depth).astype(float)
-    coverage[1, 1], coverage[1, 2], coverage[0, 3], coverage[3, 4] = 0.3, 0.6, 0.45, 0.8
-    expected = _Loop(depth, (2.3, 0.7), light_depth=12.0, in_front=True, **MEDIUM).terms(coverage)
+    coverage[1, 1], coverage[1, 2], coverage[0, 3], coverage[3, 4], coverage[2, 3] = 0.3, 0.6, 0.45, 0.8, 0.7
+    uncovered = None
+    if beside_surfaces:
+        uncovered = np.full(depth.shape, np.inf)
+        uncovered[2, 3], uncovered[3, 4] = 11.0, 20.0  # the far ground's pixel partly the near one, and the reverse
+    expected = _Loop(depth, (2.3, 0.7), light_depth=12.0, in_front=True, **MEDIUM).terms(coverage, uncovered)
     got = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), light_depth=12.0,
-                               coverage=jnp.asarray(coverage), **MEDIUM)  # fmt: skip
+                               coverage=jnp.asarray(coverage), **MEDIUM,
+                               uncovered_depth=None if uncovered is None else jnp.asarray(uncovered))  # fmt: skip
     for name, want, have in zip(("surface", "scattered", "opacity"), expected, got):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
     plain = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), light_depth=12.0, **MEDIUM)
@@ -374,3 +384,7 @@ def test_bad_options_name_the_argument():
         volumetric_fog_terms(depth, jnp.zeros(2), resolution_factor=4, **MEDIUM)
     with pytest.raises(ValueError, match="num_shadow_samples"):
         volumetric_fog_terms(depth, jnp.zeros(2), **dict(MEDIUM, num_shadow_samples=2.5))
+    with pytest.raises(ValueError, match="uncovered_depth needs coverage"):
+        volumetric_fog_terms(depth, jnp.zeros(2), uncovered_depth=depth, **MEDIUM)
+    with pytest.raises(ValueError, match="uncovered_depth"):
+        volumetric_fog_terms(depth, jnp.zeros(2), coverage=depth, uncovered_depth=depth[1:], **MEDIUM)

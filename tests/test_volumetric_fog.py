@@ -9,7 +9,8 @@ import pytest
 
 import godrays_jax as gr
 from godrays_jax.effects.serialization import load_effect, save_effect
-from godrays_jax.effects.volumetric import march_factor, silhouette_coverage
+from godrays_jax.effects.volumetric import march_factor
+from godrays_jax.kernels.silhouettes import silhouette_mix
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.fit import fit
 
@@ -39,8 +40,8 @@ def test_effect_is_the_kernel_composited(rng):
     effect = _fog()
     expected = gr.apply_volumetric_fog(
         buffers.color, buffers.depth, jnp.asarray(LIGHT), light_depth=20.0, height_falloff=0.0, layer_top=1e4,
-        thickness=0.15, edge_softness=0.05, coverage=silhouette_coverage(buffers.coverage, buffers.depth, buffers.color), **MEDIUM,
-        **EFFECT,
+        thickness=0.15, edge_softness=0.05, **dict(zip(("coverage", "uncovered_depth"), silhouette_mix(
+            buffers.coverage, buffers.depth, buffers.color))), **MEDIUM, **EFFECT,
     )  # fmt: skip
     np.testing.assert_allclose(effect(buffers, jnp.asarray(LIGHT), light_depth=20.0), expected, rtol=1e-6)
     layer = effect.layer(buffers, jnp.asarray(LIGHT), light_depth=20.0)
@@ -51,79 +52,111 @@ def test_effect_is_the_kernel_composited(rng):
 def test_coverage_from_depth_alone_is_spread_like_a_pixel_filter(rng):
     buffers = _frame(rng)
     grey = jnp.full_like(buffers.color, 0.3)  # surface and sky alike: the colour cannot tell, the filter's spread stands in
-    spread = np.asarray(silhouette_coverage(buffers.coverage, buffers.depth, grey))
+    spread, uncovered = map(np.asarray, silhouette_mix(buffers.coverage, buffers.depth, grey))
     assert spread[6, 3] == pytest.approx(0.15) and spread[7, 3] == pytest.approx(0.85)  # the ground's edge
     assert spread[12 - 1, 0] == 1.0 and spread[0, 0] == 0.0
+    # The post before the ground: its own depth, the rest the neighbour most unlike it (the ground below-left).
+    assert spread[9, 6] == 1.0 and uncovered[9, 6] == pytest.approx(24.5)
+    assert np.isinf(uncovered[6, 3]) and np.isinf(uncovered[0, 0])
     measured = buffers.coverage.at[6, 3].set(0.4)  # a coverage pass: kept as it is
-    np.testing.assert_array_equal(silhouette_coverage(measured, buffers.depth, buffers.color), measured)
+    np.testing.assert_array_equal(silhouette_mix(measured, buffers.depth, grey)[0], measured)
 
 
-def test_coverage_of_a_filtered_silhouette_is_read_from_its_colour():
-    # A dark wall (columns 0-4) over a bright sky, column 4 blended by a pixel filter with known coverage; its depth is
-    # one sample's (Cycles' Z): the wall's where it covers half or more. A bright emitter sits among the sky's pixels.
-    surface, sky = np.array([0.05, 0.04, 0.03]), np.array([0.8, 0.85, 0.9])
-    covered = np.array([0.3, 0.6, 0.2, 0.7, 0.45, 0.55, 0.35, 0.65])
-    depth = np.full((8, 8), np.inf)
+def _filtered_edge(far_depth, covered):
+    """A dark wall (columns 0-4) before a bright background at `far_depth` (`inf`: sky), column 4 blended by a
+    pixel filter with the wall covering `covered` (per row) of it; its depth one sample's (Cycles' Z): the wall's
+    where it covers half or more. A bright emitter among the background's pixels."""
+    near, far = np.array([0.05, 0.04, 0.03]), np.array([0.8, 0.85, 0.9])
+    depth = np.full((len(covered), 8), far_depth)
     depth[:, :4] = 5.0
-    depth[:, 4] = np.where(covered >= 0.5, 5.0, np.inf)
-    share = np.zeros((8, 8))
+    depth[:, 4] = np.where(covered >= 0.5, 5.0, far_depth)
+    share = np.zeros(depth.shape)
     share[:, :4], share[:, 4] = 1.0, covered
-    color = share[..., None] * surface + (1 - share[..., None]) * sky
+    color = share[..., None] * near + (1 - share[..., None]) * far
     color[3, 5] = 50.0
-    estimate = np.asarray(silhouette_coverage(jnp.asarray(np.isfinite(depth), jnp.float32), jnp.asarray(depth, jnp.float32),
-                                              jnp.asarray(color, jnp.float32)))  # fmt: skip
-    np.testing.assert_allclose(estimate[:, 4], covered, atol=1e-5)
+    coverage = np.isfinite(depth)
+    return tuple(jnp.asarray(a, jnp.float32) for a in (coverage, depth, color))
+
+
+@pytest.mark.parametrize("far_depth", [np.inf, 30.0])
+def test_coverage_of_a_filtered_silhouette_is_read_from_its_colour(far_depth):
+    covered = np.array([0.3, 0.6, 0.2, 0.7, 0.45, 0.55, 0.35, 0.65])
+    estimate, uncovered = map(np.asarray, silhouette_mix(*_filtered_edge(far_depth, covered)))
+    # The share of each pixel's surface (on sky, its nearest neighbour's: the wall), and what the rest sees.
+    if np.isinf(far_depth):
+        surface_share, other_side = covered, np.full(8, np.inf)
+    else:
+        surface_share = np.where(covered >= 0.5, covered, 1 - covered)
+        other_side = np.where(covered >= 0.5, far_depth, 5.0)
+    np.testing.assert_allclose(estimate[:, 4], surface_share, atol=1e-5)
     np.testing.assert_allclose(estimate[:, :4], 1.0, atol=1e-5)
-    np.testing.assert_allclose(estimate[:, 6:], 0.0, atol=1e-5)
+    np.testing.assert_allclose(estimate[:, 6:], 0.0 if np.isinf(far_depth) else 1.0, atol=1e-5)
+    np.testing.assert_allclose(uncovered[:, 4], other_side)
 
 
-def _silhouette_coverage_loop(coverage, depth, color):
-    """`silhouette_coverage` pixel by pixel: the filter's spread, or at a silhouette the colour's unmixed share."""
-    if not np.all(coverage == np.isfinite(depth)):
-        return coverage
+def _silhouette_mix_loop(coverage, depth, color):
+    """`silhouette_mix` pixel by pixel: each pixel's surface, the other side, and the colour's share where it tells."""
+    hard = np.all(coverage == np.isfinite(depth))
     height, width = depth.shape
     display = lambda c: c / (1 + np.abs(c))  # noqa: E731
-    out = np.zeros((height, width))
+    clamp = lambda y, x: (min(max(y, 0), height - 1), min(max(x, 0), width - 1))  # noqa: E731
+    on = lambda d, at: (not np.isfinite(d)) if not np.isfinite(at) else bool(np.isfinite(d) and abs(d - at) <= 0.05 * at)  # noqa: E731
+    shares, uncovered = np.zeros((height, width)), np.full((height, width), np.inf)
     for y in range(height):
         for x in range(width):
-            around = [(min(max(y + dy, 0), height - 1), min(max(x + dx, 0), width - 1))
-                      for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]  # fmt: skip
+            around = [clamp(y + dy, x + dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
             spread = sum(
-                (0.7 if dy == 0 else 0.15) * (0.7 if dx == 0 else 0.15)
-                * coverage[min(max(y + dy, 0), height - 1), min(max(x + dx, 0), width - 1)]
+                (0.7 if dy == 0 else 0.15) * (0.7 if dx == 0 else 0.15) * coverage[clamp(y + dy, x + dx)]
                 for dy in (-1, 0, 1) for dx in (-1, 0, 1)
             )  # fmt: skip
             own = depth[y, x]
             finite = [depth[p] for p in around if np.isfinite(depth[p])]
-            at = own if np.isfinite(own) else min(finite, default=np.inf)
-            if not np.isfinite(at) or (np.isfinite(own) and len(finite) == 8):
-                out[y, x] = spread
+            surface = own if np.isfinite(own) else min(finite, default=np.inf)
+            beside_sky = not np.isfinite(own) or len(finite) < 8
+            if beside_sky:
+                other, fallback = np.inf, spread if hard else coverage[y, x]
+            else:
+                unlike = [abs(np.log(d / own)) for d in finite]
+                other = finite[int(np.argmax(unlike))] if max(unlike) > np.log(1.1) else np.inf
+                fallback = 1.0 if np.isfinite(other) else spread if hard else coverage[y, x]
+            uncovered[y, x] = other
+            shares[y, x] = fallback
+            if not np.isfinite(surface) or not (hard or np.isfinite(other)):
                 continue
-            same = [color[p] for p in around if np.isfinite(depth[p]) and abs(depth[p] - at) <= 0.05 * at]
-            skies = [color[p] for p in around if not np.isfinite(depth[p])]
-            if not same and np.isfinite(own):
-                same = [color[y, x]]
-            if not skies and not np.isfinite(own):
-                skies = [color[y, x]]
-            if not same or not skies:
-                out[y, x] = spread
-                continue
-            surface, sky = np.median(same, axis=0), np.median(skies, axis=0)
-            share = np.clip(np.dot(color[y, x] - sky, surface - sky) / max(np.dot(surface - sky, surface - sky), 1e-20), 0, 1)
-            trust = np.clip((np.mean(np.abs(display(surface) - display(sky))) - 0.02) / 0.03, 0, 1)
-            out[y, x] = trust * share + (1 - trust) * spread
-    return out
+            sides = []
+            for at in (surface, other):
+                members = [color[p] for p in around if on(depth[p], at)]
+                if members:
+                    median = np.median(members, axis=0)
+                    deviations = np.sort([np.abs(display(m) - display(median)) for m in members], axis=0)[:-1]
+                    deviation = np.mean(deviations, axis=0) if len(deviations) else np.zeros(3)
+                elif on(own, at):
+                    median, deviation = color[y, x], np.zeros(3)
+                else:
+                    break
+                sides.append((median, deviation))
+            else:
+                (first, first_dev), (second, second_dev) = sides
+                apart = first - second
+                share = np.clip(np.dot(color[y, x] - second, apart) / max(np.dot(apart, apart), 1e-20), 0, 1)
+                contrast = np.mean(np.abs(display(first) - display(second)))
+                trust = np.clip((contrast / (np.mean(first_dev + second_dev) + 0.002) - 3) / 3, 0, 1)
+                shares[y, x] = trust * share + (1 - trust) * fallback
+    return shares, uncovered
 
 
-def test_silhouette_coverage_matches_a_loop(rng):
+@pytest.mark.parametrize("with_pass", [False, True])
+def test_silhouette_mix_matches_a_loop(rng, with_pass):
     buffers = _frame(rng)
     color = np.asarray(buffers.color, np.float64) * rng.choice([0.02, 1.0], (HEIGHT, WIDTH, 1))  # some contrasts too low
     depth, coverage = np.asarray(buffers.depth, np.float64), np.asarray(buffers.coverage, np.float64)
-    expected = _silhouette_coverage_loop(coverage, depth, color)
-    got = silhouette_coverage(jnp.asarray(coverage, jnp.float32), jnp.asarray(depth, jnp.float32), jnp.asarray(color, jnp.float32))
-    np.testing.assert_allclose(got, expected, atol=2e-5)
-    vmapped = jax.jit(jax.vmap(silhouette_coverage))(*(jnp.asarray(a, jnp.float32)[None] for a in (coverage, depth, color)))
-    np.testing.assert_allclose(vmapped[0], expected, atol=2e-5)
+    if with_pass:
+        coverage[6, 3] = 0.4
+    expected = _silhouette_mix_loop(coverage, depth, color)
+    arrays = [jnp.asarray(a, jnp.float32) for a in (coverage, depth, color)]
+    for got in (silhouette_mix(*arrays), [a[0] for a in jax.jit(jax.vmap(silhouette_mix))(*(a[None] for a in arrays))]):
+        np.testing.assert_allclose(got[0], expected[0], atol=2e-5)
+        np.testing.assert_allclose(got[1], expected[1], rtol=1e-6)
 
 
 def test_march_factor_divides_both_sides():

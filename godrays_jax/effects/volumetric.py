@@ -9,6 +9,7 @@ from jaxtyping import Array, Float
 from godrays_jax.effects.base import Effect, frame_ray_depth
 from godrays_jax.effects.fields import param, part, static
 from godrays_jax.effects.medium import FLAT_NAMES, Medium
+from godrays_jax.kernels.silhouettes import silhouette_mix
 from godrays_jax.kernels.volumetric import volumetric_fog_terms
 from godrays_jax.primitives.checks import check_light
 
@@ -16,86 +17,6 @@ from godrays_jax.primitives.checks import check_light
 def march_factor(height: int, width: int, resolution_factor: int) -> int:
     """The largest divisor of both `height` and `width` that is at most `resolution_factor` (at least 1)."""
     return max(d for d in range(1, resolution_factor + 1) if height % d == 0 and width % d == 0)
-
-
-# The share of a pixel's filter that falls on each neighbour in each direction (silhouette_coverage).
-_FILTER_SPILL = 0.15
-# How far apart (display space, x / (1 + x), mean over channels) a silhouette's surface and sky colours must be for
-# the pixel's colour to say how much of it each covers: no trust below the first, full trust from their sum on.
-_UNMIX_CONTRAST, _UNMIX_RAMP = 0.02, 0.03
-# Neighbours within this fraction of the surface's depth belong to the same surface (silhouette_coverage).
-_SAME_SURFACE = 0.05
-
-
-def _neighbours(plane):
-    """The eight neighbours of every pixel (edge pixels repeated at the border), stacked along a new first axis."""
-    height, width = plane.shape[:2]
-    pad = [(1, 1), (1, 1)] + [(0, 0)] * (plane.ndim - 2)
-    padded = jnp.pad(plane, pad, mode="edge")
-    return jnp.stack([padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)])
-
-
-def _unmixed_share(color, depth, surface_depth):
-    """`(share, trust)`: how much of each pixel its surface covers, read from its colour, and how far to trust that.
-
-    The pixel's colour is taken as a mix of its surface's colour (the median of
-    the neighbours on the same surface, within `_SAME_SURFACE` of `surface_depth`)
-    and the sky's (the median of its sky neighbours): the share is the
-    projection of the colour on the segment between them, clipped to [0, 1].
-    A pixel with no neighbour of its own kind is its own sample of it. Medians,
-    so that a bright emitter beside the pixel does not stand for the sky.
-    """
-    color = color[..., :3]
-    depths, colors = _neighbours(depth), _neighbours(color)
-    finite = jnp.isfinite(depths)
-    same_surface = finite & (jnp.abs(jnp.where(finite, depths, 0.0) - surface_depth) <= _SAME_SURFACE * surface_depth)
-    on_surface = jnp.isfinite(depth)[..., None]
-
-    def median_of(members, own):
-        median = jnp.nanmedian(jnp.where(members[..., None], colors, jnp.nan), axis=0)
-        return jnp.where(jnp.any(members, axis=0)[..., None], median, jnp.where(own, color, jnp.nan))
-
-    surface_color, sky_color = median_of(same_surface, on_surface), median_of(~finite, ~on_surface)
-    known = jnp.all(jnp.isfinite(surface_color) & jnp.isfinite(sky_color), axis=-1)
-    surface_color, sky_color = jnp.nan_to_num(surface_color), jnp.nan_to_num(sky_color)
-    apart = surface_color - sky_color
-    share = jnp.sum((color - sky_color) * apart, axis=-1) / jnp.maximum(jnp.sum(apart * apart, axis=-1), 1e-20)
-    contrast = jnp.mean(jnp.abs(surface_color / (1 + jnp.abs(surface_color)) - sky_color / (1 + jnp.abs(sky_color))), -1)
-    trust = jnp.where(known, jnp.clip((contrast - _UNMIX_CONTRAST) / _UNMIX_RAMP, 0.0, 1.0), 0.0)
-    return jnp.clip(share, 0.0, 1.0), trust
-
-
-def silhouette_coverage(
-    coverage: Float[Array, "H W"], depth: Float[Array, "H W"], color: Float[Array, "H W C"]
-) -> Float[Array, "H W"]:
-    """The frame's coverage, or where it only repeats the depth (1 on geometry, 0 on sky) an estimate of it.
-
-    A frame without a coverage pass (Blender writes alpha 1 through an opaque
-    film; `Buffers` then takes coverage from the depth) has hard silhouettes,
-    while the renderer's pixel filter blends each silhouette pixel's colour
-    from both sides (and Cycles' `Z` is one sample's, either side's). There
-    the colour says how much of the pixel the surface covers, where the
-    surface's and the sky's colours beside it differ enough to tell (ramping
-    in over `_UNMIX_CONTRAST` .. `+ _UNMIX_RAMP` in display space); elsewhere
-    the pixel filter's spread stands in: taps `[.15, .7, .15]` in each
-    direction (`.15`: what Cycles' frames of `benchmarks/references/blender`
-    blend across a silhouette, on average). `surface_depth` of a sky pixel is
-    its nearest neighbour's (`kernels.volumetric`). A real coverage pass (any
-    value strictly between 0 and 1, or a covered sky pixel) is used as it is.
-    """
-    hard = jnp.all(coverage == jnp.isfinite(depth).astype(coverage.dtype))
-    height, width = coverage.shape
-    padded = jnp.pad(coverage, 1, mode="edge")
-    taps = (_FILTER_SPILL, 1.0 - 2.0 * _FILTER_SPILL, _FILTER_SPILL)
-    spread = sum(
-        wy * wx * padded[dy : dy + height, dx : dx + width] for dy, wy in enumerate(taps) for dx, wx in enumerate(taps)
-    )  # fmt: skip
-    surface_depth = jnp.where(jnp.isfinite(depth), depth, jnp.min(_neighbours(depth), axis=0))
-    share, trust = _unmixed_share(color.astype(coverage.dtype), depth, surface_depth)
-    # Only a silhouette's pixels (sky beside them, or they are sky beside a surface) are unmixed.
-    silhouette = jnp.isfinite(surface_depth) & ~jnp.all(jnp.isfinite(_neighbours(depth)) & jnp.isfinite(depth), axis=0)
-    estimate = jnp.where(silhouette, trust * share + (1.0 - trust) * spread, spread)
-    return jnp.where(hard, estimate, coverage)
 
 
 class VolumetricFog(Effect):
@@ -149,13 +70,14 @@ class VolumetricFog(Effect):
         light_xy = check_light(light_xy)
         depth = frame_ray_depth(self, buffers)
         factor = march_factor(buffers.height, buffers.width, self.resolution_factor)
+        coverage, uncovered_depth = silhouette_mix(buffers.coverage, depth, buffers.color)
         return volumetric_fog_terms(
             depth, light_xy, fov_x_deg=self.fov_x_deg, light_depth=light_depth, light_in_front=light_in_front,
             extinction=self.medium.extinction, max_distance=self.medium.max_distance,
             height_falloff=self.height_falloff, layer_top=self.layer_top, anisotropy=self.medium.anisotropy,
             direct_fraction=self.direct_fraction, thickness=self.thickness, edge_softness=self.edge_softness,
             num_view_steps=self.num_view_steps, num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
-            coverage=silhouette_coverage(buffers.coverage, depth, buffers.color),
+            coverage=coverage, uncovered_depth=uncovered_depth,
         )  # fmt: skip
 
     def _light(self, scattered, opacity, dtype):

@@ -323,6 +323,7 @@ def volumetric_fog_terms(
     num_shadow_samples: int = 32,
     resolution_factor: int = 1,
     coverage: Float[Array, "H W"] | None = None,
+    uncovered_depth: Float[Array, "H W"] | None = None,
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"], Float[Array, "H W"]]:
     """`(surface, scattered, opacity)`: the fogged frame is `C * surface + light_color * scattered + ambient_color * opacity`.
 
@@ -350,11 +351,16 @@ def volumetric_fog_terms(
         num_shadow_samples: depth samples per screen segment (static int, >= 1).
         resolution_factor: the march runs on every `resolution_factor`-th pixel
             in each direction (static int, a divisor of H and W).
-        coverage: the fraction of each pixel covered by geometry, in [0, 1]
+        coverage: the fraction of each pixel covered by its surface, in [0, 1]
             (`Buffers.coverage`); each term is then `coverage` times the term
             of the surface (on a sky pixel, of its nearest neighbour's) plus
-            the rest times the sky's, as a renderer's pixel filter blends a
-            silhouette. None: the depth alone says (finite: covered).
+            the rest times the term of what the uncovered part sees, as a
+            renderer's pixel filter blends a silhouette. None: the depth alone
+            says (finite: covered).
+        uncovered_depth: the distance (scene units) that the uncovered part of
+            each pixel sees, along the pixel's ray: a surface behind or in
+            front of its own at a silhouette between two surfaces; `inf`, the
+            sky (None: the sky everywhere). Used with `coverage`.
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
@@ -370,6 +376,10 @@ def volumetric_fog_terms(
         check_scalar(value, name)
     if coverage is not None:
         check_plane(coverage, "coverage", height, width)
+    if uncovered_depth is not None:
+        if coverage is None:
+            raise ValueError("uncovered_depth needs coverage (the share of each pixel its own surface covers)")
+        check_plane(uncovered_depth, "uncovered_depth", height, width)
     dtype = jnp.result_type(depth, jnp.float32)
     depth = jnp.asarray(depth, dtype)
     medium = dict(extinction=extinction, height_falloff=height_falloff)
@@ -406,12 +416,12 @@ def volumetric_fog_terms(
     if coverage is None:
         surface, opacity = surface_and_opacity(depth)
         return surface, march(depth), opacity
-    # A silhouette's pixel is partly the surface (on sky: its nearest neighbour's) and partly the sky behind.
+    # A silhouette's pixel is partly the surface (on sky: its nearest neighbour's) and partly what lies beside it.
     covered = jnp.asarray(coverage, dtype)
     surface_depth = _covering_depth(depth)
-    sky = jnp.full_like(depth, jnp.inf)
+    uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
     terms = []
-    for ray_end in (surface_depth, sky):
+    for ray_end in (surface_depth, uncovered):
         surface, opacity = surface_and_opacity(ray_end)
         terms.append((surface, march(ray_end), opacity))
     return tuple(covered * on_surface + (1.0 - covered) * on_sky for on_surface, on_sky in zip(*terms))

@@ -9,6 +9,7 @@ these shares. Planes are `(H, W)`, depth in scene units along each ray
 
 import math
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -109,11 +110,15 @@ def silhouette_mix(
     finite = jnp.isfinite(depth)
     surface_depth = jnp.where(finite, depth, jnp.min(around, axis=0))
     beside_sky = ~finite | ~jnp.all(jnp.isfinite(around), axis=0)
-    unlike = jnp.where(finite & jnp.isfinite(around), jnp.abs(jnp.log(around / jnp.where(finite, depth, 1.0))), 0.0)
+    both = finite & jnp.isfinite(around)
+    ratio = jax.lax.stop_gradient(jnp.where(both, around, 1.0) / jnp.where(finite, depth, 1.0))
+    unlike = jnp.where(both, jnp.abs(jnp.log(ratio)), 0.0)
     other = jnp.take_along_axis(around, jnp.argmax(unlike, axis=0)[None], axis=0)[0]
     between_surfaces = ~beside_sky & (jnp.max(unlike, axis=0) > math.log(_SILHOUETTE_RATIO))
     uncovered_depth = jnp.where(between_surfaces, other, jnp.inf)
-    share, trust = _unmixed_share(color.astype(coverage.dtype), depth, surface_depth, uncovered_depth)
+    # The shares are read off the frame, not fitted: no gradient flows through them into the colour or the depth.
+    read_off = jax.lax.stop_gradient((color.astype(coverage.dtype), depth, surface_depth, uncovered_depth))
+    share, trust = _unmixed_share(*read_off)
     # Between two surfaces the colour decides on every frame; at the sky, a coverage pass where the frame has one.
     trust = jnp.where(jnp.isfinite(surface_depth) & (hard | between_surfaces), trust, 0.0)
     fallback = jnp.where(between_surfaces, 1.0, at_sky)

@@ -4,8 +4,9 @@
     python benchmarks/bench_volumetric.py --fit
 
 Forward: the `hidden_sun` reference's clean frame upscaled (nearest) to 1920x1080, the
-`volumetric_haze` preset at `resolution_factor` 4 and 8, jitted; the median of `--repeats` runs
-after one warm-up. Memory: XLA's compiled temporary bytes (`memory_analysis`) of the forward pass
+`volumetric_haze` preset at `resolution_factor` 4 (its own) and 2, their march spacings scaled with the
+frame (`march_factor`), and at 4 not scaled (4 pixels apart, as a 320-wide frame's), jitted; the median
+of `--repeats` runs after one warm-up. Memory: XLA's compiled temporary bytes (`memory_analysis`) of the forward pass
 and of one forward-mode derivative (what `fit`'s Jacobian takes per parameter) at 480x270 for
 several `num_view_steps` x `num_shadow_samples`. `--fit` times the 480x270 fit instead: the reference's
 clean frame and fog render upscaled (nearest), `fit` from `volumetric_haze` with the field of view
@@ -24,6 +25,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 import equinox as eqx
 import jax
@@ -33,6 +35,7 @@ import numpy as np
 import godrays_jax as gr
 from godrays_jax.app.fit_command import fit_starts
 from godrays_jax.app.options import auto_coarse_factor, model_presets
+from godrays_jax.effects.volumetric import march_factor
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
@@ -103,21 +106,26 @@ def main() -> None:
         print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
         return
     buffers, light = frame(1080, 1920)
-    print("| 1920x1080 forward | median seconds |")
-    print("|---|---|")
-    for factor in (4, 8):
+    print("| 1920x1080 forward | march spacing, pixels | median seconds |")
+    print("|---|---|---|")
+    for factor, scaled in ((4, True), (2, True), (4, False)):
         haze = gr.preset("volumetric_haze")
         effect = type(haze)(**{**{f.name: getattr(haze, f.name) for f in dataclasses.fields(haze)}, "resolution_factor": factor})
-        run = eqx.filter_jit(lambda e, b, l: e(b, l))
-        run(effect, buffers, light).block_until_ready()
-        times = []
-        for _ in range(args.repeats):
-            start = time.perf_counter()
+        # Unscaled: the spacing of a 320-pixel frame kept at 1920 (the pixel-grid march's cost before the spacing
+        # became a fraction of the frame).
+        spacing = march_factor(1080, 1920, factor) if scaled else factor
+        with mock.patch("godrays_jax.effects.volumetric.march_factor", lambda h, w, f, spacing=spacing: spacing):
+            run = eqx.filter_jit(lambda e, b, l: e(b, l))
             run(effect, buffers, light).block_until_ready()
-            times.append(time.perf_counter() - start)
-        print(f"| resolution_factor {factor} | {statistics.median(times):.3f} |", flush=True)
+            times = []
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                run(effect, buffers, light).block_until_ready()
+                times.append(time.perf_counter() - start)
+        label = f"resolution_factor {factor}" + ("" if scaled else ", not scaled with the frame")
+        print(f"| {label} | {spacing:g} | {statistics.median(times):.3f} |", flush=True)
     buffers, light = frame(270, 480)
-    print("| 480x270, resolution_factor 4 | forward MiB | one JVP MiB |")
+    print(f"| 480x270, resolution_factor 4 (spacing {march_factor(270, 480, 4):g}) | forward MiB | one JVP MiB |")
     print("|---|---|---|")
     for steps, samples in ((8, 16), (16, 32), (32, 32), (16, 128)):
         effect = gr.VolumetricFog(num_view_steps=steps, num_shadow_samples=samples, resolution_factor=4)

@@ -159,10 +159,17 @@ def test_silhouette_mix_matches_a_loop(rng, with_pass):
         np.testing.assert_allclose(got[1], expected[1], rtol=1e-6)
 
 
-def test_march_factor_divides_both_sides():
+def test_march_factor_divides_both_sides_and_grows_with_the_frame():
+    """`resolution_factor` up to 320 pixels on the larger side, as large a fraction of the frame beyond (at most
+    4 x), always a divisor of both sides; 1 marches every pixel at any size."""
     assert march_factor(180, 320, 4) == 4
     assert march_factor(180, 320, 8) == 5
     assert march_factor(181, 320, 4) == 1
+    assert march_factor(270, 480, 4) == 6
+    assert march_factor(360, 640, 4) == 8
+    assert march_factor(1080, 1920, 4) == 15
+    assert march_factor(720, 1280, 4) == 16
+    assert march_factor(1080, 1920, 1) == 1
 
 
 def test_params_file_round_trip(tmp_path):

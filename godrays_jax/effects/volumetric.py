@@ -14,9 +14,22 @@ from godrays_jax.kernels.volumetric import volumetric_fog_terms
 from godrays_jax.primitives.checks import check_light
 
 
+# The frame size (its larger side, pixels) up to which the march runs at `1 / resolution_factor`; larger frames
+# march at the same fraction of the frame (a preset looks and costs the same), down to this many times fewer.
+_REFERENCE_SIDE = 320
+_MAX_SPACING_SCALE = 4.0
+
+
 def march_factor(height: int, width: int, resolution_factor: int) -> int:
-    """The largest divisor of both `height` and `width` that is at most `resolution_factor` (at least 1)."""
-    return max(d for d in range(1, resolution_factor + 1) if height % d == 0 and width % d == 0)
+    """The march's reduction on a `height x width` frame: the largest divisor of both sides up to
+    `resolution_factor` on frames up to 320 pixels on their larger side, up to `resolution_factor` times the
+    larger side over 320 (at most 4 x `resolution_factor`) on larger ones (1920x1080 at 4: 15). At least 1;
+    `resolution_factor` 1 marches every pixel at any size."""
+    if resolution_factor == 1:
+        return 1
+    scale = min(max(max(height, width) / _REFERENCE_SIDE, 1.0), _MAX_SPACING_SCALE)
+    target = math.floor(resolution_factor * scale + 1e-9)
+    return max(d for d in range(1, target + 1) if height % d == 0 and width % d == 0)
 
 
 class VolumetricFog(Effect):
@@ -44,9 +57,11 @@ class VolumetricFog(Effect):
     the medium's. `fov_x_deg` is the horizontal field of view in degrees.
 
     The march runs at `1 / resolution_factor` of the frame's size in each
-    direction (the largest divisor of both sides up to it, `march_factor`)
-    and is upsampled with depth-aware weights; memory is O(march pixels x
-    `num_view_steps`) whatever `num_shadow_samples` is.
+    direction on frames up to 320 pixels, at as large a fraction of the frame
+    on larger ones (up to 4 x `resolution_factor`; the largest divisor of
+    both sides up to that, `march_factor`), and is upsampled with depth-aware
+    weights; memory is O(march pixels x `num_view_steps`) whatever
+    `num_shadow_samples` is.
 
     `effect(...)` is the fogged frame, `effect.layer(...)` the scattered light alone. Built as
     `VolumetricFog(medium=Medium(extinction=0.02, anisotropy=0.8), thickness=0.2, num_view_steps=24)`.

@@ -95,9 +95,10 @@ def test_coverage_of_a_filtered_silhouette_is_read_from_its_colour(far_depth):
 
 
 def _silhouette_mix_loop(coverage, depth, color):
-    """`silhouette_mix` pixel by pixel: each pixel's surface, the other side, and the colour's share where it tells."""
+    """`silhouette_mix` pixel by pixel: each pixel's surface, the other side, and the brightness's share where it tells."""
     hard = np.all(coverage == np.isfinite(depth))
     height, width = depth.shape
+    brightness = color[..., :3].mean(axis=-1)
     display = lambda c: c / (1 + np.abs(c))  # noqa: E731
     clamp = lambda y, x: (min(max(y, 0), height - 1), min(max(x, 0), width - 1))  # noqa: E731
     on = lambda d, at: (not np.isfinite(d)) if not np.isfinite(at) else bool(np.isfinite(d) and abs(d - at) <= 0.05 * at)  # noqa: E731
@@ -125,22 +126,21 @@ def _silhouette_mix_loop(coverage, depth, color):
                 continue
             sides = []
             for at in (surface, other):
-                members = [color[p] for p in around if on(depth[p], at)]
+                members = [brightness[p] for p in around if on(depth[p], at)]
                 if members:
-                    median = np.median(members, axis=0)
-                    deviations = np.sort([np.abs(display(m) - display(median)) for m in members], axis=0)[:-1]
-                    deviation = np.mean(deviations, axis=0) if len(deviations) else np.zeros(3)
+                    median = np.median(members)
+                    deviations = sorted(abs(display(m) - display(median)) for m in members)[:-1]
+                    deviation = np.mean(deviations) if deviations else 0.0
                 elif on(own, at):
-                    median, deviation = color[y, x], np.zeros(3)
+                    median, deviation = brightness[y, x], 0.0
                 else:
                     break
                 sides.append((median, deviation))
             else:
                 (first, first_dev), (second, second_dev) = sides
-                apart = first - second
-                share = np.clip(np.dot(color[y, x] - second, apart) / max(np.dot(apart, apart), 1e-20), 0, 1)
-                contrast = np.mean(np.abs(display(first) - display(second)))
-                trust = np.clip((contrast / (np.mean(first_dev + second_dev) + 0.002) - 3) / 3, 0, 1)
+                share = np.clip((brightness[y, x] - second) / (first - second) if first != second else 0.0, 0, 1)
+                contrast = abs(display(first) - display(second))
+                trust = np.clip((contrast / (first_dev + second_dev + 0.002) - 3) / 3, 0, 1)
                 shares[y, x] = trust * share + (1 - trust) * fallback
     return shares, uncovered
 

@@ -7,6 +7,7 @@ these shares. Planes are `(H, W)`, depth in scene units along each ray
 (`inf` on sky), colour linear.
 """
 
+import functools
 import math
 
 import jax
@@ -15,8 +16,8 @@ from jaxtyping import Array, Float
 
 # The share of a pixel's filter that falls on each neighbour in each direction (silhouette_mix).
 _FILTER_SPILL = 0.15
-# How far apart the colours of a silhouette's two sides must be for the pixel's colour to say how much of it each
-# covers, in units of how much each side's colours vary (display space, x / (1 + x), mean over channels) plus a
+# How far apart the brightness (the mean of the colour channels) of a silhouette's two sides must be for the pixel's
+# to say how much of it each covers, in units of how much each side's varies (display space, x / (1 + x)) plus a
 # floor: no trust below the first, full trust from their sum on.
 _UNMIX_CONTRAST, _UNMIX_RAMP, _UNMIX_FLOOR = 3.0, 3.0, 0.002
 # Depths within this fraction of a surface's depth belong to that surface (silhouette_mix).
@@ -26,53 +27,68 @@ _SILHOUETTE_RATIO = 1.1
 
 
 def _neighbours(plane):
-    """The eight neighbours of every pixel (edge pixels repeated at the border), stacked along a new first axis."""
-    height, width = plane.shape[:2]
-    pad = [(1, 1), (1, 1)] + [(0, 0)] * (plane.ndim - 2)
-    padded = jnp.pad(plane, pad, mode="edge")
-    return jnp.stack([padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)])
+    """The eight neighbours of every pixel of an `(H, W)` plane (edge pixels repeated at the border), a list."""
+    height, width = plane.shape
+    padded = jnp.pad(plane, 1, mode="edge")
+    return [padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)]
 
 
-def _on(depths, surface_depth):
-    """Whether each of `depths` lies on the surface at `surface_depth` (within `_SAME_SURFACE`; `inf`: the sky)."""
-    finite = jnp.isfinite(depths)
-    near = finite & (jnp.abs(jnp.where(finite, depths, 0.0) - surface_depth) <= _SAME_SURFACE * surface_depth)
+def _on(depth, surface_depth):
+    """Whether `depth` lies on the surface at `surface_depth` (within `_SAME_SURFACE`; `inf`: the sky)."""
+    finite = jnp.isfinite(depth)
+    near = finite & (jnp.abs(jnp.where(finite, depth, 0.0) - surface_depth) <= _SAME_SURFACE * surface_depth)
     return jnp.where(jnp.isfinite(surface_depth), near, ~finite)
 
 
-def _unmixed_share(color, depth, first, second):
+# Batcher's sorting network for eight values (19 compare-exchanges): the median of a pixel's neighbours with min and
+# max on whole planes, where a sort along a short axis costs many times more.
+_SORT_EIGHT = ((0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7), (0, 1), (2, 3), (4, 5), (6, 7),
+               (2, 4), (3, 5), (1, 4), (3, 6), (1, 2), (3, 4), (5, 6))  # fmt: skip
+
+
+def _median_of_members(values, members):
+    """Per pixel, the median of the eight planes `values` over those where `members` holds (NaN where none)."""
+    ordered = [jnp.where(member, value, jnp.inf) for value, member in zip(values, members)]
+    for i, j in _SORT_EIGHT:
+        ordered[i], ordered[j] = jnp.minimum(ordered[i], ordered[j]), jnp.maximum(ordered[i], ordered[j])
+    count = sum(member.astype(jnp.int32) for member in members)
+    low, high = jnp.full_like(ordered[0], jnp.nan), jnp.full_like(ordered[0], jnp.nan)
+    for k, value in enumerate(ordered):
+        low = jnp.where((count - 1) // 2 == k, value, low)
+        high = jnp.where(count // 2 == k, value, high)
+    return 0.5 * (low + high), count
+
+
+def _unmixed_share(brightness, depth, first, second):
     """`(share, trust)`: how much of each pixel the surface at `first` covers against the one at `second`
-    (depths; `inf`: the sky), read from its colour, and how far to trust that.
+    (depths; `inf`: the sky), read from its brightness (the mean of its colour channels), and how far to trust that.
 
-    The pixel's colour is taken as a mix of each side's colour (the median of
-    its neighbours on that side): the share is the projection of the colour on
-    the segment between them, clipped to [0, 1]. A pixel with no neighbour on
-    its own side is its own sample of it. Medians, so that a bright emitter
-    beside the pixel does not stand for the sky.
+    The pixel's brightness is taken as a mix of each side's (the median of its
+    neighbours on that side): the share is where it lies between them, clipped
+    to [0, 1]. A pixel with no neighbour on its own side is its own sample of
+    it. Medians, so that a bright emitter beside the pixel does not stand for
+    the sky.
     """
-    color = color[..., :3]
-    depths, colors = _neighbours(depth), _neighbours(color)
+    depths, values = _neighbours(depth), _neighbours(brightness)
     display = lambda c: c / (1 + jnp.abs(c))  # noqa: E731
-    def side(side_depth):
-        """The side's colour (median) and how much its members' colours vary (mean absolute deviation from it,
-        the largest left out: one emitter among them)."""
-        members = _on(depths, side_depth)
-        among = jnp.where(members[..., None], colors, jnp.nan)
-        median = jnp.nanmedian(among, axis=0)
-        deviations = jnp.where(members[..., None], jnp.abs(display(colors) - display(median)), 0.0)
-        count = jnp.sum(members, axis=0)[..., None]
-        deviation = (jnp.sum(deviations, axis=0) - jnp.max(deviations, axis=0)) / jnp.maximum(count - 1, 1)
-        own = _on(depth, side_depth)[..., None]
-        some = jnp.any(members, axis=0)[..., None]
-        return jnp.where(some, median, jnp.where(own, color, jnp.nan)), jnp.where(some, deviation, 0.0)
 
-    (first_color, first_spread), (second_color, second_spread) = side(first), side(second)
-    known = jnp.all(jnp.isfinite(first_color) & jnp.isfinite(second_color), axis=-1)
-    first_color, second_color = jnp.nan_to_num(first_color), jnp.nan_to_num(second_color)
-    apart = first_color - second_color
-    share = jnp.sum((color - second_color) * apart, axis=-1) / jnp.maximum(jnp.sum(apart * apart, axis=-1), 1e-20)
-    contrast = jnp.mean(jnp.abs(display(first_color) - display(second_color)), axis=-1)
-    noise = jnp.mean(first_spread + second_spread, axis=-1) + _UNMIX_FLOOR
+    def side(side_depth):
+        """The side's brightness (median) and how much its members' vary (mean absolute deviation from it in
+        display space, the largest left out: one emitter among them)."""
+        members = [_on(d, side_depth) for d in depths]
+        median, count = _median_of_members(values, members)
+        deviations = [jnp.where(m, jnp.abs(display(v) - display(median)), 0.0) for v, m in zip(values, members)]
+        deviation = (sum(deviations) - functools.reduce(jnp.maximum, deviations)) / jnp.maximum(count - 1, 1)
+        some = count > 0
+        return jnp.where(some, median, jnp.where(_on(depth, side_depth), brightness, jnp.nan)), jnp.where(some, deviation, 0.0)
+
+    (first_value, first_spread), (second_value, second_spread) = side(first), side(second)
+    known = jnp.isfinite(first_value) & jnp.isfinite(second_value)
+    first_value, second_value = jnp.nan_to_num(first_value), jnp.nan_to_num(second_value)
+    apart = first_value - second_value
+    share = (brightness - second_value) * apart / jnp.maximum(apart * apart, 1e-20)
+    contrast = jnp.abs(display(first_value) - display(second_value))
+    noise = first_spread + second_spread + _UNMIX_FLOOR
     trust = jnp.where(known, jnp.clip((contrast / noise - _UNMIX_CONTRAST) / _UNMIX_RAMP, 0.0, 1.0), 0.0)
     return jnp.clip(share, 0.0, 1.0), trust
 
@@ -88,10 +104,10 @@ def silhouette_mix(
     `kernels.volumetric` takes it); the rest of the pixel sees the sky, or at a
     silhouette between two surfaces (a neighbour more than `_SILHOUETTE_RATIO`
     times nearer or farther) the neighbour's depth most unlike its own. How
-    much each side covers is read from the pixel's colour where the two sides'
-    colours beside it differ enough to tell (by more than `_UNMIX_CONTRAST`
-    times how much each side's colours vary, plus a floor, in display space;
-    full trust `_UNMIX_RAMP` times further). Elsewhere: between two surfaces, the
+    much each side covers is read from the pixel's brightness (the mean of its
+    colour channels) where the two sides' beside it differ enough to tell (by
+    more than `_UNMIX_CONTRAST` times how much each side's varies, plus a
+    floor, in display space; full trust `_UNMIX_RAMP` times further). Elsewhere: between two surfaces, the
     pixel's own; at the sky, the frame's coverage pass where it has one (any
     value strictly between 0 and 1, or a covered sky pixel: used as it is),
     else the pixel filter's spread of the depth's hard coverage, taps `[.15,
@@ -106,7 +122,7 @@ def silhouette_mix(
         wy * wx * padded[dy : dy + height, dx : dx + width] for dy, wy in enumerate(taps) for dx, wx in enumerate(taps)
     )  # fmt: skip
     at_sky = jnp.where(hard, spread, coverage)
-    around = _neighbours(depth)
+    around = jnp.stack(_neighbours(depth))
     finite = jnp.isfinite(depth)
     surface_depth = jnp.where(finite, depth, jnp.min(around, axis=0))
     beside_sky = ~finite | ~jnp.all(jnp.isfinite(around), axis=0)
@@ -117,7 +133,8 @@ def silhouette_mix(
     between_surfaces = ~beside_sky & (jnp.max(unlike, axis=0) > math.log(_SILHOUETTE_RATIO))
     uncovered_depth = jnp.where(between_surfaces, other, jnp.inf)
     # The shares are read off the frame, not fitted: no gradient flows through them into the colour or the depth.
-    read_off = jax.lax.stop_gradient((color.astype(coverage.dtype), depth, surface_depth, uncovered_depth))
+    brightness = jnp.mean(color[..., :3].astype(coverage.dtype), axis=-1)
+    read_off = jax.lax.stop_gradient((brightness, depth, surface_depth, uncovered_depth))
     share, trust = _unmixed_share(*read_off)
     # Between two surfaces the colour decides on every frame; at the sky, a coverage pass where the frame has one.
     trust = jnp.where(jnp.isfinite(surface_depth) & (hard | between_surfaces), trust, 0.0)

@@ -192,9 +192,9 @@ class _Loop:
         """The in-scattering marched on rays at the light's position plus `spacing` times integers (the screen and
         one spacing around it), each to the depth of the texel it lies in and through to the medium's end; at
         every pixel, over its four nearest rays by bilinear weights, the mean of each ray's two values (one
-        when the ray's own runs to the end) weighted by how alike their ray lengths are to the pixel's; where
-        those weights sum to at most .05, the rays' values through to the end read at the pixel's depth (the
-        segment it falls in taken in proportion) by the bilinear weights alone."""
+        when the ray's own runs to the end) weighted by how alike their ray lengths are to the pixel's, and with
+        weight .05 the rays' values through to the end read at the pixel's depth (the segment it falls in
+        taken in proportion)."""
         anchor = self.light_xy % spacing - spacing
         xs = anchor[0] + spacing * np.arange(math.ceil(self.width / spacing) + 2)
         ys = anchor[1] + spacing * np.arange(math.ceil(self.height / spacing) + 2)
@@ -232,7 +232,7 @@ class _Loop:
                         total += tent * alike * value
                         weights += tent * alike
                     far += tent * read(bounds, lit, own)
-                out[row, col] = total / weights if weights > 0.05 else far
+                out[row, col] = (total + 0.05 * far) / (weights + 0.05)
         return out
 
     def terms(self, coverage=None, uncovered=None):

@@ -45,8 +45,9 @@ apart, anchored to the light (its position plus multiples of the spacing: under
 a pan they ride with the scene), each marched to the depth of the texel it lies
 in and through to the medium's end; every pixel takes its four nearest rays'
 values by bilinear weights at their true positions times how alike the ray
-lengths are to its own, or where no ray is alike (a thin object between rays
-that saw past it) their values through to the end read at its own depth.
+lengths are to its own, and with a small weight their values through to the end
+read at its own depth (all it has where no ray is alike: a thin object between
+rays that saw past it).
 """
 
 import functools
@@ -74,9 +75,9 @@ from godrays_jax.primitives.checks import check_image, check_light, check_plane,
 
 # Relative width of the depth-aware upsampling's weights (how different two ray lengths may be and still blend).
 _UPSAMPLE_DEPTH_SIGMA = 0.1
-# Below this sum of bilinear weights times likeness no ray is alike: the rays' in-scattering through to the
-# medium's end read at the pixel's own depth takes over.
-_UPSAMPLE_ALIKE = 0.05
+# The weight, beside the bilinear weights times likeness, of the rays' in-scattering through to the medium's end
+# read at the pixel's own depth: where no ray is alike, that reading is the pixel's.
+_THROUGH_WEIGHT = 0.05
 # The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
 _BEYOND_EVERY_SLAB = 1e30
 
@@ -300,10 +301,10 @@ def _read_at_depth(lit, bounds, row, col, ray_end):
 def _upsample_by_depth(values, coarse_keys, through, fine_key, xs, ys, spacing):
     """`values` of the march rays at `(xs, ys)` (`spacing` pixels apart), one per layer `(L, h, w)`, to every
     pixel: bilinear weights at the rays' true positions times how alike each layer's ray length (`coarse_keys`,
-    `(L, h, w)`, NaN: a layer that repeats another) is to the pixel's. Where those weights sum to at most
-    `_UPSAMPLE_ALIKE` (none of the four rays is alike: a thin object between rays that saw past it), the four
-    rays' in-scattering through to the medium's end read at the pixel's own depth (`through`: a function of
-    the four rays' rows, columns and the pixel's ray end, `fine_key`) by the bilinear weights alone.
+    `(L, h, w)`, NaN: a layer that repeats another) is to the pixel's, and with weight `_THROUGH_WEIGHT`
+    the four rays' in-scattering through to the medium's end read at the pixel's own depth (`through`: a
+    function of the four rays' rows, columns and the pixel's ray end, `fine_key`), which is what a pixel none
+    of whose four rays is alike (a thin object between rays that saw past it) gets.
     """
     height, width = fine_key.shape
     _, small_h, small_w = values.shape
@@ -319,7 +320,7 @@ def _upsample_by_depth(values, coarse_keys, through, fine_key, xs, ys, spacing):
         total = total + jnp.sum(tent * likeness * layer_values[row, col], axis=0)
         weights = weights + jnp.sum(tent * likeness, axis=0)
     far = jnp.sum(tent * through(row, col, fine_key), axis=0)
-    return jnp.where(weights > _UPSAMPLE_ALIKE, total / jnp.maximum(weights, _UPSAMPLE_ALIKE), far)
+    return (total + _THROUGH_WEIGHT * far) / (weights + _THROUGH_WEIGHT)
 
 
 def _covering_depth(depth):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from godrays_jax.kernels.volumetric import apply_volumetric_fog, segment_visibility, volumetric_fog_terms
+from godrays_jax.kernels.volumetric import _march_grid, apply_volumetric_fog, segment_visibility, volumetric_fog_terms
 
 HEIGHT, WIDTH = 4, 6
 MEDIUM = dict(
@@ -139,13 +139,25 @@ class _Loop:
         return end
 
     def pixel(self, row, col, depth):
-        x, y = col + 0.5, row + 0.5
+        return self.at(col + 0.5, row + 0.5, depth)
+
+    def at(self, x, y, depth):
+        """`(surface, scattered, opacity)` of the view ray through the pixel position `(x, y)` up to `depth`."""
+        view, bounds, transmittance, lit = self.segments(x, y, depth)
+        surface = transmittance[-1]
+        if math.isfinite(depth):
+            surface *= 1 - self.share + self.share * self.light_transmittance(depth * view)
+        return surface, sum(lit), 1 - transmittance[-1]
+
+    def segments(self, x, y, depth):
+        """The unit view ray through `(x, y)`, its segments' bounds up to `depth`, the transmittance at each
+        bound and each segment's scattered light."""
         view = self.ray(x, y)
         view /= np.linalg.norm(view)
         end = self.end_of_medium(view, depth)
         bounds = np.linspace(0.0, end, self.steps + 1)
         transmittance = [math.exp(-self.optical_depth(np.zeros(3), view, b)) for b in bounds]
-        scattered = 0.0
+        lit = []
         for j in range(self.steps):
             middle = 0.5 * (bounds[j] + bounds[j + 1])
             point = middle * view
@@ -157,14 +169,11 @@ class _Loop:
                 irradiance = np.trapezoid(values, ts) / (bounds[j + 1] - bounds[j])
             else:
                 irradiance = 1.0
-            scattered += (
+            lit.append(
                 (transmittance[j] - transmittance[j + 1]) * self.visibility(x, y, view, middle)
                 * self.light_transmittance(point) * _hg(view @ direction, self.g) * irradiance
             )  # fmt: skip
-        surface = transmittance[-1]
-        if math.isfinite(depth):
-            surface *= 1 - self.share + self.share * self.light_transmittance(depth * view)
-        return surface, scattered, 1 - transmittance[-1]
+        return view, bounds, transmittance, lit
 
     def covered_pixel(self, row, col, coverage, uncovered):
         """`coverage` of the surface's terms (on sky, its nearest neighbour's surface) and the rest of the terms at
@@ -178,6 +187,53 @@ class _Loop:
         rest = math.inf if uncovered is None else uncovered[row, col]
         surface, beside = self.pixel(row, col, depth), self.pixel(row, col, rest)
         return tuple(c * a + (1 - c) * b for a, b in zip(surface, beside))
+
+    def reduced_scattered(self, spacing):
+        """The in-scattering marched on rays at the light's position plus `spacing` times integers (the screen and
+        one spacing around it), each to the depth of the texel it lies in and through to the medium's end; at
+        every pixel, over its four nearest rays by bilinear weights, the mean of each ray's two values (one
+        when the ray's own runs to the end) weighted by how alike their ray lengths are to the pixel's; where
+        those weights sum to at most .05, the rays' values through to the end read at the pixel's depth (the
+        segment it falls in taken in proportion) by the bilinear weights alone."""
+        anchor = self.light_xy % spacing - spacing
+        xs = anchor[0] + spacing * np.arange(math.ceil(self.width / spacing) + 2)
+        ys = anchor[1] + spacing * np.arange(math.ceil(self.height / spacing) + 2)
+
+        def key(depth):
+            return min(depth, self.radius)
+
+        rays = {}  # (i, j) -> ([(key, scattered), ...], bounds through to the end, their segments' light)
+        for i, y in enumerate(ys):
+            for j, x in enumerate(xs):
+                depth = self.depth[min(max(math.floor(y), 0), self.height - 1), min(max(math.floor(x), 0), self.width - 1)]
+                _, bounds, _, lit = self.segments(x, y, math.inf)
+                layers = [(key(depth), self.at(x, y, depth)[1])]
+                if key(depth) < self.radius:
+                    layers.append((self.radius, sum(lit)))
+                rays[i, j] = (layers, bounds, lit)
+
+        def read(bounds, lit, distance):
+            distance = min(max(distance, bounds[0]), bounds[-1])
+            position = (distance - bounds[0]) / (bounds[-1] - bounds[0]) * len(lit) if bounds[-1] > bounds[0] else 0.0
+            k = min(math.floor(position), len(lit) - 1)
+            return sum(lit[:k]) + lit[k] * min(max(position - k, 0.0), 1.0)
+
+        out = np.zeros((self.height, self.width))
+        for row in range(self.height):
+            for col in range(self.width):
+                own = key(self.depth[row, col])
+                total = weights = far = 0.0
+                for (i, j), (layers, bounds, lit) in rays.items():
+                    tent = max(1 - abs(col + 0.5 - xs[j]) / spacing, 0) * max(1 - abs(row + 0.5 - ys[i]) / spacing, 0)
+                    if tent == 0:
+                        continue
+                    for k, value in layers:
+                        alike = math.exp(-abs(k - own) / (0.1 * own))
+                        total += tent * alike * value
+                        weights += tent * alike
+                    far += tent * read(bounds, lit, own)
+                out[row, col] = total / weights if weights > 0.05 else far
+        return out
 
     def terms(self, coverage=None, uncovered=None):
         rows = [[self.covered_pixel(row, col, coverage, uncovered) for col in range(self.width)]
@@ -310,8 +366,8 @@ def test_gradients_float64(x64, rng, light_depth):
 
 DEGENERATE = {
     "behind the camera": dict(light_xy=(3.0, 2.0), light_in_front=False),
-    "far off screen": dict(light_xy=(1e7, -3e6)),
-    "on a pixel centre": dict(light_xy=(2.5, 1.5)),
+    "far off screen": dict(light_xy=(1e7, -3e6), resolution_factor=2),  # and the reduced march anchored to it
+    "on a pixel centre": dict(light_xy=(2.5, 1.5), resolution_factor=1.5),
     "on the optical axis": dict(light_xy=(3.0, 2.0)),
     "at infinity": dict(light_xy=(2.5, 1.5), light_depth=math.inf),
     "at the camera": dict(light_xy=(3.0, 2.0), light_depth=1e-6),
@@ -348,14 +404,45 @@ def test_camera_above_the_layer_sees_haze_only_below_it(x64):
     assert np.all(np.asarray(scattered[: HEIGHT // 2]) == 0)
 
 
-def test_reduced_resolution_equals_full_resolution_on_the_march_pixels(x64, rng):
-    depth = np.full((8, 12), np.inf)
-    depth[4:] = rng.uniform(5.0, 30.0, (4, 12))
-    light = jnp.asarray([5.1, 1.3])
-    _, full, _ = volumetric_fog_terms(jnp.asarray(depth), light, **MEDIUM)
-    _, reduced, _ = volumetric_fog_terms(jnp.asarray(depth), light, resolution_factor=2, **MEDIUM)
-    np.testing.assert_allclose(reduced[1::2, 1::2], full[1::2, 1::2], rtol=1e-9)
-    assert np.all(np.isfinite(np.asarray(reduced)))
+def test_reduced_resolution_matches_loop(x64):
+    """Rays 2.5 pixels apart (not a divisor of the frame's 6 x 4) anchored to a light off screen (the margin's rays
+    read nothing beyond the screen), upsampled by depth."""
+    light_xy, light_depth, in_front = CASES["point light off screen"]
+    depth = _depth()
+    expected = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM).reduced_scattered(2.5)
+    _, got, _ = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray(light_xy), light_depth=light_depth,
+                                     light_in_front=in_front, resolution_factor=2.5, **MEDIUM)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
+
+
+def test_march_rays_ride_with_the_light(x64):
+    """The march rays sit at the light's position plus multiples of the spacing and cover the screen with a margin:
+    a light moved by part of a spacing moves every ray by as much, a light moved by whole spacings (far off screen
+    too) leaves them where they were."""
+    light = np.array([5.3, 2.2])
+    xs, ys = _march_grid(jnp.asarray(light), 8, 12, 2.5, jnp.float64)
+    assert xs[0] <= 0 and xs[-1] >= 12 and ys[0] <= 0 and ys[-1] >= 8
+    np.testing.assert_allclose(np.diff(xs), 2.5)
+    np.testing.assert_allclose(np.mod(xs - light[0], 2.5), 0, atol=1e-12)
+    moved = _march_grid(jnp.asarray(light + [0.7, 0.2]), 8, 12, 2.5, jnp.float64)
+    np.testing.assert_allclose(moved[0], xs + 0.7, atol=1e-12)
+    np.testing.assert_allclose(moved[1], ys + 0.2, atol=1e-12)
+    far = _march_grid(jnp.asarray(light + [2.5e6, -5.0e5]), 8, 12, 2.5, jnp.float64)
+    np.testing.assert_allclose(far[0], xs, atol=1e-6)
+    np.testing.assert_allclose(far[1], ys, atol=1e-6)
+
+
+def test_reduced_march_moves_with_a_panned_scene(x64):
+    """A scene and its light moved one pixel sideways (a pan, nearly: the field of view is narrow) give the same
+    reduced in-scattering moved by that pixel: the march rays moved with them. A grid fixed to the pixels saw
+    other parts of the scene."""
+    depth = np.full((8, 16), np.inf)
+    depth[3:, 2:4], depth[2:, 9], depth[5:, 12:15] = 6.0, 9.0, 12.0
+    options = dict(MEDIUM, fov_x_deg=2.0, resolution_factor=4)
+    run = jax.jit(lambda d, l: volumetric_fog_terms(d, l, light_depth=40.0, **options)[1])
+    still = np.asarray(run(jnp.asarray(depth), jnp.asarray([8.3, 1.6])))
+    panned = np.asarray(run(jnp.asarray(np.roll(depth, 1, axis=1)), jnp.asarray([9.3, 1.6])))
+    np.testing.assert_allclose(panned[:, 5:12], still[:, 4:11], rtol=2e-3)  # the margin beyond the screen differs
 
 
 def test_shadows_move_smoothly_with_the_light(x64):
@@ -381,7 +468,7 @@ def test_bad_options_name_the_argument():
     with pytest.raises(ValueError, match="num_view_steps"):
         volumetric_fog_terms(depth, jnp.zeros(2), **dict(MEDIUM, num_view_steps=0))
     with pytest.raises(ValueError, match="resolution_factor"):
-        volumetric_fog_terms(depth, jnp.zeros(2), resolution_factor=4, **MEDIUM)
+        volumetric_fog_terms(depth, jnp.zeros(2), resolution_factor=0.5, **MEDIUM)
     with pytest.raises(ValueError, match="num_shadow_samples"):
         volumetric_fog_terms(depth, jnp.zeros(2), **dict(MEDIUM, num_shadow_samples=2.5))
     with pytest.raises(ValueError, match="uncovered_depth needs coverage"):

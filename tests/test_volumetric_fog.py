@@ -159,16 +159,14 @@ def test_silhouette_mix_matches_a_loop(rng, with_pass):
         np.testing.assert_allclose(got[1], expected[1], rtol=1e-6)
 
 
-def test_march_factor_divides_both_sides_and_grows_with_the_frame():
-    """`resolution_factor` up to 320 pixels on the larger side, as large a fraction of the frame beyond (at most
-    4 x), always a divisor of both sides; 1 marches every pixel at any size."""
-    assert march_factor(180, 320, 4) == 4
-    assert march_factor(180, 320, 8) == 5
-    assert march_factor(181, 320, 4) == 1
+def test_march_spacing_is_a_fraction_of_the_frame():
+    """`resolution_factor` pixels up to 320 on the frame's larger side, beyond it as large a fraction of that side (at
+    most 4 x), on any frame size; 1: every pixel's own ray."""
+    assert march_factor(180, 320, 4) == march_factor(90, 160, 4) == 4
     assert march_factor(270, 480, 4) == 6
     assert march_factor(360, 640, 4) == 8
-    assert march_factor(1080, 1920, 4) == 15
-    assert march_factor(720, 1280, 4) == 16
+    assert march_factor(181, 321, 8) == pytest.approx(8 * 321 / 320)
+    assert march_factor(1080, 1920, 4) == 16
     assert march_factor(1080, 1920, 1) == 1
 
 

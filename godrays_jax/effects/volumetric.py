@@ -14,22 +14,23 @@ from godrays_jax.kernels.volumetric import volumetric_fog_terms
 from godrays_jax.primitives.checks import check_light
 
 
-# The frame size (its larger side, pixels) up to which the march runs at `1 / resolution_factor`; larger frames
-# march at the same fraction of the frame (a preset looks and costs the same), down to this many times fewer.
+# The frame size (its larger side, pixels) up to which the march rays are `resolution_factor` pixels apart; on
+# larger frames they keep that fraction of the frame, so a preset looks and costs the same, up to this many times
+# farther apart.
 _REFERENCE_SIDE = 320
 _MAX_SPACING_SCALE = 4.0
 
 
-def march_factor(height: int, width: int, resolution_factor: int) -> int:
-    """The march's reduction on a `height x width` frame: the largest divisor of both sides up to
-    `resolution_factor` on frames up to 320 pixels on their larger side, up to `resolution_factor` times the
-    larger side over 320 (at most 4 x `resolution_factor`) on larger ones (1920x1080 at 4: 15). At least 1;
-    `resolution_factor` 1 marches every pixel at any size."""
+def march_factor(height: int, width: int, resolution_factor: int) -> float:
+    """The march rays' spacing in pixels on a `height x width` frame (`kernels.volumetric`'s `resolution_factor`).
+
+    `resolution_factor` pixels on a frame up to 320 pixels on its larger side; on a larger frame the same
+    fraction of that side, at most 4 x `resolution_factor` pixels. 1: every pixel's own ray, at any size.
+    """
     if resolution_factor == 1:
         return 1
     scale = min(max(max(height, width) / _REFERENCE_SIDE, 1.0), _MAX_SPACING_SCALE)
-    target = math.floor(resolution_factor * scale + 1e-9)
-    return max(d for d in range(1, target + 1) if height % d == 0 and width % d == 0)
+    return resolution_factor * scale
 
 
 class VolumetricFog(Effect):
@@ -56,12 +57,12 @@ class VolumetricFog(Effect):
     of the frame's own surface light comes from the light and is dimmed like
     the medium's. `fov_x_deg` is the horizontal field of view in degrees.
 
-    The march runs at `1 / resolution_factor` of the frame's size in each
-    direction on frames up to 320 pixels, at as large a fraction of the frame
-    on larger ones (up to 4 x `resolution_factor`; the largest divisor of
-    both sides up to that, `march_factor`), and is upsampled with depth-aware
-    weights; memory is O(march pixels x `num_view_steps`) whatever
-    `num_shadow_samples` is.
+    The march runs on rays `resolution_factor` pixels apart on a frame of up
+    to 320 pixels (on larger frames the same fraction of the frame, at most
+    four times as many pixels apart: `march_factor`), anchored to the light
+    (under a pan they ride with the scene), any factor at any frame size, and
+    is upsampled with depth-aware weights; memory is O(march rays x
+    `num_view_steps`) whatever `num_shadow_samples` is.
 
     `effect(...)` is the fogged frame, `effect.layer(...)` the scattered light alone. Built as
     `VolumetricFog(medium=Medium(extinction=0.02, anisotropy=0.8), thickness=0.2, num_view_steps=24)`.

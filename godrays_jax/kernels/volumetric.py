@@ -40,12 +40,18 @@ own pixel, where every shadow ray reaches the light's distance (the sun's:
 beyond every slab), so an object that hides the light shades the whole view
 ray in front of it. Surfaces whose slab reaches the light (the emitter) and
 sky block nothing; off screen nothing is known and nothing blocks. The samples are
-shared by every segment; the march runs on every `resolution_factor`-th pixel
-and its in-scattering is upsampled with depth-aware weights.
+shared by every segment. The march runs on rays `resolution_factor` pixels
+apart, anchored to the light (its position plus multiples of the spacing: under
+a pan they ride with the scene), each marched to the depth of the texel it lies
+in and through to the medium's end; every pixel takes its four nearest rays'
+values by bilinear weights at their true positions times how alike the ray
+lengths are to its own, or where no ray is alike (a thin object between rays
+that saw past it) their values through to the end read at its own depth.
 """
 
 import functools
 import math
+import numbers
 
 import jax
 import jax.numpy as jnp
@@ -68,7 +74,8 @@ from godrays_jax.primitives.checks import check_image, check_light, check_plane,
 
 # Relative width of the depth-aware upsampling's weights (how different two ray lengths may be and still blend).
 _UPSAMPLE_DEPTH_SIGMA = 0.1
-# Below this sum of bilinear weights times likeness no bilinear neighbour is alike: the wider tent takes over.
+# Below this sum of bilinear weights times likeness no ray is alike: the rays' in-scattering through to the
+# medium's end read at the pixel's own depth takes over.
 _UPSAMPLE_ALIKE = 0.05
 # The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
 _BEYOND_EVERY_SLAB = 1e30
@@ -78,12 +85,18 @@ def _ramp(x):
     return jnp.clip(x, 0.0, 1.0)
 
 
-def _march_grid(height, width, factor, dtype):
-    """Pixel positions of the march (every `factor`-th pixel's centre, the block's middle pixel)."""
-    offset = factor // 2 + 0.5
-    xs = jnp.arange(width // factor, dtype=dtype) * factor + offset
-    ys = jnp.arange(height // factor, dtype=dtype) * factor + offset
-    return jnp.meshgrid(xs, ys)
+def _march_grid(light_xy, height, width, spacing, dtype):
+    """Pixel positions `(xs, ys)` (`(w,)`, `(h,)`) of the march rays: the light's position plus `spacing` times integers.
+
+    Anchored to the light, not to the pixels: under a pan the rays ride with the scene and its light, and any
+    spacing works on any frame size. The count is static, the screen `[0, width] x [0, height]` plus one
+    spacing on each side wherever the light is: only the light's position modulo `spacing` counts, so a far
+    off-screen light is fine.
+    """
+    anchor = jnp.mod(jnp.asarray(light_xy, dtype), spacing) - spacing
+    xs = anchor[0] + spacing * jnp.arange(math.ceil(width / spacing) + 2, dtype=dtype)
+    ys = anchor[1] + spacing * jnp.arange(math.ceil(height / spacing) + 2, dtype=dtype)
+    return xs, ys
 
 
 def _bilinear(u, v, rows, cols):
@@ -122,7 +135,8 @@ def segment_visibility(
         light_xy: the light's projected position in pixels (mirrored through the
             camera plane when behind it, as `camera.project_point`), any real value.
         pixel_xy: the pixel positions whose view rays are tested (x right, y down,
-            pixel centres at `i + 0.5`), on screen.
+            pixel centres at `i + 0.5`), on screen or near it (a ray whose screen
+            segment leaves the screen at once reads nothing).
         distances: distances along those rays (scene units) of the points tested.
         fov_x_deg: horizontal field of view in degrees, in (0, 180).
         light_depth: the light's distance along its camera ray, scene units; `inf`: the sun.
@@ -168,7 +182,7 @@ def segment_visibility(
     exits = [jnp.where(step[..., axis] == 0, jnp.inf, e) for axis, e in enumerate(exits)]
     reach = jnp.minimum(exits[0], exits[1])
     reach = jnp.where(in_front, jnp.minimum(reach, 1.0), reach)
-    reach = jnp.where(jnp.isfinite(reach), reach, 0.0)
+    reach = jnp.where(jnp.isfinite(reach), jnp.maximum(reach, 0.0), 0.0)
     view = _rays_at(pixel_xy[..., 0], pixel_xy[..., 1], height, width, focal)
     view = view / jnp.linalg.norm(view, axis=-1, keepdims=True)
     view_cross_light = jnp.cross(view, toward)
@@ -223,23 +237,30 @@ def segment_visibility(
     return visibility
 
 
-def _in_scattered(view, ray_end, depth, light_xy, pixel_xy, options):
-    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) up to `ray_end`: `(h, w)`."""
+def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
+    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) up to each of `ray_ends` (a
+    sequence of `(h, w)`), segment by segment: `(L, h, w, num_view_steps)`, and the segments' bounds (scene
+    units, `(L, h, w, num_view_steps + 1)`). The ends share each shadow sample's reads of the depth buffer."""
     (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
      thickness, edge_softness, num_view_steps, num_shadow_samples) = options  # fmt: skip
     height, width = depth.shape
     dtype = view.dtype
     toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     origin = jnp.zeros_like(view)
-    start, end = medium_interval(origin, view, ray_end, max_distance=max_distance, layer_top=layer_top)
     fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
-    bounds = start[..., None] + (end - start)[..., None] * fractions
-    tau = optical_depth(
-        origin[..., None, :], view[..., None, :], start[..., None], bounds,
-        extinction=extinction, height_falloff=height_falloff,
-    )  # fmt: skip
-    attenuated = jnp.exp(-tau[..., :-1]) - jnp.exp(-tau[..., 1:])
-    middles = 0.5 * (bounds[..., :-1] + bounds[..., 1:])
+    lower, upper, attenuated, bounds = [], [], [], []
+    for ray_end in ray_ends:
+        start, end = medium_interval(origin, view, ray_end, max_distance=max_distance, layer_top=layer_top)
+        bounds.append(start[..., None] + (end - start)[..., None] * fractions)
+        tau = optical_depth(
+            origin[..., None, :], view[..., None, :], start[..., None], bounds[-1],
+            extinction=extinction, height_falloff=height_falloff,
+        )  # fmt: skip
+        lower.append(bounds[-1][..., :-1])
+        upper.append(bounds[-1][..., 1:])
+        attenuated.append(jnp.exp(-tau[..., :-1]) - jnp.exp(-tau[..., 1:]))
+    lower, upper, attenuated = (jnp.concatenate(parts, axis=-1) for parts in (lower, upper, attenuated))
+    middles = 0.5 * (lower + upper)
     points = view[..., None, :] * middles[..., None]
     dimmed = light_transmittance(
         points, toward, light_depth=light_depth, extinction=extinction, max_distance=max_distance,
@@ -247,13 +268,14 @@ def _in_scattered(view, ray_end, depth, light_xy, pixel_xy, options):
     )  # fmt: skip
     to_light, _ = toward_light(points, toward, inverse)
     phase = henyey_greenstein(dot(view[..., None, :], to_light), anisotropy=anisotropy)
-    irradiance = segment_irradiance(view, bounds[..., :-1], bounds[..., 1:], toward, inverse)
+    irradiance = segment_irradiance(view, lower, upper, toward, inverse)
     visible = segment_visibility(
         depth, light_xy, pixel_xy, middles, fov_x_deg=fov_x_deg, light_depth=light_depth,
         light_in_front=light_in_front, thickness=thickness, edge_softness=edge_softness,
         num_shadow_samples=num_shadow_samples,
     )  # fmt: skip
-    return jnp.sum(attenuated * visible * dimmed * phase * irradiance, axis=-1)
+    lit = attenuated * visible * dimmed * phase * irradiance
+    return jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0), jnp.stack(bounds)
 
 
 def _ray_length(depth, max_distance):
@@ -262,36 +284,42 @@ def _ray_length(depth, max_distance):
     return jnp.minimum(jnp.where(finite, depth, max_distance), max_distance)
 
 
-def _upsample_by_depth(values, coarse_key, fine_key, factor):
-    """`values` on the march grid to every pixel: bilinear weights times how alike the ray lengths are.
+def _read_at_depth(lit, bounds, row, col, ray_end):
+    """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to each ray's medium
+    interval) from their segments' light `lit` (`(h, w, M)`) and bounds (`(h, w, M + 1)`, even), the segment
+    holding `ray_end` taken in proportion."""
+    count = lit.shape[-1]
+    first, last = bounds[..., 0][row, col], bounds[..., -1][row, col]
+    distance = jnp.clip(ray_end, first, last)
+    position = safe_divide(distance - first, last - first, 0.0) * count
+    index = jnp.clip(jnp.floor(jax.lax.stop_gradient(position)), 0, count - 1).astype(jnp.int32)
+    before = jnp.cumsum(lit, axis=-1) - lit
+    return before[row, col, index] + lit[row, col, index] * jnp.clip(position - index, 0.0, 1.0)
 
-    Where none of the four bilinear neighbours is alike (a silhouette the march grid missed: a sky pixel
-    beside an object the march saw, or the reverse), the sixteen around it with a wider tent instead.
+
+def _upsample_by_depth(values, coarse_keys, through, fine_key, xs, ys, spacing):
+    """`values` of the march rays at `(xs, ys)` (`spacing` pixels apart), one per layer `(L, h, w)`, to every
+    pixel: bilinear weights at the rays' true positions times how alike each layer's ray length (`coarse_keys`,
+    `(L, h, w)`, NaN: a layer that repeats another) is to the pixel's. Where those weights sum to at most
+    `_UPSAMPLE_ALIKE` (none of the four rays is alike: a thin object between rays that saw past it), the four
+    rays' in-scattering through to the medium's end read at the pixel's own depth (`through`: a function of
+    the four rays' rows, columns and the pixel's ray end, `fine_key`) by the bilinear weights alone.
     """
     height, width = fine_key.shape
-    small_h, small_w = values.shape
-    offset = factor // 2 + 0.5
+    _, small_h, small_w = values.shape
     dtype = values.dtype
-    x = (jnp.arange(width, dtype=dtype) + 0.5 - offset) / factor
-    y = (jnp.arange(height, dtype=dtype) + 0.5 - offset) / factor
-    x0, y0 = jnp.floor(x), jnp.floor(y)
+    x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
+    y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
+    row, col, tent = _bilinear(x[None, :], y[:, None], small_h, small_w)
     scale = _UPSAMPLE_DEPTH_SIGMA * jnp.maximum(fine_key, 1e-6)
-    sums = {reach: [jnp.zeros((height, width), dtype), jnp.zeros((height, width), dtype)] for reach in (1.0, 1.5)}
-    for dy in (-1, 0, 1, 2):
-        rows = jnp.clip(y0 + dy, 0, small_h - 1).astype(jnp.int32)
-        for dx in (-1, 0, 1, 2):
-            cols = jnp.clip(x0 + dx, 0, small_w - 1).astype(jnp.int32)
-            key = coarse_key[rows[:, None], cols[None, :]]
-            alike = jax.lax.stop_gradient(jnp.exp(-jnp.abs(key - fine_key) / scale))
-            value = values[rows[:, None], cols[None, :]]
-            for reach, (total, weights) in sums.items():
-                tent = jnp.maximum(reach - jnp.abs(y - y0 - dy), 0.0)[:, None] * jnp.maximum(
-                    reach - jnp.abs(x - x0 - dx), 0.0
-                )[None, :]  # fmt: skip
-                weight = tent * (alike + 1e-12)
-                sums[reach] = [total + weight * value, weights + weight]
-    (near_total, near_weights), (wide_total, wide_weights) = sums[1.0], sums[1.5]
-    return jnp.where(near_weights > _UPSAMPLE_ALIKE, near_total / near_weights, wide_total / wide_weights)
+    total, weights = 0.0, 0.0
+    for layer_key, layer_values in zip(coarse_keys, values):
+        key = layer_key[row, col]
+        likeness = jax.lax.stop_gradient(jnp.where(jnp.isnan(key), 0.0, jnp.exp(-jnp.abs(key - fine_key) / scale)))
+        total = total + jnp.sum(tent * likeness * layer_values[row, col], axis=0)
+        weights = weights + jnp.sum(tent * likeness, axis=0)
+    far = jnp.sum(tent * through(row, col, fine_key), axis=0)
+    return jnp.where(weights > _UPSAMPLE_ALIKE, total / jnp.maximum(weights, _UPSAMPLE_ALIKE), far)
 
 
 def _covering_depth(depth):
@@ -349,8 +377,11 @@ def volumetric_fog_terms(
         thickness, edge_softness: the depth buffer's slabs (`segment_visibility`).
         num_view_steps: segments per view ray (static int, >= 1).
         num_shadow_samples: depth samples per screen segment (static int, >= 1).
-        resolution_factor: the march runs on every `resolution_factor`-th pixel
-            in each direction (static int, a divisor of H and W).
+        resolution_factor: the march rays' spacing in pixels (a static Python
+            number >= 1, any frame size): 1, every pixel's own ray; more, rays
+            at the light's position plus `resolution_factor` times integers
+            (`_march_grid`), upsampled to every pixel with depth-aware weights
+            (the module's docstring).
         coverage: the fraction of each pixel covered by its surface, in [0, 1]
             (`Buffers.coverage`); each term is then `coverage` times the term
             of the surface (on a sky pixel, of its nearest neighbour's) plus
@@ -365,12 +396,11 @@ def volumetric_fog_terms(
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
     light_xy = check_light(light_xy)
-    for name, value in (("num_view_steps", num_view_steps), ("resolution_factor", resolution_factor)):
-        if not is_static_int(value) or value < 1:
-            raise ValueError(f"{name} must be a Python int >= 1, got {value!r}")
+    if not is_static_int(num_view_steps) or num_view_steps < 1:
+        raise ValueError(f"num_view_steps must be a Python int >= 1, got {num_view_steps!r}")
+    if not isinstance(resolution_factor, numbers.Real) or isinstance(resolution_factor, bool) or not resolution_factor >= 1:
+        raise ValueError(f"resolution_factor must be a Python number >= 1, got {resolution_factor!r}")
     height, width = depth.shape
-    if height % resolution_factor or width % resolution_factor:
-        raise ValueError(f"resolution_factor={resolution_factor} must divide the image size {width}x{height}")
     for name, value in (("extinction", extinction), ("max_distance", max_distance), ("height_falloff", height_falloff),
                         ("layer_top", layer_top), ("anisotropy", anisotropy), ("direct_fraction", direct_fraction)):  # fmt: skip
         check_scalar(value, name)
@@ -399,19 +429,35 @@ def volumetric_fog_terms(
 
     options = (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
                thickness, edge_softness, num_view_steps, num_shadow_samples)  # fmt: skip
-    factor = resolution_factor
-    x, y = _march_grid(height, width, factor, dtype)
-    if factor == 1:
-        march = functools.partial(_in_scattered, view, depth=depth, light_xy=light_xy,
-                                  pixel_xy=jnp.stack([x, y], axis=-1), options=options)  # fmt: skip
-    else:
-        rows, cols = (y - 0.5).astype(jnp.int32), (x - 0.5).astype(jnp.int32)
-        coarse_depth = depth[rows, cols]
-        coarse = _in_scattered(view[rows, cols], coarse_depth, depth, light_xy, jnp.stack([x, y], axis=-1), options)
-        key = functools.partial(_ray_length, max_distance=jax.lax.stop_gradient(jnp.asarray(max_distance, dtype)))
+    spacing = resolution_factor
+    if spacing == 1:
+        x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, jnp.arange(height, dtype=dtype) + 0.5)
 
         def march(ray_end):
-            return _upsample_by_depth(coarse, key(coarse_depth), key(ray_end), factor)
+            return jnp.sum(_in_scattered(view, (ray_end,), depth, light_xy, jnp.stack([x, y], axis=-1), options)[0][0], axis=-1)
+
+    else:
+        xs, ys = _march_grid(light_xy, height, width, spacing, dtype)
+        x, y = jnp.meshgrid(xs, ys)
+        # Each march ray's own depth: the texel it lies in (clamped to the frame: the margin's rays).
+        rows = jnp.clip(jnp.floor(y), 0, height - 1).astype(jnp.int32)
+        cols = jnp.clip(jnp.floor(x), 0, width - 1).astype(jnp.int32)
+        coarse_depth = depth[rows, cols]
+        rays = _rays_at(x, y, height, width, focal_length_px(width, fov_x_deg, dtype))
+        rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
+        # Two layers: each ray up to its own surface and through to the medium's end, so that a pixel whose
+        # view runs past every nearby ray's surface (sky in a gap narrower than the spacing) reads rays like it.
+        sky = jnp.full_like(coarse_depth, jnp.inf)
+        lit, segment_bounds = _in_scattered(rays, (coarse_depth, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
+        key = functools.partial(_ray_length, max_distance=jax.lax.stop_gradient(jnp.asarray(max_distance, dtype)))
+        own, beyond = key(coarse_depth), key(sky)
+        keys = jnp.stack([own, jnp.where(own < beyond, beyond, jnp.nan)])
+
+        def through(row, col, ray_end):
+            return _read_at_depth(lit[1], segment_bounds[1], row, col, ray_end)
+
+        def march(ray_end):
+            return _upsample_by_depth(jnp.sum(lit, axis=-1), keys, through, key(ray_end), xs, ys, spacing)
 
     if coverage is None:
         surface, opacity = surface_and_opacity(depth)

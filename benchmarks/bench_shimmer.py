@@ -1,7 +1,7 @@
 """Shimmer of the shaft presets on a slow camera pan: how much their error against a converged version changes per frame.
 
     python benchmarks/bench_shimmer.py [--size 320x180] [--frames 12] [--pan 0.35] [--oversample 32] [--fog-oversample 4]
-        [--presets a,b] [--method fast] [--same-target] [--cache FILE]
+        [--presets a,b] [--method fast] [--same-target] [--cache FILE] [--maps DIR]
 
 The shipped forest (examples/scenes/forest_hero.json) is rendered by the
 project's rasterizer at `--size` for `--frames` frames while the camera turns
@@ -31,6 +31,11 @@ the table gives, per preset, the RMS over pixels, channels and frame pairs of
 the error's change from one frame to the next, and its 99th percentile in
 absolute value, plus the RMS of the error itself. The target: at most 0.3 RMS
 and 1.5 codes at the 99th percentile.
+
+`--maps DIR` writes, per preset, `DIR/NAME.png` (8-bit grey, the codes
+proportional to the values): on the left the RMS over frame pairs and channels of the error's
+change at each pixel, on the right the middle frame's error (grey zero,
+lighter +, darker -), with their scales printed: where the shimmer lives.
 """
 
 import argparse
@@ -154,6 +159,26 @@ def shimmer(errors: list[np.ndarray]) -> tuple[float, float, float]:
     )
 
 
+def change_map(errors: list[np.ndarray]) -> np.ndarray:
+    """Per pixel, the RMS over frame pairs and channels of the error's change from one frame to the next."""
+    change = np.diff(np.stack(errors), axis=0)
+    return np.sqrt(np.mean(change**2, axis=(0, -1)))
+
+
+def write_maps(path: Path, errors: list[np.ndarray]) -> float:
+    """`change_map` beside the middle frame's error (grey zero), side by side on one scale; returns the scale (codes)."""
+    change = change_map(errors)
+    error = np.mean(errors[len(errors) // 2], axis=-1)
+    scale = max(float(np.percentile(change, 99.9)), 1e-6)
+    left = np.clip(change / scale, 0.0, 1.0)
+    right = np.clip(0.5 + 0.5 * error / (4 * scale), 0.0, 1.0)
+    gap = np.ones((change.shape[0], 4))
+    picture = np.concatenate([left, gap, right], axis=1)
+    # write_image sRGB-encodes a PNG's colour: decode first, so the file's codes are the picture's values.
+    gr.write_image(path, np.asarray(gr.srgb_decode(np.repeat(picture[..., None], 3, axis=-1)), np.float32))
+    return scale
+
+
 def with_camera(effect, camera: gr.Camera):
     """The effect with the camera's field of view and clip planes, as `apply` gives it those of a frame `render` wrote."""
     effect = with_field_of_view(effect, float(camera.fov_x_deg))
@@ -173,6 +198,7 @@ def main() -> None:
     parser.add_argument("--method", default=None, help="also measure GodRays presets with this method (e.g. fast)")
     parser.add_argument("--same-target", action="store_true", help="converged flare-outs stay in the effect's target")
     parser.add_argument("--cache", default=None, help="keep the rendered frames in this file and reuse them")
+    parser.add_argument("--maps", default=None, help="write per preset a picture of where the error changes to this folder")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
     started = time.perf_counter()
@@ -210,6 +236,11 @@ def main() -> None:
         rms, p99, error = shimmer(errors)
         ok = "yes" if rms <= TARGET_RMS and p99 <= TARGET_P99 else "no"
         print(f"| {name} | {rms:.2f} | {p99:.2f} | {error:.2f} | {ok} |", flush=True)
+        if args.maps:
+            Path(args.maps).mkdir(parents=True, exist_ok=True)
+            picture = Path(args.maps) / f"{name.replace(' ', '_')}.png"
+            scale = write_maps(picture, errors)
+            print(f"  {picture}: white {scale:.2f} codes of change RMS (left); white/black +-{4 * scale:.2f} codes of error (right)")
     print(f"total {time.perf_counter() - started:.0f} s")
 
 

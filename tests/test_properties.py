@@ -342,9 +342,13 @@ def test_effects_vmap_over_frames_equals_loop(name):
     effect = _small(name)
     visible = jnp.ones(3, bool)
     batched = eqx.filter_jit(jax.vmap(_effect_on_frame, in_axes=(None, 0, 0, 0)))(effect, stacked, lights_xy, visible)
+    one_frame = eqx.filter_jit(_apply_effect)  # compiled too: what differs is the batching, not XLA's fusion
     for i in range(3):
         frame = jax.tree.map(lambda leaf: leaf[i], stacked)
-        _close(batched[i], _apply_effect(effect, frame, lights_xy[i], visible[i]))
+        # VolumetricFog's march amplifies float32 rounding (up to 3e-5 here, by the light on the frame's corner);
+        # in float64 the batch and the loop agree to 1e-16.
+        _close(batched[i], one_frame(effect, frame, lights_xy[i], visible[i]),
+               rtol=1e-4 if isinstance(effect, gr.VolumetricFog) else 1e-5)  # fmt: skip
 
 
 # ------------------------------------------------------------------------------ validation of bad input

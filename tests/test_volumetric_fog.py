@@ -170,6 +170,25 @@ def test_march_spacing_is_a_fraction_of_the_frame():
     assert march_factor(1080, 1920, 1) == 1
 
 
+def test_gradients_reach_every_medium_field_with_surfaces_beyond_the_medium(rng):
+    """A surface beyond `max_distance` (its light's path starts outside the ball): reverse-mode gradients, which
+    Levenberg-Marquardt's normal equations take, agree with forward mode (were NaN in `max_distance`)."""
+    buffers = _frame(rng)
+    effect = _fog(max_distance=10.0)  # the ground runs to 30, the post stands at 12
+    names = ("extinction", "max_distance", "anisotropy")
+
+    def loss(values):
+        medium = gr.Medium(**{**MEDIUM, "max_distance": 10.0, **dict(zip(names, values))})
+        return jnp.sum(gr.VolumetricFog(medium=medium, **EFFECT)(buffers, jnp.asarray(LIGHT)) ** 2)
+
+    values = tuple(jnp.float32(getattr(effect.medium, name)) for name in names)
+    reverse = jax.grad(loss)(values)
+    for index, name in enumerate(names):
+        tangent = tuple(jnp.float32(i == index) for i in range(len(names)))
+        forward = jax.jvp(loss, (values,), (tangent,))[1]
+        np.testing.assert_allclose(float(reverse[index]), float(forward), rtol=1e-4, err_msg=name)
+
+
 def test_params_file_round_trip(tmp_path):
     effect = gr.preset("volumetric_haze")
     save_effect(tmp_path / "fog.json", effect)

@@ -61,8 +61,10 @@ def medium_interval(
     top = jnp.asarray(layer_top, dtype)
     along = dot(origin, direction)
     discriminant = along * along - dot(origin, origin) + radius * radius
-    root = jnp.sqrt(jnp.maximum(discriminant, 0.0))
     inside_ball = discriminant > 0
+    # The square root's derivative is infinite at 0: taken only where the ray meets the ball (else NaN gradients
+    # for points outside it, a surface beyond `max_distance`).
+    root = jnp.where(inside_ball, jnp.sqrt(jnp.where(inside_ball, discriminant, 1.0)), 0.0)
     start = jnp.where(inside_ball, jnp.maximum(-along - root, 0.0), 0.0)
     end = jnp.where(inside_ball, jnp.minimum(-along + root, length), 0.0)
     height, rise = origin[..., 1], direction[..., 1]

@@ -91,9 +91,11 @@ def _march_grid(light_xy, height, width, spacing, dtype):
     Anchored to the light, not to the pixels: under a pan the rays ride with the scene and its light, and any
     spacing works on any frame size. The count is static, the screen `[0, width] x [0, height]` plus one
     spacing on each side wherever the light is: only the light's position modulo `spacing` counts, so a far
-    off-screen light is fine.
+    off-screen light is fine. No gradient flows through the grid's phase: where the rays sit is a sampling
+    choice, and its derivative (of order one whatever the light's distance) is the sampling error's, which for
+    a light millions of pixels away swamps the light's true, vanishing effect and overflows.
     """
-    anchor = jnp.mod(jnp.asarray(light_xy, dtype), spacing) - spacing
+    anchor = jnp.mod(jax.lax.stop_gradient(jnp.asarray(light_xy, dtype)), spacing) - spacing
     xs = anchor[0] + spacing * jnp.arange(math.ceil(width / spacing) + 2, dtype=dtype)
     ys = anchor[1] + spacing * jnp.arange(math.ceil(height / spacing) + 2, dtype=dtype)
     return xs, ys
@@ -174,12 +176,15 @@ def segment_visibility(
     # reflection of light_xy through the image centre) until it crosses the camera plane.
     centre = jnp.asarray([0.5 * width, 0.5 * height], dtype)
     step = jnp.where(in_front, light_xy - pixel_xy, pixel_xy - (2 * centre - light_xy))
+    # A step this short along an axis (a light a vanishing fraction of a pixel off a ray's row or column) counts
+    # as none: its exit's derivative, -exit / step, would overflow even where the other axis's exit is taken.
+    along = [jnp.abs(step[..., axis]) < 1e-12 for axis in (0, 1)]
     exits = [
         jnp.where(step[..., axis] > 0, (limit - pixel_xy[..., axis]), -pixel_xy[..., axis])
-        / jnp.where(step[..., axis] == 0, 1.0, step[..., axis])
+        / jnp.where(along[axis], 1.0, step[..., axis])
         for axis, limit in ((0, width), (1, height))
     ]
-    exits = [jnp.where(step[..., axis] == 0, jnp.inf, e) for axis, e in enumerate(exits)]
+    exits = [jnp.where(along[axis], jnp.inf, e) for axis, e in enumerate(exits)]
     reach = jnp.minimum(exits[0], exits[1])
     reach = jnp.where(in_front, jnp.minimum(reach, 1.0), reach)
     reach = jnp.where(jnp.isfinite(reach), jnp.maximum(reach, 0.0), 0.0)

@@ -305,7 +305,7 @@ def _read_at_depth(lit, bounds, row, col, ray_end):
 def _upsample_by_depth(values, coarse_keys, through, fine_key, xs, ys, spacing):
     """`values` of the march rays at `(xs, ys)` (`spacing` pixels apart), one per layer `(L, h, w)`, to every
     pixel: bilinear weights at the rays' true positions times how alike each layer's ray length (`coarse_keys`,
-    `(L, h, w)`, NaN: a layer that repeats another) is to the pixel's. Where those weights sum to at most
+    `(L, h, w)`, negative: a layer that repeats another, so that `jax_debug_nans` can run) is to the pixel's. Where those weights sum to at most
     `_UPSAMPLE_ALIKE` (none of the four rays is alike: a thin object between rays that saw past it), the four
     rays' in-scattering through to the medium's end read at the pixel's own depth (`through`: a function of
     the four rays' rows, columns and the pixel's ray end, `fine_key`) by the bilinear weights alone.
@@ -320,7 +320,7 @@ def _upsample_by_depth(values, coarse_keys, through, fine_key, xs, ys, spacing):
     total, weights = 0.0, 0.0
     for layer_key, layer_values in zip(coarse_keys, values):
         key = layer_key[row, col]
-        likeness = jax.lax.stop_gradient(jnp.where(jnp.isnan(key), 0.0, jnp.exp(-jnp.abs(key - fine_key) / scale)))
+        likeness = jax.lax.stop_gradient(jnp.where(key < 0, 0.0, jnp.exp(-jnp.abs(key - fine_key) / scale)))
         total = total + jnp.sum(tent * likeness * layer_values[row, col], axis=0)
         weights = weights + jnp.sum(tent * likeness, axis=0)
     far = jnp.sum(tent * through(row, col, fine_key), axis=0)
@@ -456,7 +456,7 @@ def volumetric_fog_terms(
         lit, segment_bounds = _in_scattered(rays, (coarse_depth, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
         key = functools.partial(_ray_length, max_distance=jax.lax.stop_gradient(jnp.asarray(max_distance, dtype)))
         own, beyond = key(coarse_depth), key(sky)
-        keys = jnp.stack([own, jnp.where(own < beyond, beyond, jnp.nan)])
+        keys = jnp.stack([own, jnp.where(own < beyond, beyond, -1.0)])
 
         def through(row, col, ray_end):
             return _read_at_depth(lit[1], segment_bounds[1], row, col, ray_end)

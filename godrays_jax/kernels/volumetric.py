@@ -42,11 +42,13 @@ ray in front of it. Surfaces whose slab reaches the light (the emitter) and
 sky block nothing; off screen nothing is known and nothing blocks. The samples are
 shared by every segment. The march runs on rays `resolution_factor` pixels
 apart, anchored to the light (its position plus multiples of the spacing: under
-a pan they ride with the scene), each marched to the depth of the texel it lies
-in and through to the medium's end; every pixel takes its four nearest rays'
-values by bilinear weights at their true positions times how alike the ray
-lengths are to its own, or where no ray is alike (a thin object between rays
-that saw past it) their values through to the end read at its own depth.
+a pan they ride with the scene), each marched through to the medium's end in
+two pieces, split at the depth of the texel it lies in (sky: halfway), so that
+its segments are fine up to its own surface; every pixel reads its four nearest
+rays' in-scattering up to its own depth (the segment holding it taken in
+proportion) and takes them by bilinear weights at their true positions. A
+ray's split only places its segments' bounds: when a surface's edge slides
+under it (a pan), what it reads at a depth changes by the sampling alone.
 """
 
 import functools
@@ -72,11 +74,6 @@ from godrays_jax.kernels.media import henyey_greenstein
 from godrays_jax.primitives.camera import focal_length_px
 from godrays_jax.primitives.checks import check_image, check_light, check_plane, check_scalar, is_static_int
 
-# Relative width of the depth-aware upsampling's weights (how different two ray lengths may be and still blend).
-_UPSAMPLE_DEPTH_SIGMA = 0.1
-# Below this sum of bilinear weights times likeness no ray is alike: the rays' in-scattering through to the
-# medium's end read at the pixel's own depth takes over.
-_UPSAMPLE_ALIKE = 0.05
 # The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
 _BEYOND_EVERY_SLAB = 1e30
 
@@ -243,9 +240,11 @@ def segment_visibility(
 
 
 def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
-    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) up to each of `ray_ends` (a
-    sequence of `(h, w)`), segment by segment: `(L, h, w, num_view_steps)`, and the segments' bounds (scene
-    units, `(L, h, w, num_view_steps + 1)`). The ends share each shadow sample's reads of the depth buffer."""
+    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) in consecutive pieces, the
+    first from the medium's start up to `ray_ends[0]`, each next one from where the previous ended up to its own
+    end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium), each in `num_view_steps` even
+    segments: `(L, h, w, num_view_steps)`, and the segments' bounds (scene units, `(L, h, w, num_view_steps +
+    1)`). The pieces share each shadow sample's reads of the depth buffer."""
     (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
      thickness, edge_softness, num_view_steps, num_shadow_samples) = options  # fmt: skip
     height, width = depth.shape
@@ -254,9 +253,12 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     origin = jnp.zeros_like(view)
     fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
     lower, upper, attenuated, bounds = [], [], [], []
+    previous = None
     for ray_end in ray_ends:
         start, end = medium_interval(origin, view, ray_end, max_distance=max_distance, layer_top=layer_top)
-        bounds.append(start[..., None] + (end - start)[..., None] * fractions)
+        first = start if previous is None else jnp.clip(previous, start, end)
+        previous = end
+        bounds.append(first[..., None] + (end - first)[..., None] * fractions)
         tau = optical_depth(
             origin[..., None, :], view[..., None, :], start[..., None], bounds[-1],
             extinction=extinction, height_falloff=height_falloff,
@@ -284,15 +286,15 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
 
 
 def _ray_length(depth, max_distance):
-    """A key for the depth-aware upsampling: the distance a ray runs (sky and beyond the medium: its extent)."""
+    """The distance a pixel's ray runs, finite (sky and beyond the medium: the medium's extent)."""
     finite = jnp.isfinite(depth)
     return jnp.minimum(jnp.where(finite, depth, max_distance), max_distance)
 
 
 def _read_at_depth(lit, bounds, row, col, ray_end):
-    """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to each ray's medium
-    interval) from their segments' light `lit` (`(h, w, M)`) and bounds (`(h, w, M + 1)`, even), the segment
-    holding `ray_end` taken in proportion."""
+    """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to the piece's bounds) from
+    one piece's segments' light `lit` (`(h, w, M)`) and bounds (`(h, w, M + 1)`, even), the segment holding
+    `ray_end` taken in proportion."""
     count = lit.shape[-1]
     first, last = bounds[..., 0][row, col], bounds[..., -1][row, col]
     distance = jnp.clip(ray_end, first, last)
@@ -302,29 +304,18 @@ def _read_at_depth(lit, bounds, row, col, ray_end):
     return before[row, col, index] + lit[row, col, index] * jnp.clip(position - index, 0.0, 1.0)
 
 
-def _upsample_by_depth(values, coarse_keys, through, fine_key, xs, ys, spacing):
-    """`values` of the march rays at `(xs, ys)` (`spacing` pixels apart), one per layer `(L, h, w)`, to every
-    pixel: bilinear weights at the rays' true positions times how alike each layer's ray length (`coarse_keys`,
-    `(L, h, w)`, negative: a layer that repeats another, so that `jax_debug_nans` can run) is to the pixel's. Where those weights sum to at most
-    `_UPSAMPLE_ALIKE` (none of the four rays is alike: a thin object between rays that saw past it), the four
-    rays' in-scattering through to the medium's end read at the pixel's own depth (`through`: a function of
-    the four rays' rows, columns and the pixel's ray end, `fine_key`) by the bilinear weights alone.
-    """
-    height, width = fine_key.shape
-    _, small_h, small_w = values.shape
-    dtype = values.dtype
+def _upsample_by_depth(lit, bounds, ray_end, xs, ys, spacing):
+    """The in-scattering of the march rays at `(xs, ys)` (`spacing` pixels apart; their pieces' segments' light
+    `lit`, `(L, h, w, M)`, and bounds, `(L, h, w, M + 1)`) at every pixel: each of its four nearest rays read up
+    to the pixel's own `ray_end` (`(H, W)`, scene units), by bilinear weights at the rays' true positions."""
+    height, width = ray_end.shape
+    _, small_h, small_w, _ = lit.shape
+    dtype = lit.dtype
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
     y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
     row, col, tent = _bilinear(x[None, :], y[:, None], small_h, small_w)
-    scale = _UPSAMPLE_DEPTH_SIGMA * jnp.maximum(fine_key, 1e-6)
-    total, weights = 0.0, 0.0
-    for layer_key, layer_values in zip(coarse_keys, values):
-        key = layer_key[row, col]
-        likeness = jax.lax.stop_gradient(jnp.where(key < 0, 0.0, jnp.exp(-jnp.abs(key - fine_key) / scale)))
-        total = total + jnp.sum(tent * likeness * layer_values[row, col], axis=0)
-        weights = weights + jnp.sum(tent * likeness, axis=0)
-    far = jnp.sum(tent * through(row, col, fine_key), axis=0)
-    return jnp.where(weights > _UPSAMPLE_ALIKE, total / jnp.maximum(weights, _UPSAMPLE_ALIKE), far)
+    read = sum(_read_at_depth(piece, piece_bounds, row, col, ray_end) for piece, piece_bounds in zip(lit, bounds))
+    return jnp.sum(tent * read, axis=0)
 
 
 def _covering_depth(depth):
@@ -450,19 +441,17 @@ def volumetric_fog_terms(
         coarse_depth = depth[rows, cols]
         rays = _rays_at(x, y, height, width, focal_length_px(width, fov_x_deg, dtype))
         rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
-        # Two layers: each ray up to its own surface and through to the medium's end, so that a pixel whose
-        # view runs past every nearby ray's surface (sky in a gap narrower than the spacing) reads rays like it.
+        # Each ray through to the medium's end in two pieces split at its own surface, so its segments are fine
+        # up to there; a pixel reads every nearby ray up to its own depth, whatever surface the ray met (sky in a
+        # gap narrower than the spacing, a trunk's edge sliding under the ray). The split is a sampling choice.
         sky = jnp.full_like(coarse_depth, jnp.inf)
-        lit, segment_bounds = _in_scattered(rays, (coarse_depth, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
-        key = functools.partial(_ray_length, max_distance=jax.lax.stop_gradient(jnp.asarray(max_distance, dtype)))
-        own, beyond = key(coarse_depth), key(sky)
-        keys = jnp.stack([own, jnp.where(own < beyond, beyond, -1.0)])
-
-        def through(row, col, ray_end):
-            return _read_at_depth(lit[1], segment_bounds[1], row, col, ray_end)
+        start, end = medium_interval(jnp.zeros_like(rays), rays, sky, **bounds)
+        split = jax.lax.stop_gradient(jnp.where(coarse_depth < end, coarse_depth, 0.5 * (start + end)))
+        lit, segment_bounds = _in_scattered(rays, (split, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
+        max_length = jax.lax.stop_gradient(jnp.asarray(max_distance, dtype))
 
         def march(ray_end):
-            return _upsample_by_depth(jnp.sum(lit, axis=-1), keys, through, key(ray_end), xs, ys, spacing)
+            return _upsample_by_depth(lit, segment_bounds, _ray_length(ray_end, max_length), xs, ys, spacing)
 
     if coverage is None:
         surface, opacity = surface_and_opacity(depth)

@@ -362,6 +362,25 @@ def test_gradients_float64(x64, rng, light_depth):
     check_grads(render, start, order=1, modes=("fwd", "rev"), eps=1e-5, atol=1e-4, rtol=1e-4)
 
 
+def test_reduced_march_derivative_where_pixels_see_the_sky(x64):
+    """A sky pixel reads each ray through its pieces' ends and takes them whole, with their own derivatives: the
+    derivative in the medium's extent matches finite differences (a read at exactly the end counted half of it).
+    Loosely: the rays' split is a sampling choice that moves with the extent, its derivative held at zero."""
+    depth = np.full((12, 16), 6.0)
+    depth[3:, 9:11], depth[:4] = 2.0, np.inf
+    options = dict(MEDIUM, layer_top=math.inf, resolution_factor=4)
+    options.pop("max_distance")
+
+    def total(max_distance):
+        return jnp.sum(volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([13.3, 1.7]), max_distance=max_distance, **options)[1])
+
+    @jax.jit
+    def derivatives(max_distance):
+        return jax.jvp(total, (max_distance,), (1.0,))[1], (total(max_distance + 1e-3) - total(max_distance - 1e-3)) / 2e-3
+
+    np.testing.assert_allclose(*derivatives(25.0), rtol=1e-2)
+
+
 DEGENERATE = {
     "behind the camera": dict(light_xy=(3.0, 2.0), light_in_front=False),
     "far off screen": dict(light_xy=(1e7, -3e6), resolution_factor=2),  # and the reduced march anchored to it

@@ -285,12 +285,6 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     return jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0), jnp.stack(bounds)
 
 
-def _ray_length(depth, max_distance):
-    """The distance a pixel's ray runs, finite (sky and beyond the medium: the medium's extent)."""
-    finite = jnp.isfinite(depth)
-    return jnp.minimum(jnp.where(finite, depth, max_distance), max_distance)
-
-
 def _read_at_depth(lit, bounds, row, col, ray_end):
     """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to the piece's bounds) from
     one piece's segments' light `lit` (`(h, w, M)`) and bounds (`(h, w, M + 1)`, even), the segment holding
@@ -307,7 +301,9 @@ def _read_at_depth(lit, bounds, row, col, ray_end):
 def _upsample_by_depth(lit, bounds, ray_end, xs, ys, spacing):
     """The in-scattering of the march rays at `(xs, ys)` (`spacing` pixels apart; their pieces' segments' light
     `lit`, `(L, h, w, M)`, and bounds, `(L, h, w, M + 1)`) at every pixel: each of its four nearest rays read up
-    to the pixel's own `ray_end` (`(H, W)`, scene units), by bilinear weights at the rays' true positions."""
+    to the pixel's own `ray_end` (`(H, W)`, scene units, `inf` on sky: read as it is, so that a read beyond a
+    piece's end takes the piece whole with the piece's own derivatives), by bilinear weights at the rays' true
+    positions."""
     height, width = ray_end.shape
     _, small_h, small_w, _ = lit.shape
     dtype = lit.dtype
@@ -448,10 +444,9 @@ def volumetric_fog_terms(
         start, end = medium_interval(jnp.zeros_like(rays), rays, sky, **bounds)
         split = jax.lax.stop_gradient(jnp.where(coarse_depth < end, coarse_depth, 0.5 * (start + end)))
         lit, segment_bounds = _in_scattered(rays, (split, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
-        max_length = jax.lax.stop_gradient(jnp.asarray(max_distance, dtype))
 
         def march(ray_end):
-            return _upsample_by_depth(lit, segment_bounds, _ray_length(ray_end, max_length), xs, ys, spacing)
+            return _upsample_by_depth(lit, segment_bounds, ray_end, xs, ys, spacing)
 
     if coverage is None:
         surface, opacity = surface_and_opacity(depth)

@@ -439,10 +439,11 @@ def volumetric_fog_terms(
         rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
         # Each ray through to the medium's end in two pieces split at its own surface, so its segments are fine
         # up to there; a pixel reads every nearby ray up to its own depth, whatever surface the ray met (sky in a
-        # gap narrower than the spacing, a trunk's edge sliding under the ray). The split is a sampling choice.
+        # gap narrower than the spacing, a trunk's edge sliding under the ray). A sky ray's split, halfway, moves with the
+        # medium's extent as every segment bound does, so derivatives agree with the frame's change.
         sky = jnp.full_like(coarse_depth, jnp.inf)
         start, end = medium_interval(jnp.zeros_like(rays), rays, sky, **bounds)
-        split = jax.lax.stop_gradient(jnp.where(coarse_depth < end, coarse_depth, 0.5 * (start + end)))
+        split = jnp.where(coarse_depth < end, coarse_depth, 0.5 * (start + end))
         lit, segment_bounds = _in_scattered(rays, (split, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
 
         def march(ray_end):

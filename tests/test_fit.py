@@ -11,8 +11,8 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
-from godrays_jax.pipeline.fit import _plateaued, fit, round_counts
-from godrays_jax.pipeline.problem import fitted_bounds, from_unit, to_unit
+from godrays_jax.pipeline.fit import _forward_mode, _plateaued, fit, round_counts
+from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, from_unit, start_point, to_unit
 
 HEIGHT, WIDTH = 24, 32
 
@@ -66,6 +66,35 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
     # Fixed fields are untouched.
     np.testing.assert_array_equal(result.effect.tint, _rays().tint)
     assert float(result.effect.num_samples) == 8.0
+
+
+def test_the_fits_jacobian_is_reverse_modes_on_volumetric_fog():
+    """The fit linearises by a vmapped forward-mode Jacobian (`_forward_mode`); on VolumetricFog's chained read XLA
+    once mixed its lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64)."""
+    height, width = 36, 64
+    depth = np.full((height, width), np.inf, np.float32)
+    rows = np.arange(height - height // 2) + 0.5
+    depth[height // 2 :] = (3.0 * height / rows)[:, None]  # the ground
+    depth[height // 5 :, 26:38] = 6.0  # a pillar hiding the sun
+    color = np.where(np.isfinite(depth)[..., None], 0.05, 0.4).astype(np.float32) * np.ones(3, np.float32)
+    rows, cols = np.mgrid[:height, :width]
+    color[((rows - 10.8) ** 2 + (cols - 32) ** 2 < 4.7) & ~np.isfinite(depth)] = 30.0
+    frame = gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(np.isfinite(depth), jnp.float32))
+    light = jnp.asarray([32.3, 11.0], jnp.float32)
+    medium = dict(light_color=(2.0, 2.0, 2.0), ambient_color=(0.1, 0.1, 0.1))
+    start = gr.VolumetricFog(medium=gr.Medium(extinction=0.013, max_distance=50.0, anisotropy=0.6, **medium), fov_x_deg=60.0)
+    truth = gr.VolumetricFog(medium=gr.Medium(extinction=0.02, max_distance=40.0, anisotropy=0.7, **medium), fov_x_deg=60.0)
+    target = truth(frame, light) + 0.01 * jnp.asarray(np.random.default_rng(0).normal(size=(height, width, 3)), jnp.float32)
+    frame_data = as_frames(frame, light, target, True)
+    problem = FitProblem.of(start, fitted_bounds(start), frame_data[0], loss="mse", space="display")
+    y = start_point(problem, jnp.float32)
+
+    def objective(flat, frame_data):
+        return problem.objective(problem.effect_at(flat), frame_data)
+
+    reverse = eqx.filter_jit(jax.grad(objective))(y, frame_data)
+    forward = eqx.filter_jit(jax.grad(lambda flat, frame_data: _forward_mode(lambda f: objective(f, frame_data))(flat)))(y, frame_data)
+    np.testing.assert_allclose(forward, reverse, rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(reverse))))
 
 
 def test_loss_history_starts_at_the_start_and_never_rises(two_frame_fit):

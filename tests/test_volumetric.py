@@ -163,21 +163,29 @@ class _Loop:
         transmittance = [math.exp(-self.optical_depth(np.zeros(3), view, b)) for b in bounds]
         lit = []
         for j in range(len(bounds) - 1):
+            # The shadow, the angle to the light and the light's way in are taken where the segment's light is
+            # halved: its middle for the sun, near a point light its closest approach.
             middle = 0.5 * (bounds[j] + bounds[j + 1])
+            irradiance = 1.0
+            if math.isfinite(self.light_depth) and bounds[j + 1] > bounds[j]:
+                ts, cumulative = self.irradiance_along(view, bounds[j], bounds[j + 1])
+                irradiance = cumulative[-1] / (bounds[j + 1] - bounds[j])
+                middle = np.interp(0.5 * cumulative[-1], cumulative, ts)
             point = middle * view
             direction, _ = self.to_light(point)
-            if math.isfinite(self.light_depth):
-                ts = np.linspace(bounds[j], bounds[j + 1], 2001)
-                miss = (1e-3 * self.light_depth) ** 2
-                values = [self.light_depth**2 / (np.sum((self.light_depth * self.toward - s * view) ** 2) + miss) for s in ts]
-                irradiance = np.trapezoid(values, ts) / (bounds[j + 1] - bounds[j])
-            else:
-                irradiance = 1.0
             lit.append(
                 (transmittance[j] - transmittance[j + 1]) * self.visibility(x, y, view, middle)
                 * self.light_transmittance(point) * _hg(view @ direction, self.g) * irradiance
             )  # fmt: skip
         return view, bounds, transmittance, lit
+
+    def irradiance_along(self, view, start, end):
+        """Distances from `start` to `end` along the unit ray `view` and the point light's irradiance
+        `(light_depth / |S - t view|)^2` (its size as in the kernel) integrated from `start` up to each."""
+        ts = np.linspace(start, end, 4001)
+        miss = (1e-3 * self.light_depth) ** 2
+        values = self.light_depth**2 / (np.sum((self.light_depth * self.toward - ts[:, None] * view) ** 2, axis=-1) + miss)
+        return ts, np.concatenate([[0.0], np.cumsum(0.5 * (values[1:] + values[:-1]) * np.diff(ts))])
 
     def covered_pixel(self, row, col, coverage, uncovered):
         """`coverage` of the surface's terms (on sky, its nearest neighbour's surface) and the rest of the terms at
@@ -196,20 +204,24 @@ class _Loop:
         """The in-scattering marched on rays at the light's position plus `spacing` times integers (the screen and
         one spacing around it), each through to the medium's end in two pieces of `steps` even segments split at
         the depth of the texel it lies in (sky, or a surface beyond the medium: halfway); at every pixel, its four
-        nearest rays' in-scattering up to the pixel's own depth (the segment holding it taken in proportion), by
-        bilinear weights."""
+        nearest rays' in-scattering up to the pixel's own depth (the segment holding it taken in proportion to the
+        light it receives up to there), by bilinear weights."""
         anchor = self.light_xy % spacing - spacing
         xs = anchor[0] + spacing * np.arange(math.ceil(self.width / spacing) + 2)
         ys = anchor[1] + spacing * np.arange(math.ceil(self.height / spacing) + 2)
 
-        def cumulative(bounds, lit, distance):
+        def cumulative(view, bounds, lit, distance):
             """The in-scattering along a ray's segments up to `distance`."""
             total = 0.0
             for j, value in enumerate(lit):
                 if distance >= bounds[j + 1]:
                     total += value
                 elif distance > bounds[j]:
-                    total += value * (distance - bounds[j]) / (bounds[j + 1] - bounds[j])
+                    share = (distance - bounds[j]) / (bounds[j + 1] - bounds[j])
+                    if math.isfinite(self.light_depth):
+                        ts, light = self.irradiance_along(view, bounds[j], bounds[j + 1])
+                        share = np.interp(distance, ts, light) / light[-1]
+                    total += value * share
             return total
 
         rays = {}  # (i, j) -> (the segments' bounds, their light)
@@ -221,16 +233,16 @@ class _Loop:
                 split = depth if depth < end else 0.5 * end
                 bounds = np.concatenate([np.linspace(0.0, split, self.steps + 1), np.linspace(split, end, self.steps + 1)[1:]])
                 _, _, _, lit = self.segments_between(x, y, bounds)
-                rays[i, j] = (bounds, lit)
+                rays[i, j] = (view, bounds, lit)
 
         out = np.zeros((self.height, self.width))
         for row in range(self.height):
             for col in range(self.width):
                 own = min(self.depth[row, col], self.radius)
-                for (i, j), (bounds, lit) in rays.items():
+                for (i, j), (view, bounds, lit) in rays.items():
                     tent = max(1 - abs(col + 0.5 - xs[j]) / spacing, 0) * max(1 - abs(row + 0.5 - ys[i]) / spacing, 0)
                     if tent > 0:
-                        out[row, col] += tent * cumulative(bounds, lit, own)
+                        out[row, col] += tent * cumulative(view, bounds, lit, own)
         return out
 
     def terms(self, coverage=None, uncovered=None):

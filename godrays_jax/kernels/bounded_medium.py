@@ -147,13 +147,33 @@ def light_transmittance(
     return jnp.exp(-depth)
 
 
+def light_approach(view, toward, inverse):
+    """Where the ray `t * view` passes closest to a point light at `S = toward / inverse` (`along`, scene units)
+    and how close (`miss`, floored by the light's own size); for the sun (`inverse` 0) the light at distance 1.
+    """
+    cosine = dot(view, toward)
+    light_depth = safe_divide(1.0, inverse, 1.0)
+    miss = jnp.sqrt(jnp.maximum(light_depth**2 * (1.0 - cosine * cosine), 0.0) + (_POINT_LIGHT_RADIUS * light_depth) ** 2)
+    return light_depth * cosine, miss
+
+
+def irradiance_coordinate(distance, along, miss, inverse):
+    """A coordinate along a view ray in which a point light's irradiance `(light_depth / |S - t * view|)^2` is
+    even (the ray's `light_approach`): `arctan((t - along) / miss)`; for the sun (`inverse` 0) `t` itself."""
+    return jnp.where(inverse > 0, jnp.arctan((distance - along) / miss), distance)
+
+
+def irradiance_median(start, end, along, miss, inverse):
+    """The distance along a view ray that halves the light's irradiance over `[start, end]` (the ray's
+    `light_approach`): where a segment's light comes from, the geometric middle for the sun."""
+    middle = 0.5 * (irradiance_coordinate(start, along, miss, inverse) + irradiance_coordinate(end, along, miss, inverse))
+    return jnp.where(inverse > 0, along + miss * jnp.tan(middle), middle)
+
+
 def segment_irradiance(view, start, end, toward, inverse):
     """The mean over `[start, end]` of `(light_depth / |S - t * view|)^2` (1 for the sun)."""
-    cosine = dot(view, toward)[..., None]
     light_depth = safe_divide(1.0, inverse, 1.0)
-    along = light_depth * cosine
-    # Closest approach of the ray to the light, floored by the light's own size.
-    miss = jnp.sqrt(jnp.maximum(light_depth**2 * (1.0 - cosine * cosine), 0.0) + (_POINT_LIGHT_RADIUS * light_depth) ** 2)
+    along, miss = (value[..., None] for value in light_approach(view, toward, inverse))
     integral = (jnp.arctan((end - along) / miss) - jnp.arctan((start - along) / miss)) / miss
     middle = 0.5 * (start + end) - along
     at_middle = light_depth**2 / (middle * middle + miss * miss)

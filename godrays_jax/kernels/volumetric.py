@@ -61,6 +61,9 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.kernels.bounded_medium import (
     dot,
+    irradiance_coordinate,
+    irradiance_median,
+    light_approach,
     light_geometry,
     light_transmittance,
     medium_interval,
@@ -243,8 +246,10 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) in consecutive pieces, the
     first from the medium's start up to `ray_ends[0]`, each next one from where the previous ended up to its own
     end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium), each in `num_view_steps` even
-    segments: `(L, h, w, num_view_steps)`, and the segments' bounds (scene units, `(L, h, w, num_view_steps +
-    1)`). The pieces share each shadow sample's reads of the depth buffer."""
+    segments: `(L, h, w, num_view_steps)`, each piece's first and last bound (scene units, two `(L, h, w)`) and
+    a function of a ray's distances that is even in the light's irradiance along it (`irradiance_coordinate`
+    of the rays, each `(h, w)`, indexed by rows and columns). The pieces share each shadow sample's reads of the
+    depth buffer."""
     (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
      thickness, edge_softness, num_view_steps, num_shadow_samples) = options  # fmt: skip
     height, width = depth.shape
@@ -252,22 +257,27 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     origin = jnp.zeros_like(view)
     fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
-    lower, upper, attenuated, bounds = [], [], [], []
+    lower, upper, attenuated, firsts, lasts = [], [], [], [], []
     previous = None
     for ray_end in ray_ends:
         start, end = medium_interval(origin, view, ray_end, max_distance=max_distance, layer_top=layer_top)
         first = start if previous is None else jnp.clip(previous, start, end)
         previous = end
-        bounds.append(first[..., None] + (end - first)[..., None] * fractions)
+        firsts.append(first)
+        lasts.append(end)
+        bounds = first[..., None] + (end - first)[..., None] * fractions
         tau = optical_depth(
-            origin[..., None, :], view[..., None, :], start[..., None], bounds[-1],
+            origin[..., None, :], view[..., None, :], start[..., None], bounds,
             extinction=extinction, height_falloff=height_falloff,
         )  # fmt: skip
-        lower.append(bounds[-1][..., :-1])
-        upper.append(bounds[-1][..., 1:])
+        lower.append(bounds[..., :-1])
+        upper.append(bounds[..., 1:])
         attenuated.append(jnp.exp(-tau[..., :-1]) - jnp.exp(-tau[..., 1:]))
     lower, upper, attenuated = (jnp.concatenate(parts, axis=-1) for parts in (lower, upper, attenuated))
-    middles = 0.5 * (lower + upper)
+    along, miss = light_approach(view, toward, inverse)
+    # What varies along a segment (the angle to the light, the shadow, the light's way in) is taken where its
+    # light comes from: near a point light that is the ray's closest approach, not the segment's middle.
+    middles = irradiance_median(lower, upper, along[..., None], miss[..., None], inverse)
     points = view[..., None, :] * middles[..., None]
     dimmed = light_transmittance(
         points, toward, light_depth=light_depth, extinction=extinction, max_distance=max_distance,
@@ -282,25 +292,40 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
         num_shadow_samples=num_shadow_samples,
     )  # fmt: skip
     lit = attenuated * visible * dimmed * phase * irradiance
-    return jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0), jnp.stack(bounds)
+    pieces = jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0)
+
+    def even_in_light(distance, row, col):
+        return irradiance_coordinate(distance, along[row, col], miss[row, col], inverse)
+
+    return pieces, jnp.stack(firsts), jnp.stack(lasts), even_in_light
 
 
-def _read_at_depth(lit, bounds, row, col, ray_end):
+def _read_at_depth(lit, first, last, even_in_light, row, col, ray_end):
     """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to the piece's bounds) from
-    one piece's segments' light `lit` (`(h, w, M)`) and bounds (`(h, w, M + 1)`, even), the segment holding
-    `ray_end` taken in proportion."""
+    one piece's segments' light `lit` (`(h, w, M)`, even segments from `first` to `last`, each `(h, w)`), the
+    segment holding `ray_end` taken in proportion to the light it receives up to there (`even_in_light`: a
+    function of distances along the rays, rows and columns, even in the light's irradiance; a point light's
+    falls off within a segment near it)."""
     count = lit.shape[-1]
-    first, last = bounds[..., 0][row, col], bounds[..., -1][row, col]
+    first, last = first[row, col], last[row, col]
     distance = jnp.clip(ray_end, first, last)
-    position = safe_divide(distance - first, last - first, 0.0) * count
-    index = jnp.clip(jnp.floor(jax.lax.stop_gradient(position)), 0, count - 1).astype(jnp.int32)
+    # `last >= first`; an empty piece reads 0 at its start. Not `safe_divide`: its select on `|last - first|`
+    # made XLA's algebraic simplifier mix the lanes of the fit's vmapped Jacobian (`pipeline/fit.py`,
+    # `_forward_mode`) once a loss took `abs` of the image (tests/test_fit.py).
+    length = jnp.where(last > first, last - first, 1.0)
+    index = jnp.clip(jnp.floor(jax.lax.stop_gradient((distance - first) / length * count)), 0, count - 1)
+    lower, upper = (first + length * (index + offset) / count for offset in (0.0, 1.0))
+    start, reached, end = (even_in_light(u, row, col) for u in (lower, distance, upper))
+    share = jnp.clip((reached - start) / jnp.where(end > start, end - start, 1.0), 0.0, 1.0)
+    index = index.astype(jnp.int32)
     before = jnp.cumsum(lit, axis=-1) - lit
-    return before[row, col, index] + lit[row, col, index] * jnp.clip(position - index, 0.0, 1.0)
+    return before[row, col, index] + lit[row, col, index] * share
 
 
-def _upsample_by_depth(lit, bounds, ray_end, xs, ys, spacing):
+def _upsample_by_depth(lit, firsts, lasts, even_in_light, ray_end, xs, ys, spacing):
     """The in-scattering of the march rays at `(xs, ys)` (`spacing` pixels apart; their pieces' segments' light
-    `lit`, `(L, h, w, M)`, and bounds, `(L, h, w, M + 1)`) at every pixel: each of its four nearest rays read up
+    `lit`, `(L, h, w, M)`, even from `firsts` to `lasts`, each `(L, h, w)`; `even_in_light` as
+    `_read_at_depth`'s) at every pixel: each of its four nearest rays read up
     to the pixel's own `ray_end` (`(H, W)`, scene units, `inf` on sky: read as it is, so that a read beyond a
     piece's end takes the piece whole with the piece's own derivatives), by bilinear weights at the rays' true
     positions."""
@@ -310,7 +335,7 @@ def _upsample_by_depth(lit, bounds, ray_end, xs, ys, spacing):
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
     y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
     row, col, tent = _bilinear(x[None, :], y[:, None], small_h, small_w)
-    read = sum(_read_at_depth(piece, piece_bounds, row, col, ray_end) for piece, piece_bounds in zip(lit, bounds))
+    read = sum(_read_at_depth(*piece, even_in_light, row, col, ray_end) for piece in zip(lit, firsts, lasts))
     return jnp.sum(tent * read, axis=0)
 
 
@@ -444,10 +469,10 @@ def volumetric_fog_terms(
         sky = jnp.full_like(coarse_depth, jnp.inf)
         start, end = medium_interval(jnp.zeros_like(rays), rays, sky, **bounds)
         split = jnp.where(coarse_depth < end, coarse_depth, 0.5 * (start + end))
-        lit, segment_bounds = _in_scattered(rays, (split, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
+        pieces = _in_scattered(rays, (split, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
 
         def march(ray_end):
-            return _upsample_by_depth(lit, segment_bounds, ray_end, xs, ys, spacing)
+            return _upsample_by_depth(*pieces, ray_end, xs, ys, spacing)
 
     if coverage is None:
         surface, opacity = surface_and_opacity(depth)

@@ -60,8 +60,9 @@ class VolumetricFog(Effect):
     The march runs on rays `resolution_factor` pixels apart on a frame of up
     to 320 pixels (on larger frames the same fraction of the frame, at most
     four times as many pixels apart: `march_factor`), anchored to the light
-    (under a pan they ride with the scene), any factor at any frame size, and
-    is upsampled with depth-aware weights; memory is O(march rays x
+    (under a pan they ride with the scene), any factor at any frame size; each
+    ray runs through to the medium's end and every pixel reads its four
+    nearest rays up to its own depth; memory is O(march rays x
     `num_view_steps`) whatever `num_shadow_samples` is.
 
     `effect(...)` is the fogged frame, `effect.layer(...)` the scattered light alone. Built as

@@ -397,8 +397,8 @@ def volumetric_fog_terms(
         resolution_factor: the march rays' spacing in pixels (a static Python
             number >= 1, any frame size): 1, every pixel's own ray; more, rays
             at the light's position plus `resolution_factor` times integers
-            (`_march_grid`), upsampled to every pixel with depth-aware weights
-            (the module's docstring).
+            (`_march_grid`), each read by its nearest pixels up to their own
+            depths (the module's docstring).
         coverage: the fraction of each pixel covered by its surface, in [0, 1]
             (`Buffers.coverage`); each term is then `coverage` times the term
             of the surface (on a sky pixel, of its nearest neighbour's) plus

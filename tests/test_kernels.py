@@ -391,8 +391,8 @@ def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
         check_grads(kernel, args, order=1, modes=("fwd", "rev"), eps=1e-6)
 
 
-@pytest.mark.parametrize("copies", [1, 11, 16])
-@pytest.mark.parametrize("addressing", ["clamp", "zero"])
+# Each count (below, between and at multiples of the step) and each addressing at least once; at a multiple both.
+@pytest.mark.parametrize(("copies", "addressing"), [(1, "clamp"), (11, "zero"), (16, "clamp"), (16, "zero")])
 def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     """A GPU sums `COPIES_PER_STEP` copies per loop step from 2-D corner gathers, a CPU one copy per step through
     transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for

@@ -159,7 +159,7 @@ def test_emitter_inputs_gradients_match_finite_differences(x64, effect_type):
     args = (jnp.float64(5.3), jnp.asarray([24.7, 5.35]), jnp.float64(0.4), jnp.float64(density_or_step))
     check_grads(jax.jit(layer), args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-4, rtol=1e-4)
     # Reverse mode equals a plain forward-mode Jacobian (the same loop, other transposition).
-    reverse = jax.jacrev(lambda r: jnp.sum(layer(r, *args[1:]) ** 2))(args[0])
-    forward = jax.jacfwd(lambda r: jnp.sum(layer(r, *args[1:]) ** 2))(args[0])
+    reverse = jax.jit(jax.jacrev(lambda r: jnp.sum(layer(r, *args[1:]) ** 2)))(args[0])
+    forward = jax.jit(jax.jacfwd(lambda r: jnp.sum(layer(r, *args[1:]) ** 2)))(args[0])
     np.testing.assert_allclose(reverse, forward, rtol=1e-10)
     assert float(jnp.abs(reverse)) > 0

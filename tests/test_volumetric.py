@@ -405,21 +405,27 @@ DEGENERATE = {
 }
 
 
-@pytest.mark.parametrize("case", DEGENERATE)
-def test_degenerate_lights_finite_values_and_gradients(rng, case):
+@pytest.mark.parametrize("resolution_factor", sorted({case.get("resolution_factor", 1) for case in DEGENERATE.values()}))
+def test_degenerate_lights_finite_values_and_gradients(rng, resolution_factor):
+    """Every case of `DEGENERATE` at this march spacing, through one compiled loss (the light's distance and side
+    traced), on a frame with surfaces and on one all sky."""
     image = jnp.asarray(_image(rng), jnp.float32)
-    options = dict(DEGENERATE[case])
-    light_xy = jnp.asarray(options.pop("light_xy"), jnp.float32)
 
     @jax.jit
-    @functools.partial(jax.value_and_grad, argnums=(0, 1, 2, 3))
-    def loss(light_xy, extinction, thickness, fov_x_deg, depth):
-        return jnp.sum(_fog(image, depth, light_xy, extinction=extinction, thickness=thickness, fov_x_deg=fov_x_deg, **options))
+    @functools.partial(jax.value_and_grad, argnums=(0, 1, 2, 3, 4))
+    def loss(light_xy, extinction, thickness, fov_x_deg, depth, light_depth, light_in_front):
+        return jnp.sum(_fog(image, depth, light_xy, extinction=extinction, thickness=thickness, fov_x_deg=fov_x_deg,
+                            light_depth=light_depth, light_in_front=light_in_front,
+                            resolution_factor=resolution_factor))  # fmt: skip
 
-    for depth in (jnp.asarray(_depth(), jnp.float32), jnp.full((HEIGHT, WIDTH), jnp.inf)):  # and a frame all sky
-        value, grads = loss(light_xy, 0.06, 0.3, 60.0, depth)
-        assert np.isfinite(float(value))
-        assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
+    cases = {name: case for name, case in DEGENERATE.items() if case.get("resolution_factor", 1) == resolution_factor}
+    for name, case in cases.items():
+        light = (jnp.asarray(case["light_xy"], jnp.float32), jnp.float32(case.get("light_depth", 12.0)),
+                 jnp.asarray(case.get("light_in_front", True)))  # fmt: skip
+        for depth in (jnp.asarray(_depth(), jnp.float32), jnp.full((HEIGHT, WIDTH), jnp.inf)):  # and a frame all sky
+            value, grads = loss(light[0], 0.06, 0.3, 60.0, depth, *light[1:])
+            assert np.isfinite(float(value)), name
+            assert all(np.all(np.isfinite(np.asarray(g))) for g in grads), name
 
 
 def test_zero_density_leaves_the_frame(rng):

@@ -265,8 +265,7 @@ def test_terms_match_loop(x64, case):
     light_xy, light_depth, in_front = CASES[case]
     depth = _depth()
     expected = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM).terms()
-    got = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray(light_xy), light_depth=light_depth,
-                               light_in_front=in_front, **MEDIUM)  # fmt: skip
+    got = _terms(depth, light_xy, light_depth=light_depth, light_in_front=in_front, **MEDIUM)
     for name, want, have in zip(("surface", "scattered", "opacity"), expected, got):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
 
@@ -283,12 +282,11 @@ def test_partly_covered_pixels_match_loop(x64, beside_surfaces):
         uncovered = np.full(depth.shape, np.inf)
         uncovered[2, 3], uncovered[3, 4] = 11.0, 20.0  # the far ground's pixel partly the near one, and the reverse
     expected = _Loop(depth, (2.3, 0.7), light_depth=12.0, in_front=True, **MEDIUM).terms(coverage, uncovered)
-    got = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), light_depth=12.0,
-                               coverage=jnp.asarray(coverage), **MEDIUM,
-                               uncovered_depth=None if uncovered is None else jnp.asarray(uncovered))  # fmt: skip
+    got = _terms(depth, [2.3, 0.7], light_depth=12.0, coverage=jnp.asarray(coverage), **MEDIUM,
+                 uncovered_depth=None if uncovered is None else jnp.asarray(uncovered))  # fmt: skip
     for name, want, have in zip(("surface", "scattered", "opacity"), expected, got):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
-    plain = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), light_depth=12.0, **MEDIUM)
+    plain = _terms(depth, [2.3, 0.7], light_depth=12.0, **MEDIUM)
     assert not np.allclose(np.asarray(got[1]), np.asarray(plain[1]))
 
 
@@ -298,8 +296,8 @@ def test_occluder_shadows_the_haze_in_front_of_it(x64):
     depth[2:, 2] = 10.0
     options = dict(MEDIUM, layer_top=math.inf, height_falloff=0.0, max_distance=10.0, num_shadow_samples=8)
     light = jnp.asarray([2.6, 0.5])
-    _, shadowed, _ = volumetric_fog_terms(jnp.asarray(depth), light, **options)
-    _, open_sky, _ = volumetric_fog_terms(jnp.asarray(np.full((HEIGHT, WIDTH), np.inf)), light, **options)
+    _, shadowed, _ = _terms(depth, light, **options)
+    _, open_sky, _ = _terms(np.full((HEIGHT, WIDTH), np.inf), light, **options)
     assert float(shadowed[3, 2]) < 0.8 * float(open_sky[3, 2])
     assert float(shadowed[0, 5]) == pytest.approx(float(open_sky[0, 5]), rel=1e-12)
 
@@ -311,9 +309,16 @@ def test_box_hiding_the_sun_shades_the_whole_ray_in_front_of_it(x64):
     depth[2:10, 4:12] = 10.0
     options = dict(MEDIUM, layer_top=math.inf, height_falloff=0.0, max_distance=30.0, thickness=0.1, edge_softness=0.01,
                    num_view_steps=8, num_shadow_samples=6)  # fmt: skip
-    _, scattered, _ = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([8.2, 5.7]), **options)
-    _, open_sky, _ = volumetric_fog_terms(jnp.full((12, 16), jnp.inf), jnp.asarray([8.2, 5.7]), **options)
+    _, scattered, _ = _terms(depth, [8.2, 5.7], **options)
+    _, open_sky, _ = _terms(np.full((12, 16), np.inf), [8.2, 5.7], **options)
     assert float(jnp.max(scattered[3:9, 5:11])) < 1e-3 * float(jnp.min(open_sky[3:9, 5:11]))
+
+
+def _terms(depth, light_xy, *, coverage=None, uncovered_depth=None, **options):
+    """`volumetric_fog_terms` compiled, the options constants: eager, each operation of the march is dispatched and
+    compiled alone (test_composite_eager_jit_vmap takes that path)."""
+    run = jax.jit(functools.partial(volumetric_fog_terms, **options))
+    return run(jnp.asarray(depth), jnp.asarray(light_xy), coverage=coverage, uncovered_depth=uncovered_depth)
 
 
 def _fog(image, depth, light_xy, **overrides):
@@ -430,12 +435,13 @@ def test_degenerate_lights_finite_values_and_gradients(rng, resolution_factor):
 
 def test_zero_density_leaves_the_frame(rng):
     image, depth = jnp.asarray(_image(rng), jnp.float32), jnp.asarray(_depth(), jnp.float32)
-    np.testing.assert_array_equal(_fog(image, depth, jnp.asarray([2.3, 0.7]), extinction=0.0), image)
+    fogged = jax.jit(functools.partial(_fog, extinction=0.0))(image, depth, jnp.asarray([2.3, 0.7]))
+    np.testing.assert_array_equal(fogged, image)
 
 
 def test_camera_above_the_layer_sees_haze_only_below_it(x64):
     depth = np.full((HEIGHT, WIDTH), np.inf)
-    _, scattered, opacity = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([2.3, 0.7]), **dict(MEDIUM, layer_top=-1.0))
+    _, scattered, opacity = _terms(depth, [2.3, 0.7], **dict(MEDIUM, layer_top=-1.0))
     assert np.all(np.asarray(opacity[: HEIGHT // 2]) == 0)  # rays going up never meet the layer below
     assert np.all(np.asarray(opacity[HEIGHT // 2 :]) > 0)
     assert np.all(np.asarray(scattered[: HEIGHT // 2]) == 0)
@@ -447,8 +453,7 @@ def test_reduced_resolution_matches_loop(x64):
     light_xy, light_depth, in_front = CASES["point light off screen"]
     depth = _depth()
     expected = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM).reduced_scattered(2.5)
-    _, got, _ = volumetric_fog_terms(jnp.asarray(depth), jnp.asarray(light_xy), light_depth=light_depth,
-                                     light_in_front=in_front, resolution_factor=2.5, **MEDIUM)  # fmt: skip
+    _, got, _ = _terms(depth, light_xy, light_depth=light_depth, light_in_front=in_front, resolution_factor=2.5, **MEDIUM)
     np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
 
 
@@ -504,11 +509,15 @@ def test_shadows_move_smoothly_with_the_light(x64):
     depth = np.full((4, 8), np.inf)
     depth[:, 3] = 5.0  # a post; the light's own pixel sample falls on its edge
 
-    def visibility(light_x):
-        return np.asarray(segment_visibility(
-            jnp.asarray(depth), jnp.asarray([light_x, 2.5]), jnp.asarray([[[6.5, 2.5]]]), jnp.asarray([[[2.0]]]),
+    @jax.jit
+    def shadow(light_x):
+        return segment_visibility(
+            jnp.asarray(depth), jnp.stack([light_x, 2.5]), jnp.asarray([[[6.5, 2.5]]]), jnp.asarray([[[2.0]]]),
             fov_x_deg=60.0, thickness=0.3, edge_softness=0.05, num_shadow_samples=1,
-        ))  # fmt: skip
+        )  # fmt: skip
+
+    def visibility(light_x):
+        return np.asarray(shadow(jnp.float64(light_x)))
 
     np.testing.assert_allclose(visibility(2.999), 0.5, atol=0.01)
     np.testing.assert_allclose(visibility(3.001), 0.5, atol=0.01)

@@ -251,6 +251,13 @@ class _Loop:
         return tuple(np.array([[pixel[i] for pixel in row] for row in rows]) for i in range(3))
 
 
+def _terms(depth, light_xy, *, coverage=None, uncovered_depth=None, **options):
+    """`volumetric_fog_terms` compiled, the options constants: eager, each operation of the march is dispatched and
+    compiled alone (test_composite_eager_jit_vmap takes that path)."""
+    run = jax.jit(functools.partial(volumetric_fog_terms, **options))
+    return run(jnp.asarray(depth), jnp.asarray(light_xy), coverage=coverage, uncovered_depth=uncovered_depth)
+
+
 CASES = {
     "sun in front": ((2.3, 0.7), math.inf, True),
     "point light in the medium": ((4.4, 1.2), 12.0, True),
@@ -312,13 +319,6 @@ def test_box_hiding_the_sun_shades_the_whole_ray_in_front_of_it(x64):
     _, scattered, _ = _terms(depth, [8.2, 5.7], **options)
     _, open_sky, _ = _terms(np.full((12, 16), np.inf), [8.2, 5.7], **options)
     assert float(jnp.max(scattered[3:9, 5:11])) < 1e-3 * float(jnp.min(open_sky[3:9, 5:11]))
-
-
-def _terms(depth, light_xy, *, coverage=None, uncovered_depth=None, **options):
-    """`volumetric_fog_terms` compiled, the options constants: eager, each operation of the march is dispatched and
-    compiled alone (test_composite_eager_jit_vmap takes that path)."""
-    run = jax.jit(functools.partial(volumetric_fog_terms, **options))
-    return run(jnp.asarray(depth), jnp.asarray(light_xy), coverage=coverage, uncovered_depth=uncovered_depth)
 
 
 def _fog(image, depth, light_xy, **overrides):

@@ -234,8 +234,17 @@ def _batch(name, dtype=np.float32):
     return examples, tuple(jnp.stack(column) for column in zip(*examples))
 
 
-def _assert_close(actual, expected, rtol=2e-4):
-    assert_trees_close(actual, expected, rtol=rtol)
+def _assert_close(actual, expected, rtol=2e-4, scale=None):
+    assert_trees_close(actual, expected, rtol=rtol, scale=scale)
+
+
+def _assert_gradients_close(actual, gradient, cotangent, example):
+    """`actual` equals `gradient(cotangent, *example)`, to within `_assert_close`'s tolerance of the gradient or,
+    where larger, of the gradient against `|cotangent|`: a gradient in a scalar sums every output element's
+    derivative, and against random signs that sum can cancel by chance (view_directions' first example: 8.6e-5
+    of terms summing to 1.3 in magnitude), while float32 rounding, which batching reorders, scales with the
+    terms."""
+    _assert_close(actual, gradient(cotangent, *example), scale=gradient(jnp.abs(cotangent), *example))
 
 
 def _loss_of(call):
@@ -294,7 +303,7 @@ def test_grad_of_vmap_equals_per_example_gradients(name, compiled):
     batched_gradients = (jax.jit(gradient) if compiled else gradient)(cotangents, *batched)
     per_example = jax.jit(jax.grad(loss, argnums=argnums))  # eager equals jit: test_jit_equals_eager
     for i, example in enumerate(examples):
-        _assert_close([g[i] for g in batched_gradients], per_example(cotangents[i], *example))
+        _assert_gradients_close([g[i] for g in batched_gradients], per_example, cotangents[i], example)
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
@@ -306,7 +315,7 @@ def test_vmap_of_grad_equals_per_example_gradients(name):
     batched_gradients = jax.jit(jax.vmap(gradient))(cotangents, *batched)
     per_example = jax.jit(gradient)
     for i, example in enumerate(examples):
-        _assert_close([g[i] for g in batched_gradients], per_example(cotangents[i], *example))
+        _assert_gradients_close([g[i] for g in batched_gradients], per_example, cotangents[i], example)
 
 
 @pytest.mark.parametrize("name", sorted(CASES))

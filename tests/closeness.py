@@ -16,5 +16,5 @@ def assert_trees_close(actual, expected, *, rtol: float, scale=None) -> None:
         a, e = np.asarray(a), np.asarray(e)
         assert a.shape == e.shape, (a.shape, e.shape)
         assert np.all(np.isfinite(a)), "non-finite values"
-        scale = max(float(np.max(np.abs(e))), float(np.max(np.abs(np.asarray(s)))), 1e-6)
-        assert np.max(np.abs(a - e)) <= rtol * scale, (np.max(np.abs(a - e)), scale)
+        size = max(float(np.max(np.abs(e))), float(np.max(np.abs(np.asarray(s)))), 1e-6)
+        assert np.max(np.abs(a - e)) <= rtol * size, (np.max(np.abs(a - e)), size)

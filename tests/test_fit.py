@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import godrays_jax as gr
@@ -213,8 +214,24 @@ def test_starts_race_by_successive_halving():
         _rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=10, starts=[far, _rays(**START), near], probe_steps=2,
         plateau_steps=0, rtol=1e-12, atol=1e-15, progress=lambda step, value: losses.append(value),
     )  # fmt: skip
-    assert result.start == 3 and len(losses) == result.steps <= 16 < 3 * 10
+    assert result.start == 3 and len(losses) == result.steps and result.steps - result.polish_steps <= 16 < 3 * 10
     assert result.loss_after < 1e-3 * result.loss_before
+
+
+def test_levenberg_marquardt_is_polished_with_marquardts_scaling_and_no_other_solver():
+    """The polish goes on from where the descent stops (one loss history, never rising); BFGS and a solver the
+    caller built run alone."""
+    frame = _frame()
+    target = _rays(**TRUTH)(frame, LIGHT)
+    common = dict(fixed=FIXED_RAYS, max_steps=4, plateau_steps=0)
+    polished = fit(_rays(**START), frame, LIGHT, target, **common)
+    assert polished.polish_steps == 4 and polished.steps == 8 and len(polished.loss_history) == 8
+    # never rising (the polish's first loss is the descent's last, evaluated by another program: float32 apart)
+    assert np.all(np.diff(polished.loss_history) <= 1e-6 * polished.loss_history[:-1])
+    descent = fit(_rays(**START), frame, LIGHT, target, solver=optx.LevenbergMarquardt(1e-4, 1e-7), **common)
+    assert descent.polish_steps == 0 and descent.steps == 4
+    assert polished.loss_after < descent.loss_after  # four more steps from where the descent stopped
+    assert fit(_rays(**START), frame, LIGHT, target, solver="bfgs", **common).polish_steps == 0
 
 
 def test_the_fit_stops_once_the_loss_stops_moving():
@@ -222,7 +239,8 @@ def test_the_fit_stops_once_the_loss_stops_moving():
     frame = _frame()
     target = _rays(**TRUTH)(frame, LIGHT)
     result = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, plateau_steps=2, plateau_rtol=1.0)
-    assert result.plateaued and not result.converged and result.steps == 3
+    assert result.plateaued and not result.converged and result.steps - result.polish_steps == 3  # the descent
+    assert result.polish_steps == 3  # and the polish after it, each at its third step
 
 
 def test_steps_rejected_before_the_loss_first_falls_are_no_plateau():
@@ -307,7 +325,7 @@ def test_fit_command_fits_two_frames_and_apply_reproduces(tmp_path, capsys):
     ])  # fmt: skip
     captured = capsys.readouterr()
     assert status == 0, captured.err
-    assert "loss before" in captured.out and "/30 [" in captured.err and "step/s" in captured.err  # tqdm: steps, ETA
+    assert "loss before" in captured.out and "/60 [" in captured.err and "step/s" in captured.err  # tqdm: steps of both phases, ETA
     metrics = next(line for line in captured.out.splitlines() if line.startswith("PSNR before"))
     assert "SSIM before" in metrics and "skimage.metrics" in metrics and "mean over 2 frames" in metrics
     assert "every fitted parameter is determined" in captured.out  # density, decay, exposure: the test's own set

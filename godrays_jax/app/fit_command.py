@@ -30,7 +30,7 @@ from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.determination import determination
-from godrays_jax.pipeline.fit import fit
+from godrays_jax.pipeline.fit import fit, polishes
 from godrays_jax.pipeline.frame_start import ground_layer_start
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
@@ -78,7 +78,7 @@ def run(args) -> int:
     coarse_factor = auto_coarse_factor(frames[0].height, frames[0].width) if args.coarse_factor is None else args.coarse_factor
     if coarse_factor < 1:
         raise CommandError(f"--coarse-factor must be an integer >= 1, got {coarse_factor}")
-    phases = 2 if coarse_factor > 1 else 1
+    phases = (2 if coarse_factor > 1 else 1) + polishes(args.solver, args.loss)
     bar = tqdm.tqdm(total=phases * args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
 
     def progress(step, value):
@@ -143,7 +143,8 @@ def _steps_line(result, coarse_factor: int) -> str:
         why = "stopped: the loss had stopped moving"
     else:
         why = "stopped at --max-steps"
-    return f"{coarse}{result.steps} steps, {why}"
+    polish = f" ({result.polish_steps} of them polishing with Marquardt's scaling)" if result.polish_steps else ""
+    return f"{coarse}{result.steps} steps{polish}, {why}"
 
 
 def _metrics_line(start, fitted_images, frame_data, targets) -> str:

@@ -17,6 +17,14 @@ How the parameters are fitted:
   identity on [0, 1], mirrored beyond). Unlike a sigmoid its slope never
   vanishes, so a start on a bound (presets put `decay` at 1.0) still moves,
   and the solver's unknowns all have the same unit scale.
+- Levenberg-Marquardt's damping is the same for every unknown, but the frame
+  is not equally sensitive to each (a unit of `max_distance` is 10^4 scene
+  units), and where its descent stops the loss may still fall slowly along
+  the unknowns it damps most. It is then polished: the same least squares
+  goes on from there with each unknown damped by its own sensitivity
+  (`marquardt`, Marquardt's scaling). As the whole descent that scaling
+  loses the race of starts on some frames (`benchmarks/README.md`,
+  "Marquardt's scaling"); after it, it only goes down.
 - Derivatives are forward-mode: the Jacobian of the residuals (or the
   gradient of a scalar loss) is one vectorised JVP per fitted parameter,
   memory O(image x parameters) whatever the loop lengths. Levenberg-Marquardt
@@ -47,6 +55,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import count_fields, field_value, replace_fields
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
+from godrays_jax.pipeline.marquardt import ScaledLevenbergMarquardt
 from godrays_jax.pipeline.problem import (
     FitProblem,
     as_frames,
@@ -81,11 +90,13 @@ class FitResult:
         loss_rounded: the loss of `rounded`.
         fitted: the names of the fields that were fitted.
         steps: solver steps taken at the frames' own resolution, every start's.
-        converged: whether the solver met its tolerances within `max_steps`.
+        converged: whether the solver met its tolerances within `max_steps`
+            (in the last phase: the polish, where there is one).
         plateaued: whether the fit stopped because the loss had stopped moving
-            (`plateau_steps`, `plateau_rtol`).
+            (`plateau_steps`, `plateau_rtol`; in the last phase).
         coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`), every start's.
         start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
+        polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt).
     """
 
     effect: Effect
@@ -100,6 +111,7 @@ class FitResult:
     plateaued: bool = False
     coarse_steps: int = 0
     start: int = 0
+    polish_steps: int = 0
 
 
 def round_counts(effect: Effect) -> Effect:
@@ -158,6 +170,12 @@ def _solver(solver, loss, rtol, atol):
     if solver == "gauss_newton":
         return optx.GaussNewton(rtol=rtol, atol=atol)
     return optx.BFGS(rtol=rtol, atol=atol)
+
+
+def polishes(solver, loss: str) -> bool:
+    """Whether `fit(solver=solver, loss=loss)` follows its descent with the polish phase (Marquardt's scaling):
+    after the Levenberg-Marquardt that `solver` names ("auto" for MSE); a solver the caller built runs as it is."""
+    return isinstance(solver, str) and loss == "mse" and solver in ("auto", "levenberg_marquardt")
 
 
 def _forward_mode(function):
@@ -363,7 +381,10 @@ def fit(
             `"levenberg_marquardt"`, `"gauss_newton"`, `"bfgs"`, or an
             optimistix least-squares solver (MSE only) or minimiser.
             Levenberg-Marquardt solves its damped steps by the normal
-            equations (parameters x parameters, Cholesky), the others with
+            equations (parameters x parameters, Cholesky) and is followed by
+            a polish phase with Marquardt's scaling
+            (`marquardt.ScaledLevenbergMarquardt`, up to `max_steps` more
+            steps, with the plateau stop), the others with
             optimistix's default linear solvers. Gauss-Newton takes full,
             undamped steps: use it from a start near the solution.
         fixed: names of fittable fields to leave as they are.
@@ -424,6 +445,7 @@ def fit(
         raise ValueError(f"plateau_rtol and coarse_plateau_rtol must be >= 0, got {plateau_rtol!r}, {coarse_plateau_rtol!r}")
     check_space(space)
     optimiser = _solver(solver, loss, rtol, atol)
+    polisher = ScaledLevenbergMarquardt(rtol=rtol, atol=atol) if polishes(solver, loss) else None
     least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
@@ -470,6 +492,12 @@ def fit(
         start_index = origins[start_index]
         run = runs[winner]
         history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
+        polish_steps = 0
+        if polisher is not None and max_steps > 0:
+            before = counter.steps
+            polished, _ = _descend([run.problem.effect_at(run.y)], bounds, frame_data, counter, **{**descend, "optimiser": polisher})
+            run, polish_steps = polished[0], counter.steps - before
+            history = [*history, *run.history]  # one entry per step, as the descent's (its first: where it starts)
         fitted_effect, rounded = _fitted_effects(run.problem, run.y)
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
@@ -489,4 +517,5 @@ def fit(
         plateaued=run.plateaued,
         coarse_steps=coarse_steps,
         start=start_index,
+        polish_steps=polish_steps,
     )

@@ -180,11 +180,13 @@ def test_a_repeated_fit_traces_and_compiles_nothing(caplog, monkeypatch):
 
 
 def test_a_coarse_phase_then_the_full_resolution_recovers_the_parameters():
-    """The coarse phase fits the frame halved (the light and the disc's pixel size halved too); the fine phase ends it."""
+    """The coarse phase fits the frame halved (the light and the disc's pixel size halved too); the fine phase ends it,
+    and is the polish (Marquardt's scaling: no third phase)."""
     frame = _frame()
     target = _rays(**TRUTH)(frame, LIGHT)
     result = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, coarse_factor=2)
     assert result.coarse_steps > 0 and result.effect.flare_size == 6.0  # pixel sizes scaled back
+    assert 0 < result.polish_steps == result.steps <= 30
     assert result.loss_history[0] == pytest.approx(result.loss_before)
     assert result.loss_history[1] < 0.1 * result.loss_history[0]  # the coarse phase's result, at full resolution
     for name in result.fitted:

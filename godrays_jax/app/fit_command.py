@@ -78,7 +78,7 @@ def run(args) -> int:
     coarse_factor = auto_coarse_factor(frames[0].height, frames[0].width) if args.coarse_factor is None else args.coarse_factor
     if coarse_factor < 1:
         raise CommandError(f"--coarse-factor must be an integer >= 1, got {coarse_factor}")
-    phases = (2 if coarse_factor > 1 else 1) + polishes(args.solver, args.loss)
+    phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes
     bar = tqdm.tqdm(total=phases * args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
 
     def progress(step, value):

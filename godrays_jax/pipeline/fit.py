@@ -22,9 +22,10 @@ How the parameters are fitted:
   units), and where its descent stops the loss may still fall slowly along
   the unknowns it damps most. It is then polished: the same least squares
   goes on from there with each unknown damped by its own sensitivity
-  (`marquardt`, Marquardt's scaling). As the whole descent that scaling
-  loses the race of starts on some frames (`benchmarks/README.md`,
-  "Marquardt's scaling"); after it, it only goes down.
+  (`marquardt`, Marquardt's scaling); after a coarse phase, the full
+  resolution's descent is the polish. As the descent of the race of starts
+  that scaling loses on some frames (`benchmarks/README.md`, "Marquardt's
+  scaling"); after it, it only goes down.
 - Derivatives are forward-mode: the Jacobian of the residuals (or the
   gradient of a scalar loss) is one vectorised JVP per fitted parameter,
   memory O(image x parameters) whatever the loop lengths. Levenberg-Marquardt
@@ -96,7 +97,8 @@ class FitResult:
             (`plateau_steps`, `plateau_rtol`; in the last phase).
         coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`), every start's.
         start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
-        polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt).
+        polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt; after a
+            coarse phase, every full-resolution step).
     """
 
     effect: Effect
@@ -384,7 +386,8 @@ def fit(
             equations (parameters x parameters, Cholesky) and is followed by
             a polish phase with Marquardt's scaling
             (`marquardt.ScaledLevenbergMarquardt`, up to `max_steps` more
-            steps, with the plateau stop), the others with
+            steps, with the plateau stop; after a coarse phase the full
+            resolution's descent is that polish), the others with
             optimistix's default linear solvers. Gauss-Newton takes full,
             undamped steps: use it from a start near the solution.
         fixed: names of fittable fields to leave as they are.
@@ -486,16 +489,20 @@ def fit(
             coarse_steps = counter.steps
             fine_start = coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y)
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
-        runs, winner = _descend(candidates, bounds, frame_data, counter, **descend)
+        # After a coarse phase, which raced the starts, the full resolution's one descent is the polish itself.
+        fine = descend if coarse_factor == 1 or polisher is None else {**descend, "optimiser": polisher}
+        before = counter.steps
+        runs, winner = _descend(candidates, bounds, frame_data, counter, **fine)
+        polish_steps = counter.steps - before if fine is not descend else 0
         if coarse_factor == 1:
             start_index = winner
         start_index = origins[start_index]
         run = runs[winner]
         history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
-        polish_steps = 0
-        if polisher is not None and max_steps > 0:
+        if polisher is not None and coarse_factor == 1 and max_steps > 0:
             before = counter.steps
-            polished, _ = _descend([run.problem.effect_at(run.y)], bounds, frame_data, counter, **{**descend, "optimiser": polisher})
+            polish = {**descend, "optimiser": polisher}
+            polished, _ = _descend([run.problem.effect_at(run.y)], bounds, frame_data, counter, **polish)
             run, polish_steps = polished[0], counter.steps - before
             history = [*history, *run.history]  # one entry per step, as the descent's (its first: where it starts)
         fitted_effect, rounded = _fitted_effects(run.problem, run.y)

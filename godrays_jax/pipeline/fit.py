@@ -489,19 +489,19 @@ def fit(
             coarse_steps = counter.steps
             fine_start = coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y)
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
+        polish = None if polisher is None else {**descend, "optimiser": polisher}
         # After a coarse phase, which raced the starts, the full resolution's one descent is the polish itself.
-        fine = descend if coarse_factor == 1 or polisher is None else {**descend, "optimiser": polisher}
+        fine = polish if coarse_factor > 1 and polish is not None else descend
         before = counter.steps
         runs, winner = _descend(candidates, bounds, frame_data, counter, **fine)
-        polish_steps = counter.steps - before if fine is not descend else 0
+        polish_steps = counter.steps - before if fine is polish else 0
         if coarse_factor == 1:
             start_index = winner
         start_index = origins[start_index]
         run = runs[winner]
         history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
-        if polisher is not None and coarse_factor == 1 and max_steps > 0:
+        if polish is not None and coarse_factor == 1 and max_steps > 0:
             before = counter.steps
-            polish = {**descend, "optimiser": polisher}
             polished, _ = _descend([run.problem.effect_at(run.y)], bounds, frame_data, counter, **polish)
             run, polish_steps = polished[0], counter.steps - before
             history = [*history, *run.history]  # one entry per step, as the descent's (its first: where it starts)

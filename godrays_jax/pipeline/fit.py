@@ -23,9 +23,10 @@ How the parameters are fitted:
   the unknowns it damps most. It is then polished: the same least squares
   goes on from there with each unknown damped by its own sensitivity
   (`marquardt`, Marquardt's scaling); after a coarse phase, the full
-  resolution's descent is the polish. As the descent of the race of starts
-  that scaling loses on some frames (`benchmarks/README.md`, "Marquardt's
-  scaling"); after it, it only goes down.
+  resolution's descent is the polish. Not the race's own descent: with that
+  scaling from the start, the race keeps worse starts on some frames
+  (`benchmarks/README.md`, "Marquardt's scaling"); as a polish it can only
+  lower the loss.
 - Derivatives are forward-mode: the Jacobian of the residuals (or the
   gradient of a scalar loss) is one vectorised JVP per fitted parameter,
   memory O(image x parameters) whatever the loop lengths. Levenberg-Marquardt

@@ -1,5 +1,6 @@
 """Shared fixtures: float64 mode for gradient checks, random generators; a compilation cache."""
 
+import gc
 import os
 from pathlib import Path
 
@@ -24,6 +25,34 @@ jax.config.update("jax_compilation_cache_dir", str(CACHE))
 os.environ.setdefault("GODRAYS_JAX_CACHE_DIR", str(CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+# XLA's CPU client maps the code of every program it loads into the process (three small maps per kernel at
+# this optimisation level) and keeps them while JAX's caches hold the program. A worker that runs hundreds of
+# tests reaches Linux's limit on a process's maps (vm.max_map_count, 65530 by default) and the next load dies
+# of a fatal signal (a CI run's worker, near the end of the suite). Once a test leaves this many more maps than
+# the last clearing did, JAX's caches are cleared: later tests reload what they need from the persistent cache.
+NEW_MAPS_BEFORE_CLEARING = 20_000
+_maps_after_clearing = 0
+
+
+def _memory_maps() -> int:
+    """How many memory maps this process holds (0 where the system does not say)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+@pytest.fixture(autouse=True)
+def _maps_below_the_kernels_limit():
+    global _maps_after_clearing
+    yield
+    if _memory_maps() > _maps_after_clearing + NEW_MAPS_BEFORE_CLEARING:
+        jax.clear_caches()
+        gc.collect()
+        _maps_after_clearing = _memory_maps()
 
 
 @pytest.fixture(autouse=True)

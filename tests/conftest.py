@@ -1,4 +1,4 @@
-"""Shared fixtures: float64 mode for gradient checks, random generators; a compilation cache; XLA's code maps kept in bounds."""
+"""Shared fixtures: float64 mode, random generators; a compilation cache; XLA's code maps kept in bounds."""
 
 import gc
 import os

@@ -236,7 +236,9 @@ def test_vbex_sun_spot_adds_its_glow_at_full_strength():
     spot = spot[..., None] * (frame["coverage"] == 0)[..., None] * np.asarray(effect.tint)
     side = max(HEIGHT, WIDTH)
     glow = shaders.bright_glow(spot, float(effect.bloom.blur_sigma) * side / 2, math.ceil(effect.bloom.blur_reach * side / 2 - 1e-9))
-    np.testing.assert_allclose(effect.layer(buffers, jnp.asarray(LIGHT)), spot + glow, rtol=1e-4, atol=1e-4)
+    # float32 sums of a blur many pixels wide over a spot of about 25: their rounding, 1e-4 of the value, is the
+    # code generator's order of summation.
+    np.testing.assert_allclose(effect.layer(buffers, jnp.asarray(LIGHT)), spot + glow, rtol=2e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("name", ["vbex_bloom", "gaussian_bloom"])

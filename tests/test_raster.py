@@ -225,7 +225,11 @@ def test_every_bucket_size_gives_the_same_layers(monkeypatch):
     monkeypatch.setattr(tile_loop, "_bucket_sizes", lambda limit: (0, limit))
     padded = _layers(scene, _camera())
     for got, want in zip(jax.tree_util.tree_leaves(bucketed), jax.tree_util.tree_leaves(padded)):
-        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        if np.issubdtype(np.asarray(want).dtype, np.integer):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))  # which object each layer holds
+        else:
+            # The same arithmetic in two programs: the code generator may round them apart (a few float32 ulps).
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-6)
     assert set(np.unique(np.asarray(bucketed.front.object_id))) == {-1, 0, 1, 2}
 
 

@@ -335,9 +335,8 @@ def _upsample_by_depth(lit, firsts, lasts, even_in_light, ray_end, xs, ys, spaci
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
     y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
     row, col, tent = _bilinear(x[None, :], y[:, None], small_h, small_w)
-    # One program for every piece (vmapped, not a Python loop): the same reads, half the code to compile.
-    read = jax.vmap(lambda *piece: _read_at_depth(*piece, even_in_light, row, col, ray_end))(lit, firsts, lasts)
-    return jnp.sum(tent * jnp.sum(read, axis=0), axis=0)
+    read = sum(_read_at_depth(*piece, even_in_light, row, col, ray_end) for piece in zip(lit, firsts, lasts))
+    return jnp.sum(tent * read, axis=0)
 
 
 def _covering_depth(depth):
@@ -482,14 +481,11 @@ def volumetric_fog_terms(
     covered = jnp.asarray(coverage, dtype)
     surface_depth = _covering_depth(depth)
     uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
-
-    def terms(ray_end):
+    terms = []
+    for ray_end in (surface_depth, uncovered):
         surface, opacity = surface_and_opacity(ray_end)
-        return surface, march(ray_end), opacity
-
-    # Both parts in one program (vmapped, not a Python loop): the same terms, half the code to compile.
-    both = jax.vmap(terms)(jnp.stack([surface_depth, uncovered]))
-    return tuple(covered * on_surface + (1.0 - covered) * on_sky for on_surface, on_sky in both)
+        terms.append((surface, march(ray_end), opacity))
+    return tuple(covered * on_surface + (1.0 - covered) * on_sky for on_surface, on_sky in zip(*terms))
 
 
 def apply_volumetric_fog(

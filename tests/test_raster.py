@@ -228,7 +228,7 @@ def test_every_bucket_size_gives_the_same_layers(monkeypatch):
         if np.issubdtype(np.asarray(want).dtype, np.integer):
             np.testing.assert_array_equal(np.asarray(got), np.asarray(want))  # which object each layer holds
         else:
-            # The same arithmetic in two programs: the code generator may round them apart (a few float32 ulps).
+            # The same arithmetic in two programs: the code generator may round them apart (1e-6 here at most).
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-6)
     assert set(np.unique(np.asarray(bucketed.front.object_id))) == {-1, 0, 1, 2}
 

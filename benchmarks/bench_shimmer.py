@@ -1,7 +1,7 @@
 """Shimmer of the shaft presets on a slow camera pan: how much their error against a converged version changes per frame.
 
     python benchmarks/bench_shimmer.py [--size 320x180] [--frames 12] [--pan 0.35] [--oversample 32] [--fog-oversample 4]
-        [--presets a,b] [--method fast] [--same-target] [--cache FILE] [--maps DIR]
+        [--presets a,b] [--method fast] [--same-target] [--cache FILE] [--converged DIR] [--maps DIR]
 
 The shipped forest (examples/scenes/forest_hero.json) is rendered by the
 project's rasterizer at `--size` for `--frames` frames while the camera turns
@@ -32,6 +32,14 @@ the error's change from one frame to the next, and its 99th percentile in
 absolute value, plus the RMS of the error itself. The target: at most 0.3 RMS
 and 1.5 codes at the 99th percentile.
 
+`--converged DIR` keeps each converged version's codes in `DIR` (one file per
+sequence and converged effect, named by a hash of both) and reads them back on
+the next run: a change to an effect's kernel is then measured in seconds
+(the effect's own frames), not in the minutes the converged version takes, as
+long as the change leaves the converged version alone (for `VolumetricFog`:
+its full-resolution march, `resolution_factor=1`). Remove `DIR` after a change
+that reaches it.
+
 `--maps DIR` writes, per preset, `DIR/NAME.png` (8-bit grey, the codes
 proportional to the values): on the left the RMS over frame pairs and channels of the error's
 change at each pixel, on the right the middle frame's error (grey zero,
@@ -40,6 +48,8 @@ lighter +, darker -), with their scales printed: where the shimmer lives.
 
 import argparse
 import dataclasses
+import hashlib
+import json
 import math
 import os
 import pickle
@@ -58,6 +68,7 @@ from godrays_jax.app.options import with_field_of_view
 from godrays_jax.effects.fog import ScatteringFog
 from godrays_jax.effects.volumetric import VolumetricFog
 from godrays_jax.effects.presets import PRESETS
+from godrays_jax.effects.serialization import effect_to_dict
 from godrays_jax.effects.shafts import FlareOuts, GodRays
 
 SCENE = Path(__file__).resolve().parent.parent / "examples" / "scenes" / "forest_hero.json"
@@ -179,6 +190,23 @@ def write_maps(path: Path, errors: list[np.ndarray]) -> float:
     return scale
 
 
+def converged_codes(folder: str | None, key: tuple, reference, run_reference, frames) -> list[np.ndarray]:
+    """`display_codes` of the converged version on every frame, read from `folder` when it holds them."""
+    def compute():
+        return [display_codes(run_reference(buffers, xy, in_front, depth)) for buffers, xy, in_front, depth in frames]
+
+    if folder is None:
+        return compute()
+    described = json.dumps([list(key), effect_to_dict(reference)], sort_keys=True, default=str)
+    path = Path(folder) / f"converged-{hashlib.sha256(described.encode()).hexdigest()[:16]}.npy"
+    if path.exists():
+        return list(np.load(path))
+    codes = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path, np.stack(codes))
+    return codes
+
+
 def with_camera(effect, camera: gr.Camera):
     """The effect with the camera's field of view and clip planes, as `apply` gives it those of a frame `render` wrote."""
     effect = with_field_of_view(effect, float(camera.fov_x_deg))
@@ -198,6 +226,7 @@ def main() -> None:
     parser.add_argument("--method", default=None, help="also measure GodRays presets with this method (e.g. fast)")
     parser.add_argument("--same-target", action="store_true", help="converged flare-outs stay in the effect's target")
     parser.add_argument("--cache", default=None, help="keep the rendered frames in this file and reuse them")
+    parser.add_argument("--converged", default=None, help="keep the converged versions' codes in this folder")
     parser.add_argument("--maps", default=None, help="write per preset a picture of where the error changes to this folder")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.split("x"))
@@ -230,9 +259,9 @@ def main() -> None:
         reference = converged(effect, args.oversample, same_target=args.same_target, fog_oversample=args.fog_oversample)
         run = jax.jit(lambda b, xy, front, depth, e=effect: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
         run_reference = jax.jit(lambda b, xy, front, depth, e=reference: e(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
-        errors = []
-        for buffers, xy, in_front, depth in frames:
-            errors.append(display_codes(run(buffers, xy, in_front, depth)) - display_codes(run_reference(buffers, xy, in_front, depth)))
+        expected = converged_codes(args.converged, key, reference, run_reference, frames)
+        errors = [display_codes(run(buffers, xy, in_front, depth)) - codes
+                  for (buffers, xy, in_front, depth), codes in zip(frames, expected)]  # fmt: skip
         rms, p99, error = shimmer(errors)
         ok = "yes" if rms <= TARGET_RMS and p99 <= TARGET_P99 else "no"
         print(f"| {name} | {rms:.2f} | {p99:.2f} | {error:.2f} | {ok} |", flush=True)

@@ -5,7 +5,8 @@
 
 Forward: the `hidden_sun` reference's clean frame upscaled (nearest) to 1920x1080, the
 `volumetric_haze` preset at `resolution_factor` 4 (its own) and 2, their march spacings scaled with the
-frame (`march_factor`), and at 4 not scaled (4 pixels apart, as a 320-wide frame's), jitted; the median
+frame (`march_factor`), and at 4 not scaled (4 pixels apart, as a 320-wide frame's), and `physically_based`
+at its own counts (more view steps and shadow samples, for stillness on a pan), jitted; the median
 of `--repeats` runs after one warm-up. Memory: XLA's compiled temporary bytes (`memory_analysis`) of the forward pass
 and of one forward-mode derivative (what `fit`'s Jacobian takes per parameter) at 480x270 for
 several `num_view_steps` x `num_shadow_samples`. `--fit` times the 480x270 fit instead: the reference's
@@ -108,9 +109,10 @@ def main() -> None:
     buffers, light = frame(1080, 1920)
     print("| 1920x1080 forward | march spacing, pixels | median seconds |")
     print("|---|---|---|")
-    for factor, scaled in ((4, True), (2, True), (4, False)):
-        haze = gr.preset("volumetric_haze")
-        effect = type(haze)(**{**{f.name: getattr(haze, f.name) for f in dataclasses.fields(haze)}, "resolution_factor": factor})
+    for name, factor, scaled in (("volumetric_haze", 4, True), ("volumetric_haze", 2, True), ("volumetric_haze", 4, False),
+                                 ("physically_based", 4, True)):  # fmt: skip
+        base = gr.preset(name)
+        effect = type(base)(**{**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)}, "resolution_factor": factor})
         # Unscaled: the spacing of a 320-pixel frame kept at 1920 (the pixel-grid march's cost before the spacing
         # became a fraction of the frame).
         spacing = march_factor(1080, 1920, factor) if scaled else factor
@@ -122,7 +124,8 @@ def main() -> None:
                 start = time.perf_counter()
                 run(effect, buffers, light).block_until_ready()
                 times.append(time.perf_counter() - start)
-        label = f"resolution_factor {factor}" + ("" if scaled else ", not scaled with the frame")
+        label = (f"{name} ({effect.num_view_steps} view steps, {effect.num_shadow_samples} shadow samples), "
+                 f"resolution_factor {factor}" + ("" if scaled else ", not scaled with the frame"))
         print(f"| {label} | {spacing:g} | {statistics.median(times):.3f} |", flush=True)
     buffers, light = frame(270, 480)
     print(f"| 480x270, resolution_factor 4 (spacing {march_factor(270, 480, 4):g}) | forward MiB | one JVP MiB |")

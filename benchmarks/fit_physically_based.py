@@ -6,15 +6,19 @@ The reference frames live beside the checkout (`../shared/data/colonnade_*`,
 Mitsuba 3, a homogeneous medium with sigma_t .02, albedo .95, g .8 in a
 sphere of radius 40 around the camera), so the preset holds the fitted
 constants; this script fits `VolumetricFog` as `godrays-jax fit` does but from
-`volumetric_haze` alone (the preset is not its own start): the camera's field of
+`volumetric_haze` alone (the preset is not its own start), marched at the
+preset's view steps and shadow samples: the camera's field of
 view fixed, the sun at infinity, Levenberg-Marquardt on the display-space MSE,
 the plateau stop. It prints
 the fitted values beside the preset's, the losses (display-space MSE and SSIM)
 of the start, the fit and the preset, and the largest relative difference. The
-preset is current when that difference is well under 1 %.
+preset keeps the fit of an earlier kernel (its docstring says why: today's fit
+shimmers more on a pan), so the difference is not under 1 %: it says how far
+today's fit lies from the preset.
 """
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -39,7 +43,9 @@ def main() -> None:
     scene = json.loads((args.data / "scenes.json").read_text())["colonnade"]
     light = jnp.asarray(scene["light_px"], jnp.float32)
 
-    start = eqx.tree_at(lambda e: e.fov_x_deg, gr.preset("volumetric_haze"), jnp.asarray(float(scene["fov_x_deg"])))
+    # `volumetric_haze`'s values marched at the preset's own counts, so that the baked constants are the fit's there.
+    counts = {name: getattr(gr.preset("physically_based"), name) for name in ("num_view_steps", "num_shadow_samples")}
+    start = dataclasses.replace(gr.preset("volumetric_haze"), fov_x_deg=jnp.asarray(float(scene["fov_x_deg"])), **counts)
     began = time.perf_counter()
     result = gr.fit(start, frame, light, fog, fixed=("fov_x_deg",), max_steps=args.steps)
     print(f"fit: {result.steps} steps, {time.perf_counter() - began:.1f} s")

@@ -30,7 +30,8 @@ LIGHT = jnp.asarray([12.3, 5.1], jnp.float32)
 
 
 def small(effect):
-    """The preset with its loops shortened, so the tests compile quickly."""
-    replacements = {"max_samples": 8, "num_samples": 8.0, "max_iters": 5, "num_iters": 5.0}
+    """The preset with its loops shortened, so the tests compile quickly (a `VolumetricFog` at `volumetric_haze`'s counts)."""
+    replacements = {"max_samples": 8, "num_samples": 8.0, "max_iters": 5, "num_iters": 5.0, "num_view_steps": 16,
+                    "num_shadow_samples": 32}  # fmt: skip
     fields = {f.name: getattr(effect, f.name) for f in dataclasses.fields(effect)}
     return type(effect)(**{**fields, **{k: v for k, v in replacements.items() if k in fields}})

@@ -179,6 +179,10 @@ def _physically_based() -> VolumetricFog:
     the script re-derives them. The fitted extinction lands near the rendered medium's (.024 for .02);
     the medium reaches past the rendered sphere and scatters more forward, standing in for the light
     scattered more than once. Distances are in scene units; `fov_x_deg` is the colonnade camera's.
+    It marches twice `volumetric_haze`'s view steps and four times its shadow samples, so that its thin slabs'
+    shadows hold still on a moving camera (benchmarks/README.md, "Shimmer on a slow pan"). The constants are
+    the fit of a9fff01's kernel; the script's fit on today's kernel lands on thicker slabs with sharper faces,
+    a little closer to the colonnade and not as still on a pan (the same section): the preset keeps these.
     """
     return VolumetricFog(
         medium=Medium(
@@ -186,6 +190,7 @@ def _physically_based() -> VolumetricFog:
             ambient_color=(0.0645, 0.0464, 0.0218),
         ),
         height_falloff=0.00047, direct_fraction=0.4998, thickness=0.0721, edge_softness=0.0552, fov_x_deg=50.0,
+        num_view_steps=32, num_shadow_samples=128,
     )  # fmt: skip
 
 

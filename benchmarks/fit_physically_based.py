@@ -1,4 +1,4 @@
-"""Re-derive the `physically_based` preset: fit VolumetricFog to the path-traced colonnade fog frame.
+"""Fit the `physically_based` preset again: VolumetricFog fitted to the path-traced colonnade fog frame.
 
     python benchmarks/fit_physically_based.py [--steps 50] [--data DIR]
 

@@ -176,7 +176,7 @@ def _physically_based() -> VolumetricFog:
     the sun at infinity) to the Mitsuba 3 frames of a colonnade in a homogeneous medium (sigma_t .02
     per unit, albedo .95, Henyey-Greenstein g .8, a sphere of radius 40 around the camera); the
     frames live beside the checkout (`shared/data/colonnade_*`), so the constants are baked in and
-    the script re-derives them. The fitted extinction lands near the rendered medium's (.024 for .02);
+    the script fits them again. The fitted extinction lands near the rendered medium's (.024 for .02);
     the medium reaches past the rendered sphere and scatters more forward, standing in for the light
     scattered more than once. Distances are in scene units; `fov_x_deg` is the colonnade camera's.
     It marches twice `volumetric_haze`'s view steps and four times its shadow samples, so that its thin slabs'

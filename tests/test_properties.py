@@ -269,6 +269,10 @@ def _small(name: str) -> gr.Effect:
         return type(effect)(**{**fields, "num_samples": 5.0, "max_samples": 5})
     if isinstance(effect, gr.FlareOuts):
         return type(effect)(**{**fields, "num_iters": 4.0, "max_iters": 4})
+    if isinstance(effect, gr.VolumetricFog):  # the counts of `fit`'s default model: its presets share one program
+        model = gr.preset("volumetric_haze")
+        return type(effect)(**{**fields, "num_view_steps": model.num_view_steps,
+                               "num_shadow_samples": model.num_shadow_samples})  # fmt: skip
     return effect
 
 

@@ -6,7 +6,6 @@ per-frame gradients, and in each frame's colour that frame's own gradient, under
 per-frame gradient equals a loop. New presets join the table by themselves.
 """
 
-import dataclasses
 import math
 
 import equinox as eqx
@@ -17,6 +16,7 @@ import pytest
 
 import godrays_jax as gr
 from closeness import assert_trees_close
+from frames import at_fit_counts
 
 HEIGHT, WIDTH = 24, 36
 BATCH = 2
@@ -48,24 +48,8 @@ STACKED = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *FRAMES)
 COTANGENTS = jnp.asarray(np.random.default_rng(7).normal(size=(BATCH, HEIGHT, WIDTH, 3)), jnp.float32)
 
 
-def _preset(name):
-    """The preset, a `VolumetricFog`'s loop counts set to those of `fit`'s default model (`volumetric_haze`).
-
-    Its presets then share one compiled program per test, as they share their structure: the counts are loop
-    lengths, which the kernels' checklist and NumPy loops cover, and the suite's time on CI has no room for a
-    preset's larger counts (benchmarks/README.md, "The test suite on CI").
-    """
-    effect = gr.preset(name)
-    if isinstance(effect, gr.VolumetricFog):
-        model = gr.preset("volumetric_haze")
-        effect = dataclasses.replace(
-            effect, num_view_steps=model.num_view_steps, num_shadow_samples=model.num_shadow_samples
-        )  # fmt: skip
-    return effect
-
-
 def _split(name):
-    return eqx.partition(_preset(name), eqx.is_inexact_array)
+    return eqx.partition(at_fit_counts(gr.preset(name)), eqx.is_inexact_array)
 
 
 def _frame_loss(values, static, frame, color, light, cotangent):
@@ -81,7 +65,7 @@ def _assert_close(actual, expected, rtol=1e-3):
 
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))
 def test_jit_and_vmap_equal_eager_frames(name):
-    effect = _preset(name)
+    effect = at_fit_counts(gr.preset(name))
     compiled = eqx.filter_jit(effect)
     looped = jnp.stack([compiled(frame, light) for frame, light in zip(FRAMES, LIGHTS)])
     _assert_close(effect(FRAMES[1], LIGHTS[1]), looped[1])  # one frame eager: op by op is the slow path

@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 import godrays_jax as gr
+from frames import at_fit_counts
 
 SETTINGS = settings(
     max_examples=5, deadline=None, database=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
@@ -269,11 +270,7 @@ def _small(name: str) -> gr.Effect:
         return type(effect)(**{**fields, "num_samples": 5.0, "max_samples": 5})
     if isinstance(effect, gr.FlareOuts):
         return type(effect)(**{**fields, "num_iters": 4.0, "max_iters": 4})
-    if isinstance(effect, gr.VolumetricFog):  # the counts of `fit`'s default model: its presets share one program
-        model = gr.preset("volumetric_haze")
-        return type(effect)(**{**fields, "num_view_steps": model.num_view_steps,
-                               "num_shadow_samples": model.num_shadow_samples})  # fmt: skip
-    return effect
+    return at_fit_counts(effect)
 
 
 @settings(SETTINGS, max_examples=4)  # each preset compiles twice (value, gradient) per frame size

@@ -71,17 +71,19 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
 
 def test_the_fits_jacobian_is_reverse_modes_on_volumetric_fog():
     """The fit linearises by a vmapped forward-mode Jacobian (`_forward_mode`); on VolumetricFog's chained read XLA
-    once mixed its lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64)."""
-    height, width = 36, 64
+    once mixed its lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64), and
+    again on a read of both pieces by flat-index gathers (fine at 36x64, wrong at 90x160: benchmarks/README.md,
+    "VolumetricFog: speed and memory"), so the frame is that large."""
+    height, width = 90, 160
     depth = np.full((height, width), np.inf, np.float32)
     rows = np.arange(height - height // 2) + 0.5
     depth[height // 2 :] = (3.0 * height / rows)[:, None]  # the ground
-    depth[height // 5 :, 26:38] = 6.0  # a pillar hiding the sun
+    depth[height // 5 :, 65:95] = 6.0  # a pillar hiding the sun
     color = np.where(np.isfinite(depth)[..., None], 0.05, 0.4).astype(np.float32) * np.ones(3, np.float32)
     rows, cols = np.mgrid[:height, :width]
-    color[((rows - 10.8) ** 2 + (cols - 32) ** 2 < 4.7) & ~np.isfinite(depth)] = 30.0
+    color[((rows - 27.0) ** 2 + (cols - 80) ** 2 < 29.4) & ~np.isfinite(depth)] = 30.0
     frame = gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(np.isfinite(depth), jnp.float32))
-    light = jnp.asarray([32.3, 11.0], jnp.float32)
+    light = jnp.asarray([80.8, 27.5], jnp.float32)
     medium = dict(light_color=(2.0, 2.0, 2.0), ambient_color=(0.1, 0.1, 0.1))
     start = gr.VolumetricFog(medium=gr.Medium(extinction=0.013, max_distance=50.0, anisotropy=0.6, **medium), fov_x_deg=60.0)
     truth = gr.VolumetricFog(medium=gr.Medium(extinction=0.02, max_distance=40.0, anisotropy=0.7, **medium), fov_x_deg=60.0)

@@ -404,21 +404,26 @@ def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     scales = jnp.asarray(rng.uniform(-0.3, 1.4, copies))
     weights = jnp.asarray(rng.uniform(0.1, 1.0, copies))
     jacobians = (jnp.asarray(rng.normal(size=(copies, 2))), jnp.asarray(rng.normal(size=(copies, 3))))
+    # One compiled function per loop and output set, shared by both lights (the light is traced).
+    with_derivatives, values_only = (
+        {loop: jax.jit(functools.partial(loop, addressing, derivatives)) for loop in (copy_sums_gpu, copy_sums_cpu)}
+        for derivatives in (True, False)
+    )  # fmt: skip
     for light in (LIGHTS["on_screen"], LIGHTS["off_screen"]):
         args = (image, derivative_image, jnp.asarray(light), scales, weights, jacobians)
-        expected = jax.jit(lambda *a: copy_sums_cpu(addressing, True, *a))(*args)
-        actual = jax.jit(lambda *a: copy_sums_gpu(addressing, True, *a))(*args)
+        expected = with_derivatives[copy_sums_cpu](*args)
+        actual = with_derivatives[copy_sums_gpu](*args)
         total, derivative_total, scale_sums, weight_sums, light_sums = expected
         assert total.shape == (WIDTH, 3 * HEIGHT) and scale_sums.shape == (WIDTH, 3 * HEIGHT, 2)
         assert weight_sums.shape == (WIDTH, 3 * HEIGHT, 3)
         for got, want in zip(jax.tree.leaves(actual), jax.tree.leaves(expected), strict=True):
             assert_close(got, want, 1e-12)
-        without = jax.jit(lambda *a: copy_sums_gpu(addressing, False, *a))(image, None, *args[2:5], (None, None))
+        without = values_only[copy_sums_gpu](image, None, *args[2:5], (None, None))
         assert without[1:] == (None, None, None, None)
         assert_close(without[0], total, 1e-12)
         for only in ((jacobians[0], None), (None, jacobians[1])):
             for loop in (copy_sums_gpu, copy_sums_cpu):
-                sums = jax.jit(lambda *a, loop=loop: loop(addressing, False, *a))(image, None, *args[2:5], only)
+                sums = values_only[loop](image, None, *args[2:5], only)
                 assert (sums[2] is None, sums[3] is None) == (only[0] is None, only[1] is None)
                 assert_close(sums[2] if only[1] is None else sums[3], scale_sums if only[1] is None else weight_sums,
                              1e-12)  # fmt: skip

@@ -1,0 +1,80 @@
+"""The fit's compiled forward-mode Jacobian against reverse mode, on every path-traced reference.
+
+    python benchmarks/fit_jacobians.py [SCENE ...] [--tolerance 1e-4]
+
+`fit` linearises its loss by a vmapped forward-mode Jacobian (`_forward_mode`
+in `godrays_jax/pipeline/fit.py`), compiled. XLA has compiled such Jacobians
+of `VolumetricFog` with one lane's values in another's (benchmarks/README.md,
+"The fit's Jacobian and XLA"; `tests/test_volumetric.py` keeps a strict
+`xfail` of one case), and on a frame of the size the fits use a wrong lane
+only shows as a fit that stalls. Per scene (`benchmarks/references/scenes.py`)
+this builds the problem `fit` starts from by default (`volumetric_haze` at the
+frame's field of view, the scene's light, the display-space MSE against fog
+A, every field in its bounds fitted, the field of view too) and compares the
+gradient of the loss through `_forward_mode`, compiled, with reverse mode,
+compiled: the largest difference over the fields, relative to the largest
+gradient. Run it after a change to a kernel the fit reaches or to the JAX
+stack; a few minutes for the nine scenes on two cores, each compiling both
+gradients. Exits 1 when a scene is beyond `--tolerance`.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import godrays_jax as gr
+from godrays_jax.pipeline.fit import _forward_mode
+from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, start_point
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "references"))
+from baseline import read_rgb  # noqa: E402  (the references' folder joins the path first)
+from scenes import BY_NAME, SCENES  # noqa: E402
+
+
+def relative_difference(scene) -> tuple[int, float]:
+    """How many fields the default start fits, and the largest |forward - reverse| over them / max |reverse|."""
+    frame = gr.read_buffers(scene.clean)
+    start = eqx.tree_at(lambda effect: effect.fov_x_deg, gr.preset("volumetric_haze"), jnp.float32(scene.fov_x_deg))
+    target = jnp.asarray(read_rgb(scene.fog_a), jnp.float32)
+    light = jnp.asarray(scene.light_px, jnp.float32)
+    frame_data = as_frames(frame, light, target, scene.light_in_front, scene.light_depth)
+    problem = FitProblem.of(start, fitted_bounds(start), frame_data[0], loss="mse", space="display")
+    y = start_point(problem, jnp.float32)
+
+    def objective(flat, frame_data):
+        return problem.objective(problem.effect_at(flat), frame_data)
+
+    def through_forward_mode(flat, frame_data):
+        return _forward_mode(lambda fields: objective(fields, frame_data))(flat)
+
+    reverse = np.asarray(eqx.filter_jit(jax.grad(objective))(y, frame_data))
+    forward = np.asarray(eqx.filter_jit(jax.grad(through_forward_mode))(y, frame_data))
+    return len(y), float(np.abs(forward - reverse).max() / np.abs(reverse).max())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("scenes", nargs="*", help=f"default: all of {', '.join(BY_NAME)}")
+    parser.add_argument("--tolerance", type=float, default=1e-4, help="the relative difference allowed: %(default)s")
+    args = parser.parse_args()
+    scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)
+    print("| scene | fields | max abs(forward - reverse) / max abs(reverse) |")
+    print("|---|---|---|")
+    beyond = []
+    for scene in scenes:
+        count, difference = relative_difference(scene)
+        print(f"| {scene.name} | {count} | {difference:.1e} |", flush=True)
+        if difference > args.tolerance:
+            beyond.append(scene.name)
+    if beyond:
+        print(f"beyond {args.tolerance:g}: {', '.join(beyond)}", file=sys.stderr)
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_volumetric.py [--repeats 3]
     python benchmarks/bench_volumetric.py --fit
+    python benchmarks/bench_volumetric.py --profile [--top 25]
 
 Forward: the `hidden_sun` reference's clean frame upscaled (nearest) to 1920x1080, the
 `volumetric_haze` preset at `resolution_factor` 4 (its own) and 2, their march spacings scaled with the
@@ -16,7 +17,10 @@ layer read from the frame on each start as other starts (`fit_command.fit_starts
 plateau stop) and once as at 8905696 (the presets each fitted to the end in the coarse phase, its
 plateau stop at 0.1 % in both phases); each
 fit twice, the first compiling, the second's wall and process CPU seconds (less hit by other jobs on a
-shared machine) split into its coarse phase and the rest, and the final display-space MSE. `uptime` first: the machine is shared.
+shared machine) split into its coarse phase and the rest, and the final display-space MSE. `--profile`: where
+the 1920x1080 forward of `volumetric_haze` goes, from JAX's profiler over three runs after a warm-up: the
+`--top` compiled kernels (XLA's fusions, named as in the compiled program's HLO text, which says what each
+holds) by their mean milliseconds a run, summed over the threads that ran them. `uptime` first: the machine is shared.
 """
 
 import argparse
@@ -86,12 +90,47 @@ def fit_row(label: str, **options) -> None:
           flush=True)  # fmt: skip
 
 
+def profile_rows(top: int) -> None:
+    """The 1920x1080 forward's compiled kernels by mean milliseconds a run (JAX's profiler, three runs)."""
+    import collections
+    import gzip
+    import json
+    import tempfile
+
+    buffers, light = frame(1080, 1920)
+    effect = gr.preset("volumetric_haze")
+    run = eqx.filter_jit(lambda e, b, l: e(b, l))
+    run(effect, buffers, light).block_until_ready()
+    runs = 3
+    with tempfile.TemporaryDirectory() as folder:
+        with jax.profiler.trace(folder, create_perfetto_trace=True):
+            for _ in range(runs):
+                run(effect, buffers, light).block_until_ready()
+        events = json.load(gzip.open(next(Path(folder).rglob("*.trace.json.gz"))))["traceEvents"]
+    # The executor's and Python's own spans hold the kernels; only the kernels are listed.
+    kernels = [e for e in events if e.get("ph") == "X" and "Execute" not in e["name"] and not e["name"].startswith("$")]
+    total, count = collections.Counter(), collections.Counter()
+    for event in kernels:
+        total[event["name"]] += event.get("dur", 0) / 1e3 / runs
+        count[event["name"]] += 1
+    print(f"| compiled kernel (of {len(total)}) | ms a run | times a run |")
+    print("|---|---|---|")
+    for name, milliseconds in total.most_common(top):
+        print(f"| {name} | {milliseconds:.1f} | {count[name] // runs} |")
+    print(f"| all kernels | {sum(total.values()):.1f} | |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--fit", action="store_true", help="time the 480x270 fit instead, as fit runs it and as before")
+    parser.add_argument("--profile", action="store_true", help="split the 1920x1080 forward by compiled kernel instead")
+    parser.add_argument("--top", type=int, default=25, help="kernels listed by --profile")
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
+    if args.profile:
+        profile_rows(args.top)
+        return
     if args.fit:
         print("| 480x270 fit | steps (coarse + full) | seconds, compiling | seconds, again (coarse + rest) | "
               "CPU seconds, again (coarse + rest) | display MSE | winning start |")  # fmt: skip

@@ -362,14 +362,19 @@ def test_grad_of_vmap_matches_per_example(x64, rng):
     np.testing.assert_allclose(grads[0], total, rtol=1e-9)
 
 
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="XLA (jaxlib 0.10.2, CPU) compiles this Jacobian's anisotropy lane as the extinction lane's; eager and "
+    "reverse mode agree, and so does XLA without its YNNPACK fusions. benchmarks/README.md, 'The fit's Jacobian and "
+    "XLA' (sessions 15, 16)",
+)
 def test_compiled_forward_mode_jacobian_keeps_its_lanes_on_a_partly_covered_frame():
     """A vmapped forward-mode Jacobian (as `jax.jacfwd` and the fit's `_forward_mode` take it) of the three terms,
     compiled, against reverse mode, compiled, on a frame of 90 x 160 pixels with coverage and a direct share of the
-    surface light: every lane its own. XLA's CPU backend (jaxlib 0.10.2) gave the anisotropy lane the extinction
-    lane's values here while the kernel's short sums (a pixel's four rays, a 3-vector's components) were
-    reductions, which it compiles to YNNPACK fusions; written out as sums they compile to loops and the lanes
-    stay apart (benchmarks/README.md, "The fit's Jacobian and XLA", session 16). At 36 x 64 and 45 x 80 the
-    faulty program was right too, so the frame is this large."""
+    surface light: every lane its own. At 36 x 64 and 45 x 80 the same program is right, so the frame is this large.
+    Strict: once a JAX release compiles it right this fails, and the fit's own check (tests/test_fit.py) can be
+    widened to this configuration."""
     height, width = 90, 160
     depth = np.full((height, width), np.inf, np.float32)
     depth[height // 2 :] = (3.0 * height / (np.arange(height - height // 2) + 0.5))[:, None]  # the ground
@@ -386,7 +391,7 @@ def test_compiled_forward_mode_jacobian_keeps_its_lanes_on_a_partly_covered_fram
 
     fields = jnp.asarray([0.013, 50.0, 0.6], jnp.float32)
     reverse = jax.jit(jax.jacrev(weighted_terms))(fields)
-    if float(reverse[1, 2]) == pytest.approx(float(reverse[1, 0]), rel=0.1):
+    if float(reverse[1, 2]) == pytest.approx(float(reverse[1, 0]), rel=0.1):  # not an AssertionError: fails, not xfails
         pytest.fail(f"reverse mode's anisotropy and extinction lanes coincide ({reverse[1]}): the frame tests nothing")
     np.testing.assert_allclose(jax.jit(jax.jacfwd(weighted_terms))(fields), reverse, rtol=1e-3, atol=1e-3)
 

@@ -38,11 +38,7 @@ def exp_ratio(x):
 
 
 def dot(a, b):
-    """`sum(a * b, axis=-1)` over the last axis (3-vectors), written out as a sum of products: XLA's CPU backend
-    compiles a reduction over so short an axis to a single-threaded library call that fuses with nothing
-    (`benchmarks/README.md`, "Where the 1920x1080 forward goes"), the sum to an element-wise loop."""
-    size = jnp.broadcast_shapes(jnp.shape(a), jnp.shape(b))[-1]
-    return sum(a[..., axis % a.shape[-1]] * b[..., axis % b.shape[-1]] for axis in range(size))
+    return jnp.sum(a * b, axis=-1)
 
 
 def medium_interval(

@@ -74,7 +74,7 @@ from godrays_jax.kernels.bounded_medium import (
 )
 from godrays_jax.kernels.lens import view_directions
 from godrays_jax.kernels.media import henyey_greenstein
-from godrays_jax.primitives.camera import focal_length_px, unit_vectors
+from godrays_jax.primitives.camera import focal_length_px
 from godrays_jax.primitives.checks import check_image, check_light, check_plane, check_scalar, is_static_int
 
 # The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
@@ -189,7 +189,7 @@ def segment_visibility(
     reach = jnp.where(in_front, jnp.minimum(reach, 1.0), reach)
     reach = jnp.where(jnp.isfinite(reach), jnp.maximum(reach, 0.0), 0.0)
     view = _rays_at(pixel_xy[..., 0], pixel_xy[..., 1], height, width, focal)
-    view = unit_vectors(view)
+    view = view / jnp.linalg.norm(view, axis=-1, keepdims=True)
     view_cross_light = jnp.cross(view, toward)
     thickness = jnp.asarray(thickness, dtype)
     softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
@@ -211,7 +211,7 @@ def segment_visibility(
         denominator = b1 - 2 * t * b2 + t * t * b3
         # A shadow ray parallel to q's camera ray runs along it (q's ray is the point's own, toward the light):
         # from the point itself on.
-        crossing = safe_divide(numerator * jnp.sqrt(dot(ray, ray))[..., None], denominator, t, tiny=1e-12)
+        crossing = safe_divide(numerator * jnp.linalg.norm(ray, axis=-1)[..., None], denominator, t, tiny=1e-12)
         # The last sample is the light's own pixel when it is on screen: every shadow ray ends there, at the
         # light's distance (the sun's: beyond every slab).
         at_light = (k == num_shadow_samples) & in_front & (reach[..., None] >= 1.0)
@@ -294,22 +294,20 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     lit = attenuated * visible * dimmed * phase * irradiance
     pieces = jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0)
 
-    def even_in_light(distance, ray):
-        return irradiance_coordinate(distance, along.reshape(-1)[ray], miss.reshape(-1)[ray], inverse)
+    def even_in_light(distance, row, col):
+        return irradiance_coordinate(distance, along[row, col], miss[row, col], inverse)
 
     return pieces, jnp.stack(firsts), jnp.stack(lasts), even_in_light
 
 
-def _read_at_depth(lit, first, last, even_in_light, ray, ray_end):
-    """The in-scattering along the march rays `ray` (flat indices into the rays' `(h, w)`) up to `ray_end` (clamped
-    to the piece's bounds) from one piece's segments' light `lit` (`(h, w, M)`, even segments from `first` to
-    `last`, each `(h, w)`), the segment holding `ray_end` taken in proportion to the light it receives up to
-    there (`even_in_light`: a function of distances along the rays and the rays, even in the light's
-    irradiance; a point light's falls off within a segment near it). Flat indices: XLA gathers by one index
-    array faster than by rows and columns stacked into one (`benchmarks/README.md`, "Where the 1920x1080
-    forward goes")."""
+def _read_at_depth(lit, first, last, even_in_light, row, col, ray_end):
+    """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to the piece's bounds) from
+    one piece's segments' light `lit` (`(h, w, M)`, even segments from `first` to `last`, each `(h, w)`), the
+    segment holding `ray_end` taken in proportion to the light it receives up to there (`even_in_light`: a
+    function of distances along the rays, rows and columns, even in the light's irradiance; a point light's
+    falls off within a segment near it)."""
     count = lit.shape[-1]
-    first, last = first.reshape(-1)[ray], last.reshape(-1)[ray]
+    first, last = first[row, col], last[row, col]
     distance = jnp.clip(ray_end, first, last)
     # `last >= first`; an empty piece reads 0 at its start. Not `safe_divide`: its select on `|last - first|`
     # made XLA's algebraic simplifier mix the lanes of the fit's vmapped Jacobian (`pipeline/fit.py`,
@@ -317,11 +315,11 @@ def _read_at_depth(lit, first, last, even_in_light, ray, ray_end):
     length = jnp.where(last > first, last - first, 1.0)
     index = jnp.clip(jnp.floor(jax.lax.stop_gradient((distance - first) / length * count)), 0, count - 1)
     lower, upper = (first + length * (index + offset) / count for offset in (0.0, 1.0))
-    start, reached, end = (even_in_light(u, ray) for u in (lower, distance, upper))
+    start, reached, end = (even_in_light(u, row, col) for u in (lower, distance, upper))
     share = jnp.clip((reached - start) / jnp.where(end > start, end - start, 1.0), 0.0, 1.0)
-    segment = ray * count + index.astype(jnp.int32)
+    index = index.astype(jnp.int32)
     before = jnp.cumsum(lit, axis=-1) - lit
-    return before.reshape(-1)[segment] + lit.reshape(-1)[segment] * share
+    return before[row, col, index] + lit[row, col, index] * share
 
 
 def _upsample_by_depth(lit, firsts, lasts, even_in_light, ray_end, xs, ys, spacing):
@@ -337,9 +335,8 @@ def _upsample_by_depth(lit, firsts, lasts, even_in_light, ray_end, xs, ys, spaci
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
     y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
     row, col, tent = _bilinear(x[None, :], y[:, None], small_h, small_w)
-    ray = row * small_w + col
-    read = sum(_read_at_depth(*piece, even_in_light, ray, ray_end) for piece in zip(lit, firsts, lasts))
-    return sum(tent[corner] * read[corner] for corner in range(4))
+    read = sum(_read_at_depth(*piece, even_in_light, row, col, ray_end) for piece in zip(lit, firsts, lasts))
+    return jnp.sum(tent * read, axis=0)
 
 
 def _covering_depth(depth):
@@ -464,7 +461,7 @@ def volumetric_fog_terms(
         cols = jnp.clip(jnp.floor(x), 0, width - 1).astype(jnp.int32)
         coarse_depth = depth[rows, cols]
         rays = _rays_at(x, y, height, width, focal_length_px(width, fov_x_deg, dtype))
-        rays = unit_vectors(rays)
+        rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
         # Each ray through to the medium's end in two pieces split at its own surface, so its segments are fine
         # up to there; a pixel reads every nearby ray up to its own depth, whatever surface the ray met (sky in a
         # gap narrower than the spacing, a trunk's edge sliding under the ray). A sky ray's split, halfway, moves with the

@@ -70,9 +70,7 @@ def planar_to_ray_depth(depth: Float[ArrayLike, "H W"], *, fov_x_deg: Float[Arra
 
 def unit_vectors(vectors: Float[Array, "*S"], *, axis: int = -1) -> Float[Array, "*S"]:
     """`vectors` scaled to length 1 along `axis` (a zero vector stays finite: its length is floored)."""
-    # A sum of the squared components, not `jnp.sum`: a reduction over so short an axis runs single-threaded on
-    # XLA's CPU backend (`benchmarks/README.md`, "Where the 1920x1080 forward goes").
-    squared = jnp.expand_dims(sum(component * component for component in jnp.moveaxis(vectors, axis, 0)), axis)
+    squared = jnp.sum(vectors * vectors, axis=axis, keepdims=True)
     return vectors * jax.lax.rsqrt(jnp.maximum(squared, 1e-24))
 
 

@@ -24,10 +24,14 @@ holds) by their mean milliseconds a run, summed over the threads that ran them. 
 """
 
 import argparse
+import collections
 import dataclasses
+import gzip
+import json
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from unittest import mock
@@ -92,11 +96,6 @@ def fit_row(label: str, **options) -> None:
 
 def profile_rows(top: int) -> None:
     """The 1920x1080 forward's compiled kernels by mean milliseconds a run (JAX's profiler, three runs)."""
-    import collections
-    import gzip
-    import json
-    import tempfile
-
     buffers, light = frame(1080, 1920)
     effect = gr.preset("volumetric_haze")
     run = eqx.filter_jit(lambda e, b, l: e(b, l))

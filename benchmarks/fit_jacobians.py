@@ -4,10 +4,11 @@
 
 `fit` linearises its loss by a vmapped forward-mode Jacobian (`_forward_mode`
 in `godrays_jax/pipeline/fit.py`), compiled. XLA has compiled such Jacobians
-of `VolumetricFog` with one lane's values in another's (benchmarks/README.md,
-"The fit's Jacobian and XLA"; `tests/test_volumetric.py` keeps a strict
-`xfail` of one case), and on a frame of the size the fits use a wrong lane
-only shows as a fit that stalls. Per scene (`benchmarks/references/scenes.py`)
+of `VolumetricFog` with one lane's values in another's, on some machines and
+not on others (benchmarks/README.md, "The fit's Jacobian and XLA": XLA's
+YNNPACK fusions; `tests/test_volumetric.py` compiles its case without them),
+and on a frame of the size the fits use a wrong lane only shows as a fit that
+stalls. Per scene (`benchmarks/references/scenes.py`)
 this builds the problem `fit` starts from by default (`volumetric_haze` at the
 frame's field of view, the scene's light, the display-space MSE against fog
 A, every field in its bounds fitted, the field of view too) and compares the

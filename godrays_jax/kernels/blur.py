@@ -38,6 +38,7 @@ POISSON_OFFSETS = np.array(
 """The sun-overcasting article's 12 Poisson-disk offsets, in UV units before scaling by `blur_power`."""
 
 
+@jax.jit  # called eagerly, the loop over a function defined in the call would compile again every call
 def _poisson_pass(image, blur_power):
     height, width, _ = image.shape
     xs = jnp.arange(width, dtype=image.dtype) + 0.5

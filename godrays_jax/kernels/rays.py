@@ -328,7 +328,6 @@ def flare_outs_into(
     light_xy = check_light(light_xy)
     check_scalar(scale_step, "scale_step")
     check_scalar(decay, "decay")
-    height, width = target_shape
     if not all(isinstance(size, int) and size >= 1 for size in target_shape):
         raise ValueError(f"target_shape must be two Python ints >= 1, got {target_shape!r}")
     loop_length, relaxed = resolve_count(num_iters, max_iters, "num_iters", "max_iters")
@@ -341,6 +340,14 @@ def flare_outs_into(
     scales = _flare_scales(loop_length, jnp.asarray(scale_step, dtype))
     weights = _faded_powers(loop_length, relaxed, jnp.asarray(decay, dtype), count)
     light_xy = jnp.asarray(light_xy, dtype)
+    return _copies_into(masked, light_xy, scales, weights, tuple(target_shape))
+
+
+@functools.partial(jax.jit, static_argnums=4)
+def _copies_into(masked, light_xy, scales, weights, target_shape):
+    """`flare_outs_into`'s loop over the copies, compiled once per shape: called eagerly, a loop over a function
+    defined in the call would be traced and compiled again on every call."""
+    (height, width), dtype = target_shape, masked.dtype
     xs = (jnp.arange(width, dtype=dtype) + 0.5) * (masked.shape[1] / width)
     ys = (jnp.arange(height, dtype=dtype) + 0.5) * (masked.shape[0] / height)
 
@@ -349,4 +356,4 @@ def flare_outs_into(
         copy_ys = light_xy[1] + (ys - light_xy[1]) * scales[k]
         return total + weights[k] * sample_separable(masked, copy_xs, copy_ys, addressing="zero")
 
-    return jax.lax.fori_loop(0, loop_length, add_copy, jnp.zeros((height, width, masked.shape[2]), dtype))
+    return jax.lax.fori_loop(0, scales.shape[0], add_copy, jnp.zeros((height, width, masked.shape[2]), dtype))

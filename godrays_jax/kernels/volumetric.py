@@ -117,6 +117,62 @@ def _rays_at(x, y, height, width, focal):
     return jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
 
 
+@functools.partial(jax.jit, static_argnums=13)
+def _shadow_march(depth, pixel_xy, distances, step, reach, view_cross_light, view, toward, inverse, in_front, focal,
+                  thickness, softness, num_shadow_samples):  # fmt: skip
+    """`segment_visibility`'s loop over the shadow samples, compiled once per shape and count: called eagerly, a
+    loop over a function defined in the call would be traced and compiled again on every call."""
+    height, width = depth.shape
+    dtype = depth.dtype
+
+    def sample(carry, k):
+        visibility, previous = carry
+        s = reach * jnp.minimum((k + 0.5) / num_shadow_samples, 1.0)
+        q = pixel_xy + s[..., None] * step
+        ray = _rays_at(q[..., 0], q[..., 1], height, width, focal)
+        ray_cross_light, ray_cross_view = jnp.cross(ray, toward), jnp.cross(ray, view)
+        # mu' * ray = X + u (S - X), X = t * view, S = toward / inverse: crossed with (S - X), in t.
+        a1 = dot(view_cross_light, ray_cross_light)[..., None]
+        a2 = dot(view_cross_light, ray_cross_view)[..., None] * inverse
+        b1 = dot(ray_cross_light, ray_cross_light)[..., None]
+        b2 = dot(ray_cross_light, ray_cross_view)[..., None] * inverse
+        b3 = dot(ray_cross_view, ray_cross_view)[..., None] * inverse * inverse
+        t = distances
+        numerator = t * a1 - t * t * a2
+        denominator = b1 - 2 * t * b2 + t * t * b3
+        # A shadow ray parallel to q's camera ray runs along it (q's ray is the point's own, toward the light):
+        # from the point itself on.
+        crossing = safe_divide(numerator * jnp.linalg.norm(ray, axis=-1)[..., None], denominator, t, tiny=1e-12)
+        # The last sample is the light's own pixel when it is on screen: every shadow ray ends there, at the
+        # light's distance (the sun's: beyond every slab).
+        at_light = (k == num_shadow_samples) & in_front & (reach[..., None] >= 1.0)
+        crossing = jnp.where(at_light, safe_divide(1.0, inverse, _BEYOND_EVERY_SLAB), crossing)
+        # The shadow ray covers every depth between its crossings of this sample's camera ray and the previous
+        # one's: near the light's screen position each step moves it far in depth, and a slab it passes
+        # between two samples still blocks it. (A crossing behind the camera, or none, is taken alone.)
+        both = (crossing > 0) & (previous > 0)
+        nearest = jnp.where(both, jnp.minimum(crossing, previous), crossing)
+        farthest = jnp.where(both, jnp.maximum(crossing, previous), crossing)
+        # The slab test at the four texels around q, blended with bilinear weights: visibility moves smoothly
+        # as q moves under the pixel grid (a pan, a light moved by a fraction of a pixel).
+        row, col, weight = _bilinear(q[..., 0] - 0.5, q[..., 1] - 0.5, height, width)
+        front = depth[row, col][..., None]
+        # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
+        blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
+        front = jnp.where(blocks, front, 1.0)
+        soft = softness * front
+        inside_slab = _ramp((farthest - front) / soft) * _ramp((front * (1 + thickness) - nearest) / soft)
+        inside = jnp.sum(weight[..., None] * jnp.where(blocks, inside_slab, 0.0), axis=0)
+        return (jnp.minimum(visibility, 1.0 - inside), crossing), None
+
+    # At the pixel itself the shadow ray crosses the pixel's camera ray at the point's own distance.
+    (visibility, _), _ = jax.lax.scan(
+        jax.checkpoint(sample), (jnp.ones(distances.shape, dtype), distances),
+        jnp.arange(num_shadow_samples + 1, dtype=dtype),
+    )  # fmt: skip
+    return visibility
+
+
 def segment_visibility(
     depth: Float[Array, "H W"],
     light_xy: Float[ArrayLike, "2"],
@@ -194,52 +250,10 @@ def segment_visibility(
     thickness = jnp.asarray(thickness, dtype)
     softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
 
-    def sample(carry, k):
-        visibility, previous = carry
-        s = reach * jnp.minimum((k + 0.5) / num_shadow_samples, 1.0)
-        q = pixel_xy + s[..., None] * step
-        ray = _rays_at(q[..., 0], q[..., 1], height, width, focal)
-        ray_cross_light, ray_cross_view = jnp.cross(ray, toward), jnp.cross(ray, view)
-        # mu' * ray = X + u (S - X), X = t * view, S = toward / inverse: crossed with (S - X), in t.
-        a1 = dot(view_cross_light, ray_cross_light)[..., None]
-        a2 = dot(view_cross_light, ray_cross_view)[..., None] * inverse
-        b1 = dot(ray_cross_light, ray_cross_light)[..., None]
-        b2 = dot(ray_cross_light, ray_cross_view)[..., None] * inverse
-        b3 = dot(ray_cross_view, ray_cross_view)[..., None] * inverse * inverse
-        t = distances
-        numerator = t * a1 - t * t * a2
-        denominator = b1 - 2 * t * b2 + t * t * b3
-        # A shadow ray parallel to q's camera ray runs along it (q's ray is the point's own, toward the light):
-        # from the point itself on.
-        crossing = safe_divide(numerator * jnp.linalg.norm(ray, axis=-1)[..., None], denominator, t, tiny=1e-12)
-        # The last sample is the light's own pixel when it is on screen: every shadow ray ends there, at the
-        # light's distance (the sun's: beyond every slab).
-        at_light = (k == num_shadow_samples) & in_front & (reach[..., None] >= 1.0)
-        crossing = jnp.where(at_light, safe_divide(1.0, inverse, _BEYOND_EVERY_SLAB), crossing)
-        # The shadow ray covers every depth between its crossings of this sample's camera ray and the previous
-        # one's: near the light's screen position each step moves it far in depth, and a slab it passes
-        # between two samples still blocks it. (A crossing behind the camera, or none, is taken alone.)
-        both = (crossing > 0) & (previous > 0)
-        nearest = jnp.where(both, jnp.minimum(crossing, previous), crossing)
-        farthest = jnp.where(both, jnp.maximum(crossing, previous), crossing)
-        # The slab test at the four texels around q, blended with bilinear weights: visibility moves smoothly
-        # as q moves under the pixel grid (a pan, a light moved by a fraction of a pixel).
-        row, col, weight = _bilinear(q[..., 0] - 0.5, q[..., 1] - 0.5, height, width)
-        front = depth[row, col][..., None]
-        # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
-        blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
-        front = jnp.where(blocks, front, 1.0)
-        soft = softness * front
-        inside_slab = _ramp((farthest - front) / soft) * _ramp((front * (1 + thickness) - nearest) / soft)
-        inside = jnp.sum(weight[..., None] * jnp.where(blocks, inside_slab, 0.0), axis=0)
-        return (jnp.minimum(visibility, 1.0 - inside), crossing), None
-
-    # At the pixel itself the shadow ray crosses the pixel's camera ray at the point's own distance.
-    (visibility, _), _ = jax.lax.scan(
-        jax.checkpoint(sample), (jnp.ones(distances.shape, dtype), distances),
-        jnp.arange(num_shadow_samples + 1, dtype=dtype),
+    return _shadow_march(
+        depth, pixel_xy, distances, step, reach, view_cross_light, view, toward, inverse, in_front, focal, thickness,
+        softness, num_shadow_samples,
     )  # fmt: skip
-    return visibility
 
 
 def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):

@@ -35,6 +35,7 @@ from godrays_jax.kernels._copies.planes import (
 )
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1))
 def copy_sums(addressing, light_varies, image, derivative_image, light_xy, scales, weights, jacobians):
     """The copies' sum and, for forward-mode derivatives, the sums of their derivative images.
 
@@ -49,6 +50,10 @@ def copy_sums(addressing, light_varies, image, derivative_image, light_xy, scale
     `(total, derivative_total, scale_sums, weight_sums, light_sums)` in
     `Planes`' column layout `(W, C*H)` (numbers last); absent ones are None.
     The CPU and other platforms get different loops (same values).
+
+    Compiled as one program, cached by its static arguments and the shapes: an
+    eager call would trace the platform's loops anew (new functions each time)
+    and compile them again on every call.
     """
     operands = (image, derivative_image, light_xy, scales, weights, jacobians)
     return jax.lax.platform_dependent(

@@ -11,7 +11,7 @@ optional pass and the light's distance) and per loop kernel, this prints the
 first call's seconds, then the median of `--repeats` more calls on the same
 shapes (another light each time) and how many programs XLA compiled during
 those repeats (JAX's own compile events), beside the median of the same call
-under `jit`. The machine's load shows in `uptime`, printed first.
+under `jit` (the frame passed as an argument). The machine's load shows in `uptime`, printed first.
 """
 
 import argparse
@@ -55,15 +55,15 @@ def frame(height: int, width: int) -> gr.Buffers:
     )
 
 
-def timed(call, lights, repeats: int) -> tuple[float, float, int]:
+def timed(call, buffers, lights, repeats: int) -> tuple[float, float, int]:
     """First call's seconds, the median of `repeats` calls after it, and the programs compiled during those."""
     started = time.perf_counter()
-    jax.block_until_ready(call(lights[0]))
+    jax.block_until_ready(call(buffers, lights[0]))
     first = time.perf_counter() - started
     before, seconds = _compiled["programs"], []
     for light in lights[1 : repeats + 1]:
         started = time.perf_counter()
-        jax.block_until_ready(call(light))
+        jax.block_until_ready(call(buffers, light))
         seconds.append(time.perf_counter() - started)
     return first, statistics.median(seconds), _compiled["programs"] - before
 
@@ -81,18 +81,17 @@ def main() -> None:
     calls = {}
     for name in sorted(gr.PRESETS):
         effect = gr.preset(name)
-        calls[name] = lambda light, effect=effect: effect(buffers, light, light_depth=math.inf)
-    image = buffers.color
-    calls["radial_rays (kernel)"] = lambda light: gr.radial_rays(
-        image, light, num_samples=64, density=0.9, decay=0.97, weight=0.05, exposure=1.0
+        calls[name] = lambda frame, light, effect=effect: effect(frame, light, light_depth=math.inf)
+    calls["radial_rays (kernel)"] = lambda frame, light: gr.radial_rays(
+        frame.color, light, num_samples=64, density=0.9, decay=0.97, weight=0.05, exposure=1.0
     )
-    calls["poisson_blur (kernel)"] = lambda light: gr.poisson_blur(image, blur_power=0.01 + 0.0 * light[0])
+    calls["poisson_blur (kernel)"] = lambda frame, light: gr.poisson_blur(frame.color, blur_power=0.01 + 0.0 * light[0])
     print(f"\n{height}x{width}, {args.repeats} repeats after a first call\n")
     print("| call | first call s | eager median ms | programs compiled in the repeats | jit median ms | eager / jit |")
     print("|---|---|---|---|---|---|")
     for name, call in calls.items():
-        first, eager, compiled = timed(call, lights, args.repeats)
-        _, jitted, _ = timed(eqx.filter_jit(call), lights, args.repeats)
+        first, eager, compiled = timed(call, buffers, lights, args.repeats)
+        _, jitted, _ = timed(eqx.filter_jit(call), buffers, lights, args.repeats)  # the frame an argument, as `fit`
         print(f"| {name} | {first:.2f} | {1000 * eager:.1f} | {compiled} | {1000 * jitted:.1f} | {eager / jitted:.1f} |")
 
 

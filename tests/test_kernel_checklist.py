@@ -7,6 +7,7 @@ the gradients are finite, the dtype is kept, NumPy input is accepted. A kernel a
 fails `test_every_public_kernel_has_a_case`.
 """
 
+import collections
 import dataclasses
 import inspect
 from collections.abc import Callable
@@ -265,10 +266,24 @@ def test_every_public_kernel_has_a_case():
     assert sorted([*CASES, *WITHOUT_ARRAY_INPUTS]) == PUBLIC_KERNELS
 
 
+# Programs lowered to XLA (counted before the persistent cache is looked up, which would hide a program compiled
+# again as one read back).
+_programs_lowered = collections.Counter()
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **_: _programs_lowered.update([event == "/jax/core/compile/jaxpr_to_mlir_module_duration"])
+)
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_jit_equals_eager(name):
+def test_jit_equals_eager_and_eager_compiles_once(name):
+    """Compiled equals op by op; and a second eager call on other values of the same shapes compiles nothing (a
+    loop over a function defined in the call is traced and compiled again on every call unless it is jitted with
+    its static arguments: benchmarks/bench_eager.py)."""
     inputs = _example(name, 0)
     _assert_close(jax.jit(CASES[name].call)(*inputs), CASES[name].call(*inputs))
+    before = _programs_lowered[True]
+    jax.block_until_ready(CASES[name].call(*_example(name, 1)))
+    assert _programs_lowered[True] == before
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
@@ -301,7 +316,7 @@ def test_grad_of_vmap_equals_per_example_gradients(name, compiled):
 
     gradient = jax.grad(batch_loss, argnums=argnums)
     batched_gradients = (jax.jit(gradient) if compiled else gradient)(cotangents, *batched)
-    per_example = jax.jit(jax.grad(loss, argnums=argnums))  # eager equals jit: test_jit_equals_eager
+    per_example = jax.jit(jax.grad(loss, argnums=argnums))  # eager equals jit: the first test above
     for i, example in enumerate(examples):
         _assert_gradients_close([g[i] for g in batched_gradients], per_example, cotangents[i], example)
 

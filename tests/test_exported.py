@@ -183,7 +183,11 @@ def test_a_fit_from_stored_programs_equals_the_fit_traced(tmp_path, monkeypatch)
         exported.use_directory(None)
     for result, found, image in (stored, read_back):
         assert result.steps == traced[0].steps and result.converged == traced[0].converged
-        np.testing.assert_allclose(result.loss_history, traced[0].loss_history, rtol=1e-6)
+        # Near the minimum the loss is a sum of squares of small differences, each with the float32 rounding of the
+        # values it is taken between; the stored program (`jax.export`'s module, the copies' loop a called function
+        # since 1dd54d1) and the traced one round differently: 2.4e-6 of the last loss, 1.8e-10 of the start's.
+        start = traced[0].loss_history[0]
+        np.testing.assert_allclose(result.loss_history, traced[0].loss_history, rtol=1e-6, atol=1e-6 * start)
         np.testing.assert_allclose(result.effect.density, traced[0].effect.density, rtol=1e-6)
         assert found.poorly_determined == traced[1].poorly_determined
         np.testing.assert_allclose(found.condition, traced[1].condition, rtol=1e-4)

@@ -98,7 +98,8 @@ def _medium(bpy, sigma_t, albedo, g):
     scatter.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
     scatter.inputs["Density"].default_value = sigma_t * albedo
     scatter.inputs["Anisotropy"].default_value = g
-    absorb.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    # Cycles absorbs `(1 - Color) * Density` (svm_closure.h): black, so that the absorption is the density.
+    absorb.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
     absorb.inputs["Density"].default_value = sigma_t * (1.0 - albedo)
     links.new(scatter.outputs[0], add.inputs[0])
     links.new(absorb.outputs[0], add.inputs[1])

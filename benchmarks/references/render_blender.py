@@ -1,6 +1,7 @@
 """Render reference scenes with Blender Cycles (CPU) as Blender multilayer EXR: a clean frame and two fog frames.
 
-    python benchmarks/references/render_blender.py [SCENE ...] [--samples 256] [--blender blender]
+    python benchmarks/references/render_blender.py [SCENE ...] [--samples 256] [--blender blender] [--out DIR]
+        [--volume-bounces 1]
 
 The scenes are `render_references.py`'s (same camera, shapes, light and
 medium), built in Blender (its z up: our `(x, y, z)` is Blender's
@@ -18,7 +19,8 @@ depth are in `blender/scenes.json` (read by `scenes.py`) and go to `fit` and
 `apply` as `--light X,Y` (and `--light-depth`).
 
 Cycles settings: no denoising, no adaptive sampling, no clamping, max
-bounces 1 (direct light and one bounce: Mitsuba's max depth 3), the medium a
+bounces 1 (direct light and one bounce: Mitsuba's max depth 3; `--volume-bounces 0`: light scattered once in
+the medium, for a diagnosis in another `--out` folder), the medium a
 `Volume Scatter` (anisotropy g) plus `Volume Absorption` in a closed sphere
 around the camera (homogeneous), the sun a sun lamp of the disc's angle and
 irradiance (Cycles does not show a sun lamp to the camera: the scenes here
@@ -127,7 +129,7 @@ def _add(bpy, kind, matrix, material):
     return thing
 
 
-def build_and_render(description: dict, output: str, seed: int, samples: int, fog: bool) -> None:
+def build_and_render(description: dict, output: str, seed: int, samples: int, fog: bool, volume_bounces: int) -> None:
     import bpy
     from mathutils import Vector
 
@@ -143,7 +145,7 @@ def build_and_render(description: dict, output: str, seed: int, samples: int, fo
     cycles.use_denoising = False
     cycles.sample_clamp_direct = cycles.sample_clamp_indirect = 0.0
     cycles.max_bounces = cycles.diffuse_bounces = cycles.glossy_bounces = 1
-    cycles.transmission_bounces = cycles.volume_bounces = 1
+    cycles.transmission_bounces, cycles.volume_bounces = 1, volume_bounces
     render.threads_mode, render.threads = "FIXED", 1
     render.resolution_x, render.resolution_y, render.resolution_percentage = description["width"], description["height"], 100
     for view_layer in scene.view_layers:
@@ -233,6 +235,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=256, help="fog samples per pixel (clean: 4x)")
     parser.add_argument("--blender", default="blender")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--volume-bounces", type=int, default=1, help="Cycles' volume bounces (0: light scattered once)")
     args = parser.parse_args()
 
     import numpy as np
@@ -250,7 +253,7 @@ def main() -> None:
         for key, seed in SEEDS.items():
             samples = args.samples * (CLEAN_SAMPLES_FACTOR if key == "clean" else 1)
             job = json.dumps({"description": description, "output": str(out / f"{name}_{key}.exr"), "seed": seed,
-                              "samples": samples, "fog": key != "clean"})
+                              "samples": samples, "fog": key != "clean", "volume_bounces": args.volume_bounces})
             start, cpu = time.perf_counter(), _children_cpu()
             subprocess.run([args.blender, "-b", "--factory-startup", "--python", __file__, "--", job],
                            check=True, capture_output=True, text=True)
@@ -292,4 +295,4 @@ if __name__ == "__main__":
         main()
     else:
         job = json.loads(sys.argv[sys.argv.index("--") + 1])
-        build_and_render(job["description"], job["output"], job["seed"], job["samples"], job["fog"])
+        build_and_render(job["description"], job["output"], job["seed"], job["samples"], job["fog"], job["volume_bounces"])

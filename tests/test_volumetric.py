@@ -14,7 +14,7 @@ from godrays_jax.kernels.volumetric import _march_grid, apply_volumetric_fog, se
 HEIGHT, WIDTH = 4, 6
 MEDIUM = dict(
     fov_x_deg=60.0, extinction=0.06, max_distance=25.0, height_falloff=0.05, layer_top=4.0, anisotropy=0.6,
-    direct_fraction=0.7, thickness=0.3, edge_softness=0.1, num_view_steps=3, num_shadow_samples=4,
+    direct_fraction=0.7, ambient_rise=0.08, thickness=0.3, edge_softness=0.1, num_view_steps=3, num_shadow_samples=4,
 )  # fmt: skip
 COLOURS = dict(light_color=(2.0, 1.5, 1.0), ambient_color=(0.1, 0.2, 0.3))
 
@@ -42,7 +42,7 @@ class _Loop:
     """The model by definition: numeric integrals, 3-D line crossings by least squares, one pixel at a time."""
 
     def __init__(self, depth, light_xy, *, light_depth, in_front, fov_x_deg, extinction, max_distance,
-                 height_falloff, layer_top, anisotropy, direct_fraction, thickness, edge_softness,
+                 height_falloff, layer_top, anisotropy, direct_fraction, ambient_rise, thickness, edge_softness,
                  num_view_steps, num_shadow_samples):  # fmt: skip
         self.depth, self.light_xy = depth, np.asarray(light_xy, float)
         self.height, self.width = depth.shape
@@ -53,6 +53,7 @@ class _Loop:
         self.light_depth, self.in_front = light_depth, in_front
         self.sigma, self.radius, self.falloff, self.top = extinction, max_distance, height_falloff, layer_top
         self.g, self.share, self.thickness, self.softness = anisotropy, direct_fraction, thickness, edge_softness
+        self.rise = ambient_rise
         self.steps, self.samples = num_view_steps, num_shadow_samples
 
     def ray(self, x, y):
@@ -142,12 +143,26 @@ class _Loop:
         return self.at(col + 0.5, row + 0.5, depth)
 
     def at(self, x, y, depth):
-        """`(surface, scattered, opacity)` of the view ray through the pixel position `(x, y)` up to `depth`."""
+        """`(surface, scattered, ambient)` of the view ray through the pixel position `(x, y)` up to `depth`."""
         view, bounds, transmittance, lit = self.segments(x, y, depth)
         surface = transmittance[-1]
         if math.isfinite(depth):
             surface *= 1 - self.share + self.share * self.light_transmittance(depth * view)
-        return surface, sum(lit), 1 - transmittance[-1]
+        ambient = max(1 - transmittance[-1] + self.rise * self.scattering_height(view, bounds[-1]), 0.0)
+        return surface, sum(lit), ambient
+
+    def scattering_height(self, view, end, n=20000):
+        """`integral sigma T(u) y(u) du` from where the ray enters the medium up to `end`, by a midpoint sum, in the
+        homogeneous medium with the ray's own optical depth (the kernel's definition)."""
+        start = 0.0
+        if self.top < 0 and view[1] < 0:  # the camera above the layer: the ray enters it at its top
+            start = min(self.top / view[1], end)
+        if end <= start:
+            return 0.0
+        sigma = self.optical_depth(np.zeros(3), view, end) / (end - start)
+        du = (end - start) / n
+        u = start + (np.arange(n) + 0.5) * du
+        return float(np.sum(sigma * np.exp(-sigma * (u - start)) * u * view[1]) * du)
 
     def segments(self, x, y, depth):
         """The unit view ray through `(x, y)`, its segments' bounds up to `depth`, the transmittance at each
@@ -273,7 +288,7 @@ def test_terms_match_loop(x64, case):
     depth = _depth()
     expected = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM).terms()
     got = _terms(depth, light_xy, light_depth=light_depth, light_in_front=in_front, **MEDIUM)
-    for name, want, have in zip(("surface", "scattered", "opacity"), expected, got):
+    for name, want, have in zip(("surface", "scattered", "ambient"), expected, got):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
 
 
@@ -291,7 +306,7 @@ def test_partly_covered_pixels_match_loop(x64, beside_surfaces):
     expected = _Loop(depth, (2.3, 0.7), light_depth=12.0, in_front=True, **MEDIUM).terms(coverage, uncovered)
     got = _terms(depth, [2.3, 0.7], light_depth=12.0, coverage=jnp.asarray(coverage), **MEDIUM,
                  uncovered_depth=None if uncovered is None else jnp.asarray(uncovered))  # fmt: skip
-    for name, want, have in zip(("surface", "scattered", "opacity"), expected, got):
+    for name, want, have in zip(("surface", "scattered", "ambient"), expected, got):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
     plain = _terms(depth, [2.3, 0.7], light_depth=12.0, **MEDIUM)
     assert not np.allclose(np.asarray(got[1]), np.asarray(plain[1]))
@@ -329,8 +344,8 @@ def _fog(image, depth, light_xy, **overrides):
 
 def test_composite_eager_jit_vmap(x64, rng):
     image, depth, light = jnp.asarray(_image(rng)), jnp.asarray(_depth()), jnp.asarray([2.3, 0.7])
-    surface, scattered, opacity = volumetric_fog_terms(depth, light, light_depth=12.0, **MEDIUM)
-    light_rgb = scattered[..., None] * jnp.asarray(COLOURS["light_color"]) + opacity[..., None] * jnp.asarray(COLOURS["ambient_color"])
+    surface, scattered, ambient = volumetric_fog_terms(depth, light, light_depth=12.0, **MEDIUM)
+    light_rgb = scattered[..., None] * jnp.asarray(COLOURS["light_color"]) + ambient[..., None] * jnp.asarray(COLOURS["ambient_color"])
     expected = jnp.concatenate([image[..., :3] * surface[..., None] + light_rgb, image[..., 3:]], axis=-1)
     eager = _fog(image, depth, light)
     np.testing.assert_allclose(eager, expected, rtol=1e-12)
@@ -394,8 +409,8 @@ def test_compiled_forward_mode_jacobian_keeps_its_lanes_on_a_partly_covered_fram
     np.testing.assert_allclose(forward(fields), reverse, rtol=1e-3, atol=1e-3)
 
 
-FITTED = ("extinction", "max_distance", "height_falloff", "layer_top", "anisotropy", "direct_fraction", "thickness",
-          "edge_softness", "fov_x_deg", "light_depth")  # fmt: skip
+FITTED = ("extinction", "max_distance", "height_falloff", "layer_top", "anisotropy", "direct_fraction", "ambient_rise",
+          "thickness", "edge_softness", "fov_x_deg", "light_depth")  # fmt: skip
 
 
 @pytest.mark.parametrize("light_depth", [12.0, math.inf])
@@ -474,10 +489,16 @@ def test_zero_density_leaves_the_frame(rng):
 
 def test_camera_above_the_layer_sees_haze_only_below_it(x64):
     depth = np.full((HEIGHT, WIDTH), np.inf)
-    _, scattered, opacity = _terms(depth, [2.3, 0.7], **dict(MEDIUM, layer_top=-1.0))
-    assert np.all(np.asarray(opacity[: HEIGHT // 2]) == 0)  # rays going up never meet the layer below
-    assert np.all(np.asarray(opacity[HEIGHT // 2 :]) > 0)
+    options = dict(MEDIUM, layer_top=-1.0)
+    _, scattered, ambient = _terms(depth, [2.3, 0.7], **options)
+    assert np.all(np.asarray(ambient[: HEIGHT // 2]) == 0)  # rays going up never meet the layer below
+    assert np.all(np.asarray(ambient[HEIGHT // 2 :]) > 0)
     assert np.all(np.asarray(scattered[: HEIGHT // 2]) == 0)
+    # The ambient's rise counts heights from where each ray enters the layer's top, below the camera.
+    expected = _Loop(depth, (2.3, 0.7), light_depth=math.inf, in_front=True, **options).terms()[2]
+    np.testing.assert_allclose(np.asarray(ambient), expected, rtol=2e-3, atol=1e-6)
+    flat = _terms(depth, [2.3, 0.7], **dict(options, ambient_rise=0.0))[2]
+    assert np.all(np.asarray(ambient[HEIGHT // 2 :]) < np.asarray(flat[HEIGHT // 2 :]))  # lower than the camera
 
 
 def test_reduced_resolution_matches_loop(x64):

@@ -37,7 +37,7 @@ class VolumetricFog(Effect):
     """A medium around the camera, each view ray lit only where the depth buffer lets the light through.
 
     The fogged frame is `color * surface + light_color * scattered +
-    ambient_color * opacity` (`kernels.volumetric`): every view ray is marched
+    ambient_color * ambient` (`kernels.volumetric`): every view ray is marched
     in `num_view_steps` segments up to its depth (`buffers.ray_depth(fov_x_deg)`,
     scene units) or the medium's end; each segment's light is its share of the
     ray's extinction times its visibility of the light, read from the depth
@@ -53,7 +53,10 @@ class VolumetricFog(Effect):
     (scene units) around the camera and below `layer_top` (scene units above
     the camera). `light_color` is the RGB albedo times the light's irradiance
     (for a point light at `light_depth`, at the camera's distance from it),
-    `ambient_color` the RGB albedo times the sky's radiance; `direct_fraction`
+    `ambient_color` the RGB albedo times the sky's radiance, which with the
+    light scattered more than once grows with height above the ground:
+    `ambient` is the ray's opacity plus `ambient_rise` (per scene unit) times
+    the height above the camera of its scattering; `direct_fraction`
     of the frame's own surface light comes from the light and is dimmed like
     the medium's. `fov_x_deg` is the horizontal field of view in degrees.
 
@@ -76,6 +79,7 @@ class VolumetricFog(Effect):
     thickness: Float[Array, ""] = param(0.15, low=0.0, high=4.0)
     edge_softness: Float[Array, ""] = param(0.05, low=0.005, high=1.0)
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
+    ambient_rise: Float[Array, ""] = param(0.0, low=-1.0, high=2.0)
     num_view_steps: int = static(16, low=1, high=256)
     num_shadow_samples: int = static(32, low=1, high=1024)
     resolution_factor: int = static(4, low=1, high=64)
@@ -83,7 +87,7 @@ class VolumetricFog(Effect):
     NEEDS_DEPTH: ClassVar[bool] = True
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
-        """`(surface, scattered, opacity)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""
+        """`(surface, scattered, ambient)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""
         light_xy = check_light(light_xy)
         depth = frame_ray_depth(self, buffers)
         factor = march_factor(buffers.height, buffers.width, self.resolution_factor)
@@ -92,27 +96,28 @@ class VolumetricFog(Effect):
             depth, light_xy, fov_x_deg=self.fov_x_deg, light_depth=light_depth, light_in_front=light_in_front,
             extinction=self.medium.extinction, max_distance=self.medium.max_distance,
             height_falloff=self.height_falloff, layer_top=self.layer_top, anisotropy=self.medium.anisotropy,
-            direct_fraction=self.direct_fraction, thickness=self.thickness, edge_softness=self.edge_softness,
-            num_view_steps=self.num_view_steps, num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
+            direct_fraction=self.direct_fraction, ambient_rise=self.ambient_rise, thickness=self.thickness,
+            edge_softness=self.edge_softness, num_view_steps=self.num_view_steps,
+            num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
             coverage=coverage, uncovered_depth=uncovered_depth,
         )  # fmt: skip
 
-    def _light(self, scattered, opacity, dtype):
+    def _light(self, scattered, ambient, dtype):
         medium = self.medium
-        light = scattered[..., None] * medium.light_color.astype(dtype) + opacity[..., None] * medium.ambient_color.astype(dtype)
+        light = scattered[..., None] * medium.light_color.astype(dtype) + ambient[..., None] * medium.ambient_color.astype(dtype)
         return light.astype(dtype)
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The scattered light alone, `(H, W, 3)`."""
-        _, scattered, opacity = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
-        return self._light(scattered, opacity, buffers.color.dtype)
+        _, scattered, ambient = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        return self._light(scattered, ambient, buffers.color.dtype)
 
     def __call__(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The fogged frame: `color * surface + layer` on the colour channels, alpha unchanged."""
-        surface, scattered, opacity = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        surface, scattered, ambient = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
         color = buffers.color
         dtype = color.dtype
-        light = self._light(scattered, opacity, dtype)
+        light = self._light(scattered, ambient, dtype)
         channels = min(color.shape[-1], 3)
         if channels == 1:
             light = jnp.mean(light, axis=-1, keepdims=True)

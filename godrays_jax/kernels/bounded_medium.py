@@ -104,6 +104,32 @@ def optical_depth(
     return jnp.asarray(extinction, dtype) * density * length * exp_ratio(falloff * direction[..., 1] * length)
 
 
+def scattering_height(
+    direction: Float[Array, "*S 3"],
+    start: Float[ArrayLike, "*S"],
+    end: Float[ArrayLike, "*S"],
+    tau: Float[ArrayLike, "*S"],
+) -> Float[Array, "*S"]:
+    """`integral_start^end sigma * T(u) * y(u) du` along the camera ray `u * direction`, in a homogeneous medium.
+
+    The height above the camera (`y(u) = u * direction[1]`, scene units) of
+    the ray's scattering, each point weighted by its share `sigma * T(u)`,
+    `T(u) = exp(-sigma * (u - start))`, for the `sigma` that gives the optical
+    depth `tau` from `start` to `end` (scene units; a medium that falls off
+    with height is taken as the homogeneous one of the same optical depth).
+    Closed form: `y(start) * (1 - exp(-tau)) + y'(end - start) * (1 - exp(-tau) * (1 + tau)) / tau`.
+    """
+    dtype = direction.dtype
+    start = jnp.asarray(start, dtype)
+    length = jnp.asarray(end, dtype) - start
+    tau = jnp.maximum(jnp.asarray(tau, dtype), 0.0)
+    # (1 - exp(-x) (1 + x)) / x, by its series where the difference of two near-equal terms would lose float32's digits.
+    small = tau < 1e-2
+    x = jnp.where(small, 1.0, tau)
+    mean = jnp.where(small, tau / 2 - tau * tau / 3 + tau**3 / 8, (-jnp.expm1(-x) - x * jnp.exp(-x)) / x)
+    return direction[..., 1] * (start * -jnp.expm1(-tau) + length * mean)
+
+
 def light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype):
     """The unit direction toward the light and `1 / light_depth` (0 for the sun)."""
     toward = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)

@@ -12,7 +12,7 @@ frame is
 
     L = C * T(D) * (1 - direct_fraction + direct_fraction * T_L(P))
         + light_color * sum_j V_j * T_L(X_j) * E_j * p(theta_j) * (T(t_j) - T(t_j+1))
-        + ambient_color * (1 - T(D)),
+        + ambient_color * max(1 - T(D) + ambient_rise * Y(D), 0),
 
 single scattering in closed form per segment: `T` the transmittance from the
 camera, `T_L` from a point toward the light (the light dimmed on its way in,
@@ -20,7 +20,13 @@ through the same bounded medium), `E_j` the irradiance relative to the
 light's at the camera's distance (1 for the sun; the mean of
 `(light_depth / |S - X|)^2` over the segment for a point light), `p` the
 Henyey-Greenstein phase function, `V_j` the segment's visibility of the light
-(`segment_visibility`), `P` the surface seen.
+(`segment_visibility`), `P` the surface seen. The sky's light and the light
+scattered more than once, which `ambient_color` stands for, grow with height
+above the ground, which hides the lower half of the sky near it:
+`ambient_rise` (per scene unit) raises the ambient in proportion to the
+height above the camera of the ray's scattering, `Y(D)` (`scattering_height`:
+`integral sigma T y dt` up to `D`, in closed form as in the homogeneous
+medium of the same optical depth).
 
 A segment's visibility is read from the depth buffer along the screen segment
 from `p` toward the light's position (away from the light's true projection
@@ -69,6 +75,7 @@ from godrays_jax.kernels.bounded_medium import (
     medium_interval,
     optical_depth,
     safe_divide,
+    scattering_height,
     segment_irradiance,
     toward_light,
 )
@@ -381,14 +388,16 @@ def volumetric_fog_terms(
     num_view_steps: int = 16,
     num_shadow_samples: int = 32,
     resolution_factor: int = 1,
+    ambient_rise: Float[ArrayLike, ""] = 0.0,
     coverage: Float[Array, "H W"] | None = None,
     uncovered_depth: Float[Array, "H W"] | None = None,
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"], Float[Array, "H W"]]:
-    """`(surface, scattered, opacity)`: the fogged frame is `C * surface + light_color * scattered + ambient_color * opacity`.
+    """`(surface, scattered, ambient)`: the fogged frame is `C * surface + light_color * scattered + ambient_color * ambient`.
 
     `surface = T(D) * (1 - direct_fraction + direct_fraction * T_L(P))` (sky:
     `T(D)`), `scattered` the sum over segments of the module docstring
-    (per steradian of the phase function), `opacity = 1 - T(D)`.
+    (per steradian of the phase function), `ambient = max(1 - T(D) +
+    ambient_rise * Y(D), 0)`: the opacity `1 - T(D)` where `ambient_rise` is 0.
 
     Args:
         depth: distance along each camera ray, scene units, `+inf` on sky.
@@ -405,6 +414,10 @@ def volumetric_fog_terms(
         anisotropy: Henyey-Greenstein `g`, in (-1, 1).
         direct_fraction: the share of the frame's surface light that comes from
             the light (dimmed by the medium on its way in), in [0, 1].
+        ambient_rise: the ambient's growth with the height of the ray's
+            scattering above the camera, per scene unit (0: the same at every
+            height; negative: it falls with height); the ambient weight is
+            clipped at 0 where the ray runs down steeply enough.
         thickness, edge_softness: the depth buffer's slabs (`segment_visibility`).
         num_view_steps: segments per view ray (static int, >= 1).
         num_shadow_samples: depth samples per screen segment (static int, >= 1).
@@ -433,7 +446,8 @@ def volumetric_fog_terms(
         raise ValueError(f"resolution_factor must be a Python number >= 1, got {resolution_factor!r}")
     height, width = depth.shape
     for name, value in (("extinction", extinction), ("max_distance", max_distance), ("height_falloff", height_falloff),
-                        ("layer_top", layer_top), ("anisotropy", anisotropy), ("direct_fraction", direct_fraction)):  # fmt: skip
+                        ("layer_top", layer_top), ("anisotropy", anisotropy), ("direct_fraction", direct_fraction),
+                        ("ambient_rise", ambient_rise)):  # fmt: skip
         check_scalar(value, name)
     if coverage is not None:
         check_plane(coverage, "coverage", height, width)
@@ -448,15 +462,18 @@ def volumetric_fog_terms(
     view = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype)
     toward, _ = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     share = jnp.asarray(direct_fraction, dtype)
+    rise = jnp.asarray(ambient_rise, dtype)
 
-    def surface_and_opacity(ray_end):
+    def surface_and_ambient(ray_end):
         origin = jnp.zeros_like(view)
         start, end = medium_interval(origin, view, jnp.where(jnp.isfinite(ray_end), ray_end, jnp.inf), **bounds)
-        opacity = -jnp.expm1(-optical_depth(origin, view, start, end, **medium))
+        tau = optical_depth(origin, view, start, end, **medium)
+        opacity = -jnp.expm1(-tau)
         finite = jnp.isfinite(ray_end)
         surface_points = view * jnp.where(finite, ray_end, 0.0)[..., None]
         dimmed = light_transmittance(surface_points, toward, light_depth=light_depth, **medium, **bounds)
-        return (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0), opacity
+        ambient = jnp.maximum(opacity + rise * scattering_height(view, start, end, tau), 0.0)
+        return (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0), ambient
 
     options = (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
                thickness, edge_softness, num_view_steps, num_shadow_samples)  # fmt: skip
@@ -489,16 +506,16 @@ def volumetric_fog_terms(
             return _upsample_by_depth(*pieces, ray_end, xs, ys, spacing)
 
     if coverage is None:
-        surface, opacity = surface_and_opacity(depth)
-        return surface, march(depth), opacity
+        surface, ambient = surface_and_ambient(depth)
+        return surface, march(depth), ambient
     # A silhouette's pixel is partly the surface (on sky: its nearest neighbour's) and partly what lies beside it.
     covered = jnp.asarray(coverage, dtype)
     surface_depth = _covering_depth(depth)
     uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
     terms = []
     for ray_end in (surface_depth, uncovered):
-        surface, opacity = surface_and_opacity(ray_end)
-        terms.append((surface, march(ray_end), opacity))
+        surface, ambient = surface_and_ambient(ray_end)
+        terms.append((surface, march(ray_end), ambient))
     return tuple(covered * on_surface + (1.0 - covered) * on_sky for on_surface, on_sky in zip(*terms))
 
 
@@ -511,7 +528,7 @@ def apply_volumetric_fog(
     ambient_color: Float[ArrayLike, "3"],
     **options,
 ) -> Float[Array, "H W C"]:
-    """The fogged frame `image * surface + light_color * scattered + ambient_color * opacity`; alpha passes through.
+    """The fogged frame `image * surface + light_color * scattered + ambient_color * ambient`; alpha passes through.
 
     `image` is the clean linear frame, `depth` its distance along each camera ray (scene units,
     `+inf` on sky), `light_xy` the light's position in pixels; `light_color` the RGB albedo times the
@@ -522,8 +539,8 @@ def apply_volumetric_fog(
     check_image(image)
     check_plane(depth, "depth", image.shape[0], image.shape[1])
     dtype = image.dtype
-    surface, scattered, opacity = volumetric_fog_terms(depth, light_xy, **options)
-    light = scattered[..., None] * jnp.asarray(light_color, dtype) + opacity[..., None] * jnp.asarray(ambient_color, dtype)
+    surface, scattered, ambient = volumetric_fog_terms(depth, light_xy, **options)
+    light = scattered[..., None] * jnp.asarray(light_color, dtype) + ambient[..., None] * jnp.asarray(ambient_color, dtype)
     channels = min(image.shape[-1], 3)
     if channels == 1:
         light = jnp.mean(light, axis=-1, keepdims=True)

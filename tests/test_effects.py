@@ -32,7 +32,9 @@ def test_preset_runs_jit_vmap_and_adds_light(name):
 
     single, batched, layer = both(effect, jnp.stack([LIGHT, LIGHT + 1.0]))
     assert single.shape == frame.color.shape and bool(jnp.all(jnp.isfinite(single)))
-    np.testing.assert_allclose(batched[0], single, rtol=1e-5, atol=1e-6)
+    # VolumetricFog's shadow test amplifies float32 rounding at its slabs' soft faces (1.4e-5 here, on the occluder's
+    # top, under the suite's XLA flags; 0 under XLA's defaults), which programs compiled apart round apart.
+    np.testing.assert_allclose(batched[0], single, rtol=5e-4 if isinstance(effect, gr.VolumetricFog) else 1e-5, atol=1e-6)
     assert float(jnp.max(layer)) > 0.0, "the effect must add something to a frame with a visible sun"
     if type(effect).__call__ is gr.Effect.__call__:  # effects that blend a layer (ScatteringFog attenuates)
         np.testing.assert_allclose(single, gr.blend(frame.color, layer, mode=effect.blend_mode), rtol=1e-5, atol=1e-6)

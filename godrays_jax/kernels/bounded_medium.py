@@ -117,7 +117,7 @@ def scattering_height(
     `T(u) = exp(-sigma * (u - start))`, for the `sigma` that gives the optical
     depth `tau` from `start` to `end` (scene units; a medium that falls off
     with height is taken as the homogeneous one of the same optical depth).
-    Closed form: `y(start) * (1 - exp(-tau)) + y'(end - start) * (1 - exp(-tau) * (1 + tau)) / tau`.
+    Closed form: `direction[1] * (start * (1 - exp(-tau)) + (end - start) * (1 - exp(-tau) * (1 + tau)) / tau)`.
     """
     dtype = direction.dtype
     start = jnp.asarray(start, dtype)

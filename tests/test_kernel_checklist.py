@@ -177,7 +177,8 @@ CASES = {
     "apply_volumetric_fog": Case(
         lambda image, depth, light, extinction: gr.apply_volumetric_fog(
             image, depth, light, light_color=(1.0, 0.9, 0.8), ambient_color=(0.1, 0.1, 0.1), fov_x_deg=50.0,
-            extinction=extinction, max_distance=60.0, anisotropy=0.7, num_view_steps=4, num_shadow_samples=6),
+            extinction=extinction, max_distance=60.0, anisotropy=0.7, ambient_rise=0.1, num_view_steps=4,
+            num_shadow_samples=6),
         lambda r, t: (_image(r, t), _depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
     ),  # fmt: skip
     "bright_sky": Case(
@@ -210,8 +211,8 @@ CASES = {
     ),  # fmt: skip
     "volumetric_fog_terms": Case(
         lambda depth, light, extinction: jnp.stack(gr.volumetric_fog_terms(
-            depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, anisotropy=0.7, num_view_steps=4,
-            num_shadow_samples=6), axis=-1),
+            depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, anisotropy=0.7, ambient_rise=0.1,
+            num_view_steps=4, num_shadow_samples=6), axis=-1),
         lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
     ),  # fmt: skip
 }

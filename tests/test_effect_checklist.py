@@ -73,33 +73,26 @@ def test_jit_and_vmap_equal_eager_frames(name):
 
 
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))
-def test_grad_of_vmap_equals_per_frame_gradients(name):
-    """Under `jit`, as a training step runs it (the kernels' checklist also takes the eager path)."""
+def test_grad_of_vmap_and_vmap_of_grad_equal_per_frame_gradients(name):
+    """Under `jit`, as a training step runs them (the kernels' checklist also takes the eager path): the gradient of
+    a batched loss, and the per-frame gradient mapped over the batch. One test for both, so that the per-frame
+    gradient is traced and compiled once."""
     values, static = _split(name)
+    gradient = jax.grad(_frame_loss, argnums=(0, 3))
 
     def batch_loss(values, colors):
         per_frame = jax.vmap(_frame_loss, in_axes=(None, None, 0, 0, 0, 0))
         return jnp.sum(per_frame(values, static, STACKED, colors, LIGHTS, COTANGENTS))
 
-    gradient = jax.grad(batch_loss, argnums=(0, 1))
-    value_gradient, color_gradients = jax.jit(gradient)(values, STACKED.color)
-    per_frame = jax.jit(jax.grad(_frame_loss, argnums=(0, 3)), static_argnums=1)
+    value_gradient, color_gradients = jax.jit(jax.grad(batch_loss, argnums=(0, 1)))(values, STACKED.color)
+    mapped = jax.jit(jax.vmap(gradient, in_axes=(None, None, 0, 0, 0, 0)), static_argnums=1)
+    value_gradients, mapped_color_gradients = mapped(values, static, STACKED, STACKED.color, LIGHTS, COTANGENTS)
+    per_frame = jax.jit(gradient, static_argnums=1)
     expected = [per_frame(values, static, frame, frame.color, light, cotangent)
                 for frame, light, cotangent in zip(FRAMES, LIGHTS, COTANGENTS)]  # fmt: skip
     # A sum over frames of gradients of either sign: float32 cancellation allows a looser match.
     _assert_close(value_gradient, jax.tree_util.tree_map(lambda *g: sum(g), *[e[0] for e in expected]), rtol=3e-3)
-    for i, (_, color_gradient) in enumerate(expected):
-        _assert_close(color_gradients[i], color_gradient)
-
-
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
-def test_vmap_of_grad_equals_per_frame_gradients(name):
-    values, static = _split(name)
-    gradient = jax.grad(_frame_loss, argnums=(0, 3))
-    batched = jax.jit(jax.vmap(gradient, in_axes=(None, None, 0, 0, 0, 0)), static_argnums=1)
-    value_gradients, color_gradients = batched(values, static, STACKED, STACKED.color, LIGHTS, COTANGENTS)
-    per_frame = jax.jit(gradient, static_argnums=1)
-    for i, (frame, light, cotangent) in enumerate(zip(FRAMES, LIGHTS, COTANGENTS)):
-        expected_values, expected_color = per_frame(values, static, frame, frame.color, light, cotangent)
-        _assert_close(jax.tree_util.tree_map(lambda g: g[i], value_gradients), expected_values)
+    for i, (expected_values, expected_color) in enumerate(expected):
         _assert_close(color_gradients[i], expected_color)
+        _assert_close(jax.tree_util.tree_map(lambda g: g[i], value_gradients), expected_values)
+        _assert_close(mapped_color_gradients[i], expected_color)

@@ -100,6 +100,41 @@ def test_the_fits_jacobian_is_reverse_modes_on_volumetric_fog():
     np.testing.assert_allclose(forward, reverse, rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(reverse))))
 
 
+def test_the_jacobian_by_stages_equals_one_pass_of_all_unknowns():
+    """`_forward_mode` by `FitProblem.lane_groups` (VolumetricFog's fields in three stages: the march, the medium's
+    ends, the final sum) gives the Jacobian of one vectorised JVP of every unknown, column for column."""
+    frame = _frame()
+    effect = gr.VolumetricFog(
+        medium=gr.Medium(extinction=0.03, max_distance=30.0, anisotropy=0.6), height_falloff=0.02, layer_top=8.0,
+        ambient_rise=0.1, fov_x_deg=60.0, num_view_steps=4, num_shadow_samples=6,
+    )  # fmt: skip
+    target = effect(frame, LIGHT) * 0.9 + 0.01
+    frame_data = as_frames(frame, LIGHT, target, True)
+    problem = FitProblem.of(effect, fitted_bounds(effect), frame_data[0], loss="mse", space="display")
+    stages = [{problem.stages[problem.names.index(n)] for n in problem.names if n in group} for group in
+              [("medium.light_color", "ambient_rise"), ("medium.max_distance", "layer_top"), ("thickness", "medium.extinction")]]
+    assert len(problem.lane_groups) == 3 and all(len(stage) == 1 for stage in stages) and len(set.union(*stages)) == 3
+    assert sorted(i for group in problem.lane_groups for i in group) == list(range(start_point(problem, jnp.float32).size))
+    y = start_point(problem, jnp.float32)
+
+    def by_stage(y):
+        residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+        return _forward_mode(residuals, problem.lane_groups)(y)
+
+    jacobian = jax.jit(jax.jacfwd(by_stage))(y)
+    whole = jax.jit(jax.jacfwd(lambda flat: problem.residuals(flat, frame_data)))(y)
+    np.testing.assert_allclose(jax.jit(by_stage)(y), jax.jit(lambda flat: problem.residuals(flat, frame_data))(y), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(jacobian, whole, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(whole))))
+    assert float(jnp.min(jnp.max(jnp.abs(jacobian), axis=0))) > 0  # every column moves the frame
+
+
+def test_every_stage_names_a_fittable_field():
+    for effect_type in {type(gr.preset(name)) for name in gr.PRESETS}:
+        infos = gr.field_metadata(effect_type)
+        for name in effect_type.FIELD_STAGES:
+            assert name in infos and infos[name].kind == "fittable", (effect_type.__name__, name)
+
+
 def test_loss_history_starts_at_the_start_and_never_rises(two_frame_fit):
     frames, targets, result = two_frame_fit
     start_loss = np.mean([gr.mse_loss(_rays(**START)(f, light), t) for f, light, t in zip(frames, LIGHTS, targets)])

@@ -93,10 +93,18 @@ class Effect(Part):
     """Base class: subclasses define `layer` and a static `blend_mode` field.
 
     `NEEDS_DEPTH` (a class constant) says whether the effect measures
-    distance in the frame's depth (`needs_depth`).
+    distance in the frame's depth (`needs_depth`). `FIELD_STAGES` (a class
+    constant, `{fitted field: stage}`, fields named as `field_metadata` names
+    them) says where a fittable field first enters the effect's computation:
+    `fit`'s forward-mode Jacobian takes each stage's fields in a vectorised
+    pass of their own, so that a field that enters late (a colour, a weight
+    of the final sum) is differentiated through the late operations alone,
+    not carried beside the others through the whole computation. Fields not
+    listed share one stage; the values are the same either way.
     """
 
     NEEDS_DEPTH: typing.ClassVar[bool] = False
+    FIELD_STAGES: typing.ClassVar[dict[str, str]] = {}
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

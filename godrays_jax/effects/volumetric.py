@@ -85,6 +85,12 @@ class VolumetricFog(Effect):
     resolution_factor: int = static(4, low=1, high=64)
 
     NEEDS_DEPTH: ClassVar[bool] = True
+    # The colours and the terms' weights enter the final sum alone; the medium's ends only where each piece of a
+    # ray stops. The march's fields reach everything (benchmarks/README.md, "The fit's Jacobian by stages").
+    FIELD_STAGES: ClassVar[dict[str, str]] = {
+        "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
+        "medium.max_distance": "ends", "layer_top": "ends",
+    }  # fmt: skip
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """`(surface, scattered, ambient)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""

@@ -181,37 +181,56 @@ def polishes(solver, loss: str) -> bool:
     return isinstance(solver, str) and loss == "mse" and solver in ("auto", "levenberg_marquardt")
 
 
-def _forward_mode(function):
+def _forward_mode(function, groups=None):
     """`function(y)` (flat `y`) whose JVP is a precomputed forward-mode Jacobian times the tangent.
 
     optimistix linearises the objective; linearising the kernels' sample loops
     directly would store every iteration. Here the Jacobian is computed with
     one vectorised `jax.jvp` per parameter (memory O(output x parameters)) and
     the linearisation only keeps that Jacobian.
+
+    `groups`, a partition of `y`'s indices (`FitProblem.lane_groups`): `function` then takes one vector per group
+    (`y` at its indices) and each group's columns are a vectorised JVP of their own, in which the other groups'
+    unknowns are constants. A group's lanes then run only through the operations its unknowns reach, where one
+    vectorised JVP of all carries every lane through every operation that any of them reaches.
     """
+    indices = None if groups is None else [np.asarray(group) for group in groups]
+
+    def split(y):
+        return (y,) if indices is None else [y[index] for index in indices]
 
     @jax.custom_jvp
     def wrapped(y):
-        return function(y)
+        return function(*split(y))
 
     @wrapped.defjvp
     def wrapped_jvp(primals, tangents):
         (y,), (tangent,) = primals, tangents
-        basis = jnp.eye(y.shape[0], dtype=y.dtype)
-        value, jacobian = jax.vmap(lambda direction: jax.jvp(function, (y,), (direction,)), out_axes=(None, -1))(basis)
-        return value, jnp.matmul(jacobian, tangent, precision="highest")
+        vectors, product = split(y), 0.0
+        for position, vector in enumerate(vectors):
+
+            def along(own, position=position):
+                return function(*vectors[:position], own, *vectors[position + 1 :])
+
+            basis = jnp.eye(vector.shape[0], dtype=y.dtype)
+            value, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
+            own_tangent = tangent if indices is None else tangent[indices[position]]
+            product = product + jnp.matmul(jacobian, own_tangent, precision="highest")
+        return value, product
 
     return wrapped
 
 
 def _residual_function(y, data):
     problem, frame_data = data
-    return _forward_mode(lambda flat: problem.residuals(flat, frame_data))(y), None
+    residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+    return _forward_mode(residuals, problem.lane_groups)(y), None
 
 
 def _objective_function(y, data):
     problem, frame_data = data
-    return _forward_mode(lambda flat: problem.objective(problem.effect_at(flat), frame_data))(y), None
+    objective = lambda *vectors: problem.objective(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+    return _forward_mode(objective, problem.lane_groups)(y), None
 
 
 @eqx.filter_jit

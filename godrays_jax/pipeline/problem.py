@@ -125,6 +125,7 @@ class FitProblem(eqx.Module):
     frame_weights: tuple[float, ...] = eqx.field(static=True)
     loss: str = eqx.field(static=True)
     space: str = eqx.field(static=True)
+    stages: tuple[str, ...] = eqx.field(static=True)
 
     @classmethod
     def of(cls, effect: Effect, bounds: dict[str, tuple[float, float]], frames, *, loss: str, space: str):
@@ -138,14 +139,40 @@ class FitProblem(eqx.Module):
             frame_weights=tuple(frame.height * frame.width / total_pixels for frame in frames),
             loss=loss,
             space=space,
+            stages=tuple(type(effect).FIELD_STAGES.get(name, "") for name in bounds),
         )
+
+    @property
+    def lane_groups(self) -> tuple[tuple[int, ...], ...]:
+        """The unknowns' indices grouped by their fields' stage (`Effect.FIELD_STAGES`), in order of first appearance."""
+        groups, offset = {}, 0
+        for stage, shape in zip(self.stages, self.shapes):
+            size = math.prod(shape)
+            groups.setdefault(stage, []).extend(range(offset, offset + size))
+            offset += size
+        return tuple(tuple(group) for group in groups.values())
+
+    def effect_of_groups(self, vectors):
+        """`effect_at` of the unknowns given as one vector per group of `lane_groups`, in its order (a field's
+        value then carries a derivative only where its own group's vector does)."""
+        if len(vectors) == 1:  # one stage: the unknowns in order
+            return self._effect_of(vectors[0])
+        unknowns = {}
+        for vector, group in zip(vectors, self.lane_groups):
+            unknowns |= {index: vector[position] for position, index in enumerate(group)}
+        return self._effect_of([unknowns[index] for index in range(len(unknowns))])
 
     def effect_at(self, y):
         """The effect with the fitted fields set from the flat unit-scaled unknowns `y`."""
+        return self._effect_of(y)
+
+    def _effect_of(self, unknowns):
+        """The effect from the unknowns: a flat array or a list of scalars, in `names`' order."""
         values, offset = [], 0
         for name, (low, high), shape in zip(self.names, self.bounds, self.shapes):
             size = math.prod(shape)
-            unit = jnp.reshape(y[offset : offset + size], shape)
+            piece = unknowns[offset : offset + size]
+            unit = jnp.reshape(piece if isinstance(piece, jax.Array) else jnp.stack(piece), shape)
             values.append(from_unit(unit, low, high).astype(field_value(self.effect, name).dtype))
             offset += size
         return eqx.tree_at(lambda e: [field_value(e, n) for n in self.names], self.effect, values)
@@ -155,9 +182,12 @@ class FitProblem(eqx.Module):
             yield _match_channels(candidate(frame, light, light_in_front=front, light_depth=depth), image)
 
     def residuals(self, y, frame_data):
+        return self.residuals_of(self.effect_at(y), frame_data)
+
+    def residuals_of(self, candidate, frame_data):
         parts = [
             jnp.ravel(to_space(image, self.space) - to_space(reference, self.space)) * math.sqrt(weight / reference.size)
-            for (image, reference), weight in zip(self.rendered(self.effect_at(y), frame_data), self.frame_weights)
+            for (image, reference), weight in zip(self.rendered(candidate, frame_data), self.frame_weights)
         ]
         return jnp.concatenate(parts)
 

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_volumetric.py [--repeats 3]
     python benchmarks/bench_volumetric.py --fit
+    python benchmarks/bench_volumetric.py --jacobian [--repeats 5]
     python benchmarks/bench_volumetric.py --profile [--top 25]
 
 Forward: the `hidden_sun` reference's clean frame upscaled (nearest) to 1920x1080, the
@@ -20,7 +21,11 @@ fit twice, the first compiling, the second's wall and process CPU seconds (less 
 shared machine) split into its coarse phase and the rest, and the final display-space MSE. `--profile`: where
 the 1920x1080 forward of `volumetric_haze` goes, from JAX's profiler over three runs after a warm-up: the
 `--top` compiled kernels (XLA's fusions, named as in the compiled program's HLO text, which says what each
-holds) by their mean milliseconds a run, summed over the threads that ran them. `uptime` first: the machine is shared.
+holds) by their mean milliseconds a run, summed over the threads that ran them. `--jacobian`: the fit's
+forward-mode Jacobian (`fit._forward_mode`) of the display-space residuals at 480x270 (the `--fit` frame and
+target, `volumetric_haze`, the field of view fixed), compiled: one vectorised JVP of every unknown against one
+per stage (`Effect.FIELD_STAGES`), medians of `--repeats` runs after one that compiles, alternating, and the
+largest difference between the two. `uptime` first: the machine is shared.
 """
 
 import argparse
@@ -45,6 +50,8 @@ import godrays_jax as gr
 from godrays_jax.app.fit_command import fit_starts
 from godrays_jax.app.options import auto_coarse_factor, model_presets
 from godrays_jax.effects.volumetric import march_factor
+from godrays_jax.pipeline.fit import _forward_mode
+from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, start_point
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
@@ -94,6 +101,44 @@ def fit_row(label: str, **options) -> None:
           flush=True)  # fmt: skip
 
 
+def jacobian_rows(repeats: int) -> None:
+    """Time the fit's Jacobian at 480x270: one vectorised JVP of every unknown, and one per stage."""
+    buffers, light = frame(270, 480)
+    target = upscaled(gr.read_image(str(SCENE.fog_a))[..., :3], 270, 480)
+    effect = dataclasses.replace(gr.preset("volumetric_haze"), fov_x_deg=np.float32(SCENE.fov_x_deg))
+    frame_data = as_frames(buffers, light, target, True, SCENE.light_depth)
+    bounds = fitted_bounds(effect, fixed=("fov_x_deg",))
+    problem = FitProblem.of(effect, bounds, frame_data[0], loss="mse", space="display")
+    y = start_point(problem, jnp.float32)
+
+    # The frames an argument, as `fit` passes them: closed over, XLA would fold the kernel's work on them as constants.
+    def one_pass(y, frame_data):
+        return _forward_mode(lambda flat: problem.residuals(flat, frame_data))(y)
+
+    def by_stage(y, frame_data):
+        residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+        return _forward_mode(residuals, problem.lane_groups)(y)
+
+    ways = {"one vectorised JVP of all": one_pass, "one per stage": by_stage}
+    compiled = {name: jax.jit(jax.jacfwd(way)) for name, way in ways.items()}
+    jacobians = {name: jax.block_until_ready(run(y, frame_data)) for name, run in compiled.items()}
+    times = collections.defaultdict(list)
+    for _ in range(repeats):
+        for name, run in compiled.items():
+            began = time.perf_counter()
+            jax.block_until_ready(run(y, frame_data))
+            times[name].append(time.perf_counter() - began)
+    groups = [[name for name in bounds if problem.stages[problem.names.index(name)] == stage] for stage in
+              dict.fromkeys(problem.stages)]  # fmt: skip
+    print(f"{y.size} unknowns; stages: " + "; ".join(", ".join(group) for group in groups))
+    print("| 480x270 Jacobian | median seconds |")
+    print("|---|---|")
+    for name in ways:
+        print(f"| {name} | {statistics.median(times[name]):.3f} |")
+    difference = float(jnp.max(jnp.abs(jacobians["one per stage"] - jacobians["one vectorised JVP of all"])))
+    print(f"largest difference {difference:.3g} (largest entry {float(jnp.max(jnp.abs(jacobians['one per stage']))):.3g})")
+
+
 def profile_rows(top: int) -> None:
     """The 1920x1080 forward's compiled kernels by mean milliseconds a run (JAX's profiler, three runs)."""
     buffers, light = frame(1080, 1920)
@@ -124,11 +169,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--fit", action="store_true", help="time the 480x270 fit instead, as fit runs it and as before")
     parser.add_argument("--profile", action="store_true", help="split the 1920x1080 forward by compiled kernel instead")
+    parser.add_argument("--jacobian", action="store_true", help="time the fit's Jacobian at 480x270, by stages and not")
     parser.add_argument("--top", type=int, default=25, help="kernels listed by --profile")
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     if args.profile:
         profile_rows(args.top)
+        return
+    if args.jacobian:
+        jacobian_rows(args.repeats)
         return
     if args.fit:
         print("| 480x270 fit | steps (coarse + full) | seconds, compiling | seconds, again (coarse + rest) | "

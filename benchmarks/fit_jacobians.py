@@ -12,7 +12,8 @@ stalls. Per scene (`benchmarks/references/scenes.py`)
 this builds the problem `fit` starts from by default (`volumetric_haze` at the
 frame's field of view, the scene's light, the display-space MSE against fog
 A, every field in its bounds fitted, the field of view too) and compares the
-gradient of the loss through `_forward_mode`, compiled, with reverse mode,
+gradient of the loss through `_forward_mode` (by the effect's stages, as `fit`
+takes it), compiled, with reverse mode,
 compiled: the largest difference over the fields, relative to the largest
 gradient. Run it after a change to a kernel the fit reaches or to the JAX
 stack; a few minutes for the nine scenes on two cores, each compiling both
@@ -29,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.pipeline.fit import _forward_mode
+from godrays_jax.pipeline.fit import _objective_function
 from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, start_point
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "references"))
@@ -51,7 +52,7 @@ def relative_difference(scene) -> tuple[int, float]:
         return problem.objective(problem.effect_at(flat), frame_data)
 
     def through_forward_mode(flat, frame_data):
-        return _forward_mode(lambda fields: objective(fields, frame_data))(flat)
+        return _objective_function(flat, (problem, frame_data))[0]  # as `fit` takes it: by the effect's stages
 
     reverse = np.asarray(eqx.filter_jit(jax.grad(objective))(y, frame_data))
     forward = np.asarray(eqx.filter_jit(jax.grad(through_forward_mode))(y, frame_data))

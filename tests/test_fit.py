@@ -12,7 +12,7 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
-from godrays_jax.pipeline.fit import _forward_mode, _plateaued, fit, round_counts
+from godrays_jax.pipeline.fit import _objective_function, _plateaued, fit, round_counts
 from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, from_unit, start_point, to_unit
 
 HEIGHT, WIDTH = 24, 32
@@ -69,10 +69,13 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
     assert float(result.effect.num_samples) == 8.0
 
 
-def test_the_fits_jacobian_is_reverse_modes_on_volumetric_fog():
-    """The fit linearises by a vmapped forward-mode Jacobian (`_forward_mode`); on VolumetricFog's chained read XLA
-    once mixed its lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64), and
-    again on a read of both pieces by flat-index gathers (fine at 36x64, wrong at 90x160: benchmarks/README.md,
+def test_the_fits_jacobian_by_stages_is_reverse_modes_on_volumetric_fog():
+    """The fit linearises by a vmapped forward-mode Jacobian, one vectorised JVP per stage of the effect's fields
+    (`_forward_mode` by `FitProblem.lane_groups`; VolumetricFog's in three: the march, the medium's ends, the final
+    sum), each stage's lanes with the other stages' unknowns held constant. Its gradient is reverse mode's: a column
+    taken from another unknown, or a stage's columns missing, changes it. On VolumetricFog's chained read XLA once
+    mixed the lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64), and again on
+    a read of both pieces by flat-index gathers (fine at 36x64, wrong at 90x160: benchmarks/README.md,
     "VolumetricFog: speed and memory"), so the frame is that large."""
     height, width = 90, 160
     depth = np.full((height, width), np.inf, np.float32)
@@ -85,51 +88,26 @@ def test_the_fits_jacobian_is_reverse_modes_on_volumetric_fog():
     frame = gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(np.isfinite(depth), jnp.float32))
     light = jnp.asarray([80.8, 27.5], jnp.float32)
     medium = dict(light_color=(2.0, 2.0, 2.0), ambient_color=(0.1, 0.1, 0.1))
-    start = gr.VolumetricFog(medium=gr.Medium(extinction=0.013, max_distance=50.0, anisotropy=0.6, **medium), fov_x_deg=60.0)
-    truth = gr.VolumetricFog(medium=gr.Medium(extinction=0.02, max_distance=40.0, anisotropy=0.7, **medium), fov_x_deg=60.0)
+    # Every stage moves the frame: a layer top within the medium, a falloff with height, an ambient that rises.
+    shape = dict(height_falloff=0.02, layer_top=8.0, ambient_rise=0.1, fov_x_deg=60.0)
+    start = gr.VolumetricFog(medium=gr.Medium(extinction=0.013, max_distance=50.0, anisotropy=0.6, **medium), **shape)
+    truth = gr.VolumetricFog(medium=gr.Medium(extinction=0.02, max_distance=40.0, anisotropy=0.7, **medium), **shape)
     target = truth(frame, light) + 0.01 * jnp.asarray(np.random.default_rng(0).normal(size=(height, width, 3)), jnp.float32)
     frame_data = as_frames(frame, light, target, True)
     problem = FitProblem.of(start, fitted_bounds(start), frame_data[0], loss="mse", space="display")
+    stages = [{problem.stages[problem.names.index(n)] for n in problem.names if n in group} for group in
+              [("medium.light_color", "ambient_rise"), ("medium.max_distance", "layer_top"), ("thickness", "medium.extinction")]]
+    assert len(problem.lane_groups) == 3 and all(len(stage) == 1 for stage in stages) and len(set.union(*stages)) == 3
     y = start_point(problem, jnp.float32)
+    assert sorted(i for group in problem.lane_groups for i in group) == list(range(y.size))
 
     def objective(flat, frame_data):
         return problem.objective(problem.effect_at(flat), frame_data)
 
     reverse = eqx.filter_jit(jax.grad(objective))(y, frame_data)
-    forward = eqx.filter_jit(jax.grad(lambda flat, frame_data: _forward_mode(lambda f: objective(f, frame_data))(flat)))(y, frame_data)
+    forward = eqx.filter_jit(jax.grad(lambda flat, frame_data: _objective_function(flat, (problem, frame_data))[0]))(y, frame_data)
     np.testing.assert_allclose(forward, reverse, rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(reverse))))
-
-
-def test_the_jacobian_by_stages_equals_one_pass_of_all_unknowns():
-    """`_forward_mode` by `FitProblem.lane_groups` (VolumetricFog's fields in three stages: the march, the medium's
-    ends, the final sum) gives the Jacobian of one vectorised JVP of every unknown."""
-    frame = _frame()
-    effect = gr.VolumetricFog(
-        medium=gr.Medium(extinction=0.03, max_distance=30.0, anisotropy=0.6), height_falloff=0.02, layer_top=8.0,
-        ambient_rise=0.1, fov_x_deg=60.0, num_view_steps=4, num_shadow_samples=6,
-    )  # fmt: skip
-    target = effect(frame, LIGHT) * 0.9 + 0.01
-    frame_data = as_frames(frame, LIGHT, target, True)
-    problem = FitProblem.of(effect, fitted_bounds(effect), frame_data[0], loss="mse", space="display")
-    stages = [{problem.stages[problem.names.index(n)] for n in problem.names if n in group} for group in
-              [("medium.light_color", "ambient_rise"), ("medium.max_distance", "layer_top"), ("thickness", "medium.extinction")]]
-    assert len(problem.lane_groups) == 3 and all(len(stage) == 1 for stage in stages) and len(set.union(*stages)) == 3
-    assert sorted(i for group in problem.lane_groups for i in group) == list(range(start_point(problem, jnp.float32).size))
-    y = start_point(problem, jnp.float32)
-
-    def by_stage(y):
-        residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
-        return _forward_mode(residuals, problem.lane_groups)(y)
-
-    # One tangent in every unknown at once, each weighted differently: a column taken from another unknown, or a
-    # stage's columns missing, changes the product (two programs; the whole Jacobian would compile five).
-    tangent = jnp.asarray(np.random.default_rng(3).normal(size=y.shape), jnp.float32)
-    value, product = jax.jit(lambda y, t: jax.jvp(by_stage, (y,), (t,)))(y, tangent)
-    whole_value, whole_product = jax.jit(
-        lambda y, t: jax.jvp(lambda flat: problem.residuals(flat, frame_data), (y,), (t,)))(y, tangent)  # fmt: skip
-    np.testing.assert_allclose(value, whole_value, rtol=1e-4, atol=1e-7)  # two float32 programs, rounded apart
-    np.testing.assert_allclose(product, whole_product, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(whole_product))))
-    assert float(jnp.max(jnp.abs(whole_product))) > 0
+    assert np.all(np.abs(np.asarray(reverse)) > 0)  # every unknown moves the loss
 
 
 def test_every_stage_names_a_fittable_field():

@@ -13,7 +13,16 @@ import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.pipeline.fit import _objective_function, _plateaued, fit, round_counts
-from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, from_unit, start_point, to_unit
+from godrays_jax.pipeline.problem import (
+    FOLD_ROUNDING,
+    START_INSET,
+    FitProblem,
+    as_frames,
+    fitted_bounds,
+    from_unit,
+    start_point,
+    to_unit,
+)
 
 HEIGHT, WIDTH = 24, 32
 
@@ -290,15 +299,40 @@ def test_minimiser_with_ssim_loss_improves_and_counts_round():
     assert float(round_counts(start).num_samples) == 7.0
 
 
-def test_reparameterisation_stays_in_bounds_with_unit_slope():
-    units = np.linspace(-3.0, 4.0, 141)
+def _rounded_fold_loop(unit, rounding):
+    """The map of unknowns into [0, 1] as the fit's docstring states it, one value at a time."""
+    folded = unit % 2.0
+    u = folded if folded <= 1.0 else 2.0 - folded
+    stretch = 1.0 / (1.0 - rounding)
+    if u < rounding:
+        return stretch * u * u / (2.0 * rounding)
+    if u > 1.0 - rounding:
+        return 1.0 - stretch * (1.0 - u) ** 2 / (2.0 * rounding)
+    return stretch * (u - rounding / 2.0)
+
+
+def test_reparameterisation_stays_in_bounds_smoothly_and_a_start_on_a_bound_moves():
+    units = np.linspace(-3.0, 4.0, 1401)
     values = np.asarray(from_unit(jnp.asarray(units), 0.5, 1.0))
     assert values.min() >= 0.5 and values.max() <= 1.0
-    np.testing.assert_allclose(np.abs(np.diff(values)), 0.5 * np.diff(units), atol=1e-6)  # slope never vanishes
-    np.testing.assert_allclose(from_unit(to_unit(0.93, 0.5, 1.0), 0.5, 1.0), 0.93, rtol=1e-6)
-    # A start on either bound still has unit slope (presets put decay on its upper bound, counts on their caps).
-    for unit in (0.0, 1.0):
-        assert float(jax.grad(lambda u: from_unit(u, 0.5, 1.0))(unit)) == pytest.approx(0.5)
+    expected = [0.5 + 0.5 * _rounded_fold_loop(u, FOLD_ROUNDING) for u in units]
+    np.testing.assert_allclose(values, expected, rtol=1e-6)
+    # Smooth: the slope is continuous (no corner at a fold, where a field on its bound would zig-zag) and zero
+    # only on the bounds themselves.
+    slopes = np.asarray(jax.vmap(jax.grad(lambda u: from_unit(u, 0.5, 1.0)))(jnp.asarray(units)))
+    assert np.max(np.abs(np.diff(slopes))) < 0.5 / (FOLD_ROUNDING * (1.0 - FOLD_ROUNDING)) * (units[1] - units[0]) * 1.01
+    assert float(jax.grad(lambda u: from_unit(u, 0.5, 1.0))(0.0)) == 0.0
+    for value in (0.5, 0.5 + 1e-4, 0.93, 1.0 - 1e-3, 1.0):
+        np.testing.assert_allclose(from_unit(to_unit(value, 0.5, 1.0), 0.5, 1.0), value, rtol=1e-6)
+    # A start on either bound (presets put decay on its upper bound, counts on their caps) starts inside, where
+    # it has a quarter of the slope, its value moved by a tiny part of the range.
+    problem = FitProblem.of(_rays(), fitted_bounds(_rays(), fixed=("tint",)), [_frame()], loss="mse", space="display")
+    start = np.asarray(start_point(problem, jnp.float32))
+    assert start.min() >= START_INSET and start.max() <= 1.0 - START_INSET
+    for unit in (START_INSET, 1.0 - START_INSET):
+        slope = float(jax.grad(lambda u: from_unit(u, 0.5, 1.0))(unit))
+        assert slope == pytest.approx(0.5 * 0.25 / (1.0 - FOLD_ROUNDING), rel=1e-5)
+        assert min(float(from_unit(unit, 0.5, 1.0)) - 0.5, 1.0 - float(from_unit(unit, 0.5, 1.0))) < 0.5 * FOLD_ROUNDING / 30
 
 
 def test_bounds_are_capped_by_static_loop_lengths():

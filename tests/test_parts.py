@@ -62,8 +62,11 @@ def test_a_fit_problem_maps_its_unknowns_onto_a_parts_field():
     fixed = [name for name in gr.parameter_bounds(start) if name not in ("bloom.intensity", "bloom.weights")]
     problem = FitProblem.of(start, fitted_bounds(start, fixed=fixed), [make_frame()], loss="mse", space="display")
     assert problem.names == ("bloom.intensity", "bloom.weights") and problem.shapes == ((), (4,))
-    np.testing.assert_allclose(start_point(problem, np.float32), [0.1] * 5, rtol=1e-6)
-    moved = problem.effect_at(jnp.asarray([0.3, 0.2, 0.2, 0.1, 0.1]))
+    np.testing.assert_allclose(problem.positions(np.float32), [0.1] * 5, rtol=1e-6)
+    started = problem.effect_at(start_point(problem, np.float32))
+    np.testing.assert_allclose(started.bloom.intensity, start.bloom.intensity, rtol=1e-5)
+    np.testing.assert_allclose(started.bloom.weights, start.bloom.weights, rtol=1e-5)
+    moved = problem.effect_at_positions(jnp.asarray([0.3, 0.2, 0.2, 0.1, 0.1]))
     np.testing.assert_allclose(moved.bloom.intensity, 3.0, rtol=1e-6)
     np.testing.assert_allclose(moved.bloom.weights, [2.0, 2.0, 1.0, 1.0], rtol=1e-6)
     assert moved.bloom.blur_sigma is start.bloom.blur_sigma and moved.sun_distance is start.sun_distance

@@ -19,7 +19,6 @@ from godrays_jax.pipeline.problem import (
     as_frames,
     check_inside_bounds,
     fitted_bounds,
-    start_point,
     strongly_typed,
 )
 from godrays_jax.primitives.buffers import Buffers
@@ -27,11 +26,14 @@ from godrays_jax.primitives.checks import ranges_guaranteed
 
 
 @eqx.filter_jit
-def _jacobian(problem, y, frame_data):
-    """The residuals' Jacobian in the unit-scaled unknowns, `(residuals, unknowns)`, one JVP per unknown."""
-    basis = jnp.eye(y.shape[0], dtype=y.dtype)
-    tangents = jax.vmap(lambda direction: jax.jvp(lambda flat: problem.residuals(flat, frame_data), (y,), (direction,))[1])
-    return tangents(basis).T
+def _jacobian(problem, positions, frame_data):
+    """The residuals' Jacobian per unit of each field's range, `(residuals, unknowns)`, one JVP per unknown."""
+    basis = jnp.eye(positions.shape[0], dtype=positions.dtype)
+
+    def residuals(flat):
+        return problem.residuals_of(problem.effect_at_positions(flat), frame_data)
+
+    return jax.vmap(lambda direction: jax.jvp(residuals, (positions,), (direction,))[1])(basis).T
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,9 +126,11 @@ def determination(
     problem = FitProblem.of(effect, bounds, frames, loss="mse", space=space)
     # The unknowns map into the fields' bounds (as in `fit`): no run-time range check, so the cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
-        y = start_point(problem, np.dtype(frames[0].color.dtype))
+        positions = problem.positions(np.dtype(frames[0].color.dtype))
         frame_data = (frames, lights, targets, in_front, depths)
-        jacobian = np.asarray(exported.call("determination_jacobian", _jacobian, problem, y, frame_data), np.float64)
+        jacobian = np.asarray(
+            exported.call("determination_jacobian", _jacobian, problem, positions, frame_data), np.float64
+        )
     owners, labels, lows, spans = [], [], [], []
     for name, shape in zip(names, problem.shapes):
         size = math.prod(shape)
@@ -134,8 +138,8 @@ def determination(
         labels += [name] if size == 1 and not shape else [f"{name}[{k}]" for k in range(size)]
         lows += [bounds[name][0]] * size
         spans += [bounds[name][1] - bounds[name][0]] * size
-    # Where each unknown sits in its range: 0 on the lower bound, 1 on the upper.
-    position = np.clip(np.asarray(y, np.float64), 0.0, 1.0)
+    # Where each field sits in its range: 0 on the lower bound, 1 on the upper.
+    position = np.clip(np.asarray(positions, np.float64), 0.0, 1.0)
     pinned = np.minimum(position, 1.0 - position) <= ON_BOUND
     on_bound = {label: low + span * float(round(where)) for label, low, span, where, on in
                 zip(labels, lows, spans, position, pinned) if on}  # fmt: skip

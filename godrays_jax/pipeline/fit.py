@@ -13,10 +13,14 @@ How the parameters are fitted:
   by their static loop lengths (`max_samples`, ...); the result also carries
   the effect with the counts rounded, re-evaluated.
 - Ranges are kept by reparameterisation: a field with bounds `[low, high]` is
-  `low + (high - low) * tri(z)`, `tri` the triangle wave of period 2 (the
-  identity on [0, 1], mirrored beyond). Unlike a sigmoid its slope never
-  vanishes, so a start on a bound (presets put `decay` at 1.0) still moves,
-  and the solver's unknowns all have the same unit scale.
+  `low + (high - low) * fold(z)` (`problem.from_unit`), `fold` of period 2:
+  the identity on [0, 1] (stretched by 1 / (1 - `FOLD_ROUNDING`)), mirrored
+  beyond, its corners rounded by parabolas. Unlike a sigmoid its slope
+  vanishes only on the bounds themselves, and a start on a bound (presets put
+  `decay` at 1.0) begins `START_INSET` inside it, so it still moves; unlike
+  the triangle wave it has no corner where a field whose best value is its
+  bound would jump from side to side every step; and the solver's unknowns
+  all have the same unit scale.
 - Levenberg-Marquardt's damping is the same for every unknown, but the frame
   is not equally sensitive to each (a unit of `max_distance` is 10^4 scene
   units), and where its descent stops the loss may still fall slowly along

@@ -39,14 +39,46 @@ def fitted_bounds(effect: Effect, *, fixed: Sequence[str] = ()) -> dict[str, tup
     return result
 
 
+FOLD_ROUNDING = 0.02
+"""Half-width, in unknowns' units, of the rounded turn where the map from unknowns to values folds at a bound.
+
+A fold with a corner (the triangle wave) has no derivative on the bound: a field whose best value is its bound
+(`height_falloff` 0 for a haze that does not thin with height) then jumps from side to side of the corner every
+step, and Levenberg-Marquardt's trust region shrinks to that zig-zag for every other unknown too, so the fit
+crawls (`benchmarks/README.md`, "A fold without a corner"). Rounded, the map is smooth and its slope goes to 0 on
+the bound, where the loss is then quadratic in the unknown, as the solver's model assumes."""
+
+START_INSET = FOLD_ROUNDING / 4
+"""How far inside its range a start on a bound is moved, in unknowns' units: on the bound itself the map has
+no slope and the field could not move; here it has a quarter of its slope, and its value moves by about
+`FOLD_ROUNDING / 32` of its range."""
+
+
+def _rounded_fold(unit):
+    """[0, 1] -> [0, 1]: linear inside, parabolas within `FOLD_ROUNDING` of each end (slope 0 on the ends)."""
+    rounding, slope = FOLD_ROUNDING, 1.0 / (1.0 - FOLD_ROUNDING)
+    near_low = slope * unit**2 / (2.0 * rounding)
+    near_high = 1.0 - slope * (1.0 - unit) ** 2 / (2.0 * rounding)
+    inside = slope * (unit - rounding / 2.0)
+    return jnp.where(unit < rounding, near_low, jnp.where(unit > 1.0 - rounding, near_high, inside))
+
+
 def to_unit(value, low, high):
-    return (value - low) / (high - low)
+    """The unknown whose `from_unit` is `value` (in `[low, high]`), in `[0, 1]`; a bound maps to 0 or 1."""
+    position = (value - low) / (high - low)
+    rounding, slope = FOLD_ROUNDING, 1.0 / (1.0 - FOLD_ROUNDING)
+    edge = slope * rounding / 2.0  # the position where the parabola meets the line
+    near_low = jnp.sqrt(jnp.maximum(2.0 * rounding * position / slope, 0.0))
+    near_high = 1.0 - jnp.sqrt(jnp.maximum(2.0 * rounding * (1.0 - position) / slope, 0.0))
+    inside = position / slope + rounding / 2.0
+    return jnp.where(position < edge, near_low, jnp.where(position > 1.0 - edge, near_high, inside))
 
 
 def from_unit(unit, low, high):
+    """Any real unknown -> a value in `[low, high]`: `_rounded_fold` of the unknown folded into `[0, 1]` (period 2,
+    mirrored), so every unknown is in range and the map is smooth everywhere."""
     folded = jnp.mod(unit, 2.0)
-    # Not `1 - |1 - folded|`: the derivative of |x| at 0 is 0, which would pin a start on the upper bound.
-    return low + (high - low) * jnp.where(folded <= 1.0, folded, 2.0 - folded)
+    return low + (high - low) * _rounded_fold(jnp.where(folded <= 1.0, folded, 2.0 - folded))
 
 
 def _per_frame(value, count, name):
@@ -166,14 +198,26 @@ class FitProblem(eqx.Module):
         """The effect with the fitted fields set from the flat unit-scaled unknowns `y`."""
         return self._effect_of(y)
 
-    def _effect_of(self, unknowns):
+    def positions(self, dtype):
+        """Where the effect's fitted values sit in their ranges, flat: 0 on the lower bound, 1 on the upper."""
+        return jnp.concatenate([
+            jnp.ravel((jnp.asarray(field_value(self.effect, name), dtype) - low) / (high - low))
+            for name, (low, high) in zip(self.names, self.bounds)
+        ])  # fmt: skip
+
+    def effect_at_positions(self, positions):
+        """The effect with each fitted field at `low + (high - low) * position`, linear and unfolded: derivatives
+        in `positions` are per unit of each field's range, whatever the solver's map (`determination`'s)."""
+        return self._effect_of(positions, to_value=lambda position, low, high: low + (high - low) * position)
+
+    def _effect_of(self, unknowns, to_value=from_unit):
         """The effect from the unknowns: a flat array or a list of scalars, in `names`' order."""
         values, offset = [], 0
         for name, (low, high), shape in zip(self.names, self.bounds, self.shapes):
             size = math.prod(shape)
             piece = unknowns[offset : offset + size]
             unit = jnp.reshape(piece if isinstance(piece, jax.Array) else jnp.stack(piece), shape)
-            values.append(from_unit(unit, low, high).astype(field_value(self.effect, name).dtype))
+            values.append(to_value(unit, low, high).astype(field_value(self.effect, name).dtype))
             offset += size
         return eqx.tree_at(lambda e: [field_value(e, n) for n in self.names], self.effect, values)
 
@@ -208,9 +252,10 @@ def check_inside_bounds(effect: Effect) -> None:
 
 @eqx.filter_jit
 def start_point(problem, dtype):
-    """The flat unit-scaled unknowns of the starting effect."""
+    """The flat unknowns of the starting effect; a value on a bound starts `START_INSET` inside it."""
     return jnp.concatenate([
-        jnp.ravel(to_unit(jnp.asarray(field_value(problem.effect, name), dtype), low, high))
+        jnp.ravel(jnp.clip(to_unit(jnp.asarray(field_value(problem.effect, name), dtype), low, high), START_INSET,
+                           1.0 - START_INSET))
         for name, (low, high) in zip(problem.names, problem.bounds)
     ])  # fmt: skip
 

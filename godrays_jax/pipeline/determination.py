@@ -186,8 +186,9 @@ def determination(
     )
 
 
-ON_BOUND = 1e-4
-"""A fitted value within this fraction of its range from a bound sits on that bound."""
+ON_BOUND = 1e-3
+"""A fitted value within this fraction of its range from a bound sits on that bound: a field that does not move the
+frame stays where `fit` started it, which for a start on a bound is just inside it (`problem.START_INSET`)."""
 
 
 def _offset(jacobian, index, others, change, cutoff):

@@ -124,7 +124,8 @@ def determination(
     bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
     names = tuple(bounds)
     problem = FitProblem.of(effect, bounds, frames, loss="mse", space=space)
-    # The unknowns map into the fields' bounds (as in `fit`): no run-time range check, so the cache keeps the Jacobian.
+    # The positions are the effect's own values, checked inside their bounds above: no run-time range check, so the
+    # cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         positions = problem.positions(np.dtype(frames[0].color.dtype))
         frame_data = (frames, lights, targets, in_front, depths)

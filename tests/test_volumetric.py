@@ -1,6 +1,7 @@
 """Scattering from the depth buffer (kernels/volumetric.py) against a slow NumPy loop, and its degenerate cases."""
 
 import functools
+import itertools
 import math
 
 import jax
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
+from godrays_jax.kernels import volumetric
 from godrays_jax.kernels.volumetric import _march_grid, apply_volumetric_fog, segment_visibility, volumetric_fog_terms
 
 HEIGHT, WIDTH = 4, 6
@@ -164,12 +166,22 @@ class _Loop:
         u = start + (np.arange(n) + 0.5) * du
         return float(np.sum(sigma * np.exp(-sigma * (u - start)) * u * view[1]) * du)
 
+    def even_in_transmittance(self, view, start, end):
+        """`steps + 1` bounds from `start` to `end` along the unit ray `view`, each segment an equal share of `1 - T`
+        in the homogeneous medium of the piece's optical depth `tau` (at most 12: the kernel's cap), even in distance
+        where `tau` is (nearly) 0."""
+        tau = min(self.optical_depth(start * view, view, end - start), 12.0)
+        fractions = np.arange(self.steps + 1) / self.steps
+        if tau < 1e-4:
+            return start + (end - start) * fractions
+        return start + (end - start) * -np.log(1 - fractions * (1 - math.exp(-tau))) / tau
+
     def segments(self, x, y, depth):
         """The unit view ray through `(x, y)`, its segments' bounds up to `depth`, the transmittance at each
         bound and each segment's scattered light."""
         view = self.ray(x, y)
         view /= np.linalg.norm(view)
-        return self.segments_between(x, y, np.linspace(0.0, self.end_of_medium(view, depth), self.steps + 1))
+        return self.segments_between(x, y, self.even_in_transmittance(view, 0.0, self.end_of_medium(view, depth)))
 
     def segments_between(self, x, y, bounds):
         """`segments` with the given bounds along the view ray through `(x, y)` (from the camera)."""
@@ -217,7 +229,8 @@ class _Loop:
 
     def reduced_scattered(self, spacing):
         """The in-scattering marched on rays at the light's position plus `spacing` times integers (the screen and
-        one spacing around it), each through to the medium's end in two pieces of `steps` even segments split at
+        one spacing around it), each through to the medium's end in two pieces of `steps` segments (even in
+        transmittance) split at
         the depth of the texel it lies in (sky, or a surface beyond the medium: halfway); at every pixel, its four
         nearest rays' in-scattering up to the pixel's own depth (the segment holding it taken in proportion to the
         light it receives up to there), by bilinear weights."""
@@ -246,7 +259,8 @@ class _Loop:
                 view = self.ray(x, y) / np.linalg.norm(self.ray(x, y))
                 end = self.end_of_medium(view, math.inf)
                 split = depth if depth < end else 0.5 * end
-                bounds = np.concatenate([np.linspace(0.0, split, self.steps + 1), np.linspace(split, end, self.steps + 1)[1:]])
+                bounds = np.concatenate([self.even_in_transmittance(view, 0.0, split),
+                                         self.even_in_transmittance(view, split, end)[1:]])  # fmt: skip
                 _, _, _, lit = self.segments_between(x, y, bounds)
                 rays[i, j] = (view, bounds, lit)
 
@@ -414,19 +428,36 @@ FITTED = ("extinction", "max_distance", "height_falloff", "layer_top", "anisotro
 
 
 @pytest.mark.parametrize("light_depth", [12.0, math.inf])
-def test_gradients_float64(x64, rng, light_depth):
+def test_gradients_float64(x64, rng, light_depth, monkeypatch):
+    """Every fitted field's derivative against central differences, with the segments' placement held where the
+    start put it, as the kernel holds it (`_placement_depth`: where the segments lie is a sampling choice)."""
     image, depth = jnp.asarray(_image(rng)), jnp.asarray(_depth())
     values = dict(MEDIUM, light_depth=light_depth)
     names = [name for name in FITTED if not (name == "light_depth" and math.isinf(light_depth))]
+    placements, placed = [], volumetric._placement_depth
 
-    @jax.jit
-    def render(light_xy, *scalars):
+    def recording(*args, **kwargs):
+        placements.append(placed(*args, **kwargs))
+        return placements[-1]
+
+    def fogged(light_xy, *scalars):
         options = dict(values, **dict(zip(names, scalars)))
         return _fog(image, depth, light_xy, **options)
 
     # No depth sample on a pixel edge (nearest sampling steps there): the finite differences stay on one side.
     start = (jnp.asarray([2.33, 0.71]), *(jnp.asarray(values[name], jnp.float64) for name in names))
-    check_grads(render, start, order=1, modes=("fwd", "rev"), eps=1e-5, atol=1e-4, rtol=1e-4)
+    direction = jax.tree_util.tree_map(lambda x: jnp.full_like(x, 0.1) * jnp.maximum(jnp.abs(x), 1.0), start)
+
+    def derivative():  # traced anew on each call, so that it sees the placement patched in
+        return jax.jit(lambda *primals: jax.jvp(fogged, primals, direction)[1])(*start)
+
+    kernels = derivative()
+    monkeypatch.setattr(volumetric, "_placement_depth", recording)
+    held = jax.jit(lambda *args: (fogged(*args), placements[:]))(*start)[1]
+    calls = itertools.count()
+    monkeypatch.setattr(volumetric, "_placement_depth", lambda *args, **kwargs: held[next(calls) % len(held)])
+    np.testing.assert_allclose(derivative(), kernels, rtol=1e-9, atol=1e-12)  # the kernel holds it too
+    check_grads(jax.jit(fogged), start, order=1, modes=("fwd", "rev"), eps=1e-5, atol=1e-4, rtol=1e-4)
 
 
 def test_reduced_march_derivative_where_pixels_see_the_sky(x64):
@@ -554,7 +585,8 @@ def test_a_hole_under_a_march_ray_changes_its_neighbours_by_the_sampling_alone(x
     holed[5, 5] = np.inf  # under the march ray at (5.3, 5.7)
     wall, hole = np.array(run(jnp.asarray(depth))), np.array(run(jnp.asarray(holed)))
     hole[5, 5] = wall[5, 5]  # the hole's own pixel sees the sky now
-    np.testing.assert_allclose(hole, wall, rtol=3e-3)
+    # The ray's second piece now starts halfway to the medium's end, and its segments (even in transmittance) move.
+    np.testing.assert_allclose(hole, wall, rtol=5e-3)
 
 
 def test_shadows_move_smoothly_with_the_light(x64):

@@ -50,7 +50,9 @@ shared by every segment. The march runs on rays `resolution_factor` pixels
 apart, anchored to the light (its position plus multiples of the spacing: under
 a pan they ride with the scene), each marched through to the medium's end in
 two pieces, split at the depth of the texel it lies in (sky: halfway), so that
-its segments are fine up to its own surface; every pixel reads its four nearest
+its segments are fine up to its own surface. A piece's segments are even in
+transmittance rather than in distance (in dense haze most of the light reaching
+the camera comes from its first stretch). Every pixel reads its four nearest
 rays' in-scattering up to its own depth (the segment holding it taken in
 proportion) and takes them by bilinear weights at their true positions. A
 ray's split only places its segments' bounds: when a surface's edge slides
@@ -90,6 +92,42 @@ _BEYOND_EVERY_SLAB = 1e30
 
 def _ramp(x):
     return jnp.clip(x, 0.0, 1.0)
+
+
+# A piece's segments are even in the transmittance of a homogeneous medium of the piece's optical depth, taken
+# at most this deep: beyond it the first segments are short enough, and float32 would lose the last bound's place.
+_DEEPEST_PLACEMENT = 12.0
+
+
+def _bound_fraction(fraction, optical):
+    """Where a piece's segment bound lies, as a fraction of the piece's length, for the bound at `fraction` of the
+    segments (`k / num_view_steps`): even in `1 - T` through a homogeneous medium of optical depth `optical`
+    over the piece, so that each segment holds an equal share of the light a lit piece scatters toward the
+    camera (even in distance, dense haze spent most segments where its light no longer reaches the camera);
+    even in distance as `optical` goes to 0. `fraction` in [0, 1], 1 on the piece's end exactly."""
+    small = optical < 1e-4
+    x = jnp.where(small, 1.0, jnp.minimum(optical, _DEEPEST_PLACEMENT))
+    placed = -jnp.log1p(jnp.minimum(fraction, 1.0 - 1e-6) * jnp.expm1(-x)) / x
+    return jnp.where(small, fraction, jnp.where(fraction >= 1.0, 1.0, placed))
+
+
+def _placement_depth(origin, view, first, end, *, extinction, height_falloff):
+    """The optical depth of each piece from `first` to `end` that places its segments (`_bound_fraction`), held
+    under differentiation. Where the segments lie is a sampling choice: its derivative is the sampling error's
+    (large where a shadow's edge crosses a segment's middle), not the medium's, and in the fit's Jacobian it made
+    every Levenberg-Marquardt step fail from a fog layer's start (benchmarks/README.md, "Segments even in
+    transmittance"). The bounds still move with the piece's ends, as before."""
+    return jax.lax.stop_gradient(
+        optical_depth(origin, view, first, end, extinction=extinction, height_falloff=height_falloff)
+    )
+
+
+def _segment_fraction(fraction, optical):
+    """`_bound_fraction`'s inverse: for a point at `fraction` of a piece's length, the fraction of the segments
+    before it (not floored)."""
+    small = optical < 1e-4
+    x = jnp.where(small, 1.0, jnp.minimum(optical, _DEEPEST_PLACEMENT))
+    return jnp.where(small, fraction, jnp.expm1(-x * fraction) / jnp.expm1(-x))
 
 
 def _march_grid(light_xy, height, width, spacing, dtype):
@@ -266,9 +304,9 @@ def segment_visibility(
 def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) in consecutive pieces, the
     first from the medium's start up to `ray_ends[0]`, each next one from where the previous ended up to its own
-    end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium), each in `num_view_steps` even
-    segments: `(L, h, w, num_view_steps)`, each piece's first and last bound (scene units, two `(L, h, w)`) and
-    a function of a ray's distances that is even in the light's irradiance along it (`irradiance_coordinate`
+    end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium), each in `num_view_steps` segments
+    even in transmittance (`_bound_fraction`): `(L, h, w, num_view_steps)`, each piece's first and last bound
+    (scene units, two `(L, h, w)`), its optical depth (`(L, h, w)`, which places its bounds) and a function of a ray's distances that is even in the light's irradiance along it (`irradiance_coordinate`
     of the rays, each `(h, w)`, indexed by rows and columns). The pieces share each shadow sample's reads of the
     depth buffer."""
     (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
@@ -278,7 +316,7 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     origin = jnp.zeros_like(view)
     fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
-    lower, upper, attenuated, firsts, lasts = [], [], [], [], []
+    lower, upper, attenuated, firsts, lasts, opticals = [], [], [], [], [], []
     previous = None
     for ray_end in ray_ends:
         start, end = medium_interval(origin, view, ray_end, max_distance=max_distance, layer_top=layer_top)
@@ -286,7 +324,9 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
         previous = end
         firsts.append(first)
         lasts.append(end)
-        bounds = first[..., None] + (end - first)[..., None] * fractions
+        optical = _placement_depth(origin, view, first, end, extinction=extinction, height_falloff=height_falloff)
+        opticals.append(optical)
+        bounds = first[..., None] + (end - first)[..., None] * _bound_fraction(fractions, optical[..., None])
         tau = optical_depth(
             origin[..., None, :], view[..., None, :], start[..., None], bounds,
             extinction=extinction, height_falloff=height_falloff,
@@ -318,24 +358,25 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     def even_in_light(distance, row, col):
         return irradiance_coordinate(distance, along[row, col], miss[row, col], inverse)
 
-    return pieces, jnp.stack(firsts), jnp.stack(lasts), even_in_light
+    return pieces, jnp.stack(firsts), jnp.stack(lasts), jnp.stack(opticals), even_in_light
 
 
-def _read_at_depth(lit, first, last, even_in_light, row, col, ray_end):
+def _read_at_depth(lit, first, last, optical, even_in_light, row, col, ray_end):
     """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to the piece's bounds) from
-    one piece's segments' light `lit` (`(h, w, M)`, even segments from `first` to `last`, each `(h, w)`), the
+    one piece's segments' light `lit` (`(h, w, M)`, segments from `first` to `last`, each `(h, w)`, placed by
+    the piece's optical depth `optical` as `_bound_fraction` places them), the
     segment holding `ray_end` taken in proportion to the light it receives up to there (`even_in_light`: a
     function of distances along the rays, rows and columns, even in the light's irradiance; a point light's
     falls off within a segment near it)."""
     count = lit.shape[-1]
-    first, last = first[row, col], last[row, col]
+    first, last, optical = first[row, col], last[row, col], optical[row, col]
     distance = jnp.clip(ray_end, first, last)
     # `last >= first`; an empty piece reads 0 at its start. Not `safe_divide`: its select on `|last - first|`
     # made XLA's algebraic simplifier mix the lanes of the fit's vmapped Jacobian (`pipeline/fit.py`,
     # `_forward_mode`) once a loss took `abs` of the image (tests/test_fit.py).
     length = jnp.where(last > first, last - first, 1.0)
-    index = jnp.clip(jnp.floor(jax.lax.stop_gradient((distance - first) / length * count)), 0, count - 1)
-    lower, upper = (first + length * (index + offset) / count for offset in (0.0, 1.0))
+    index = jnp.clip(jnp.floor(jax.lax.stop_gradient(_segment_fraction((distance - first) / length, optical) * count)), 0, count - 1)
+    lower, upper = (first + length * _bound_fraction((index + offset) / count, optical) for offset in (0.0, 1.0))
     start, reached, end = (even_in_light(u, row, col) for u in (lower, distance, upper))
     share = jnp.clip((reached - start) / jnp.where(end > start, end - start, 1.0), 0.0, 1.0)
     index = index.astype(jnp.int32)
@@ -343,9 +384,9 @@ def _read_at_depth(lit, first, last, even_in_light, row, col, ray_end):
     return before[row, col, index] + lit[row, col, index] * share
 
 
-def _upsample_by_depth(lit, firsts, lasts, even_in_light, ray_end, xs, ys, spacing):
+def _upsample_by_depth(lit, firsts, lasts, opticals, even_in_light, ray_end, xs, ys, spacing):
     """The in-scattering of the march rays at `(xs, ys)` (`spacing` pixels apart; their pieces' segments' light
-    `lit`, `(L, h, w, M)`, even from `firsts` to `lasts`, each `(L, h, w)`; `even_in_light` as
+    `lit`, `(L, h, w, M)`, from `firsts` to `lasts`, placed by `opticals`, each `(L, h, w)`; `even_in_light` as
     `_read_at_depth`'s) at every pixel: each of its four nearest rays read up
     to the pixel's own `ray_end` (`(H, W)`, scene units, `inf` on sky: read as it is, so that a read beyond a
     piece's end takes the piece whole with the piece's own derivatives), by bilinear weights at the rays' true
@@ -356,7 +397,7 @@ def _upsample_by_depth(lit, firsts, lasts, even_in_light, ray_end, xs, ys, spaci
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
     y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
     row, col, tent = _bilinear(x[None, :], y[:, None], small_h, small_w)
-    read = sum(_read_at_depth(*piece, even_in_light, row, col, ray_end) for piece in zip(lit, firsts, lasts))
+    read = sum(_read_at_depth(*piece, even_in_light, row, col, ray_end) for piece in zip(lit, firsts, lasts, opticals))
     return jnp.sum(tent * read, axis=0)
 
 

@@ -306,8 +306,9 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     first from the medium's start up to `ray_ends[0]`, each next one from where the previous ended up to its own
     end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium), each in `num_view_steps` segments
     even in transmittance (`_bound_fraction`): `(L, h, w, num_view_steps)`, each piece's first and last bound
-    (scene units, two `(L, h, w)`), its optical depth (`(L, h, w)`, which places its bounds) and a function of a ray's distances that is even in the light's irradiance along it (`irradiance_coordinate`
-    of the rays, each `(h, w)`, indexed by rows and columns). The pieces share each shadow sample's reads of the
+    (scene units, two `(L, h, w)`), its optical depth (`(L, h, w)`, which places its bounds) and a function
+    of a ray's distances that is even in the light's irradiance along it (`irradiance_coordinate` of the rays,
+    each `(h, w)`, indexed by rows and columns). The pieces share each shadow sample's reads of the
     depth buffer."""
     (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
      thickness, edge_softness, num_view_steps, num_shadow_samples) = options  # fmt: skip
@@ -375,7 +376,8 @@ def _read_at_depth(lit, first, last, optical, even_in_light, row, col, ray_end):
     # made XLA's algebraic simplifier mix the lanes of the fit's vmapped Jacobian (`pipeline/fit.py`,
     # `_forward_mode`) once a loss took `abs` of the image (tests/test_fit.py).
     length = jnp.where(last > first, last - first, 1.0)
-    index = jnp.clip(jnp.floor(jax.lax.stop_gradient(_segment_fraction((distance - first) / length, optical) * count)), 0, count - 1)
+    segments_before = jax.lax.stop_gradient(_segment_fraction((distance - first) / length, optical) * count)
+    index = jnp.clip(jnp.floor(segments_before), 0, count - 1)
     lower, upper = (first + length * _bound_fraction((index + offset) / count, optical) for offset in (0.0, 1.0))
     start, reached, end = (even_in_light(u, row, col) for u in (lower, distance, upper))
     share = jnp.clip((reached - start) / jnp.where(end > start, end - start, 1.0), 0.0, 1.0)

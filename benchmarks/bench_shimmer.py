@@ -103,6 +103,22 @@ def render_pan(*, width: int, height: int, frames: int, pan_px: float) -> list:
     return rendered
 
 
+def cached_pan(cache: str | None, key: tuple) -> list:
+    """`render_pan` of `key` (width, height, frames, pan), read from the file `cache` when it holds that sequence."""
+    if cache and os.path.exists(cache):
+        with open(cache, "rb") as stream:
+            cached_key, frames = pickle.load(stream)
+        if cached_key != key:
+            raise SystemExit(f"{cache} holds another sequence {cached_key}; remove it")
+        return frames
+    width, height, count, pan = key
+    frames = render_pan(width=width, height=height, frames=count, pan_px=pan)
+    if cache:
+        with open(cache, "wb") as stream:
+            pickle.dump((key, jax.device_get(frames)), stream)
+    return frames
+
+
 def shaft_presets() -> list[str]:
     """Every preset whose effect draws shafts."""
     shaft_classes = tuple(
@@ -232,16 +248,7 @@ def main() -> None:
     width, height = (int(v) for v in args.size.split("x"))
     started = time.perf_counter()
     key = (width, height, args.frames, args.pan)
-    if args.cache and os.path.exists(args.cache):
-        with open(args.cache, "rb") as stream:
-            cached_key, frames = pickle.load(stream)
-        if cached_key != key:
-            raise SystemExit(f"{args.cache} holds another sequence {cached_key}; remove it")
-    else:
-        frames = render_pan(width=width, height=height, frames=args.frames, pan_px=args.pan)
-        if args.cache:
-            with open(args.cache, "wb") as stream:
-                pickle.dump((key, jax.device_get(frames)), stream)
+    frames = cached_pan(args.cache, key)
     rendered = time.perf_counter() - started
     print(f"{args.frames} frames of {width}x{height} in {rendered:.1f} s; "
           f"light x {float(frames[0][1][0]):.2f} .. {float(frames[-1][1][0]):.2f} px")  # fmt: skip

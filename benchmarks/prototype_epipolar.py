@@ -86,8 +86,10 @@ def coverage(depth, light_xy, toward, inverse, focal, thickness, softness, setti
     radius = (jnp.arange(cells) + 0.5) * step
     cos, sin = jnp.cos(angle)[:, None], jnp.sin(angle)[:, None]
     x, y = light_xy[0] + radius * cos, light_xy[1] + radius * sin
-    ends = [_off_axis(light_xy[0] + jnp.maximum(radius + e * step, 0) * cos, light_xy[1] + jnp.maximum(radius + e * step, 0) * sin,
-                      toward, height, width, focal) for e in (-0.5, 0.5)]  # fmt: skip
+    ends = []
+    for end in (-0.5, 0.5):
+        reach = jnp.maximum(radius + end * step, 0)
+        ends.append(_off_axis(light_xy[0] + reach * cos, light_xy[1] + reach * sin, toward, height, width, focal))
     g, g_low, g_high = _off_axis(x, y, toward, height, width, focal), jnp.minimum(*ends), jnp.maximum(*ends)
     row, col, weight = volumetric._bilinear(x - 0.5, y - 0.5, height, width)
     front = depth[row, col]
@@ -107,7 +109,8 @@ def coverage(depth, light_xy, toward, inverse, focal, thickness, softness, setti
         inside = volumetric._ramp((s - low[..., None]) / soft[..., None]) * volumetric._ramp(
             (high[..., None] * (1 + thickness) - s) / soft[..., None]
         )  # fmt: skip
-        blend = jnp.zeros((lines, bins), depth.dtype).at[line_index, index].add(jnp.where(b[..., None], w[..., None] * inside, 0.0))
+        blocked = jnp.where(b[..., None], w[..., None] * inside, 0.0)
+        blend = jnp.zeros((lines, bins), depth.dtype).at[line_index, index].add(blocked)
         covered = jnp.maximum(covered, blend)
         return covered, covered
 
@@ -171,7 +174,10 @@ def epipolar(setting):
         mean = (_prefix_at(prefix, light_xy, pixel_xy, high, setting) - _prefix_at(prefix, light_xy, pixel_xy, low, setting))
         return 1.0 - jnp.clip(jnp.where(wide, mean / jnp.where(wide, span, 1.0), 0.0), 0.0, 1.0)
 
-    with mock.patch.object(volumetric, "irradiance_median", keep_bounds), mock.patch.object(volumetric, "segment_visibility", visibility):
+    with (
+        mock.patch.object(volumetric, "irradiance_median", keep_bounds),
+        mock.patch.object(volumetric, "segment_visibility", visibility),
+    ):
         yield
 
 
@@ -180,8 +186,12 @@ def _with_counts(effect, **counts):
         return dataclasses.replace(effect, **counts)
 
 
+def _runner(effect):
+    return jax.jit(lambda b, xy, front, depth: effect(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
+
+
 def _codes(effect, frames, setting=None):
-    run = jax.jit(lambda b, xy, front, depth: effect(b, xy, light_in_front=front, light_depth=depth), static_argnums=(2, 3))
+    run = _runner(effect)
     with epipolar(setting) if setting else contextlib.nullcontext():
         return [bench_shimmer.display_codes(run(b, xy, front, depth)) for b, xy, front, depth in frames]
 
@@ -193,8 +203,8 @@ def _timing(effect, setting, repeats=3):
     for height, width in ((180, 320), (1080, 1920)):
         buffers, light = frame(height, width)
         scaled = dict(setting, radial_step=setting["radial_step"] * max(height, width) / 320)
-        for label, candidate, patch in (("preset", gr.preset("volumetric_haze"), None),
-                                        ("prototype", _with_counts(gr.preset("volumetric_haze"), resolution_factor=1), scaled)):  # fmt: skip
+        prototype = _with_counts(gr.preset("volumetric_haze"), resolution_factor=1)
+        for label, candidate, patch in (("preset", gr.preset("volumetric_haze"), None), ("prototype", prototype, scaled)):
             with epipolar(patch) if patch else contextlib.nullcontext():
                 run = jax.jit(lambda b, l, e=candidate: e(b, l))
                 run(buffers, light).block_until_ready()
@@ -223,9 +233,7 @@ def main() -> None:
     camera = gr.load_scene(bench_shimmer.SCENE)[1]
     preset = bench_shimmer.with_camera(PRESETS["volumetric_haze"](), camera)
     kernels_reference = bench_shimmer.converged(preset, 32)
-    run_reference = jax.jit(lambda b, xy, front, depth, e=kernels_reference: e(b, xy, light_in_front=front, light_depth=depth),
-                            static_argnums=(2, 3))  # fmt: skip
-    kernels = bench_shimmer.converged_codes(args.converged, key, kernels_reference, run_reference, frames)
+    kernels = bench_shimmer.converged_codes(args.converged, key, kernels_reference, _runner(kernels_reference), frames)
     effect = _with_counts(preset, resolution_factor=1)
     own = _codes(effect, frames, setting)
     finer = dict(lines=4 * args.lines, bins=2 * args.bins, radial_step=args.radial_step / 2, window=2 * args.window)

@@ -64,7 +64,8 @@ from godrays_jax.kernels.bounded_medium import light_geometry  # noqa: E402
 from godrays_jax.primitives.camera import focal_length_px  # noqa: E402
 
 S_RANGE = (0.01, 200.0)  # the bins' span of `s` (scene units): the haze reaches 100 units, `g` is at most 1
-OWN_PIXEL = 1.0  # a pixel reads the coverage of its line up to this many radial steps short of itself
+OWN_PIXEL = 0.0  # a pixel reads the coverage of its line up to this many radial steps short of itself
+NEAR_LIGHT = 16  # cells from the light in which every bin is tested (an interval there spans many); beyond, `--window`
 
 
 def _unit_rays(x, y, height, width, focal):
@@ -100,23 +101,31 @@ def coverage(depth, light_xy, toward, inverse, focal, thickness, softness, setti
     centres = jnp.exp(log_low + log_step * jnp.arange(bins))
     line_index = jnp.broadcast_to(jnp.arange(lines)[None, :, None], (4, lines, window))
 
-    def outward(covered, cell):
-        middle, low, high, w, b = cell  # each (4, lines)
+    def inside(s, middle, low, high):
         soft = softness * middle
+        return volumetric._ramp((s - low) / soft) * volumetric._ramp((high * (1 + thickness) - s) / soft)
+
+    def near(covered, cell):
+        # Near the light `g` changes fast along a cell: its interval spans many bins, so every bin is tested.
+        middle, low, high, w, b = (a[..., None] for a in cell)
+        blend = jnp.sum(jnp.where(b, w * inside(centres, middle, low, high), 0.0), axis=0)
+        covered = jnp.maximum(covered, blend)
+        return covered, covered
+
+    def far(covered, cell):
+        middle, low, high, w, b = cell  # each (4, lines)
         first = jnp.floor((jnp.log(jnp.maximum(low, 1e-30)) - log_low) / log_step).astype(jnp.int32) - 1
         index = jnp.clip(first[..., None] + jnp.arange(window), 0, bins - 1)
-        s = centres[index]
-        inside = volumetric._ramp((s - low[..., None]) / soft[..., None]) * volumetric._ramp(
-            (high[..., None] * (1 + thickness) - s) / soft[..., None]
-        )  # fmt: skip
-        blocked = jnp.where(b[..., None], w[..., None] * inside, 0.0)
+        blocked = jnp.where(b[..., None], w[..., None] * inside(centres[index], *(a[..., None] for a in (middle, low, high))), 0.0)
         blend = jnp.zeros((lines, bins), depth.dtype).at[line_index, index].add(blocked)
         covered = jnp.maximum(covered, blend)
         return covered, covered
 
     per_cell = [jnp.moveaxis(a, -1, 0) for a in (front * g, front * g_low, front * g_high, weight, blocks)]
-    _, covered = jax.lax.scan(outward, jnp.zeros((lines, bins), depth.dtype), per_cell)
-    covered = jnp.moveaxis(covered, 0, 1)
+    split = min(NEAR_LIGHT, cells)
+    covered, inner = jax.lax.scan(near, jnp.zeros((lines, bins), depth.dtype), [a[:split] for a in per_cell])
+    _, outer = jax.lax.scan(far, covered, [a[split:] for a in per_cell])
+    covered = jnp.moveaxis(jnp.concatenate([inner, outer]), 0, 1)
     widths = jnp.diff(centres)
     steps = 0.5 * (covered[..., 1:] + covered[..., :-1]) * widths
     return jnp.concatenate([jnp.zeros_like(covered[..., :1]), jnp.cumsum(steps, axis=-1)], axis=-1)

@@ -24,13 +24,13 @@ four texels around its centre by bilinear weights, each texel's interval spannin
 `g` (so that consecutive cells meet, as the kernel's consecutive samples' crossings do), soft over
 `edge_softness` of `s` at both faces; their blend's maximum outward along the line is the coverage, on
 `--bins` bins of `s` spaced evenly in `log s` (each texel touching the `--window` bins around its
-interval). Texels whose slab reaches the light (the emitter) and sky block nothing. A pixel reads its
-two nearest lines and its last cell one pixel short of itself, and each segment of its own view ray
-(`resolution_factor` 1: every pixel marches) takes the mean coverage over the segment's range of `s`
-(from a prefix sum over the bins), so a shadow's edge inside a segment counts in proportion. Limits:
+interval; in the 16 cells nearest the light, where an interval spans many bins, every bin). Texels whose
+slab reaches the light (the emitter) and sky block nothing. A pixel reads its two nearest lines up to its
+own cell, and each segment of its own view ray (`resolution_factor` 1: every pixel marches) takes the
+mean coverage over the segment's range of `s` (from a prefix sum over the bins), so a shadow's edge
+inside a segment counts in proportion. Limits:
 the light in front and on or near the screen; a light at a finite distance read as a sun in its
-direction (the forest's sun is 5000 units away); the last-sample rule of the kernel (an object on the
-light's own pixel shades every view ray in front of it) is not modelled.
+direction (the forest's sun is 5000 units away); pixels within half a cell of the light read no coverage.
 
 The script patches `godrays_jax.kernels.volumetric`'s `irradiance_median` (to keep each segment's
 bounds) and `segment_visibility` (the read above) while it runs, and measures on `bench_shimmer.py`'s
@@ -64,7 +64,6 @@ from godrays_jax.kernels.bounded_medium import light_geometry  # noqa: E402
 from godrays_jax.primitives.camera import focal_length_px  # noqa: E402
 
 S_RANGE = (0.01, 200.0)  # the bins' span of `s` (scene units): the haze reaches 100 units, `g` is at most 1
-OWN_PIXEL = 0.0  # a pixel reads the coverage of its line up to this many radial steps short of itself
 NEAR_LIGHT = 16  # cells from the light in which every bin is tested (an interval there spans many); beyond, `--window`
 
 
@@ -139,7 +138,8 @@ def _prefix_at(prefix, light_xy, pixel_xy, s, setting):
     a = jnp.mod(jnp.arctan2(dy, dx) / (2 * math.pi) * lines, lines)
     a0 = jnp.floor(a)
     fa = a - a0
-    k = (jnp.sqrt(dx * dx + dy * dy) - OWN_PIXEL * step) / step - 0.5
+    # Up to the pixel's own cell: the haze in front of a surface that hides the light lies in that surface's shadow.
+    k = jnp.sqrt(dx * dx + dy * dy) / step - 0.5
     reached = k >= 0
     k = jnp.clip(k, 0, cells - 1.001)
     k0 = jnp.floor(k)

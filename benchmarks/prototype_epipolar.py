@@ -30,8 +30,8 @@ own cell, and each segment of its own view ray (`resolution_factor` 1: every pix
 mean coverage over the segment's range of `s` (from a prefix sum over the bins), so a shadow's edge
 inside a segment counts in proportion. Limits:
 the light in front and on or near the screen; a light at a finite distance read as a sun in its
-direction (the forest's sun is 5000 units away); near the light no coverage is read (within half a cell
-of it, and below the bins' lowest `s`).
+direction (the forest's sun is 5000 units away); within half a cell of the light no coverage is read, and
+`s` is clipped to the bins' span.
 
 The script patches `godrays_jax.kernels.volumetric`'s `irradiance_median` (to keep each segment's
 bounds) and `segment_visibility` (the read above) while it runs, and measures on `bench_shimmer.py`'s

@@ -30,8 +30,7 @@ own cell, and each segment of its own view ray (`resolution_factor` 1: every pix
 mean coverage over the segment's range of `s` (from a prefix sum over the bins), so a shadow's edge
 inside a segment counts in proportion. Limits:
 the light in front and on or near the screen; a light at a finite distance read as a sun in its
-direction (the forest's sun is 5000 units away); within half a cell of the light no coverage is read, and
-`s` is clipped to the bins' span.
+direction (the forest's sun is 5000 units away).
 
 The script patches `godrays_jax.kernels.volumetric`'s `irradiance_median` (to keep each segment's
 bounds) and `segment_visibility` (the read above) while it runs, and measures on `bench_shimmer.py`'s
@@ -79,7 +78,7 @@ def _off_axis(x, y, toward, height, width, focal):
 
 
 def coverage(depth, light_xy, toward, inverse, focal, thickness, softness, setting):
-    """The prefix sum over the `s` bins of each line's coverage: `(lines, cells, bins)`."""
+    """The prefix sum of each line's coverage at `s` = 0 and the bins' centres: `(lines, cells, bins + 1)`."""
     height, width = depth.shape
     lines, step, bins, window = setting["lines"], setting["radial_step"], setting["bins"], setting["window"]
     cells = int(math.ceil(math.hypot(width, height) / step)) + 2
@@ -126,8 +125,11 @@ def coverage(depth, light_xy, toward, inverse, focal, thickness, softness, setti
     covered, inner = jax.lax.scan(near, jnp.zeros((lines, bins), depth.dtype), [a[:split] for a in per_cell])
     _, outer = jax.lax.scan(far, covered, [a[split:] for a in per_cell])
     covered = jnp.moveaxis(jnp.concatenate([inner, outer]), 0, 1)
-    widths = jnp.diff(centres)
-    steps = 0.5 * (covered[..., 1:] + covered[..., :-1]) * widths
+    # The prefix sum from s = 0 through the bins' centres, the coverage below the lowest bin taken as that bin's:
+    # a view point there (near the light's own direction, where the phase function peaks) reads the first bin's.
+    centres = jnp.concatenate([jnp.zeros(1), centres])
+    covered = jnp.concatenate([covered[..., :1], covered], axis=-1)
+    steps = 0.5 * (covered[..., 1:] + covered[..., :-1]) * jnp.diff(centres)
     return jnp.concatenate([jnp.zeros_like(covered[..., :1]), jnp.cumsum(steps, axis=-1)], axis=-1)
 
 
@@ -140,13 +142,12 @@ def _prefix_at(prefix, light_xy, pixel_xy, s, setting):
     a0 = jnp.floor(a)
     fa = a - a0
     # Up to the pixel's own cell: the haze in front of a surface that hides the light lies in that surface's shadow.
-    k = jnp.sqrt(dx * dx + dy * dy) / step - 0.5
-    reached = k >= 0
-    k = jnp.clip(k, 0, cells - 1.001)
+    k = jnp.clip(jnp.sqrt(dx * dx + dy * dy) / step - 0.5, 0, cells - 1.001)
     k0 = jnp.floor(k)
     fk = k - k0
-    log_low, log_step = math.log(S_RANGE[0]), (math.log(S_RANGE[1]) - math.log(S_RANGE[0])) / (bins - 1)
-    b = jnp.clip((jnp.log(jnp.maximum(s, 1e-30)) - log_low) / log_step, 0, bins - 1.001)
+    log_low, log_step = math.log(S_RANGE[0]), (math.log(S_RANGE[1]) - math.log(S_RANGE[0])) / (bins - 2)
+    above = 1 + (jnp.log(jnp.maximum(s, S_RANGE[0])) - log_low) / log_step
+    b = jnp.clip(jnp.where(s < S_RANGE[0], s / S_RANGE[0], above), 0, bins - 1.001)
     b0 = jnp.floor(b)
     fb = b - b0
     a0, k0, b0 = a0.astype(jnp.int32), k0.astype(jnp.int32), b0.astype(jnp.int32)
@@ -155,7 +156,7 @@ def _prefix_at(prefix, light_xy, pixel_xy, s, setting):
         for ki, wk in ((k0, 1 - fk), (k0 + 1, fk)):
             for bi, wb in ((b0, 1 - fb), (b0 + 1, fb)):
                 total = total + (wa * wk)[..., None] * wb * prefix[ai[..., None], ki[..., None], bi]
-    return jnp.where(reached[..., None], total, 0.0)
+    return total
 
 
 @contextlib.contextmanager
@@ -178,7 +179,7 @@ def epipolar(setting):
         softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
         prefix = coverage(depth, light_xy, toward, inverse, focal, jnp.asarray(thickness, dtype), softness, setting)
         g = _off_axis(pixel_xy[..., 0], pixel_xy[..., 1], toward, height, width, focal)[..., None]
-        low, high = (jnp.clip(bounds[name] * g, *S_RANGE) for name in ("lower", "upper"))
+        low, high = (jnp.clip(bounds[name] * g, 0.0, S_RANGE[1]) for name in ("lower", "upper"))
         span = high - low
         wide = span > 1e-6 * high
         mean = (_prefix_at(prefix, light_xy, pixel_xy, high, setting) - _prefix_at(prefix, light_xy, pixel_xy, low, setting))

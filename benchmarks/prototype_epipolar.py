@@ -67,14 +67,10 @@ S_RANGE = (0.01, 200.0)  # the bins' span of `s` (scene units): the haze reaches
 NEAR_LIGHT = 16  # cells from the light in which every bin is tested (an interval there spans many); beyond, `--window`
 
 
-def _unit_rays(x, y, height, width, focal):
-    rays = jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
-    return rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
-
-
 def _off_axis(x, y, toward, height, width, focal):
     """`g`: the sine of the angle between each pixel position's camera ray and the light's direction."""
-    return jnp.linalg.norm(jnp.cross(_unit_rays(x, y, height, width, focal), toward), axis=-1)
+    rays = volumetric._rays_at(x, y, height, width, focal)
+    return jnp.linalg.norm(jnp.cross(rays / jnp.linalg.norm(rays, axis=-1, keepdims=True), toward), axis=-1)
 
 
 def coverage(depth, light_xy, toward, inverse, focal, thickness, softness, setting):
@@ -207,16 +203,22 @@ def _codes(effect, frames, setting=None):
         return [bench_shimmer.display_codes(run(b, xy, front, depth)) for b, xy, front, depth in frames]
 
 
-def _timing(effect, setting, repeats=3):
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
+def _timing(setting, repeats=3):
     from bench_volumetric import frame  # noqa: PLC0415  (a sibling script, only for --timing)
 
     for height, width in ((180, 320), (1080, 1920)):
         buffers, light = frame(height, width)
-        scaled = dict(setting, radial_step=setting["radial_step"] * max(height, width) / 320)
+        scale = max(height, width) / 320
+        scaled = dict(setting, radial_step=setting["radial_step"] * scale)
         prototype = _with_counts(gr.preset("volumetric_haze"), resolution_factor=1)
-        for label, candidate, patch in (("preset", gr.preset("volumetric_haze"), None), ("prototype", prototype, scaled)):
-            with epipolar(patch) if patch else contextlib.nullcontext():
+        cases = [("preset", gr.preset("volumetric_haze"), None, None), ("prototype, every pixel", prototype, scaled, None)]
+        if scale > 1:
+            # Its shadows on the kernel's march rays one pixel of a 320-wide frame apart, read by the chained read.
+            cases.append(("prototype on march rays 1 px apart at 320 wide", _with_counts(prototype, resolution_factor=2),
+                          scaled, scale))  # fmt: skip
+        for label, candidate, patch, spacing in cases:
+            spaced = mock.patch("godrays_jax.effects.volumetric.march_factor", lambda h, w, f, s=spacing: s)
+            with epipolar(patch) if patch else contextlib.nullcontext(), spaced if spacing else contextlib.nullcontext():
                 run = jax.jit(lambda b, l, e=candidate: e(b, l))
                 run(buffers, light).block_until_ready()
                 times = []
@@ -262,7 +264,7 @@ def main() -> None:
     if args.timing:
         print("| frame | forward | median of 3 |")
         print("|---|---|---|")
-        _timing(effect, setting)
+        _timing(setting)
 
 
 if __name__ == "__main__":

@@ -145,7 +145,7 @@ def converged(effect, oversample: int, *, same_target: bool = False, fog_oversam
         changed = effect
         static = dict(
             num_view_steps=effect.num_view_steps * fog_oversample,
-            num_shadow_samples=effect.num_shadow_samples * fog_oversample, resolution_factor=1,
+            num_shadow_samples=effect.num_shadow_samples * fog_oversample, resolution_factor=1, shadows="samples",
         )  # fmt: skip
     elif isinstance(effect, FlareOuts):
         count = int(round(float(effect.num_iters))) * k

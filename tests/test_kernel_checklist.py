@@ -209,6 +209,14 @@ CASES = {
         lambda r, t: (_depth(r, t), _light(r, t), r.uniform(1.0, 40.0, (HEIGHT, WIDTH, 4)).astype(t),
                       _scalar(r, t, 0.1, 0.3)),
     ),  # fmt: skip
+    "segment_visibility_by_lines": Case(
+        lambda depth, light, bounds, thickness: gr.segment_visibility_by_lines(
+            depth, light, jnp.stack(jnp.meshgrid(jnp.arange(WIDTH) + 0.5, jnp.arange(HEIGHT) + 0.5), -1).astype(depth.dtype),
+            bounds[..., :-1], bounds[..., 1:], fov_x_deg=50.0, thickness=thickness, edge_softness=0.05,
+            max_distance=50.0, num_lines=32, num_bins=24),
+        lambda r, t: (_depth(r, t), _light(r, t), np.cumsum(r.uniform(1.0, 10.0, (HEIGHT, WIDTH, 5)), -1).astype(t),
+                      _scalar(r, t, 0.1, 0.3)),
+    ),  # fmt: skip
     "volumetric_fog_terms": Case(
         lambda depth, light, extinction: jnp.stack(gr.volumetric_fog_terms(
             depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, anisotropy=0.7, ambient_rise=0.1,

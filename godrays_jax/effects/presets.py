@@ -125,7 +125,7 @@ def _volumetric_haze() -> VolumetricFog:
             extinction=0.01, max_distance=100.0, anisotropy=0.76, light_color=(1.0, 0.9, 0.75),
             ambient_color=(0.05, 0.06, 0.08),
         ),
-        direct_fraction=0.5, thickness=0.15, edge_softness=0.05, fov_x_deg=50.0,
+        direct_fraction=0.5, thickness=0.15, edge_softness=0.05, fov_x_deg=50.0, shadows="lines", resolution_factor=1,
     )  # fmt: skip
 
 # Presets beyond the articles: the looks people expect from a light-shaft library. The articles'

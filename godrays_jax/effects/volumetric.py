@@ -1,7 +1,7 @@
 """`VolumetricFog`: a bounded medium lit segment by segment, its shadows read from the depth buffer."""
 
 import math
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -82,6 +82,9 @@ class VolumetricFog(Effect):
     ambient_rise: Float[Array, ""] = param(0.0, low=-1.0, high=2.0)
     num_view_steps: int = static(16, low=1, high=256)
     num_shadow_samples: int = static(32, low=1, high=1024)
+    shadows: Literal["samples", "lines"] = static("samples")
+    num_shadow_lines: int = static(512, low=2, high=8192)
+    num_shadow_bins: int = static(192, low=2, high=2048)
     resolution_factor: int = static(4, low=1, high=64)
 
     NEEDS_DEPTH: ClassVar[bool] = True
@@ -104,7 +107,8 @@ class VolumetricFog(Effect):
             height_falloff=self.height_falloff, layer_top=self.layer_top, anisotropy=self.medium.anisotropy,
             direct_fraction=self.direct_fraction, ambient_rise=self.ambient_rise, thickness=self.thickness,
             edge_softness=self.edge_softness, num_view_steps=self.num_view_steps,
-            num_shadow_samples=self.num_shadow_samples, resolution_factor=factor,
+            num_shadow_samples=self.num_shadow_samples, shadows=self.shadows, num_shadow_lines=self.num_shadow_lines,
+            num_shadow_bins=self.num_shadow_bins, resolution_factor=factor,
             coverage=coverage, uncovered_depth=uncovered_depth,
         )  # fmt: skip
 

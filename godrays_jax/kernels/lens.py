@@ -48,8 +48,15 @@ def view_directions(
     check_scalar(fov_x_deg, "fov_x_deg")
     focal = focal_length_px(width, fov_x_deg, dtype)
     x, y = pixel_centres(height, width, dtype)
-    rays = jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
-    return unit_vectors(rays)
+    return unit_vectors(rays_through(x, y, height, width, focal))
+
+
+def rays_through(
+    x: Float[Array, "*S"], y: Float[Array, "*S"], height: int, width: int, focal: Float[ArrayLike, ""]
+) -> Float[Array, "*S 3"]:
+    """View-space rays through the pixel positions `(x, y)` (pixels, any real values) of a `height x width` frame
+    whose focal length is `focal` pixels, scaled so that the forward component is 1 (x right, y up)."""
+    return jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
 
 
 def light_direction(

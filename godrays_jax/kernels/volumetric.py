@@ -62,6 +62,7 @@ under it (a pan), what it reads at a depth changes by the sampling alone.
 import functools
 import math
 import numbers
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -81,10 +82,12 @@ from godrays_jax.kernels.bounded_medium import (
     segment_irradiance,
     toward_light,
 )
-from godrays_jax.kernels.lens import view_directions
+from godrays_jax.kernels.lens import rays_through, view_directions
 from godrays_jax.kernels.media import henyey_greenstein
+from godrays_jax.kernels.shadow_lines import segment_visibility_by_lines
 from godrays_jax.primitives.camera import focal_length_px
 from godrays_jax.primitives.checks import check_image, check_light, check_plane, check_scalar, is_static_int
+from godrays_jax.primitives.sampling import bilinear_corners
 
 # The sun's distance where a shadow ray reaches it, finite so that gradients stay finite.
 _BEYOND_EVERY_SLAB = 1e30
@@ -146,22 +149,6 @@ def _march_grid(light_xy, height, width, spacing, dtype):
     return xs, ys
 
 
-def _bilinear(u, v, rows, cols):
-    """The four samples around the continuous indices `(u, v)` (column, row; integers on samples) of a
-    `rows x cols` grid, clamped at its borders: `(row, col, weight)`, each stacked along a new first axis of 4."""
-    col0, row0 = jnp.floor(u), jnp.floor(v)
-    fx, fy = u - col0, v - row0
-    corners = [(dy, dx, wy * wx) for dy, wy in ((0, 1.0 - fy), (1, fy)) for dx, wx in ((0, 1.0 - fx), (1, fx))]
-    row = jnp.stack([jnp.broadcast_to(jnp.clip(row0 + dy, 0, rows - 1), w.shape) for dy, _, w in corners])
-    col = jnp.stack([jnp.broadcast_to(jnp.clip(col0 + dx, 0, cols - 1), w.shape) for _, dx, w in corners])
-    return row.astype(jnp.int32), col.astype(jnp.int32), jnp.stack([w for _, _, w in corners])
-
-
-def _rays_at(x, y, height, width, focal):
-    """View rays through pixel positions, scaled so the forward component is 1 (y up)."""
-    return jnp.stack([(x - 0.5 * width) / focal, (0.5 * height - y) / focal, jnp.ones_like(x)], axis=-1)
-
-
 @functools.partial(jax.jit, static_argnums=13)
 def _shadow_march(depth, pixel_xy, distances, step, reach, view_cross_light, view, toward, inverse, in_front, focal,
                   thickness, softness, num_shadow_samples):  # fmt: skip
@@ -174,7 +161,7 @@ def _shadow_march(depth, pixel_xy, distances, step, reach, view_cross_light, vie
         visibility, previous = carry
         s = reach * jnp.minimum((k + 0.5) / num_shadow_samples, 1.0)
         q = pixel_xy + s[..., None] * step
-        ray = _rays_at(q[..., 0], q[..., 1], height, width, focal)
+        ray = rays_through(q[..., 0], q[..., 1], height, width, focal)
         ray_cross_light, ray_cross_view = jnp.cross(ray, toward), jnp.cross(ray, view)
         # mu' * ray = X + u (S - X), X = t * view, S = toward / inverse: crossed with (S - X), in t.
         a1 = dot(view_cross_light, ray_cross_light)[..., None]
@@ -200,7 +187,7 @@ def _shadow_march(depth, pixel_xy, distances, step, reach, view_cross_light, vie
         farthest = jnp.where(both, jnp.maximum(crossing, previous), crossing)
         # The slab test at the four texels around q, blended with bilinear weights: visibility moves smoothly
         # as q moves under the pixel grid (a pan, a light moved by a fraction of a pixel).
-        row, col, weight = _bilinear(q[..., 0] - 0.5, q[..., 1] - 0.5, height, width)
+        row, col, weight = bilinear_corners(q[..., 0] - 0.5, q[..., 1] - 0.5, height, width)
         front = depth[row, col][..., None]
         # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
         blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
@@ -289,7 +276,7 @@ def segment_visibility(
     reach = jnp.minimum(exits[0], exits[1])
     reach = jnp.where(in_front, jnp.minimum(reach, 1.0), reach)
     reach = jnp.where(jnp.isfinite(reach), jnp.maximum(reach, 0.0), 0.0)
-    view = _rays_at(pixel_xy[..., 0], pixel_xy[..., 1], height, width, focal)
+    view = rays_through(pixel_xy[..., 0], pixel_xy[..., 1], height, width, focal)
     view = view / jnp.linalg.norm(view, axis=-1, keepdims=True)
     view_cross_light = jnp.cross(view, toward)
     thickness = jnp.asarray(thickness, dtype)
@@ -311,7 +298,8 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     each `(h, w)`, indexed by rows and columns). The pieces share each shadow sample's reads of the
     depth buffer."""
     (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
-     thickness, edge_softness, num_view_steps, num_shadow_samples) = options  # fmt: skip
+     thickness, edge_softness, num_view_steps, num_shadow_samples, shadows, num_shadow_lines,
+     num_shadow_bins) = options  # fmt: skip
     height, width = depth.shape
     dtype = view.dtype
     toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
@@ -348,11 +336,18 @@ def _in_scattered(view, ray_ends, depth, light_xy, pixel_xy, options):
     to_light, _ = toward_light(points, toward, inverse)
     phase = henyey_greenstein(dot(view[..., None, :], to_light), anisotropy=anisotropy)
     irradiance = segment_irradiance(view, lower, upper, toward, inverse)
-    visible = segment_visibility(
-        depth, light_xy, pixel_xy, middles, fov_x_deg=fov_x_deg, light_depth=light_depth,
-        light_in_front=light_in_front, thickness=thickness, edge_softness=edge_softness,
-        num_shadow_samples=num_shadow_samples,
-    )  # fmt: skip
+    if shadows == "lines":
+        visible = segment_visibility_by_lines(
+            depth, light_xy, pixel_xy, lower, upper, fov_x_deg=fov_x_deg, light_depth=light_depth,
+            light_in_front=light_in_front, thickness=thickness, edge_softness=edge_softness,
+            max_distance=max_distance, num_lines=num_shadow_lines, num_bins=num_shadow_bins,
+        )  # fmt: skip
+    else:
+        visible = segment_visibility(
+            depth, light_xy, pixel_xy, middles, fov_x_deg=fov_x_deg, light_depth=light_depth,
+            light_in_front=light_in_front, thickness=thickness, edge_softness=edge_softness,
+            num_shadow_samples=num_shadow_samples,
+        )  # fmt: skip
     lit = attenuated * visible * dimmed * phase * irradiance
     pieces = jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0)
 
@@ -398,7 +393,7 @@ def _upsample_by_depth(lit, firsts, lasts, opticals, even_in_light, ray_end, xs,
     dtype = lit.dtype
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
     y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
-    row, col, tent = _bilinear(x[None, :], y[:, None], small_h, small_w)
+    row, col, tent = bilinear_corners(x[None, :], y[:, None], small_h, small_w)
     read = sum(_read_at_depth(*piece, even_in_light, row, col, ray_end) for piece in zip(lit, firsts, lasts, opticals))
     return jnp.sum(tent * read, axis=0)
 
@@ -430,6 +425,9 @@ def volumetric_fog_terms(
     edge_softness: Float[ArrayLike, ""] = 0.05,
     num_view_steps: int = 16,
     num_shadow_samples: int = 32,
+    shadows: Literal["samples", "lines"] = "samples",
+    num_shadow_lines: int = 512,
+    num_shadow_bins: int = 192,
     resolution_factor: int = 1,
     ambient_rise: Float[ArrayLike, ""] = 0.0,
     coverage: Float[Array, "H W"] | None = None,
@@ -463,7 +461,14 @@ def volumetric_fog_terms(
             clipped at 0 where the ray runs down steeply enough.
         thickness, edge_softness: the depth buffer's slabs (`segment_visibility`).
         num_view_steps: segments per view ray (static int, >= 1).
-        num_shadow_samples: depth samples per screen segment (static int, >= 1).
+        num_shadow_samples: depth samples per screen segment (static int, >= 1), with `shadows="samples"`.
+        shadows: how each segment's shadow is read: `"samples"`, at its middle from
+            `num_shadow_samples` samples along the screen toward the light
+            (`segment_visibility`); `"lines"`, as the mean over the segment from
+            `num_shadow_lines` lines through the light, `num_shadow_bins` bins
+            of the shadow rays' coordinate each (`shadow_lines`): no sampling
+            that crawls under a camera pan, at more cost.
+        num_shadow_lines, num_shadow_bins: with `shadows="lines"` (static ints, >= 2).
         resolution_factor: the march rays' spacing in pixels (a static Python
             number >= 1, any frame size): 1, every pixel's own ray; more, rays
             at the light's position plus `resolution_factor` times integers
@@ -485,6 +490,8 @@ def volumetric_fog_terms(
     light_xy = check_light(light_xy)
     if not is_static_int(num_view_steps) or num_view_steps < 1:
         raise ValueError(f"num_view_steps must be a Python int >= 1, got {num_view_steps!r}")
+    if shadows not in ("samples", "lines"):
+        raise ValueError(f"shadows must be 'samples' or 'lines', got {shadows!r}")
     if not isinstance(resolution_factor, numbers.Real) or isinstance(resolution_factor, bool) or not resolution_factor >= 1:
         raise ValueError(f"resolution_factor must be a Python number >= 1, got {resolution_factor!r}")
     height, width = depth.shape
@@ -519,7 +526,8 @@ def volumetric_fog_terms(
         return (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0), ambient
 
     options = (fov_x_deg, light_depth, light_in_front, extinction, max_distance, height_falloff, layer_top, anisotropy,
-               thickness, edge_softness, num_view_steps, num_shadow_samples)  # fmt: skip
+               thickness, edge_softness, num_view_steps, num_shadow_samples, shadows, num_shadow_lines,
+               num_shadow_bins)  # fmt: skip
     spacing = resolution_factor
     if spacing == 1:
         x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, jnp.arange(height, dtype=dtype) + 0.5)
@@ -534,7 +542,7 @@ def volumetric_fog_terms(
         rows = jnp.clip(jnp.floor(y), 0, height - 1).astype(jnp.int32)
         cols = jnp.clip(jnp.floor(x), 0, width - 1).astype(jnp.int32)
         coarse_depth = depth[rows, cols]
-        rays = _rays_at(x, y, height, width, focal_length_px(width, fov_x_deg, dtype))
+        rays = rays_through(x, y, height, width, focal_length_px(width, fov_x_deg, dtype))
         rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
         # Each ray through to the medium's end in two pieces split at its own surface, so its segments are fine
         # up to there; a pixel reads every nearby ray up to its own depth, whatever surface the ray met (sky in a

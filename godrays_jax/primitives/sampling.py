@@ -8,7 +8,7 @@ from typing import Literal
 
 import jax.numpy as jnp
 from jax.typing import DTypeLike
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 Addressing = Literal["clamp", "zero"]
 
@@ -117,3 +117,16 @@ def pixel_centres(height: int, width: int, dtype: DTypeLike = jnp.float32) -> tu
     xs = jnp.arange(width, dtype=dtype) + 0.5
     ys = jnp.arange(height, dtype=dtype) + 0.5
     return jnp.broadcast_to(xs[None, :], (height, width)), jnp.broadcast_to(ys[:, None], (height, width))
+
+
+def bilinear_corners(
+    u: Float[Array, "*S"], v: Float[Array, "*S"], rows: int, cols: int
+) -> tuple[Int[Array, "4 *S"], Int[Array, "4 *S"], Float[Array, "4 *S"]]:
+    """The four samples around the continuous indices `(u, v)` (column, row; integers on samples) of a
+    `rows x cols` grid, clamped at its borders: `(row, col, weight)`, each stacked along a new first axis of 4."""
+    col0, row0 = jnp.floor(u), jnp.floor(v)
+    fx, fy = u - col0, v - row0
+    corners = [(dy, dx, wy * wx) for dy, wy in ((0, 1.0 - fy), (1, fy)) for dx, wx in ((0, 1.0 - fx), (1, fx))]
+    row = jnp.stack([jnp.broadcast_to(jnp.clip(row0 + dy, 0, rows - 1), w.shape) for dy, _, w in corners])
+    col = jnp.stack([jnp.broadcast_to(jnp.clip(col0 + dx, 0, cols - 1), w.shape) for _, dx, w in corners])
+    return row.astype(jnp.int32), col.astype(jnp.int32), jnp.stack([w for _, _, w in corners])

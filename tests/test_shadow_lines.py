@@ -1,0 +1,230 @@
+"""Shadows read along lines through the light (kernels/shadow_lines.py) against shadow rays traced in 3-D by NumPy.
+
+The loop knows nothing of lines, bins or the coordinate `s`: it walks each shadow ray from points along a
+segment toward the light in small steps, projects every step onto the screen and tests the texel it lands in
+(its slab `[D, D * (1 + thickness)]` along that texel's camera ray, hard faces; sky, emitters and points
+off screen or behind the camera block nothing). The kernel, fine-grained, must agree with it everywhere but
+at the slabs' edges, for the sun and a point light, in front of the camera on screen, far off screen and
+behind the camera.
+"""
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from godrays_jax.kernels.shadow_lines import line_coordinate, segment_visibility_by_lines
+from godrays_jax.kernels.volumetric import segment_visibility
+
+HEIGHT, WIDTH, FOV = 12, 16, 60.0
+THICKNESS, MAX_DISTANCE, SEGMENTS = 2.0, 80.0, 6  # thick slabs: a small frame shows long shadows
+FINE = dict(num_lines=1024, num_bins=384, cell_px=0.25)
+
+
+def _focal():
+    return 0.5 * WIDTH / math.tan(math.radians(FOV) / 2)
+
+
+def _ray(x, y):
+    f = _focal()
+    return np.stack([(np.asarray(x) - 0.5 * WIDTH) / f, (0.5 * HEIGHT - np.asarray(y)) / f, np.ones_like(x)], -1)
+
+
+def _depth(sky=False):
+    """A wall (or sky) behind two blocks at different depths: the blocks' slabs cast the shadows."""
+    depth = np.full((HEIGHT, WIDTH), np.inf if sky else 60.0)
+    depth[3:7, 4:8] = 20.0
+    depth[6:10, 10:13] = 12.0
+    return depth
+
+
+def _light(point):
+    """The light's `(light_xy, light_depth, in_front)` for a camera-space point, or a direction for the sun."""
+    point = np.asarray(point, float)
+    f, in_front = _focal(), point[2] > 0
+    z = abs(point[2])
+    xy = np.asarray([0.5 * WIDTH + f * point[0] / z, 0.5 * HEIGHT - f * point[1] / z])
+    return xy, float(np.linalg.norm(point)), bool(in_front)
+
+
+def _segments(depth):
+    x, y = np.meshgrid(np.arange(WIDTH) + 0.5, np.arange(HEIGHT) + 0.5)
+    end = np.minimum(np.where(np.isfinite(depth), depth, MAX_DISTANCE), MAX_DISTANCE) * 0.98
+    bounds = end[..., None] * np.linspace(0.0, 1.0, SEGMENTS + 1) ** 1.5
+    return np.stack([x, y], -1), bounds[..., :-1], bounds[..., 1:]
+
+
+def _loop_visibility(depth, pixel_xy, lower, upper, light_point, sun, points_per_segment=16, steps=3000):
+    """The mean over each segment of whether its points see the light, by marching each shadow ray in 3-D."""
+    f = _focal()
+    light_point = np.asarray(light_point, float)
+    unit = light_point / np.linalg.norm(light_point)
+    emitter_limit = np.inf if sun else np.linalg.norm(light_point)
+    out = np.zeros(lower.shape)
+    u = (np.arange(steps) + 0.5) / steps
+    for j in range(HEIGHT):
+        for i in range(WIDTH):
+            view = _ray(*pixel_xy[j, i])
+            view = view / np.linalg.norm(view)
+            for m in range(lower.shape[-1]):
+                t = lower[j, i, m] + (upper[j, i, m] - lower[j, i, m]) * (np.arange(points_per_segment) + 0.5) / points_per_segment
+                seen = 0
+                for distance in t:
+                    start = distance * view
+                    # Toward a point light up to it; toward the sun far beyond every surface.
+                    end = light_point if not sun else start + unit * 1e4
+                    walk = start[None, :] * (1 - u[:, None]) + end[None, :] * u[:, None]
+                    walk = walk[walk[:, 2] > 1e-6]
+                    qx = 0.5 * WIDTH + f * walk[:, 0] / walk[:, 2]
+                    qy = 0.5 * HEIGHT - f * walk[:, 1] / walk[:, 2]
+                    on = (qx >= 0) & (qx < WIDTH) & (qy >= 0) & (qy < HEIGHT)
+                    col, row = qx[on].astype(int), qy[on].astype(int)
+                    texel = depth[row, col]
+                    along = np.linalg.norm(walk[on], axis=-1)
+                    blocks = np.isfinite(texel) & (texel * (1 + THICKNESS) < emitter_limit)
+                    blocked = np.any(blocks & (along >= texel) & (along <= texel * (1 + THICKNESS)))
+                    seen += not blocked
+                out[j, i, m] = seen / points_per_segment
+    return out
+
+
+LIGHTS = {
+    # name: (camera-space point (a direction for the sun), sun, sky)
+    "sun in front": ((0.35, 0.3, 1.0), True, True),
+    "point light in front": ((6.0, 5.0, 45.0), False, False),
+    "sun far off screen": ((-3.0, 0.4, 1.0), True, True),
+    "sun behind the camera": ((0.5, 0.36, -1.0), True, True),
+    "point light behind the camera": ((45.0, 32.4, -90.0), False, True),
+}
+
+
+@pytest.mark.parametrize("name", LIGHTS)
+def test_matches_shadow_rays_traced_in_3d(name):
+    point, sun, sky = LIGHTS[name]
+    depth = _depth(sky)
+    pixel_xy, lower, upper = _segments(depth)
+    light_xy, light_depth, in_front = _light(point)
+    expected = _loop_visibility(depth, pixel_xy, lower, upper, point, sun)
+    got = segment_visibility_by_lines(
+        jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
+        light_depth=math.inf if sun else light_depth, light_in_front=in_front, thickness=THICKNESS,
+        edge_softness=0.01, max_distance=MAX_DISTANCE, **FINE,
+    )  # fmt: skip
+    got = np.asarray(got)
+    # The scene casts shadows the loop sees, and the kernel agrees but at the slabs' edges.
+    assert 0.05 < np.mean(expected < 0.5) < 0.95
+    assert np.mean(np.abs(got - expected)) < 0.04, np.mean(np.abs(got - expected))
+    assert np.mean(np.abs(got - expected) > 0.5) < 0.02
+
+
+def test_a_wrong_side_of_the_camera_disagrees_with_the_loop():
+    """The loop can tell a light behind the camera from its mirror image in front (a test that could not fail
+    would pass both)."""
+    point, sun, sky = LIGHTS["sun behind the camera"]
+    depth = _depth(sky)
+    pixel_xy, lower, upper = _segments(depth)
+    light_xy, _, _ = _light(point)
+    expected = _loop_visibility(depth, pixel_xy, lower, upper, point, sun)
+    mirrored = segment_visibility_by_lines(
+        jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
+        light_in_front=True, thickness=THICKNESS, edge_softness=0.01, max_distance=MAX_DISTANCE, **FINE,
+    )  # fmt: skip
+    assert np.mean(np.abs(np.asarray(mirrored) - expected)) > 0.04
+
+
+def test_line_coordinate_is_kept_along_a_shadow_ray(x64):
+    """Every point of a shadow ray toward a point light (and toward the sun) has the same `s`."""
+    light = np.asarray([3.0, 2.0, 20.0])
+    for sun in (False, True):
+        start = np.asarray([-1.0, 0.5, 7.0])
+        toward = light / np.linalg.norm(light)
+        ends = [start + u * ((light - start) if not sun else toward * 30.0) for u in (0.0, 0.3, 0.7)]
+        values = []
+        for point in ends:
+            distance = np.linalg.norm(point)
+            cosine = point @ toward / distance
+            sine = np.linalg.norm(np.cross(point / distance, toward))
+            values.append(float(line_coordinate(distance, sine, cosine, 0.0 if sun else 1.0 / np.linalg.norm(light))))
+        np.testing.assert_allclose(values, values[0], rtol=1e-12)
+
+
+def _small(dtype):
+    depth = np.full((6, 8), 30.0)
+    depth[1:4, 2:5] = 9.0
+    depth[0, :] = np.inf
+    x, y = np.meshgrid(np.arange(8) + 0.5, np.arange(6) + 0.5)
+    bounds = np.linspace(0.5, 25.0, 6)[None, None, :] * np.linspace(0.9, 1.1, 8)[None, :, None] * np.ones((6, 1, 1))
+    return (jnp.asarray(depth, dtype), jnp.asarray(np.stack([x, y], -1), dtype), jnp.asarray(bounds[..., :-1], dtype),
+            jnp.asarray(bounds[..., 1:], dtype))  # fmt: skip
+
+
+@pytest.mark.parametrize("light_depth", [40.0, math.inf])
+def test_gradients_float64(x64, light_depth):
+    """The derivatives in the slabs, the light and the medium's reach against central differences (bins and lines
+    held where they lie: a sampling choice)."""
+    depth, pixel_xy, lower, upper = _small(jnp.float64)
+
+    def visibility(light_xy, thickness, edge_softness, inverse_depth):
+        return segment_visibility_by_lines(
+            depth, light_xy, pixel_xy, lower, upper, fov_x_deg=60.0,
+            light_depth=1.0 / inverse_depth if math.isfinite(light_depth) else math.inf, thickness=thickness,
+            edge_softness=edge_softness, max_distance=30.0, num_lines=64, num_bins=48,
+        )  # fmt: skip
+
+    # The light on no line through a pixel centre: the lines' interpolation has kinks there.
+    start = (jnp.asarray([6.37, 1.71]), jnp.float64(0.4), jnp.float64(0.2), jnp.float64(1.0 / 40.0))
+    check_grads(visibility, start, order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-4, rtol=1e-3)
+
+
+DEGENERATE = {
+    "on a pixel centre": dict(light_xy=(3.5, 2.5)),
+    "on the frame's centre": dict(light_xy=(4.0, 3.0)),
+    "far off screen": dict(light_xy=(1e9, -3e8)),
+    "just off the edge": dict(light_xy=(8.0001, 2.0)),
+    "behind the camera": dict(light_xy=(3.0, 2.0), light_in_front=False),
+    "behind, far off screen": dict(light_xy=(-4e8, 1e9), light_in_front=False),
+    "at the camera": dict(light_xy=(3.0, 2.0), light_depth=1e-6),
+}
+
+
+@pytest.mark.parametrize("name", DEGENERATE)
+def test_degenerate_lights_finite_values_and_gradients(name):
+    """Finite values and gradients (the light's side traced), on surfaces and on a frame all sky, where nothing
+    is shaded."""
+    case = DEGENERATE[name]
+    depth, pixel_xy, lower, upper = _small(jnp.float32)
+
+    @jax.jit
+    @functools.partial(jax.value_and_grad, argnums=(0, 1, 2, 3, 4))
+    def total(light_xy, thickness, edge_softness, light_depth, depth, light_in_front):
+        return jnp.sum(segment_visibility_by_lines(
+            depth, light_xy, pixel_xy, lower, upper, fov_x_deg=60.0, light_depth=light_depth,
+            light_in_front=light_in_front, thickness=thickness, edge_softness=edge_softness, max_distance=30.0,
+            num_lines=32, num_bins=24))  # fmt: skip
+
+    for frame in (depth, jnp.full_like(depth, jnp.inf)):
+        value, grads = total(jnp.asarray(case["light_xy"], jnp.float32), 0.3, 0.05,
+                             jnp.float32(case.get("light_depth", 50.0)), frame,
+                             jnp.asarray(case.get("light_in_front", True)))  # fmt: skip
+        assert np.isfinite(float(value)), name
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in grads), name
+    sky = segment_visibility_by_lines(
+        jnp.full_like(depth, jnp.inf), jnp.asarray(case["light_xy"], jnp.float32), pixel_xy, lower, upper,
+        fov_x_deg=60.0, light_in_front=case.get("light_in_front", True), thickness=0.3, edge_softness=0.05,
+        max_distance=30.0, num_lines=32, num_bins=24,
+    )  # fmt: skip
+    np.testing.assert_array_equal(np.asarray(sky), 1.0)
+
+
+def test_bad_options_name_the_argument():
+    depth, pixel_xy, lower, upper = _small(jnp.float32)
+    options = dict(fov_x_deg=60.0, thickness=0.3, edge_softness=0.05, max_distance=30.0)
+    for bad, name in ((dict(num_lines=1), "num_lines"), (dict(num_bins=2.0), "num_bins"), (dict(cell_px=0), "cell_px")):
+        with pytest.raises(ValueError, match=name):
+            segment_visibility_by_lines(depth, (3.0, 2.0), pixel_xy, lower, upper, **options, **bad)
+    with pytest.raises(ValueError, match="upper"):
+        segment_visibility_by_lines(depth, (3.0, 2.0), pixel_xy, lower, upper[:2], **options)

@@ -1,17 +1,17 @@
-"""`VolumetricFog`'s forward pass at 1920x1080 on this machine, and its compiled memory against the sample counts.
+"""`VolumetricFog`'s forward pass at 320x180 and 1920x1080 on this machine, and its compiled memory against the sample counts.
 
     python benchmarks/bench_volumetric.py [--repeats 3]
     python benchmarks/bench_volumetric.py --fit
     python benchmarks/bench_volumetric.py --jacobian [--repeats 5]
     python benchmarks/bench_volumetric.py --profile [--top 25]
 
-Forward: the `hidden_sun` reference's clean frame upscaled (nearest) to 1920x1080, the
-`volumetric_haze` preset at `resolution_factor` 4 (its own) and 2, their march spacings scaled with the
-frame (`march_factor`), and at 4 not scaled (4 pixels apart, as a 320-wide frame's), and `physically_based`
-at its own counts (more view steps and shadow samples, for stillness on a pan), jitted; the median
-of `--repeats` runs after one warm-up. Memory: XLA's compiled temporary bytes (`memory_analysis`) of the forward pass
-and of one forward-mode derivative (what `fit`'s Jacobian takes per parameter) at 480x270 for
-several `num_view_steps` x `num_shadow_samples`. `--fit` times the 480x270 fit instead: the reference's
+Forward: the `hidden_sun` reference's clean frame at 320x180 and upscaled (nearest) to 1920x1080, the
+`volumetric_haze` preset (shadows read along lines through the light, every pixel's ray at 320 wide), the
+same with its shadows from samples toward the light on rays 4 pixels apart at 320 wide (the preset before
+that), and `physically_based` at its own counts, jitted, march spacings scaled with the frame
+(`march_factor`); the median of `--repeats` runs after one warm-up. Memory: XLA's compiled temporary bytes
+(`memory_analysis`) of the forward pass and of one forward-mode derivative (what `fit`'s Jacobian takes per
+parameter) at 480x270 for several `num_view_steps` x `num_shadow_samples`, and for shadows read along lines. `--fit` times the 480x270 fit instead: the reference's
 clean frame and fog render upscaled (nearest), `fit` from `volumetric_haze` with the field of view
 fixed (the frame gives it), once as `godrays-jax fit` runs it (the model's presets and a ground
 layer read from the frame on each start as other starts (`fit_command.fit_starts`), raced by successive halving, its default coarse phase and
@@ -39,7 +39,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from unittest import mock
 
 import equinox as eqx
 import jax
@@ -193,17 +192,17 @@ def main() -> None:
                 coarse_factor=factor, starts=presets, probe_steps=50, coarse_plateau_rtol=1e-3)  # fmt: skip
         print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
         return
-    buffers, light = frame(1080, 1920)
-    print("| 1920x1080 forward | march spacing, pixels | median seconds |")
+    print("| forward | march spacing, pixels | median seconds |")
     print("|---|---|---|")
-    for name, factor, scaled in (("volumetric_haze", 4, True), ("volumetric_haze", 2, True), ("volumetric_haze", 4, False),
-                                 ("physically_based", 4, True)):  # fmt: skip
-        base = gr.preset(name)
-        effect = type(base)(**{**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)}, "resolution_factor": factor})
-        # Unscaled: the spacing of a 320-pixel frame kept at 1920 (the pixel-grid march's cost before the spacing
-        # became a fraction of the frame).
-        spacing = march_factor(1080, 1920, factor) if scaled else factor
-        with mock.patch("godrays_jax.effects.volumetric.march_factor", lambda h, w, f, spacing=spacing: spacing):
+    rows = (
+        ("volumetric_haze", {}),
+        ("volumetric_haze", dict(shadows="samples", resolution_factor=4)),  # the preset before its shadows by lines
+        ("physically_based", {}),
+    )  # fmt: skip
+    for height, width in ((180, 320), (1080, 1920)):
+        buffers, light = frame(height, width)
+        for name, changes in rows:
+            effect = dataclasses.replace(gr.preset(name), **changes)
             run = eqx.filter_jit(lambda e, b, l: e(b, l))
             run(effect, buffers, light).block_until_ready()
             times = []
@@ -211,14 +210,20 @@ def main() -> None:
                 start = time.perf_counter()
                 run(effect, buffers, light).block_until_ready()
                 times.append(time.perf_counter() - start)
-        label = (f"{name} ({effect.num_view_steps} view steps, {effect.num_shadow_samples} shadow samples), "
-                 f"resolution_factor {factor}" + ("" if scaled else ", not scaled with the frame"))
-        print(f"| {label} | {spacing:g} | {statistics.median(times):.3f} |", flush=True)
+            shadows = (f"{effect.num_shadow_lines} lines x {effect.num_shadow_bins} bins" if effect.shadows == "lines"
+                       else f"{effect.num_shadow_samples} shadow samples")  # fmt: skip
+            label = (f"{width}x{height}, {name} ({effect.num_view_steps} view steps, {shadows}), resolution_factor "
+                     f"{effect.resolution_factor}")  # fmt: skip
+            spacing = march_factor(height, width, effect.resolution_factor)
+            print(f"| {label} | {spacing:g} | {statistics.median(times):.3f} |", flush=True)
     buffers, light = frame(270, 480)
-    print(f"| 480x270, resolution_factor 4 (spacing {march_factor(270, 480, 4):g}) | forward MiB | one JVP MiB |")
+    print("| 480x270 | forward MiB | one JVP MiB |")
     print("|---|---|---|")
-    for steps, samples in ((8, 16), (16, 32), (32, 32), (16, 128)):
-        effect = gr.VolumetricFog(num_view_steps=steps, num_shadow_samples=samples, resolution_factor=4)
+    counts = [dict(num_view_steps=steps, num_shadow_samples=samples, resolution_factor=4, shadows="samples")
+              for steps, samples in ((8, 16), (16, 32), (32, 32), (16, 128))]  # fmt: skip
+    counts += [dict(num_view_steps=16, resolution_factor=factor, shadows="lines") for factor in (1, 4)]
+    for count in counts:
+        effect = gr.VolumetricFog(**count)
         forward = jax.jit(lambda b, l, effect=effect: effect(b, l)).lower(buffers, light).compile()
 
         # The frame an argument, as `fit` passes it: closed over, XLA would fold the kernel's work on it as constants.
@@ -228,8 +233,11 @@ def main() -> None:
 
         derivative = jax.jit(tangent).lower(effect.medium.extinction, buffers, light).compile()
         mib = [c.memory_analysis().temp_size_in_bytes / 2**20 for c in (forward, derivative)]
-        print(f"| {steps} view steps x {samples} shadow samples | {mib[0]:.1f} | {mib[1]:.1f} |", flush=True)
-
+        shadows = (f"{effect.num_shadow_lines} lines x {effect.num_shadow_bins} bins" if effect.shadows == "lines"
+                   else f"{effect.num_shadow_samples} shadow samples")  # fmt: skip
+        spacing = march_factor(270, 480, effect.resolution_factor)
+        print(f"| {effect.num_view_steps} view steps x {shadows}, spacing {spacing:g} | {mib[0]:.1f} | {mib[1]:.1f} |",
+              flush=True)
 
 if __name__ == "__main__":
     main()

@@ -25,10 +25,10 @@ def march_factor(height: int, width: int, resolution_factor: int) -> float:
     """The march rays' spacing in pixels on a `height x width` frame (`kernels.volumetric`'s `resolution_factor`).
 
     `resolution_factor` pixels on a frame up to 320 pixels on its larger side; on a larger frame the same
-    fraction of that side, at most 4 x `resolution_factor` pixels. 1: every pixel's own ray, at any size.
+    fraction of that side, at most 4 x `resolution_factor` pixels. 1 is no exception: every pixel's own ray up
+    to 320 pixels, as far apart as a pixel of such a frame beyond (`volumetric_haze`'s shadows read along
+    lines need rays that close to hold still, and look the same at any size).
     """
-    if resolution_factor == 1:
-        return 1
     scale = min(max(max(height, width) / _REFERENCE_SIDE, 1.0), _MAX_SPACING_SCALE)
     return resolution_factor * scale
 
@@ -41,10 +41,16 @@ class VolumetricFog(Effect):
     in `num_view_steps` segments up to its depth (`buffers.ray_depth(fov_x_deg)`,
     scene units) or the medium's end; each segment's light is its share of the
     ray's extinction times its visibility of the light, read from the depth
-    buffer at `num_shadow_samples` points along the screen toward the light
-    (each surface a slab `thickness` times its depth deep, soft over
+    buffer (each surface a slab `thickness` times its depth deep, soft over
     `edge_softness` of its depth), times the light dimmed by the medium on its
-    way in, times the Henyey-Greenstein phase of `anisotropy`.
+    way in, times the Henyey-Greenstein phase of `anisotropy`. `shadows` says
+    how the visibility is read: `"samples"`, at the segment's middle from
+    `num_shadow_samples` points along the screen toward the light
+    (`kernels.volumetric.segment_visibility`); `"lines"`, as the mean over the
+    segment, from `num_shadow_lines` lines through the light with
+    `num_shadow_bins` bins of the shadow rays' coordinate each
+    (`kernels.shadow_lines`): no sampling that crawls with the pixel grid, so
+    shafts hold still under a moving camera, at several times the cost.
 
     The medium is the `medium` part (a `Medium`, its fields `medium.extinction`,
     ...): `extinction` per scene unit at the camera's height, falling
@@ -62,11 +68,13 @@ class VolumetricFog(Effect):
 
     The march runs on rays `resolution_factor` pixels apart on a frame of up
     to 320 pixels (on larger frames the same fraction of the frame, at most
-    four times as many pixels apart: `march_factor`), anchored to the light
+    four times as many pixels apart: `march_factor`; 1 too), anchored to the light
     (under a pan they ride with the scene), any factor at any frame size; each
     ray runs through to the medium's end and every pixel reads its four
     nearest rays up to its own depth; memory is O(march rays x
-    `num_view_steps`) whatever `num_shadow_samples` is.
+    `num_view_steps`) whatever `num_shadow_samples` is, and with `"lines"`
+    also `num_shadow_lines x num_shadow_bins` times a frame's diagonal in
+    cells (one pixel long on a 320-pixel frame, the same fraction beyond).
 
     `effect(...)` is the fogged frame, `effect.layer(...)` the scattered light alone. Built as
     `VolumetricFog(medium=Medium(extinction=0.02, anisotropy=0.8), thickness=0.2, num_view_steps=24)`.

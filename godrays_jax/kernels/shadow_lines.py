@@ -27,10 +27,10 @@ the light").
 Discretised: `num_lines` lines through the hub, each cut into cells `cell_px`
 pixels long outward from it; the four texels around each cell's centre, by
 bilinear weights, each one's interval spanning the cell's range of `s` (so
-that consecutive cells meet), with linear faces `edge_softness * s` wide (a
+that consecutive cells meet), with linear faces `edge_softness` times its nearer `s` wide (a
 slab thinner than its two faces is a tent); their blend's maximum along the
 line from the light is the coverage, on `num_bins` bins of `s` even in
-`log s` over `[s_max / 2e4, s_max]`, `s_max = pi * max_distance`, beyond every
+`log s` over `[s_max / 5e3, s_max]`, `s_max = pi * max_distance`, beyond every
 `s` inside the medium. Each face is spread over at most
 `_FACE_BINS` bins. A pixel reads its two nearest lines up to its own cell, and
 each segment `[lower, upper]` of its view ray takes the mean coverage over its
@@ -67,9 +67,9 @@ from godrays_jax.primitives.sampling import bilinear_corners
 
 # The bins' span, s_max / s_min: below s_min (a point within this fraction of the medium's reach of the axis toward
 # the light) the coverage is the lowest bin's.
-_BIN_SPAN = 2e4
+_BIN_SPAN = 5e3
 # A slab face's ramp is spread over at most this many bins; a softer face is cut to it (still reaching 1).
-_FACE_BINS = 4
+_FACE_BINS = 2
 # Cells are one pixel long on a frame up to this many pixels on its larger side, the same fraction of it beyond.
 _REFERENCE_SIDE = 320
 
@@ -209,12 +209,11 @@ def _coverage_prefix(depth, lines, toward, inverse, focal, thickness, softness, 
     on_screen = (x >= 0) & (x <= width) & (y >= 0) & (y <= height)
     blocks = jnp.isfinite(front) & on_screen & (front * (1 + thickness) * inverse < 1.0)
     front = jnp.where(blocks, front, 1.0)
-    sine, cosine = _off_axis(x, y, toward, height, width, focal)
     ends = [_off_axis(*lines.positions(shift), toward, height, width, focal) for shift in (-0.5, 0.5)]
-    near = [line_coordinate(front, s_, c_, inverse) for s_, c_ in ends]
-    far = [line_coordinate(front * (1 + thickness), s_, c_, inverse) for s_, c_ in ends]
+    near = [line_coordinate(front, sine, cosine, inverse) for sine, cosine in ends]
+    far = [line_coordinate(front * (1 + thickness), sine, cosine, inverse) for sine, cosine in ends]
     low, high = jnp.minimum(*near), jnp.maximum(*far)
-    face = jnp.minimum(softness * line_coordinate(front, sine, cosine, inverse), 0.5 * (high - low))
+    face = jnp.minimum(softness * low, 0.5 * (high - low))
     rise_at, rise = _face_deltas(low, face, s_min, log_step, num_bins)
     fall_at, fall = _face_deltas(high - face, face, s_min, log_step, num_bins)
     amount = jnp.where(blocks, weight, 0.0)[..., None]
@@ -358,15 +357,16 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
     b_low = jnp.clip(jnp.where(narrow, middle - 0.5, b_low), 0.0, num_bins)
     b_high = jnp.clip(jnp.where(narrow, middle + 0.5, b_high), 0.0, num_bins)
 
+    # Each pixel's own row of the prefix sums, blended from its four corners once: the reads at its segments' ends
+    # are then two neighbouring nodes of one row.
+    row = sum(weight * prefix[cell_index, line_index] for cell_index, line_index, weight in corners)
+
     def prefix_at(b):
         node = jnp.clip(jnp.floor(b), 0, num_bins - 1)
         frac = b - node
         node = node.astype(jnp.int32)
-        total = 0.0
-        for cell_index, line_index, corner_weight in corners:
-            c, l = cell_index[..., None], line_index[..., None]
-            total = total + corner_weight * ((1.0 - frac) * prefix[c, l, node] + frac * prefix[c, l, node + 1])
-        return total
+        below, above = (jnp.take_along_axis(row, index, axis=-1) for index in (node, node + 1))
+        return (1.0 - frac) * below + frac * above
 
     span = _coordinate_at_bin(b_high, s_min, log_step) - _coordinate_at_bin(b_low, s_min, log_step)
     mean = (prefix_at(b_high) - prefix_at(b_low)) / jnp.maximum(span, 1e-30)

@@ -80,8 +80,8 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
 
 def test_the_fits_jacobian_by_stages_is_reverse_modes_on_volumetric_fog():
     """The fit linearises by a vmapped forward-mode Jacobian, one vectorised JVP per stage of the effect's fields
-    (`_forward_mode` by `FitProblem.lane_groups`; VolumetricFog's in three: the march, the medium's ends, the final
-    sum), each stage's lanes with the other stages' unknowns held constant. Its gradient is reverse mode's: a column
+    (`_forward_mode` by `FitProblem.lane_groups`; VolumetricFog's in four: the march, the slabs' fields (the
+    shadows, here read along lines), the medium's ends, the final sum), each stage's lanes with the other stages' unknowns held constant. Its gradient is reverse mode's: a column
     taken from another unknown, or a stage's columns missing, changes it. On VolumetricFog's chained read XLA once
     mixed the lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64), and again on
     a read of both pieces by flat-index gathers (fine at 36x64, wrong at 90x160: benchmarks/README.md,
@@ -98,15 +98,17 @@ def test_the_fits_jacobian_by_stages_is_reverse_modes_on_volumetric_fog():
     light = jnp.asarray([80.8, 27.5], jnp.float32)
     medium = dict(light_color=(2.0, 2.0, 2.0), ambient_color=(0.1, 0.1, 0.1))
     # Every stage moves the frame: a layer top within the medium, a falloff with height, an ambient that rises.
-    shape = dict(height_falloff=0.02, layer_top=8.0, ambient_rise=0.1, fov_x_deg=60.0)
+    shape = dict(height_falloff=0.02, layer_top=8.0, ambient_rise=0.1, fov_x_deg=60.0, shadows="lines",
+                 num_shadow_lines=96, num_shadow_bins=64)  # fmt: skip
     start = gr.VolumetricFog(medium=gr.Medium(extinction=0.013, max_distance=50.0, anisotropy=0.6, **medium), **shape)
     truth = gr.VolumetricFog(medium=gr.Medium(extinction=0.02, max_distance=40.0, anisotropy=0.7, **medium), **shape)
     target = truth(frame, light) + 0.01 * jnp.asarray(np.random.default_rng(0).normal(size=(height, width, 3)), jnp.float32)
     frame_data = as_frames(frame, light, target, True)
     problem = FitProblem.of(start, fitted_bounds(start), frame_data[0], loss="mse", space="display")
     stages = [{problem.stages[problem.names.index(n)] for n in problem.names if n in group} for group in
-              [("medium.light_color", "ambient_rise"), ("medium.max_distance", "layer_top"), ("thickness", "medium.extinction")]]
-    assert len(problem.lane_groups) == 3 and all(len(stage) == 1 for stage in stages) and len(set.union(*stages)) == 3
+              [("medium.light_color", "ambient_rise"), ("medium.max_distance", "layer_top"), ("thickness", "edge_softness"),
+               ("medium.extinction", "medium.anisotropy")]]  # fmt: skip
+    assert len(problem.lane_groups) == 4 and all(len(stage) == 1 for stage in stages) and len(set.union(*stages)) == 4
     y = start_point(problem, jnp.float32)
     assert sorted(i for group in problem.lane_groups for i in group) == list(range(y.size))
 

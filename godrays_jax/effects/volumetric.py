@@ -97,10 +97,12 @@ class VolumetricFog(Effect):
 
     NEEDS_DEPTH: ClassVar[bool] = True
     # The colours and the terms' weights enter the final sum alone; the medium's ends only where each piece of a
-    # ray stops. The march's fields reach everything (benchmarks/README.md, "The fit's Jacobian by stages").
+    # ray stops; the slabs' fields reach the shadows, which the medium's own fields do not (read along lines, the
+    # shadows' table is most of the work: its derivatives are taken for these two alone). The march's fields reach
+    # everything else (benchmarks/README.md, "The fit's Jacobian by stages").
     FIELD_STAGES: ClassVar[dict[str, str]] = {
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
-        "medium.max_distance": "ends", "layer_top": "ends",
+        "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
     }  # fmt: skip
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):

@@ -22,7 +22,11 @@ planes (as `apply` reads them from the frame), and so is its converged version:
   are the same continuous density along the ray sampled K times as densely,
   so its only departure from the effect's own integral is the sampling;
 - for `VolumetricFog`, `--fog-oversample` times its view steps and shadow
-  samples, its march at full resolution (`resolution_factor=1`).
+  samples, its march at full resolution (`resolution_factor=1`), its shadows
+  read from samples toward the light (`shadows="samples"`): for an effect
+  that reads them along lines through the light (`volumetric_haze`), the
+  converged version of the same model read the other way, so that it shares
+  none of the effect's own discretisation.
 
 Both are encoded as `apply` writes a PNG (linear colour clipped to [0, 1],
 sRGB-encoded, times 255), kept unrounded so that rounding does not hide or
@@ -138,7 +142,7 @@ def converged(effect, oversample: int, *, same_target: bool = False, fog_oversam
     """The effect with every sample of its loop spread over `oversample` samples (see the module's docstring).
 
     `same_target`: flare-outs stay in the effect's own (low-resolution) target. `VolumetricFog` takes
-    `fog_oversample` times its view steps and shadow samples, at full resolution.
+    `fog_oversample` times its view steps and shadow samples, at full resolution, its shadows from samples.
     """
     k = oversample
     if isinstance(effect, VolumetricFog):

@@ -109,31 +109,22 @@ def test_matches_shadow_rays_traced_in_3d(name):
     pixel_xy, lower, upper = _segments(depth)
     light_xy, light_depth, in_front = _light(point)
     expected = _loop_visibility(depth, pixel_xy, lower, upper, point, sun)
-    got = segment_visibility_by_lines(
-        jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
-        light_depth=math.inf if sun else light_depth, light_in_front=in_front, thickness=THICKNESS,
-        edge_softness=0.01, max_distance=MAX_DISTANCE, **FINE,
-    )  # fmt: skip
-    got = np.asarray(got)
+
+    def kernel(light_in_front):
+        return np.asarray(segment_visibility_by_lines(
+            jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
+            light_depth=math.inf if sun else light_depth, light_in_front=light_in_front, thickness=THICKNESS,
+            edge_softness=0.01, max_distance=MAX_DISTANCE, **FINE,
+        ))  # fmt: skip
+
+    got = kernel(in_front)
     # The scene casts shadows the loop sees, and the kernel agrees but at the slabs' edges.
-    assert 0.05 < np.mean(expected < 0.5) < 0.95
+    assert 0.03 < np.mean(expected < 0.5) < 0.95
     assert np.mean(np.abs(got - expected)) < 0.04, np.mean(np.abs(got - expected))
     assert np.mean(np.abs(got - expected) > 0.5) < 0.02
-
-
-def test_a_wrong_side_of_the_camera_disagrees_with_the_loop():
-    """The loop can tell a light behind the camera from its mirror image in front (a test that could not fail
-    would pass both)."""
-    point, sun, sky = LIGHTS["sun behind the camera"]
-    depth = _depth(sky)
-    pixel_xy, lower, upper = _segments(depth)
-    light_xy, _, _ = _light(point)
-    expected = _loop_visibility(depth, pixel_xy, lower, upper, point, sun)
-    mirrored = segment_visibility_by_lines(
-        jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
-        light_in_front=True, thickness=THICKNESS, edge_softness=0.01, max_distance=MAX_DISTANCE, **FINE,
-    )  # fmt: skip
-    assert np.mean(np.abs(np.asarray(mirrored) - expected)) > 0.04
+    if not in_front:
+        # The loop tells a light behind the camera from its mirror image in front.
+        assert np.mean(np.abs(kernel(True) - expected)) > 0.04
 
 
 def test_line_coordinate_is_kept_along_a_shadow_ray(x64):

@@ -403,3 +403,33 @@ def test_fit_command_errors_are_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert status == 1 and len(err) == 1 and "missing.exr" in err[0]
     assert not output.exists()
+
+
+def test_volumetric_fog_read_along_lines_is_fitted_through_its_stand_in_and_returned_as_given():
+    """`fit` fits `VolumetricFog` read along lines through its stand-in (shadows from samples, rays 4 pixels apart)
+    and returns the fitted fields with the lines' reading, its losses the returned effect's; `stand_in=False` fits
+    the effect itself (its descent's last loss is then the returned effect's)."""
+    height, width = 24, 40
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[height // 2 :] = 12.0
+    depth[4:, 18:23] = 6.0  # a pillar hiding the sun
+    color = np.where(np.isfinite(depth)[..., None], 0.05, 0.4).astype(np.float32) * np.ones(3, np.float32)
+    frame = gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(np.isfinite(depth), jnp.float32))
+    light = jnp.asarray([20.3, 5.6], jnp.float32)
+    shape = dict(fov_x_deg=60.0, shadows="lines", num_shadow_lines=48, num_shadow_bins=32, num_view_steps=4,
+                 resolution_factor=1)  # fmt: skip
+    medium = dict(max_distance=40.0, anisotropy=0.7, light_color=(2.0, 2.0, 2.0), ambient_color=(0.1, 0.1, 0.1))
+    start = gr.VolumetricFog(medium=gr.Medium(extinction=0.01, **medium), **shape)
+    target = gr.VolumetricFog(medium=gr.Medium(extinction=0.03, **medium), **shape)(frame, light)
+    stand_in = start.fit_stand_in()
+    assert (stand_in.shadows, stand_in.resolution_factor) == ("samples", 4)
+    assert gr.VolumetricFog(resolution_factor=2).fit_stand_in().resolution_factor == 2  # from samples: itself
+    fixed = tuple(name for name in fitted_bounds(start) if name != "medium.extinction")
+    for through_stand_in in (True, False):
+        result = fit(start, frame, light, target, fixed=fixed, max_steps=15, stand_in=through_stand_in)
+        assert (result.effect.shadows, result.effect.resolution_factor) == ("lines", 1)
+        own_loss = float(jnp.mean((gr.display_map(result.effect(frame, light)) - gr.display_map(target)) ** 2))
+        np.testing.assert_allclose(result.loss_after, own_loss, rtol=1e-4, atol=1e-9)
+        assert result.loss_after < 0.05 * result.loss_before
+        # The descent's losses are the stand-in's: they end elsewhere than the returned effect's.
+        assert (abs(result.loss_history[-1] - result.loss_after) > 1e-3 * result.loss_after + 1e-9) == through_stand_in

@@ -25,6 +25,7 @@ from godrays_jax.app.options import (
     with_field_of_view,
     with_frame_clip_planes,
 )
+from godrays_jax.effects.fields import field_metadata, field_value
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
@@ -102,6 +103,9 @@ def run(args) -> int:
         print(f"  {name} = {values[name]}")
     if result.start:
         print(f"started from the fitted fields of {start_names[result.start - 1]} (a lower loss than the start given)")
+    if effect.fit_stand_in() is not effect:
+        cheaper = _statics_line(effect.fit_stand_in(), effect)
+        print(f"fitted through its stand-in (cheaper: {cheaper}); the losses and parameters written are the effect's own")
     loss_name = f"{args.loss} ({args.space})"
     after = result.loss_after if args.fractional_counts else result.loss_rounded
     print(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
@@ -132,6 +136,12 @@ def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
             names.append(f"the ground layer estimated from the frame, on the other fields of {name}")
             starts.append(layer)
     return names, starts
+
+
+def _statics_line(stand_in, effect) -> str:
+    """The static fields in which the stand-in differs from the effect, as `name=value`."""
+    names = [name for name, info in field_metadata(effect).items() if info.kind == "static"]
+    return ", ".join(f"{n}={field_value(stand_in, n)!r}" for n in names if field_value(stand_in, n) != field_value(effect, n))
 
 
 def _steps_line(result, coarse_factor: int) -> str:

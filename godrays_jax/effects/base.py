@@ -106,6 +106,11 @@ class Effect(Part):
     NEEDS_DEPTH: typing.ClassVar[bool] = False
     FIELD_STAGES: typing.ClassVar[dict[str, str]] = {}
 
+    def fit_stand_in(self) -> "Effect":
+        """The effect `fit` fits in this one's place (`pipeline.fit.fit`'s `stand_in`): the same fields, read
+        more cheaply where a cheaper reading gives nearly the same frame; this effect itself by default."""
+        return self
+
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
         _EFFECT_CLASSES[cls.__name__] = cls

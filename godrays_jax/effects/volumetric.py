@@ -1,5 +1,6 @@
 """`VolumetricFog`: a bounded medium lit segment by segment, its shadows read from the depth buffer."""
 
+import dataclasses
 import math
 from typing import ClassVar, Literal
 
@@ -19,6 +20,8 @@ from godrays_jax.primitives.checks import check_light
 # farther apart.
 _REFERENCE_SIDE = 320
 _MAX_SPACING_SCALE = 4.0
+# The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines.
+_STAND_IN_FACTOR = 4
 
 
 def march_factor(height: int, width: int, resolution_factor: int) -> float:
@@ -104,6 +107,16 @@ class VolumetricFog(Effect):
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
     }  # fmt: skip
+
+    def fit_stand_in(self) -> "VolumetricFog":
+        """Read along lines, the shadows' table is most of a fit's work, and a fit matches single frames, where
+        holding still under a moving camera does not count: `fit` fits the same fields with the shadows read from
+        samples on rays 4 pixels apart at 320 wide (`volumetric_haze`'s reading before; the two readings of the
+        model agree to a fraction of an 8-bit code, benchmarks/README.md, "shadows read along lines through the
+        light, in the library"), several times cheaper, and returns them with this effect's reading."""
+        if self.shadows != "lines":
+            return self
+        return dataclasses.replace(self, shadows="samples", resolution_factor=_STAND_IN_FACTOR)
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """`(surface, scattered, ambient)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""

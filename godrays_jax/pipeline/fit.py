@@ -393,6 +393,7 @@ def fit(
     plateau_steps: int = 5,
     plateau_rtol: float = 1e-3,
     coarse_plateau_rtol: float = 2e-2,
+    stand_in: bool = True,
 ) -> FitResult:
     """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
 
@@ -458,6 +459,13 @@ def fit(
             which then starts near its own minimum, where the last tenths of a
             percent cost many full-resolution steps (`benchmarks/README.md`,
             "The fit's Jacobian by stages").
+        stand_in: fit the effect's stand-in (`Effect.fit_stand_in`: the same
+            fields read more cheaply, where the effect names one; for
+            `VolumetricFog` with its shadows read along lines, read from
+            samples) and return its fitted fields in the effect given, with
+            the given effect's static fields and its own losses before and
+            after (the descent's `loss_history` is the stand-in's). False:
+            fit the effect itself.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and
@@ -481,7 +489,8 @@ def fit(
     least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
-    effect = jax.tree.map(strongly_typed, effect)
+    given = jax.tree.map(strongly_typed, effect)
+    effect = given.fit_stand_in() if stand_in else given
     frames, lights, targets, in_front, depths = as_frames(buffers, light_xy, target, light_in_front, light_depth)
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
@@ -504,7 +513,7 @@ def fit(
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
-        loss_before = float(exported.call("fit_loss", _evaluate, effect, (problem, frame_data)))
+        loss_before = float(exported.call("fit_loss", _evaluate, given, (problem, frame_data)))
         coarse_steps = 0
         if coarse_factor > 1:
             # The starts race at the reduced resolution; the winner's result goes on at full resolution.
@@ -535,6 +544,9 @@ def fit(
             run, polish_steps = polished[0], counter.steps - before
             history = [*history, *run.history]  # one entry per step, as the descent's (its first: where it starts)
         fitted_effect, rounded = _fitted_effects(run.problem, run.y)
+        if given is not effect:  # the stand-in's fitted fields in the effect given
+            fitted_effect, rounded = (replace_fields(given, {n: field_value(e, n) for n in names}) for e in
+                                      (fitted_effect, rounded))  # fmt: skip
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
         data = (run.problem, frame_data)

@@ -23,7 +23,7 @@ the 1920x1080 forward of `volumetric_haze` goes, from JAX's profiler over three 
 `--top` compiled kernels (XLA's fusions, named as in the compiled program's HLO text, which says what each
 holds) by their mean milliseconds a run, summed over the threads that ran them. `--jacobian`: the fit's
 forward-mode Jacobian (`fit._forward_mode`) of the display-space residuals at 480x270 (the `--fit` frame and
-target, `volumetric_haze`, the field of view fixed), compiled: one vectorised JVP of every unknown against one
+target, `volumetric_haze`'s stand-in, which `fit` differentiates, the field of view fixed), compiled: one vectorised JVP of every unknown against one
 per stage (`Effect.FIELD_STAGES`), medians of `--repeats` runs after one that compiles, alternating, and the
 largest difference between the two. `uptime` first: the machine is shared.
 """
@@ -104,7 +104,8 @@ def jacobian_rows(repeats: int) -> None:
     """Time the fit's Jacobian at 480x270: one vectorised JVP of every unknown, and one per stage."""
     buffers, light = frame(270, 480)
     target = upscaled(gr.read_image(str(SCENE.fog_a))[..., :3], 270, 480)
-    effect = dataclasses.replace(gr.preset("volumetric_haze"), fov_x_deg=np.float32(SCENE.fov_x_deg))
+    # What `fit` differentiates: the preset's stand-in (`Effect.fit_stand_in`).
+    effect = dataclasses.replace(gr.preset("volumetric_haze"), fov_x_deg=np.float32(SCENE.fov_x_deg)).fit_stand_in()
     frame_data = as_frames(buffers, light, target, True, SCENE.light_depth)
     bounds = fitted_bounds(effect, fixed=("fov_x_deg",))
     problem = FitProblem.of(effect, bounds, frame_data[0], loss="mse", space="display")

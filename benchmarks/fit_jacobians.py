@@ -9,8 +9,8 @@ not on others (benchmarks/README.md, "The fit's Jacobian and XLA": XLA's
 YNNPACK fusions; `tests/test_volumetric.py` compiles its case without them),
 and on a frame of the size the fits use a wrong lane only shows as a fit that
 stalls. Per scene (`benchmarks/references/scenes.py`)
-this builds the problem `fit` starts from by default (`volumetric_haze` at the
-frame's field of view, the scene's light, the display-space MSE against fog
+this builds the problem `fit` starts from by default (`volumetric_haze`'s
+stand-in, `Effect.fit_stand_in`, at the frame's field of view, the scene's light, the display-space MSE against fog
 A, every field in its bounds fitted, the field of view too) and compares the
 gradient of the loss through `_forward_mode` (by the effect's stages, as `fit`
 takes it), compiled, with reverse mode,
@@ -42,6 +42,7 @@ def relative_difference(scene) -> tuple[int, float]:
     """How many fields the default start fits, and the largest |forward - reverse| over them / max |reverse|."""
     frame = gr.read_buffers(scene.clean)
     start = eqx.tree_at(lambda effect: effect.fov_x_deg, gr.preset("volumetric_haze"), jnp.float32(scene.fov_x_deg))
+    start = start.fit_stand_in()  # what `fit` differentiates (`Effect.fit_stand_in`)
     target = jnp.asarray(read_rgb(scene.fog_a), jnp.float32)
     light = jnp.asarray(scene.light_px, jnp.float32)
     frame_data = as_frames(frame, light, target, scene.light_in_front, scene.light_depth)

@@ -459,13 +459,16 @@ def fit(
             which then starts near its own minimum, where the last tenths of a
             percent cost many full-resolution steps (`benchmarks/README.md`,
             "The fit's Jacobian by stages").
-        stand_in: fit the effect's stand-in (`Effect.fit_stand_in`: the same
-            fields read more cheaply, where the effect names one; for
-            `VolumetricFog` with its shadows read along lines, read from
-            samples) and return its fitted fields in the effect given, with
-            the given effect's static fields and its own losses before and
-            after (the descent's `loss_history` is the stand-in's). False:
-            fit the effect itself.
+        stand_in: the starts race and descend as the effect's stand-in
+            (`Effect.fit_stand_in`: the same fields read more cheaply, where
+            the effect names one; for `VolumetricFog` with its shadows read
+            along lines, read from samples), and the effect itself polishes
+            (Levenberg-Marquardt's polish phase; after a coarse phase, the
+            full resolution): the result is the effect given with its static
+            fields, its losses the effect's own (`loss_history`: the stand-in's
+            until the polish). Without a polish phase (another loss or
+            solver) the stand-in's fitted fields are returned in the effect
+            given. False: every phase fits the effect itself.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and
@@ -496,6 +499,11 @@ def fit(
     names = tuple(bounds)
     check_inside_bounds(effect)
     frame_data = (frames, lights, targets, in_front, depths)
+
+    def as_given(fitted):
+        """The fitted fields (of the stand-in) in the effect given."""
+        return fitted if given is effect else replace_fields(given, {n: field_value(fitted, n) for n in names})
+
     # A start that repeats an earlier one (the effect given is often one of the model's presets) is raced once.
     candidates, origins = [], []
     for index, candidate in enumerate([effect, *[_start_like(effect, other, bounds) for other in starts]]):
@@ -525,7 +533,7 @@ def fit(
             scaled = [scale_pixel_fields(candidate, 1.0 / coarse_factor) for candidate in candidates]
             coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **descend)
             coarse_steps = counter.steps
-            fine_start = coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y)
+            fine_start = as_given(coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y))
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
         polish = None if polisher is None else {**descend, "optimiser": polisher}
         # After a coarse phase, which raced the starts, the full resolution's one descent is the polish itself.
@@ -540,13 +548,10 @@ def fit(
         history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
         if polish is not None and coarse_factor == 1 and max_steps > 0:
             before = counter.steps
-            polished, _ = _descend([run.problem.effect_at(run.y)], bounds, frame_data, counter, **polish)
+            polished, _ = _descend([as_given(run.problem.effect_at(run.y))], bounds, frame_data, counter, **polish)
             run, polish_steps = polished[0], counter.steps - before
             history = [*history, *run.history]  # one entry per step, as the descent's (its first: where it starts)
-        fitted_effect, rounded = _fitted_effects(run.problem, run.y)
-        if given is not effect:  # the stand-in's fitted fields in the effect given
-            fitted_effect, rounded = (replace_fields(given, {n: field_value(e, n) for n in names}) for e in
-                                      (fitted_effect, rounded))  # fmt: skip
+        fitted_effect, rounded = (as_given(e) for e in _fitted_effects(run.problem, run.y))
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
         data = (run.problem, frame_data)

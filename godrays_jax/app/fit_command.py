@@ -1,5 +1,7 @@
 """`godrays-jax fit`: fit an effect's parameters to target frames and write them for `apply --params`."""
 
+import contextlib
+import os
 import sys
 
 import jax.numpy as jnp
@@ -96,29 +98,49 @@ def run(args) -> int:
     finally:
         bar.close()
     chosen = result.effect if args.fractional_counts else result.rounded
-    save_effect(args.output, chosen)
     values = effect_to_dict(chosen)
-    print(f"fitted {type(chosen).__name__} ({_steps_line(result, coarse_factor)}):")
+    _say(f"fitted {type(chosen).__name__} ({_steps_line(result, coarse_factor)}):")
     for name in result.fitted:
-        print(f"  {name} = {values[name]}")
+        _say(f"  {name} = {values[name]}")
     if result.start:
-        print(f"started from the fitted fields of {start_names[result.start - 1]} (a lower loss than the start given)")
+        _say(f"started from the fitted fields of {start_names[result.start - 1]} (a lower loss than the start given)")
     if effect.fit_stand_in() is not effect:
         cheaper = _statics_line(effect.fit_stand_in(), effect)
-        print(f"fitted through its stand-in (cheaper: {cheaper}); the losses and parameters written are the effect's own")
+        _say(f"fitted through its stand-in (cheaper: {cheaper}); the losses and parameters written are the effect's own")
     loss_name = f"{args.loss} ({args.space})"
     after = result.loss_after if args.fractional_counts else result.loss_rounded
-    print(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
+    _say(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
     frame_data = list(zip(frames, light_positions, in_front, depths))
     fitted_images = [render_compiled(chosen, *frame) for frame in frame_data]
-    print(_metrics_line(effect, fitted_images, frame_data, targets))
+    _say(_metrics_line(effect, fitted_images, frame_data, targets))
     for line in _determination_lines(result, frames, light_positions, targets, in_front, depths, args.space):
-        print(line)
+        _say(line)
+    report = fit_report_image(targets[0], fitted_images[0], result.loss_history) if args.report else None
+    _write_pair(args.output, chosen, args.report, report)
     if args.report:
-        write_image(args.report, fit_report_image(targets[0], fitted_images[0], result.loss_history))
-        print(f"wrote {args.report}")
-    print(f"wrote {args.output}")
+        _say(f"wrote {args.report}")
+    _say(f"wrote {args.output}")
     return 0
+
+
+def _say(line: str) -> None:
+    """A line of the fit's results on stdout, shown as it comes (a pipe would hold it back until the end)."""
+    print(line, flush=True)
+
+
+def _write_pair(output: str, effect, report_path: str | None, report) -> None:
+    """The fitted parameters and the report, both or neither: each is written whole (atomically), the report first,
+    and removed again if the parameters cannot follow it (an error, an interrupt)."""
+    if report_path is None:
+        save_effect(output, effect)
+        return
+    write_image(report_path, report)
+    try:
+        save_effect(output, effect)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(report_path)
+        raise
 
 
 def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:

@@ -20,8 +20,9 @@ from godrays_jax.primitives.checks import check_light
 # farther apart.
 _REFERENCE_SIDE = 320
 _MAX_SPACING_SCALE = 4.0
-# The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines.
-_STAND_IN_FACTOR = 4
+# The stand-in `fit` fits in place of shadows read along lines: the same reading, coarser (march rays 4 pixels apart
+# at 320 wide, half the lines, half the bins).
+_STAND_IN = dict(resolution_factor=4, num_shadow_lines=256, num_shadow_bins=96)
 
 
 def march_factor(height: int, width: int, resolution_factor: int) -> float:
@@ -110,13 +111,12 @@ class VolumetricFog(Effect):
 
     def fit_stand_in(self) -> "VolumetricFog":
         """Read along lines, the shadows' table is most of a fit's work, and a fit matches single frames, where
-        holding still under a moving camera does not count: `fit` fits the same fields with the shadows read from
-        samples on rays 4 pixels apart at 320 wide (`volumetric_haze`'s reading before; the two readings of the
-        model agree to a fraction of an 8-bit code, benchmarks/README.md, "shadows read along lines through the
-        light, in the library"), several times cheaper, and returns them with this effect's reading."""
+        holding still under a moving camera does not count: `fit` fits the same fields read along lines at
+        coarser counts (march rays 4 pixels apart at 320 wide, 256 lines, 96 bins; benchmarks/README.md, "The fit
+        as users run it"), several times cheaper, and returns them with this effect's counts."""
         if self.shadows != "lines":
             return self
-        return dataclasses.replace(self, shadows="samples", resolution_factor=_STAND_IN_FACTOR)
+        return dataclasses.replace(self, **_STAND_IN)
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """`(surface, scattered, ambient)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""

@@ -4,9 +4,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
@@ -14,6 +12,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import parameter_bounds
 from godrays_jax.kernels.losses import Space, check_space
 from godrays_jax.pipeline import exported
+from godrays_jax.pipeline.fit import residuals_and_jacobian
 from godrays_jax.pipeline.problem import (
     FitProblem,
     as_frames,
@@ -23,17 +22,6 @@ from godrays_jax.pipeline.problem import (
 )
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
-
-
-@eqx.filter_jit
-def _jacobian(problem, positions, frame_data):
-    """The residuals' Jacobian per unit of each field's range, `(residuals, unknowns)`, one JVP per unknown."""
-    basis = jnp.eye(positions.shape[0], dtype=positions.dtype)
-
-    def residuals(flat):
-        return problem.residuals_of(problem.effect_at_positions(flat), frame_data)
-
-    return jax.vmap(lambda direction: jax.jvp(residuals, (positions,), (direction,))[1])(basis).T
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,15 +111,20 @@ def determination(
     check_inside_bounds(effect)
     bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
     names = tuple(bounds)
-    problem = FitProblem.of(effect, bounds, frames, loss="mse", space=space)
+    # Through the effect's stand-in (`Effect.fit_stand_in`), as `fit` differentiates it: the same program as a fit's
+    # steps, which after a fit is compiled already.
+    problem = FitProblem.of(effect.fit_stand_in(), bounds, frames, loss="mse", space=space)
     # The positions are the effect's own values, checked inside their bounds above: no run-time range check, so the
     # cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         positions = problem.positions(np.dtype(frames[0].color.dtype))
         frame_data = (frames, lights, targets, in_front, depths)
-        jacobian = np.asarray(
-            exported.call("determination_jacobian", _jacobian, problem, positions, frame_data), np.float64
-        )
+        _, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+    # The cut-off below which `lstsq` treats singular values as zero stays the Jacobian's (it scales with the rows).
+    cutoff = np.finfo(np.float64).eps * max(jacobian.shape)
+    # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares offset below
+    # are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
+    jacobian = _triangular(np.asarray(jacobian))
     owners, labels, lows, spans = [], [], [], []
     for name, shape in zip(names, problem.shapes):
         size = math.prod(shape)
@@ -144,11 +137,6 @@ def determination(
     pinned = np.minimum(position, 1.0 - position) <= ON_BOUND
     on_bound = {label: low + span * float(round(where)) for label, low, span, where, on in
                 zip(labels, lows, spans, position, pinned) if on}  # fmt: skip
-    # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares offset below
-    # are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
-    # The cut-off below which `lstsq` treats singular values as zero stays the Jacobian's (it scales with the rows).
-    cutoff = np.finfo(np.float64).eps * max(jacobian.shape)
-    jacobian = np.linalg.qr(jacobian, mode="r")
     singular, vectors = np.linalg.svd(jacobian, full_matrices=False)[1:]
     floor = singular.max() * 1e-12 + 1e-300
     inverse_diagonal = ((vectors.T / np.maximum(singular, floor)) ** 2).sum(axis=1)
@@ -185,6 +173,16 @@ def determination(
         on_bound=on_bound,
         condition=float(singular.max() / smallest) if smallest > 0 else math.inf,
     )
+
+
+def _triangular(jacobian: np.ndarray, rows: int = 1 << 19) -> np.ndarray:
+    """`R` of the QR decomposition of the Jacobian, in float64, `rows` rows at a time (a large frame's Jacobian
+    is not copied in float64 whole)."""
+    triangle = np.zeros((0, jacobian.shape[1]))
+    for start in range(0, jacobian.shape[0], rows):
+        block = np.asarray(jacobian[start : start + rows], np.float64)
+        triangle = np.linalg.qr(np.concatenate([triangle, block]), mode="r")
+    return triangle
 
 
 ON_BOUND = 1e-3

@@ -65,12 +65,14 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import count_fields, field_value, replace_fields
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.marquardt import ScaledLevenbergMarquardt
+from godrays_jax.pipeline.compiled import render_compiled
+from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState, normal_equations
 from godrays_jax.pipeline.problem import (
     FitProblem,
     as_frames,
     check_inside_bounds,
     fitted_bounds,
+    folded_positions,
     start_point,
     strongly_typed,
 )
@@ -174,10 +176,9 @@ def _solver(solver, loss, rtol, atol):
     if solver in ("levenberg_marquardt", "gauss_newton") and loss != "mse":
         raise ValueError(f"solver={solver!r} fits least squares (loss='mse') only; use solver='bfgs' for loss={loss!r}")
     if solver == "levenberg_marquardt":
-        # Damped steps by the normal equations (J^T J + lambda I is positive definite for any lambda > 0, and
-        # as small as the parameter count) instead of optimistix's default QR of the whole Jacobian, which
-        # dominated a compiled fit (`benchmarks/fit_results.md`).
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
+        # On the host around the one compiled program of the residuals and their Jacobian (`marquardt`): every
+        # phase of the fit and `determination` then run that program, and none compiles a solver step of its own.
+        return LevenbergMarquardt(rtol=rtol, atol=atol)
     if solver == "gauss_newton":
         return optx.GaussNewton(rtol=rtol, atol=atol)
     return optx.BFGS(rtol=rtol, atol=atol)
@@ -242,15 +243,70 @@ def _objective_function(y, data):
 
 
 @eqx.filter_jit
+def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
+    """The residuals at the fitted fields' `positions` in their ranges (`FitProblem.effect_at_positions`) and their
+    Jacobian in those positions, `(residuals, unknowns)`: one vectorised JVP per stage of the effect
+    (`FitProblem.lane_groups`), so that a stage's lanes run only through the operations its fields reach.
+
+    The one compiled program of a fit by Levenberg-Marquardt (`marquardt`) and of `determination`.
+    """
+    groups = [np.asarray(group) for group in problem.lane_groups]
+    vectors = [positions[group] for group in groups]
+    columns = []
+    for index, vector in enumerate(vectors):
+
+        def along(own, index=index):
+            groups_now = [*vectors[:index], own, *vectors[index + 1 :]]
+            return problem.residuals_of(problem.effect_of_groups(groups_now, positions=True), frame_data)
+
+        basis = jnp.eye(vector.shape[0], dtype=vector.dtype)
+        residuals, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
+        columns.append(jacobian)
+    order = np.argsort(np.concatenate(groups))
+    return residuals, jnp.concatenate(columns, axis=-1)[:, order]
+
+
+def _host_evaluator(problem: FitProblem, frame_data, dtype):
+    """`marquardt.Evaluate` of the unknowns `y`: the residuals and normal equations in `y` (the positions'
+    Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`."""
+
+    def evaluate(y):
+        positions, slope = folded_positions(y)
+        residuals, jacobian = exported.call(
+            "fit_jacobian", residuals_and_jacobian, problem, jnp.asarray(positions, dtype), frame_data
+        )  # fmt: skip
+        residuals = np.asarray(residuals)
+        normal, gradient = normal_equations(np.asarray(jacobian), residuals)
+        return residuals, normal * np.outer(slope, slope), gradient * slope
+
+    return evaluate
+
+
+@eqx.filter_jit
+def _image_loss(problem, images, frame_data):
+    return problem.objective_of_images(images, frame_data)
+
+
+def effect_loss(problem: FitProblem, candidate: Effect, frame_data) -> float:
+    """`problem`'s loss of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`): a
+    fit's losses of the effect itself share that compiled program with the frames its command then renders."""
+    images = [
+        render_compiled(candidate, frame, light, front, depth) for frame, light, _, front, depth in zip(*frame_data)
+    ]  # fmt: skip
+    return float(exported.call("fit_image_loss", _image_loss, problem, images, frame_data))
+
+
+@eqx.filter_jit
 def _evaluate(candidate, data):
     problem, frame_data = data
     return problem.objective(candidate, frame_data)
 
 
 @eqx.filter_jit
-def _fitted_effects(problem, y):
-    """The fitted effect and its counts rounded, compiled (op by op each scalar operation compiles on its own)."""
-    effect = problem.effect_at(y)
+def _fitted_effects(problem, positions):
+    """The fitted effect at `positions` in its fields' ranges and its counts rounded, compiled (op by op each scalar
+    operation compiles on its own)."""
+    effect = problem.effect_at_positions(positions)
     return effect, round_counts(effect)
 
 
@@ -290,21 +346,38 @@ def _step(optimiser, function, y, state_leaves, data, least_squares):
 
 @dataclasses.dataclass
 class _Run:
-    """One start's descent: its problem, unknowns and solver state, its losses so far, whether it stopped."""
+    """One start's descent: its problem and solver state, its losses so far, whether it stopped.
+
+    `state` is a `marquardt.MarquardtState` for the host's Levenberg-Marquardt, else optimistix's state as
+    `(y, leaves, done, succeeded)`.
+    """
 
     problem: FitProblem
-    y: jax.Array
-    state: list
-    done: jax.Array
-    succeeded: jax.Array
+    state: object
     history: list[float]  # the start's loss, then the loss at the last accepted point after each step but the first
     solver_losses: list[float] = dataclasses.field(default_factory=list)
     steps: int = 0
     plateaued: bool = False
 
     @property
+    def on_host(self) -> bool:
+        return isinstance(self.state, MarquardtState)
+
+    @property
+    def done(self) -> bool:
+        return self.state.done if self.on_host else bool(self.state[2])
+
+    @property
+    def converged(self) -> bool:
+        return self.state.done and np.all(np.isfinite(self.state.y)) if self.on_host else self.done and bool(self.state[3])
+
+    @property
     def stopped(self) -> bool:
-        return bool(self.done) or self.plateaued
+        return self.done or self.plateaued
+
+    def positions(self) -> np.ndarray:
+        """The fitted fields' positions in their ranges at the last accepted point."""
+        return folded_positions(np.asarray(self.state.y if self.on_host else self.state[0]))[0]
 
 
 def _descend(
@@ -315,29 +388,44 @@ def _descend(
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
     goes on to `max_steps`. Returns the runs and the winner's index.
 
-    The starts differ only in their fitted fields, so they share one problem and its compiled steps; each
+    The starts differ only in their fitted fields, so they share one problem and its compiled program; each
     keeps its own solver state, so a start that goes on is not started again.
     """
     frames = frame_data[0]
     problems = [FitProblem.of(candidate, bounds, frames, loss=loss, space=space) for candidate in candidates]
-    function = _residual_function if least_squares else _objective_function
     dtype = np.dtype(frames[0].color.dtype)
-    runs = []
-    for problem in problems:
-        data = (problem, frame_data)
-        y = start_point(problem, dtype)
-        state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, data)
-        start_loss = float(exported.call("fit_loss", _evaluate, problem.effect, data))
-        runs.append(_Run(problems[0], y, state, done, succeeded, [start_loss]))
     data = (problems[0], frame_data)
+    runs = []
+    if isinstance(optimiser, LevenbergMarquardt):
+        evaluate = _host_evaluator(problems[0], frame_data, dtype)
+        for problem in problems:
+            y = np.asarray(start_point(problem, dtype), np.float64)
+            first = evaluate(y)  # the first step's evaluation: the start's loss
+            runs.append(_Run(problems[0], optimiser.init(y, first), [float(np.sum(np.square(first[0], dtype=np.float64)))]))
+
+        def step(run):
+            run.state = optimiser.step(run.state, evaluate)
+            return run.state.loss
+
+    else:
+        function = _residual_function if least_squares else _objective_function
+        for problem in problems:
+            y = start_point(problem, dtype)
+            state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, (problem, frame_data))
+            start_loss = float(exported.call("fit_loss", _evaluate, problem.effect, (problem, frame_data)))
+            runs.append(_Run(problems[0], (y, state, done, succeeded), [start_loss]))
+
+        def step(run):
+            y, leaves, done, succeeded, accepted_loss = exported.call(
+                "fit_step", _step, optimiser, function, run.state[0], run.state[1], data, least_squares
+            )  # fmt: skip
+            run.state = (y, leaves, done, succeeded)
+            return float(accepted_loss)
 
     def advance(run, until):
         while run.steps < until and not run.stopped:
-            run.y, run.state, run.done, run.succeeded, accepted_loss = exported.call(
-                "fit_step", _step, optimiser, function, run.y, run.state, data, least_squares
-            )
+            run.solver_losses.append(step(run))
             run.steps += 1
-            run.solver_losses.append(float(accepted_loss))
             if run.steps > 1:  # after the first step the state holds the start's loss, already recorded
                 run.history.append(run.solver_losses[-1])
             counter(run.history[-1])
@@ -353,6 +441,12 @@ def _descend(
         budget *= 2
     advance(runs[alive[0]], max_steps)
     return runs, alive[0]
+
+
+def _effect_of_run(run: _Run) -> Effect:
+    """The effect at a run's last accepted point."""
+    dtype = np.asarray(field_value(run.problem.effect, run.problem.names[0])).dtype
+    return _fitted_effects(run.problem, jnp.asarray(run.positions(), dtype))[0]
 
 
 def _plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
@@ -488,8 +582,8 @@ def fit(
         raise ValueError(f"plateau_rtol and coarse_plateau_rtol must be >= 0, got {plateau_rtol!r}, {coarse_plateau_rtol!r}")
     check_space(space)
     optimiser = _solver(solver, loss, rtol, atol)
-    polisher = ScaledLevenbergMarquardt(rtol=rtol, atol=atol) if polishes(solver, loss) else None
-    least_squares = isinstance(optimiser, optx.AbstractLeastSquaresSolver)
+    polisher = LevenbergMarquardt(rtol=rtol, atol=atol, scaled=True) if polishes(solver, loss) else None
+    least_squares = isinstance(optimiser, (LevenbergMarquardt, optx.AbstractLeastSquaresSolver))
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
     given = jax.tree.map(strongly_typed, effect)
@@ -521,7 +615,7 @@ def fit(
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
-        loss_before = float(exported.call("fit_loss", _evaluate, given, (problem, frame_data)))
+        loss_before = effect_loss(problem, given, frame_data)
         coarse_steps = 0
         if coarse_factor > 1:
             # The starts race at the reduced resolution; the winner's result goes on at full resolution.
@@ -533,7 +627,7 @@ def fit(
             scaled = [scale_pixel_fields(candidate, 1.0 / coarse_factor) for candidate in candidates]
             coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **descend)
             coarse_steps = counter.steps
-            fine_start = as_given(coarse_runs[start_index].problem.effect_at(coarse_runs[start_index].y))
+            fine_start = _effect_of_run(coarse_runs[start_index])
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
         polish = None if polisher is None else {**descend, "optimiser": polisher}
         # After a coarse phase, which raced the starts, the full resolution's one descent is the polish itself.
@@ -548,15 +642,16 @@ def fit(
         history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
         if polish is not None and coarse_factor == 1 and max_steps > 0:
             before = counter.steps
-            polished, _ = _descend([as_given(run.problem.effect_at(run.y))], bounds, frame_data, counter, **polish)
+            polished, _ = _descend([_effect_of_run(run)], bounds, frame_data, counter, **polish)
             run, polish_steps = polished[0], counter.steps - before
             history = [*history, *run.history]  # one entry per step, as the descent's (its first: where it starts)
-        fitted_effect, rounded = (as_given(e) for e in _fitted_effects(run.problem, run.y))
+        positions = jnp.asarray(run.positions(), np.dtype(frames[0].color.dtype))
+        fitted_effect, rounded = (as_given(e) for e in _fitted_effects(run.problem, positions))
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
-        data = (run.problem, frame_data)
-        loss_after = float(exported.call("fit_loss", _evaluate, fitted_effect, data))
-        loss_rounded = float(exported.call("fit_loss", _evaluate, rounded, data))
+        loss_after = effect_loss(problem, fitted_effect, frame_data)
+        same = _same_values(fitted_effect, rounded, names)
+        loss_rounded = loss_after if same else effect_loss(problem, rounded, frame_data)
     return FitResult(
         effect=fitted_effect,
         rounded=rounded,
@@ -566,7 +661,7 @@ def fit(
         loss_rounded=loss_rounded,
         fitted=names,
         steps=counter.steps - coarse_steps,
-        converged=bool(run.done) and bool(run.succeeded),
+        converged=bool(run.converged),
         plateaued=run.plateaued,
         coarse_steps=coarse_steps,
         start=start_index,

@@ -74,6 +74,26 @@ def to_unit(value, low, high):
     return jnp.where(position < edge, near_low, jnp.where(position > 1.0 - edge, near_high, inside))
 
 
+def folded_positions(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`from_unit`'s map of the unknowns to positions in their ranges (0 on the lower bound, 1 on the upper) and its
+    slope, in NumPy float64: for the solver that runs on the host (`marquardt`)."""
+    folded = np.mod(np.asarray(unit, np.float64), 2.0)
+    mirrored = folded > 1.0
+    inside = np.where(mirrored, 2.0 - folded, folded)
+    rounding, slope = FOLD_ROUNDING, 1.0 / (1.0 - FOLD_ROUNDING)
+    near_low, near_high = inside < rounding, inside > 1.0 - rounding
+    position = np.where(
+        near_low, slope * inside**2 / (2.0 * rounding),
+        np.where(near_high, 1.0 - slope * (1.0 - inside) ** 2 / (2.0 * rounding), slope * (inside - rounding / 2.0)),
+    )  # fmt: skip
+    gradient = np.where(near_low, slope * inside / rounding, np.where(near_high, slope * (1.0 - inside) / rounding, slope))
+    return position, np.where(mirrored, -gradient, gradient)
+
+
+def _linear(position, low, high):
+    return low + (high - low) * position
+
+
 def from_unit(unit, low, high):
     """Any real unknown -> a value in `[low, high]`: `_rounded_fold` of the unknown folded into `[0, 1]` (period 2,
     mirrored), so every unknown is in range and the map is smooth everywhere."""
@@ -133,8 +153,9 @@ def as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf):
         if depth.shape != () or not depth > 0:
             raise ValueError(f"light_depth[{index}] must be a distance > 0 in scene units (inf: the sun), got {depth}")
         depths.append(jnp.asarray(np.asarray(depth, frame.color.dtype)))
-    # From NumPy: `jnp.asarray(True)` compiles a conversion.
-    return buffers, lights, targets, [jnp.asarray(np.asarray(flag)) for flag in light_in_front], depths
+    # Python bools: static in every compiled program, so an effect that reads the light's side (the shadows read
+    # along lines, outward from a light in front, inward from one behind) compiles the side it has alone.
+    return buffers, lights, targets, [bool(np.asarray(flag)) for flag in light_in_front], depths
 
 
 def _match_channels(image, target):
@@ -184,15 +205,17 @@ class FitProblem(eqx.Module):
             offset += size
         return tuple(tuple(group) for group in groups.values())
 
-    def effect_of_groups(self, vectors):
+    def effect_of_groups(self, vectors, *, positions: bool = False):
         """`effect_at` of the unknowns given as one vector per group of `lane_groups`, in its order (a field's
-        value then carries a derivative only where its own group's vector does)."""
+        value then carries a derivative only where its own group's vector does); `positions`: the vectors hold
+        positions in the fields' ranges (`effect_at_positions`) instead."""
+        to_value = _linear if positions else from_unit
         if len(vectors) == 1:  # one stage: the unknowns in order
-            return self._effect_of(vectors[0])
+            return self._effect_of(vectors[0], to_value=to_value)
         unknowns = {}
         for vector, group in zip(vectors, self.lane_groups):
             unknowns |= {index: vector[position] for position, index in enumerate(group)}
-        return self._effect_of([unknowns[index] for index in range(len(unknowns))])
+        return self._effect_of([unknowns[index] for index in range(len(unknowns))], to_value=to_value)
 
     def effect_at(self, y):
         """The effect with the fitted fields set from the flat unit-scaled unknowns `y`."""
@@ -208,7 +231,7 @@ class FitProblem(eqx.Module):
     def effect_at_positions(self, positions):
         """The effect with each fitted field at `low + (high - low) * position`, linear and unfolded: derivatives
         in `positions` are per unit of each field's range, whatever the solver's map (`determination`'s)."""
-        return self._effect_of(positions, to_value=lambda position, low, high: low + (high - low) * position)
+        return self._effect_of(positions, to_value=_linear)
 
     def _effect_of(self, unknowns, to_value=from_unit):
         """The effect from the unknowns: a flat array or a list of scalars, in `names`' order."""
@@ -236,9 +259,14 @@ class FitProblem(eqx.Module):
         return jnp.concatenate(parts)
 
     def objective(self, candidate, frame_data):
+        return self.objective_of_images([image for image, _ in self.rendered(candidate, frame_data)], frame_data)
+
+    def objective_of_images(self, images, frame_data):
+        """The loss of rendered frames `images` (one per frame) against the frames' targets."""
+        pairs = (_match_channels(image, reference) for image, reference in zip(images, frame_data[2]))
         return sum(
             weight * LOSSES[self.loss](image, reference, space=self.space)
-            for (image, reference), weight in zip(self.rendered(candidate, frame_data), self.frame_weights)
+            for (image, reference), weight in zip(pairs, self.frame_weights)
         )
 
 

@@ -41,7 +41,7 @@ def default_fit_effect() -> Effect:
     return preset("volumetric_haze")
 
 
-COARSE_FIT_PIXELS = 256 * 256
+COARSE_FIT_PIXELS = 160 * 90
 """Without `--coarse-factor`, `fit` first fits at a reduced resolution frames larger than this many pixels.
 
 Below it a coarse phase saves little: `VolumetricFog` marches at a quarter of the frame's resolution, so

@@ -266,20 +266,39 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
     return residuals, jnp.concatenate(columns, axis=-1)[:, order]
 
 
-def _host_evaluator(problem: FitProblem, frame_data, dtype):
+def _host_evaluator(problem: FitProblem, frame_data, dtype, own=None):
     """`marquardt.Evaluate` of the unknowns `y`: the residuals and normal equations in `y` (the positions'
-    Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`."""
+    Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`.
+
+    `own`, a function of the fitted fields' positions: the effect whose own residuals replace the problem's (its
+    stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in).
+    """
 
     def evaluate(y):
         positions, slope = folded_positions(y)
-        residuals, jacobian = exported.call(
-            "fit_jacobian", residuals_and_jacobian, problem, jnp.asarray(positions, dtype), frame_data
-        )  # fmt: skip
+        positions = jnp.asarray(positions, dtype)
+        residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+        if own is not None:
+            residuals = effect_residuals(problem, own(positions), frame_data)
         residuals = np.asarray(residuals)
         normal, gradient = normal_equations(np.asarray(jacobian), residuals)
         return residuals, normal * np.outer(slope, slope), gradient * slope
 
     return evaluate
+
+
+def _rendered(candidate: Effect, frame_data) -> list:
+    return [render_compiled(candidate, frame, light, front, depth) for frame, light, _, front, depth in zip(*frame_data)]
+
+
+@eqx.filter_jit
+def _image_residuals(problem, images, frame_data):
+    return problem.residuals_of_images(images, frame_data)
+
+
+def effect_residuals(problem: FitProblem, candidate: Effect, frame_data) -> jax.Array:
+    """`problem`'s residuals of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`)."""
+    return exported.call("fit_image_residuals", _image_residuals, problem, _rendered(candidate, frame_data), frame_data)
 
 
 @eqx.filter_jit
@@ -290,10 +309,7 @@ def _image_loss(problem, images, frame_data):
 def effect_loss(problem: FitProblem, candidate: Effect, frame_data) -> float:
     """`problem`'s loss of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`): a
     fit's losses of the effect itself share that compiled program with the frames its command then renders."""
-    images = [
-        render_compiled(candidate, frame, light, front, depth) for frame, light, _, front, depth in zip(*frame_data)
-    ]  # fmt: skip
-    return float(exported.call("fit_image_loss", _image_loss, problem, images, frame_data))
+    return float(exported.call("fit_image_loss", _image_loss, problem, _rendered(candidate, frame_data), frame_data))
 
 
 @eqx.filter_jit
@@ -382,11 +398,12 @@ class _Run:
 
 def _descend(
     candidates, bounds, frame_data, counter, *, optimiser, least_squares, loss, space, max_steps, probe_steps,
-    plateau_steps, plateau_rtol,
+    plateau_steps, plateau_rtol, own=None,
 ) -> tuple[list[_Run], int]:
     """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
-    goes on to `max_steps`. Returns the runs and the winner's index.
+    goes on to `max_steps`. Returns the runs and the winner's index. `own`: as `_host_evaluator`'s (Levenberg-
+    Marquardt on the host only).
 
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
     keeps its own solver state, so a start that goes on is not started again.
@@ -397,7 +414,7 @@ def _descend(
     data = (problems[0], frame_data)
     runs = []
     if isinstance(optimiser, LevenbergMarquardt):
-        evaluate = _host_evaluator(problems[0], frame_data, dtype)
+        evaluate = _host_evaluator(problems[0], frame_data, dtype, own)
         for problem in problems:
             y = np.asarray(start_point(problem, dtype), np.float64)
             first = evaluate(y)  # the first step's evaluation: the start's loss
@@ -629,7 +646,10 @@ def fit(
             coarse_steps = counter.steps
             fine_start = _effect_of_run(coarse_runs[start_index])
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
-        polish = None if polisher is None else {**descend, "optimiser": polisher}
+        # Through a stand-in the polish takes the effect's own residuals (its losses the effect's), the stand-in's
+        # Jacobian: it ends where the effect's loss stops falling along the stand-in's directions.
+        own = None if given is effect else lambda positions: as_given(_fitted_effects(problem, positions)[0])
+        polish = None if polisher is None else {**descend, "optimiser": polisher, "own": own}
         # After a coarse phase, which raced the starts, the full resolution's one descent is the polish itself.
         fine = polish if coarse_factor > 1 and polish is not None else descend
         before = counter.steps

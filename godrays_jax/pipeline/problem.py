@@ -252,9 +252,14 @@ class FitProblem(eqx.Module):
         return self.residuals_of(self.effect_at(y), frame_data)
 
     def residuals_of(self, candidate, frame_data):
+        return self.residuals_of_images([image for image, _ in self.rendered(candidate, frame_data)], frame_data)
+
+    def residuals_of_images(self, images, frame_data):
+        """The residuals of rendered frames `images` (one per frame) against the frames' targets."""
+        pairs = (_match_channels(image, reference) for image, reference in zip(images, frame_data[2]))
         parts = [
             jnp.ravel(to_space(image, self.space) - to_space(reference, self.space)) * math.sqrt(weight / reference.size)
-            for (image, reference), weight in zip(self.rendered(candidate, frame_data), self.frame_weights)
+            for (image, reference), weight in zip(pairs, self.frame_weights)
         ]
         return jnp.concatenate(parts)
 
@@ -289,7 +294,9 @@ def start_point(problem, dtype):
 
 
 def strongly_typed(leaf):
-    """A weakly typed array (`jnp.asarray(0.5)`) as a strongly typed one; converted on the host (no compilation)."""
-    if isinstance(leaf, jax.Array) and leaf.weak_type:
+    """A weakly typed array (`jnp.asarray(0.5)`) as a strongly typed one, a NumPy value (`np.float32(50.0)`) as a JAX
+    array; converted on the host (no compilation). So every compiled program takes the effect's fields as arguments:
+    a NumPy value would be a constant of the program, which then differs wherever it does."""
+    if isinstance(leaf, jax.Array) and leaf.weak_type or isinstance(leaf, (np.ndarray, np.generic)):
         return jax.device_put(np.asarray(leaf))
     return leaf

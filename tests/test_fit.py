@@ -162,7 +162,8 @@ def test_a_second_fit_of_the_same_problem_reuses_the_compilation(two_frame_fit, 
 
 
 def test_a_weakly_typed_start_compiles_the_loss_once(caplog):
-    """`eqx.tree_at(..., jnp.asarray(0.6))` gives a weakly typed field; the fitted effect's are not."""
+    """`eqx.tree_at(..., jnp.asarray(0.6))` gives a weakly typed field; the fitted effect's are not: the render that
+    gives the losses before and after, and the solver's program, each compile once."""
     frame = _frame()
     effect = _rays(max_samples=6, num_samples=6.0)  # a problem no other test compiles
     target = eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.8))(frame, LIGHT)
@@ -170,13 +171,16 @@ def test_a_weakly_typed_start_compiles_the_loss_once(caplog):
     assert start.density.aval.weak_type
     with jax.log_compiles(), caplog.at_level("WARNING"):
         result = fit(start, frame, LIGHT, target, fixed=FIXED_RAYS + ("decay", "exposure"), max_steps=5)
-    compiled = [r.getMessage() for r in caplog.records if "XLA compilation of jit(_evaluate)" in r.getMessage()]
-    assert len(compiled) == 1, compiled
+    for program in ("_render", "residuals_and_jacobian"):
+        compiled = [r.getMessage() for r in caplog.records if f"XLA compilation of jit({program})" in r.getMessage()]
+        assert len(compiled) == 1, compiled
     assert result.loss_after < result.loss_before
 
 
 def test_a_fit_compiles_only_its_own_steps(caplog):
-    """No operation outside the solver's compiled functions is compiled on its own (each costs a compilation)."""
+    """No operation outside the fit's compiled functions is compiled on its own (each costs a compilation): the
+    start, the residuals and their Jacobian (every solver step's), the render and its loss (the losses before and
+    after), the fitted effect."""
     frame = _frame()
     fixed = FIXED_RAYS + ("decay", "exposure")
     # optimistix and equinox build a few constants on their first use in a process: a first fit of
@@ -189,7 +193,8 @@ def test_a_fit_compiles_only_its_own_steps(caplog):
     with jax.log_compiles(), caplog.at_level("WARNING"):
         fit(effect, frame, LIGHT, target, fixed=fixed, max_steps=3)
     compiled = {r.getMessage().split()[4] for r in caplog.records if r.getMessage().startswith("Finished XLA")}
-    assert compiled == {f"jit({name})" for name in ("start_point", "_init", "_step", "_evaluate", "_fitted_effects")}
+    expected = ("start_point", "residuals_and_jacobian", "_render", "_image_loss", "_fitted_effects")
+    assert compiled == {f"jit({name})" for name in expected}
 
 
 def test_a_repeated_fit_traces_and_compiles_nothing(caplog, monkeypatch):
@@ -285,7 +290,9 @@ def test_steps_rejected_before_the_loss_first_falls_are_no_plateau():
 
 
 def test_the_fit_command_fits_large_frames_at_a_reduced_resolution_first():
-    assert [auto_coarse_factor(h, w) for h, w in ((180, 320), (256, 256), (270, 480), (1080, 1920))] == [1, 1, 2, 6]
+    """Every frame above 160x90 is raced at a reduced resolution of at most that many pixels."""
+    sizes = ((90, 160), (100, 100), (180, 320), (256, 256), (270, 480), (1080, 1920))
+    assert [auto_coarse_factor(h, w) for h, w in sizes] == [1, 1, 2, 3, 3, 12]
 
 
 def test_minimiser_with_ssim_loss_improves_and_counts_round():
@@ -406,9 +413,10 @@ def test_fit_command_errors_are_one_line(tmp_path, capsys):
 
 
 def test_volumetric_fog_read_along_lines_descends_as_its_stand_in_and_polishes_as_itself(monkeypatch):
-    """`fit` races and descends `VolumetricFog` read along lines as its stand-in (shadows from samples, rays 4
-    pixels apart), polishes it as itself and returns it with the lines' reading, its losses the returned effect's;
-    `stand_in=False` fits the effect itself throughout."""
+    """`fit` races and descends `VolumetricFog` read along lines as its stand-in (the same reading, coarser: rays 4
+    pixels apart, half the lines and bins), polishes it with the effect's own residuals (the stand-in's Jacobian)
+    and returns it with its own counts, its losses the returned effect's; `stand_in=False` fits the effect itself
+    throughout."""
     height, width = 24, 40
     depth = np.full((height, width), np.inf, np.float32)
     depth[height // 2 :] = 12.0
@@ -422,7 +430,9 @@ def test_volumetric_fog_read_along_lines_descends_as_its_stand_in_and_polishes_a
     start = gr.VolumetricFog(medium=gr.Medium(extinction=0.01, **medium), **shape)
     target = gr.VolumetricFog(medium=gr.Medium(extinction=0.03, **medium), **shape)(frame, light)
     stand_in = start.fit_stand_in()
-    assert (stand_in.shadows, stand_in.resolution_factor) == ("samples", 4)
+    assert (stand_in.shadows, stand_in.resolution_factor, stand_in.num_shadow_lines, stand_in.num_shadow_bins) == (
+        "lines", 4, 24, 32
+    )
     assert gr.VolumetricFog(resolution_factor=2).fit_stand_in().resolution_factor == 2  # from samples: itself
     fixed = tuple(name for name in fitted_bounds(start) if name != "medium.extinction")
     stood_in = []

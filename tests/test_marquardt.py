@@ -1,13 +1,12 @@
-"""`pipeline.marquardt`: Levenberg-Marquardt damped by `diag(J^T J)`, against NumPy's damped normal equations."""
+"""`pipeline.marquardt`: Levenberg-Marquardt on the host, against optimistix's and NumPy's damped normal equations."""
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 import pytest
 
-from godrays_jax.pipeline.marquardt import ScaledDampedNewtonDescent, ScaledLevenbergMarquardt
+from godrays_jax.pipeline.marquardt import LevenbergMarquardt, normal_equations
 
 
 def _curve(y, data):
@@ -23,52 +22,65 @@ def _data(scale):
     return t, samples, jnp.asarray(scale, t.dtype)
 
 
-def _iterates(solver, y0, data, steps):
-    """The unknowns after each of `steps` solver steps."""
-    function = lambda y, args: (_curve(y, args), None)  # noqa: E731 - optimistix's (residuals, aux) form
-    f_struct = jax.eval_shape(lambda: function(y0, data)[0])
-    state = solver.init(function, y0, data, {}, f_struct, None, frozenset())
-    y, found = y0, []
+def _evaluator(data, residuals=_curve):
+    def evaluate(y):
+        y = jnp.asarray(y)
+        r, jacobian = np.asarray(residuals(y, data)), np.asarray(jax.jacfwd(residuals)(y, data))
+        return (r, *normal_equations(jacobian, r))
+
+    return evaluate
+
+
+def _iterates(solver, y0, data, steps, residuals=_curve):
+    """The last accepted unknowns after each of `steps` solver steps."""
+    evaluate, state, found = _evaluator(data, residuals), solver.init(np.asarray(y0)), []
     for _ in range(steps):
-        y, state, _ = solver.step(function, y, data, {}, state, frozenset())
-        found.append(np.asarray(y))
+        state = solver.step(state, evaluate)
+        found.append(state.y)
     return found
 
 
 @pytest.mark.usefixtures("x64")
-def test_the_step_solves_the_damped_normal_equations():
+def test_it_takes_optimistix_levenberg_marquardts_steps():
+    """Unscaled, every step is optimistix's (its trust region, damping and first step alike), to rounding."""
+    y0 = jnp.asarray([1.0, 0.2, 0.0])
     data = _data([1.0, 1.0, 1.0])
-    y = jnp.asarray([1.5, 0.4, 0.1])
-    residual = _curve(y, data)
-    jacobian = jax.jacfwd(_curve)(y, data)
-    descent = ScaledDampedNewtonDescent(linear_solver=lx.Normal(lx.Cholesky()))
-    f_info = optx.FunctionInfo.ResidualJac(residual, lx.MatrixLinearOperator(jacobian))
-    state = descent.query(y, f_info, descent.init(y, f_info))
-    step_size = 0.25
-    step, result = descent.step(jnp.asarray(step_size), state)
-    j, r = np.asarray(jacobian), np.asarray(residual)
-    normal = j.T @ j
-    expected = np.linalg.solve(normal + np.diag(np.diag(normal)) / step_size, -j.T @ r)
-    assert result == optx.RESULTS.successful
-    np.testing.assert_allclose(step, expected, rtol=1e-10)
-    # optimistix's own damping (lambda I) is another step: the test tells the two apart.
-    assert not np.allclose(np.linalg.solve(normal + np.eye(3) / step_size, -j.T @ r), expected, rtol=1e-3)
+    function = lambda y, args: (_curve(y, args), None)  # noqa: E731 - optimistix's (residuals, aux) form
+    solver = optx.LevenbergMarquardt(1e-10, 1e-12)
+    state = solver.init(function, y0, data, {}, jax.eval_shape(lambda: _curve(y0, data)), None, frozenset())
+    y, expected = y0, []
+    for _ in range(8):
+        y, state, _ = solver.step(function, y, data, {}, state, frozenset())
+        expected.append(np.asarray(y))
+    for ours, theirs in zip(_iterates(LevenbergMarquardt(1e-10, 1e-12), y0, data, 8), expected):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-8, atol=1e-12)
 
 
 @pytest.mark.usefixtures("x64")
-def test_its_steps_do_not_depend_on_how_each_unknown_is_scaled():
-    """The same problem with `b` measured in units 30 times larger: the iterates are the same point.
+def test_the_scaled_step_solves_the_damped_normal_equations():
+    data = _data([1.0, 1.0, 1.0])
+    y = np.asarray([1.5, 0.4, 0.1])
+    residual, normal, gradient = _evaluator(data)(y)
+    step_size = 0.25
+    step = LevenbergMarquardt(1e-10, 1e-12, scaled=True)._damped_step(normal, gradient, step_size)
+    expected = np.linalg.solve(normal + np.diag(np.diag(normal)) / step_size, -gradient)
+    np.testing.assert_allclose(step, expected, rtol=1e-10)
+    # The plain damping (lambda I) is another step: the test tells the two apart.
+    plain = LevenbergMarquardt(1e-10, 1e-12)._damped_step(normal, gradient, step_size)
+    assert not np.allclose(plain, expected, rtol=1e-3)
 
-    (Within the floor of the damping: a column more than 1000 times smaller than the largest is damped as one 1000
-    times smaller.)"""
-    y0 = jnp.asarray([1.0, 0.2, 0.0])
+
+@pytest.mark.usefixtures("x64")
+def test_scaled_steps_do_not_depend_on_how_each_unknown_is_scaled():
+    """The same problem with `b` measured in units 30 times larger: the iterates are the same point; the plain
+    damping's are not."""
+    y0 = np.asarray([1.0, 0.2, 0.0])
     scale = np.asarray([1.0, 1.0 / 30.0, 1.0])
-    plain = _iterates(ScaledLevenbergMarquardt(1e-10, 1e-12), y0, _data([1.0, 1.0, 1.0]), 6)
-    rescaled = _iterates(ScaledLevenbergMarquardt(1e-10, 1e-12), y0 / scale, _data(scale), 6)
+    scaled = LevenbergMarquardt(1e-10, 1e-12, scaled=True)
+    plain, rescaled = _iterates(scaled, y0, _data([1.0, 1.0, 1.0]), 6), _iterates(scaled, y0 / scale, _data(scale), 6)
     for one, other in zip(plain, rescaled):
         np.testing.assert_allclose(one, other * scale, rtol=1e-7, atol=1e-12)
-    # optimistix's LevenbergMarquardt takes other steps once an unknown is rescaled.
-    unscaled = optx.LevenbergMarquardt(1e-10, 1e-12)
+    unscaled = LevenbergMarquardt(1e-10, 1e-12)
     plain, rescaled = _iterates(unscaled, y0, _data([1.0, 1.0, 1.0]), 6), _iterates(unscaled, y0 / scale, _data(scale), 6)
     assert not np.allclose(plain[-1], rescaled[-1] * scale, rtol=1e-3)
 
@@ -79,16 +91,28 @@ def test_it_solves_a_badly_scaled_problem_and_leaves_an_unknown_that_changes_not
     data = _data([1.0, 1e-4, 1.0])
 
     def residuals(y, args):
-        return _curve(y[:3], args) + 0.0 * y[3], None
+        return _curve(y[:3], args) + 0.0 * y[3]
 
-    solution = optx.least_squares(residuals, ScaledLevenbergMarquardt(1e-10, 1e-12), jnp.asarray([1.0, 2000.0, 0.0, 0.5]),
-                                  args=data, max_steps=200, has_aux=True)  # fmt: skip
+    solver = LevenbergMarquardt(1e-10, 1e-12, scaled=True)
+    evaluate, state = _evaluator(data, residuals), solver.init(np.asarray([1.0, 2000.0, 0.0, 0.5]))
+    for _ in range(200):
+        state = solver.step(state, evaluate)
+        if state.done:
+            break
     t, samples, _ = data
     expected = optx.least_squares(
         lambda y, args: _curve(y, (t, samples, jnp.ones(3))), optx.LevenbergMarquardt(1e-12, 1e-14),
         jnp.asarray([1.0, 0.2, 0.0]), max_steps=400,
     ).value  # fmt: skip
-    found = np.asarray(solution.value)
-    np.testing.assert_allclose(found[:3] * [1.0, 1e-4, 1.0], expected, rtol=1e-6)
-    assert found[3] == 0.5
-    assert np.all(np.isfinite(found))
+    assert state.done
+    np.testing.assert_allclose(state.y[:3] * [1.0, 1e-4, 1.0], expected, rtol=1e-6)
+    assert state.y[3] == 0.5
+
+
+def test_the_normal_equations_by_blocks_are_the_whole_ones():
+    rng = np.random.default_rng(0)
+    jacobian, residuals = rng.normal(size=(1000, 4)).astype(np.float32), rng.normal(size=1000).astype(np.float32)
+    normal, gradient = normal_equations(jacobian, residuals, rows=128)
+    whole = jacobian.astype(np.float64)
+    np.testing.assert_allclose(normal, whole.T @ whole, rtol=1e-12)
+    np.testing.assert_allclose(gradient, whole.T @ residuals.astype(np.float64), rtol=1e-12)

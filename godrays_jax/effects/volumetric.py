@@ -20,9 +20,10 @@ from godrays_jax.primitives.checks import check_light
 # farther apart.
 _REFERENCE_SIDE = 320
 _MAX_SPACING_SCALE = 4.0
-# The stand-in `fit` fits in place of shadows read along lines: the same reading, coarser (march rays 4 pixels apart
-# at 320 wide, half the lines, half the bins).
-_STAND_IN = dict(resolution_factor=4, num_shadow_lines=256, num_shadow_bins=96)
+# The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines, and
+# the share of the lines it reads (all the bins: with half, thin slats' shadows fit worse).
+_STAND_IN_FACTOR = 4
+_STAND_IN_LINE_SHARE = 2
 
 
 def march_factor(height: int, width: int, resolution_factor: int) -> float:
@@ -110,13 +111,15 @@ class VolumetricFog(Effect):
     }  # fmt: skip
 
     def fit_stand_in(self) -> "VolumetricFog":
-        """Read along lines, the shadows' table is most of a fit's work, and a fit matches single frames, where
-        holding still under a moving camera does not count: `fit` fits the same fields read along lines at
-        coarser counts (march rays 4 pixels apart at 320 wide, 256 lines, 96 bins; benchmarks/README.md, "The fit
-        as users run it"), several times cheaper, and returns them with this effect's counts."""
+        """Read along lines, the shadows' table and every pixel's own ray are most of a fit's work, and a fit
+        matches single frames, where holding still under a moving camera does not count: `fit` fits the same
+        fields read along lines more coarsely (march rays 4 pixels apart at 320 wide, half the lines;
+        benchmarks/README.md, "The fit as users run it"), several times cheaper, polishes them with this effect's
+        own residuals and returns them with this effect's counts."""
         if self.shadows != "lines":
             return self
-        return dataclasses.replace(self, **_STAND_IN)
+        lines = max(self.num_shadow_lines // _STAND_IN_LINE_SHARE, 2)
+        return dataclasses.replace(self, resolution_factor=_STAND_IN_FACTOR, num_shadow_lines=lines)
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """`(surface, scattered, ambient)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""

@@ -44,8 +44,12 @@ How the parameters are fitted:
   every iteration; `benchmarks/bench_fit.py` compares the two. The vectorised
   JVP runs once per stage of the effect (`Effect.FIELD_STAGES`), so that
   fields that enter late (`VolumetricFog`'s colours) are not carried through
-  the march beside the fields that enter it (`benchmarks/README.md`, "The
-  fit's Jacobian by stages").
+  the march beside the fields that enter it.
+- Levenberg-Marquardt (the default for MSE) runs on the host
+  (`marquardt`) around one compiled program, `residuals_and_jacobian`: the
+  starts' race, the descent, the polish and `determination` afterwards all
+  run that program, so a fit compiles it once per frame size, and the
+  persistent cache (`app.compile_cache`) keeps it for the next process.
 """
 
 import dataclasses
@@ -522,13 +526,14 @@ def fit(
         solver: `"auto"` (Levenberg-Marquardt for `"mse"`, BFGS otherwise),
             `"levenberg_marquardt"`, `"gauss_newton"`, `"bfgs"`, or an
             optimistix least-squares solver (MSE only) or minimiser.
-            Levenberg-Marquardt solves its damped steps by the normal
-            equations (parameters x parameters, Cholesky) and is followed by
-            a polish phase with Marquardt's scaling
-            (`marquardt.ScaledLevenbergMarquardt`, up to `max_steps` more
+            Levenberg-Marquardt runs on the host around one compiled
+            program, the residuals and their Jacobian
+            (`residuals_and_jacobian`; `marquardt`: optimistix's steps, the
+            damped normal equations solved in NumPy), and is followed by a
+            polish phase with Marquardt's scaling (up to `max_steps` more
             steps, with the plateau stop; after a coarse phase the full
-            resolution's descent is that polish), the others with
-            optimistix's default linear solvers. Gauss-Newton takes full,
+            resolution's descent is that polish); the others are optimistix's
+            with its default linear solvers. Gauss-Newton takes full,
             undamped steps: use it from a start near the solution.
         fixed: names of fittable fields to leave as they are.
         max_steps: solver steps at most (each evaluates the effect and its
@@ -558,28 +563,27 @@ def fit(
             `max_steps` steps, then goes on at full resolution from there, up
             to `max_steps` more. Each coarse step costs about `coarse_factor**2`
             times less, and the fine phase starts near its minimum.
-        plateau_steps, plateau_rtol: stop (in each phase; with a coarse phase
+        plateau_steps, plateau_rtol: stop (in each phase; in a coarse phase
             `coarse_plateau_rtol` replaces `plateau_rtol`) once the loss has
             fallen by less than `plateau_rtol` of itself over the last
             `plateau_steps` steps, every one of them taken since the loss first
             fell below the phase's start (steps the solver rejected before
             that do not count); `plateau_steps=0` runs until the solver
             converges or `max_steps`.
-        coarse_plateau_rtol: `plateau_rtol` of both phases of a fit with a
-            coarse phase: the coarse result only starts the full resolution,
-            which then starts near its own minimum, where the last tenths of a
-            percent cost many full-resolution steps (`benchmarks/README.md`,
-            "The fit's Jacobian by stages").
+        coarse_plateau_rtol: `plateau_rtol` of the coarse phase: its result
+            only starts the full resolution, which then starts near its own
+            minimum and ends on `plateau_rtol`.
         stand_in: the starts race and descend as the effect's stand-in
             (`Effect.fit_stand_in`: the same fields read more cheaply, where
             the effect names one; for `VolumetricFog` with its shadows read
-            along lines, read from samples), and the effect itself polishes
-            (Levenberg-Marquardt's polish phase; after a coarse phase, the
-            full resolution): the result is the effect given with its static
-            fields, its losses the effect's own (`loss_history`: the stand-in's
-            until the polish). Without a polish phase (another loss or
-            solver) the stand-in's fitted fields are returned in the effect
-            given. False: every phase fits the effect itself.
+            along lines, read along fewer lines on rays farther apart), and
+            the polish (Levenberg-Marquardt's polish phase; after a coarse
+            phase, the full resolution) takes the effect's own residuals with
+            the stand-in's Jacobian: the result is the effect given with its
+            static fields, its losses the effect's own (`loss_history`: the
+            stand-in's until the polish). Without a polish phase (another
+            loss or solver) the stand-in's fitted fields are returned in the
+            effect given. False: every phase fits the effect itself.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and
@@ -624,7 +628,7 @@ def fit(
     descend = dict(
         optimiser=optimiser, least_squares=least_squares, loss=loss, space=space, max_steps=max_steps,
         probe_steps=probe_steps, plateau_steps=plateau_steps,
-        plateau_rtol=plateau_rtol if coarse_factor == 1 else coarse_plateau_rtol,
+        plateau_rtol=plateau_rtol,
     )  # fmt: skip
     counter = _StepCounter(progress)
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
@@ -642,7 +646,8 @@ def fit(
                 in_front, depths,
             )  # fmt: skip
             scaled = [scale_pixel_fields(candidate, 1.0 / coarse_factor) for candidate in candidates]
-            coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **descend)
+            coarse = {**descend, "plateau_rtol": coarse_plateau_rtol}
+            coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **coarse)
             coarse_steps = counter.steps
             fine_start = _effect_of_run(coarse_runs[start_index])
             candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
@@ -650,17 +655,14 @@ def fit(
         # Jacobian: it ends where the effect's loss stops falling along the stand-in's directions.
         own = None if given is effect else lambda positions: as_given(_fitted_effects(problem, positions)[0])
         polish = None if polisher is None else {**descend, "optimiser": polisher, "own": own}
-        # After a coarse phase, which raced the starts, the full resolution's one descent is the polish itself.
-        fine = polish if coarse_factor > 1 and polish is not None else descend
-        before = counter.steps
-        runs, winner = _descend(candidates, bounds, frame_data, counter, **fine)
-        polish_steps = counter.steps - before if fine is polish else 0
+        runs, winner = _descend(candidates, bounds, frame_data, counter, **descend)
+        polish_steps = 0
         if coarse_factor == 1:
             start_index = winner
         start_index = origins[start_index]
         run = runs[winner]
         history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
-        if polish is not None and coarse_factor == 1 and max_steps > 0:
+        if polish is not None and max_steps > 0:
             before = counter.steps
             polished, _ = _descend([_effect_of_run(run)], bounds, frame_data, counter, **polish)
             run, polish_steps = polished[0], counter.steps - before

@@ -1,0 +1,220 @@
+"""`godrays-jax fit ... --report` and `apply` timed as users run them: fresh processes, an empty compilation cache
+and then a warm one, peak memory.
+
+    python benchmarks/bench_fit_cli.py [--sizes 320x180 960x540 1920x1080] [--apply] [--tests] [--json FILE]
+
+Each case runs the command line in a child process (`_child.py` below: the command's own `main`, with a
+`jax.monitoring` listener that sums the time JAX spends compiling or loading compiled programs, and timers around
+`fit` and what follows it), twice: first with `GODRAYS_JAX_CACHE_DIR` an empty folder (cold), then again on the
+folder the first run filled (warm). Recorded: wall seconds, seconds compiling (XLA's compilation or a load from
+the cache), seconds in `fit`, seconds of the checks after it (metrics, `determination`, the report and the files),
+the fit's steps, and the child's peak RSS (`resource.getrusage(RUSAGE_CHILDREN)`, a fresh process per run).
+
+Frames: the `hidden_sun` reference at its own 320x180, and pairs made from it at other sizes (each pixel repeated,
+the light's position scaled, its field of view kept in the header). `--apply`: `godrays-jax apply` of the default
+fog (`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 5 after one that
+compiles). `--tests`: the README's test command's wall time. `uptime` first: the machine may be shared.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REFERENCE = HERE / "references" / "hidden_sun"
+
+CHILD = textwrap.dedent(
+    """
+    import json, sys, time
+    import jax
+    compiling = [0.0]
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, seconds, **_: compiling.__setitem__(0, compiling[0] + seconds)
+        if event == "/jax/core/compile/backend_compile_duration" else None
+    )
+    from godrays_jax.app import cli, fit_command
+    times = {}
+    fit = fit_command.fit
+    def timed_fit(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return fit(*args, **kwargs)
+        finally:
+            times["fit"] = time.perf_counter() - start
+            times["fit_end"] = time.perf_counter()
+    fit_command.fit = timed_fit
+    status = cli.main(sys.argv[2:])
+    end = time.perf_counter()
+    record = {"status": status, "compiling": compiling[0], "fit": times.get("fit"),
+              "after_fit": end - times["fit_end"] if "fit_end" in times else None}
+    with open(sys.argv[1], "w") as stream:
+        json.dump(record, stream)
+    """
+)
+
+
+def frame_pair(folder: Path, height: int, width: int) -> tuple[Path, Path]:
+    """The reference's clean frame and fog render at `height x width` (pixels repeated), light and camera kept."""
+    import godrays_jax as gr
+    from godrays_jax.app.options import read_target
+    from godrays_jax.primitives.light_metadata import read_light
+
+    clean, fog = Path(f"{REFERENCE}_clean.exr"), Path(f"{REFERENCE}_fog_a.exr")
+    frame = gr.read_buffers(clean)
+    if (frame.height, frame.width) == (height, width):
+        return clean, fog
+    rows = np.arange(height) * frame.height // height
+    cols = np.arange(width) * frame.width // width
+    pick = lambda image: np.asarray(image)[rows][:, cols]  # noqa: E731
+    (x, y), in_front = read_light(clean)
+    scaled = gr.Buffers(color=pick(frame.color), depth=pick(frame.depth), coverage=pick(frame.coverage))
+    frame_path, target_path = folder / f"clean_{width}x{height}.exr", folder / f"fog_{width}x{height}.exr"
+    # The camera and the light's distance as the reference's header has them (the field of view, `inf` for the sun).
+    header = {"godrays:fov_x_deg": 50.0, "godrays:light_depth": float("inf")}
+    gr.write_buffers(
+        frame_path, scaled, light_xy=(x * width / frame.width, y * height / frame.height), light_in_front=in_front,
+        metadata=header,
+    )  # fmt: skip
+    gr.write_image(target_path, pick(read_target(str(fog))))
+    return frame_path, target_path
+
+
+def measured(arguments: list[str], folder: Path) -> list[dict]:
+    """The command cold (an empty cache) then warm (the cache the first run filled)."""
+    cache = folder / "cache"
+    return [run_peak(arguments, cache, folder) for _ in ("cold", "warm")]
+
+
+def run_peak(arguments: list[str], cache: Path, folder: Path) -> dict:
+    """`run_command` in a grandchild whose own peak RSS is read (RUSAGE_CHILDREN of this process keeps a maximum)."""
+    script = folder / "peak.py"
+    script.write_text(
+        "import json, resource, subprocess, sys\n"
+        "done = subprocess.run(sys.argv[2:], env=None)\n"
+        "json.dump({'rc': done.returncode, 'peak': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss},"
+        " open(sys.argv[1], 'w'))\n"
+    )
+    peak_path = folder / "peak.json"
+    record_path = folder / "record.json"
+    record_path.unlink(missing_ok=True)
+    (folder / "child.py").write_text(CHILD)
+    start = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, str(script), str(peak_path), sys.executable, str(folder / "child.py"), str(record_path),
+         *arguments],
+        capture_output=True, text=True, env={**os.environ, "GODRAYS_JAX_CACHE_DIR": str(cache)},
+    )  # fmt: skip
+    wall = time.perf_counter() - start
+    peak = json.loads(peak_path.read_text())
+    if peak["rc"] != 0:
+        raise RuntimeError(f"{' '.join(arguments)} failed:\n{done.stderr[-2000:]}")
+    record = json.loads(record_path.read_text())
+    record.update(wall=wall, stdout=done.stdout, peak_rss_mib=peak["peak"] / 1024)
+    return record
+
+
+def steps_of(stdout: str) -> str:
+    line = next((line for line in stdout.splitlines() if line.startswith("fitted ")), "")
+    return line[line.find("(") + 1 : line.rfind(")")]
+
+
+def fit_rows(sizes: list[str], folder: Path) -> list[dict]:
+    rows = []
+    for size in sizes:
+        width, height = (int(n) for n in size.split("x"))
+        case = folder / f"fit_{size}"
+        case.mkdir()
+        frame, target = frame_pair(case, height, width)
+        arguments = ["fit", str(frame), str(target), "-o", str(case / "params.json"), "--report", str(case / "report.png")]
+        for label, record in zip(("cold", "warm"), measured(arguments, case)):
+            loss = next((line for line in record["stdout"].splitlines() if line.startswith("loss before")), "")
+            rows.append(dict(case=f"fit {size} + report", cache=label, wall=record["wall"], compiling=record["compiling"],
+                             fit=record["fit"], after_fit=record["after_fit"], steps=steps_of(record["stdout"]),
+                             peak_rss_mib=record["peak_rss_mib"], loss=loss))  # fmt: skip
+            print(_row(rows[-1]), flush=True)
+    return rows
+
+
+def apply_rows(folder: Path) -> list[dict]:
+    import jax
+
+    import godrays_jax as gr
+    from godrays_jax.primitives.light_metadata import read_light
+
+    case = folder / "apply_1920x1080"
+    case.mkdir()
+    frame, _ = frame_pair(case, 1080, 1920)
+    arguments = ["apply", str(frame), "-o", str(case / "out.exr"), "--preset", "volumetric_haze"]
+    rows = []
+    for label, record in zip(("cold", "warm"), measured(arguments, case)):
+        rows.append(dict(case="apply volumetric_haze 1920x1080", cache=label, wall=record["wall"],
+                         compiling=record["compiling"], fit=None, after_fit=None, steps="",
+                         peak_rss_mib=record["peak_rss_mib"], loss=""))  # fmt: skip
+        print(_row(rows[-1]), flush=True)
+    buffers = gr.read_buffers(frame)
+    (x, y), _ = read_light(frame)
+    effect = gr.preset("volumetric_haze")
+    forward = jax.jit(lambda b: effect(b, jax.numpy.asarray([x, y], jax.numpy.float32)))
+    jax.block_until_ready(forward(buffers))
+    seconds = []
+    for _ in range(5):
+        start = time.perf_counter()
+        jax.block_until_ready(forward(buffers))
+        seconds.append(time.perf_counter() - start)
+    print(f"forward in-process, volumetric_haze 1920x1080: median {np.median(seconds):.3f} s of 5", flush=True)
+    rows.append(dict(case="forward volumetric_haze 1920x1080 (in-process)", cache="", wall=float(np.median(seconds)),
+                     compiling=None, fit=None, after_fit=None, steps="", peak_rss_mib=None, loss=""))  # fmt: skip
+    return rows
+
+
+def test_row() -> dict:
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "auto"], cwd=HERE.parent, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    summary = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""
+    print(f"test suite: {wall:.0f} s ({summary})", flush=True)
+    return dict(case="python -m pytest -q -n auto", cache="", wall=wall, compiling=None, fit=None, after_fit=None,
+                steps=summary, peak_rss_mib=None, loss="")  # fmt: skip
+
+
+def _number(value, digits=1):
+    return "" if value is None else f"{value:.{digits}f}"
+
+
+def _row(row: dict) -> str:
+    return (
+        f"| {row['case']} | {row['cache']} | {_number(row['wall'])} | {_number(row['compiling'])} | "
+        f"{_number(row['fit'])} | {_number(row['after_fit'])} | {row['steps']} | {_number(row['peak_rss_mib'], 0)} |"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="*", default=["320x180", "960x540", "1920x1080"])
+    parser.add_argument("--apply", action="store_true", help="also time apply of volumetric_haze at 1920x1080")
+    parser.add_argument("--tests", action="store_true", help="also time the README's test command")
+    parser.add_argument("--json", type=Path, help="write the rows here as JSON")
+    args = parser.parse_args()
+    print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
+    print("| case | cache | wall s | compiling s | fit s | after the fit s | steps | peak RSS MiB |")
+    print("|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as folder:
+        rows = fit_rows(args.sizes, Path(folder))
+        if args.apply:
+            rows += apply_rows(Path(folder))
+    if args.tests:
+        rows.append(test_row())
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

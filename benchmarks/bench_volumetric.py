@@ -22,7 +22,7 @@ shared machine) split into its coarse phase and the rest, and the final display-
 the 1920x1080 forward of `volumetric_haze` goes, from JAX's profiler over three runs after a warm-up: the
 `--top` compiled kernels (XLA's fusions, named as in the compiled program's HLO text, which says what each
 holds) by their mean milliseconds a run, summed over the threads that ran them. `--jacobian`: the fit's
-forward-mode Jacobian (`fit._forward_mode`) of the display-space residuals at 480x270 (the `--fit` frame and
+forward-mode Jacobian (`fit_programs.forward_mode`) of the display-space residuals at 480x270 (the `--fit` frame and
 target, `volumetric_haze`'s stand-in, which `fit` differentiates, the field of view fixed), compiled: one vectorised JVP of every unknown against one
 per stage (`Effect.FIELD_STAGES`), medians of `--repeats` runs after one that compiles, alternating, and the
 largest difference between the two. `uptime` first: the machine is shared.
@@ -49,7 +49,7 @@ import godrays_jax as gr
 from godrays_jax.app.fit_command import fit_starts
 from godrays_jax.app.options import auto_coarse_factor, model_presets
 from godrays_jax.effects.volumetric import march_factor
-from godrays_jax.pipeline.fit import _forward_mode
+from godrays_jax.pipeline.fit_programs import forward_mode
 from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, start_point
 
 HERE = Path(__file__).resolve().parent
@@ -113,11 +113,11 @@ def jacobian_rows(repeats: int) -> None:
 
     # The frames an argument, as `fit` passes them: closed over, XLA would fold the kernel's work on them as constants.
     def one_pass(y, frame_data):
-        return _forward_mode(lambda flat: problem.residuals(flat, frame_data))(y)
+        return forward_mode(lambda flat: problem.residuals(flat, frame_data))(y)
 
     def by_stage(y, frame_data):
         residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
-        return _forward_mode(residuals, problem.lane_groups)(y)
+        return forward_mode(residuals, problem.lane_groups)(y)
 
     ways = {"one vectorised JVP of all": one_pass, "one per stage": by_stage}
     compiled = {name: jax.jit(jax.jacfwd(way)) for name, way in ways.items()}

@@ -2,7 +2,7 @@
 
     python benchmarks/fit_jacobians.py [SCENE ...] [--tolerance 1e-4]
 
-`fit` linearises its loss by a vmapped forward-mode Jacobian (`_forward_mode`
+`fit` linearises its loss by a vmapped forward-mode Jacobian (`fit_programs.forward_mode`
 in `godrays_jax/pipeline/fit.py`), compiled. XLA has compiled such Jacobians
 of `VolumetricFog` with one lane's values in another's, on some machines and
 not on others (benchmarks/README.md, "The fit's Jacobian and XLA": XLA's
@@ -12,7 +12,7 @@ stalls. Per scene (`benchmarks/references/scenes.py`)
 this builds the problem `fit` starts from by default (`volumetric_haze`'s
 stand-in, `Effect.fit_stand_in`, at the frame's field of view, the scene's light, the display-space MSE against fog
 A, every field in its bounds fitted, the field of view too) and compares the
-gradient of the loss through `_forward_mode` (by the effect's stages, as `fit`
+gradient of the loss through `fit_programs.forward_mode` (by the effect's stages, as `fit`
 takes it), compiled, with reverse mode,
 compiled: the largest difference over the fields, relative to the largest
 gradient. Run it after a change to a kernel the fit reaches or to the JAX
@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.pipeline.fit import _objective_function
+from godrays_jax.pipeline.fit_programs import objective_function as _objective_function
 from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, start_point
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "references"))

@@ -74,7 +74,7 @@ from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_fla
 from godrays_jax.kernels.rays import scaled_copies as scaled_copies
 from godrays_jax.kernels.shadow_lines import segment_visibility_by_lines as segment_visibility_by_lines
 from godrays_jax.kernels.volumetric import apply_volumetric_fog as apply_volumetric_fog
-from godrays_jax.kernels.volumetric import segment_visibility as segment_visibility
+from godrays_jax.kernels.shadow_samples import segment_visibility as segment_visibility
 from godrays_jax.kernels.volumetric import volumetric_fog_terms as volumetric_fog_terms
 
 # Effects: parameter sets (equinox Modules), presets, serialisation.

@@ -15,7 +15,7 @@ from jax.extend.core import ClosedJaxpr, Jaxpr
 
 import godrays_jax as gr
 from godrays_jax.primitives.camera import Camera
-from godrays_jax.pipeline.fit import _forward_mode
+from godrays_jax.pipeline.fit_programs import forward_mode
 from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sphere, render
 from frames import LIGHT, make_frame, small
 
@@ -71,7 +71,7 @@ def test_losses_camera_rasterizer_and_fit_jacobian():
         light=DirectionalLight(direction=(0.0, 0.0, 1.0)),
         sun=0,
     )  # fmt: skip
-    fitted = _forward_mode(lambda y: jnp.sin(y) * y[::-1])
+    fitted = forward_mode(lambda y: jnp.sin(y) * y[::-1])
     cases = {
         "ssim loss": (jax.value_and_grad(lambda a: gr.ssim_loss(a, image[::-1])), image),
         "project_point": (lambda p: gr.project_point(camera, p), jnp.asarray([0.3, 0.2, -5.0])),

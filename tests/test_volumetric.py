@@ -11,7 +11,8 @@ import pytest
 from jax.test_util import check_grads
 
 from godrays_jax.kernels import volumetric
-from godrays_jax.kernels.volumetric import _march_grid, apply_volumetric_fog, segment_visibility, volumetric_fog_terms
+from godrays_jax.kernels.shadow_samples import segment_visibility
+from godrays_jax.kernels.volumetric import _march_grid, apply_volumetric_fog, volumetric_fog_terms
 
 HEIGHT, WIDTH = 4, 6
 MEDIUM = dict(
@@ -392,7 +393,7 @@ def test_grad_of_vmap_matches_per_example(x64, rng):
 
 
 def test_compiled_forward_mode_jacobian_keeps_its_lanes_on_a_partly_covered_frame():
-    """A vmapped forward-mode Jacobian (as `jax.jacfwd` and the fit's `_forward_mode` take it) of the three terms,
+    """A vmapped forward-mode Jacobian (as `jax.jacfwd` and the fit's `forward_mode` take it) of the three terms,
     compiled, against reverse mode, compiled, on a frame of 90 x 160 pixels with coverage and a direct share of the
     surface light: every lane its own. At 36 x 64 and 45 x 80 the same program is right, so the frame is this large.
 

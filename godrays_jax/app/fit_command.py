@@ -35,6 +35,7 @@ from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.fit import fit, polishes
 from godrays_jax.pipeline.frame_start import ground_layer_start
+from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
 from godrays_jax.primitives.images import write_image
@@ -77,6 +78,13 @@ def run(args) -> int:
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
     if fov is not None and hasattr(effect, "fov_x_deg") and "fov_x_deg" not in fixed:
         fixed += ("fov_x_deg",)  # the frame's camera says it: not a parameter to fit
+    # Checked before the progress bar is drawn: an error is then the command's one line.
+    if args.max_steps < 0:
+        raise CommandError(f"--max-steps must be an integer >= 0, got {args.max_steps}")
+    try:
+        fitted_bounds(effect, fixed=fixed)
+    except ValueError as error:
+        raise CommandError(f"--fixed: {error}") from None
 
     coarse_factor = auto_coarse_factor(frames[0].height, frames[0].width) if args.coarse_factor is None else args.coarse_factor
     if coarse_factor < 1:

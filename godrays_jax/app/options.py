@@ -89,13 +89,14 @@ def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple
 
 
 def parse_light_depth(text: str) -> float:
-    """`"D"` -> the light's distance in scene units, a number >= 0 (`inf` allowed: a light at infinity)."""
+    """`"D"` -> the light's distance in scene units, a number > 0 (`inf` allowed: a light at infinity; a light at
+    the camera has no direction the fog could be lit from)."""
     try:
         depth = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--light-depth must be a number >= 0 or inf, got {text!r}") from None
-    if math.isnan(depth) or depth < 0:
-        raise argparse.ArgumentTypeError(f"--light-depth must be a number >= 0 or inf, got {text!r}")
+        raise argparse.ArgumentTypeError(f"--light-depth must be a number > 0 or inf, got {text!r}") from None
+    if math.isnan(depth) or depth <= 0:
+        raise argparse.ArgumentTypeError(f"--light-depth must be a number > 0 or inf, got {text!r}")
     return depth
 
 

@@ -51,7 +51,7 @@ class VolumetricFog(Effect):
     way in, times the Henyey-Greenstein phase of `anisotropy`. `shadows` says
     how the visibility is read: `"samples"`, at the segment's middle from
     `num_shadow_samples` points along the screen toward the light
-    (`kernels.volumetric.segment_visibility`); `"lines"`, as the mean over the
+    (`kernels.shadow_samples.segment_visibility`); `"lines"`, as the mean over the
     segment, from `num_shadow_lines` lines through the light with
     `num_shadow_bins` bins of the shadow rays' coordinate each
     (`kernels.shadow_lines`): no sampling that crawls with the pixel grid, so

@@ -4,7 +4,7 @@ The light is the point `S = light_depth * d_L` (`d_L` = `lens.light_direction`)
 or, for `light_depth = inf`, the sun in direction `d_L`; a surface seen at
 pixel `q`, depth `D_q` (distance along its camera ray `d_q`, scene units), is a
 slab `[D_q, D_q * (1 + thickness)]` along that ray, as in
-`volumetric.segment_visibility`.
+`shadow_samples.segment_visibility`.
 
 Why lines. A point `X` on pixel `p`'s view ray, the light and the camera span
 one plane, and the shadow ray from `X` to the light crosses exactly the camera

@@ -12,7 +12,7 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import parameter_bounds
 from godrays_jax.kernels.losses import Space, check_space
 from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.fit import residuals_and_jacobian
+from godrays_jax.pipeline.fit_programs import residuals_and_jacobian
 from godrays_jax.pipeline.problem import (
     FitProblem,
     as_frames,

@@ -26,8 +26,9 @@ How the parameters are fitted:
   units), and where its descent stops the loss may still fall slowly along
   the unknowns it damps most. It is then polished: the same least squares
   goes on from there with each unknown damped by its own sensitivity
-  (`marquardt`, Marquardt's scaling); after a coarse phase, the full
-  resolution's descent is the polish. Not the race's own descent: with that
+  (`marquardt`, Marquardt's scaling), after a coarse phase too (its result,
+  from a frame that may lose thin surfaces, only starts the full resolution's
+  descent). Not the race's own descent: with that
   scaling from the start, the race keeps worse starts on some frames
   (`benchmarks/README.md`, "Marquardt's scaling"); as a polish it can only
   lower the loss.
@@ -60,7 +61,6 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
@@ -69,8 +69,16 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import count_fields, field_value, replace_fields
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.compiled import render_compiled
-from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState, normal_equations
+from godrays_jax.pipeline.fit_programs import (
+    effect_loss,
+    evaluate_loss,
+    host_evaluator,
+    objective_function,
+    residual_function,
+    solver_init,
+    solver_step,
+)
+from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState
 from godrays_jax.pipeline.problem import (
     FitProblem,
     as_frames,
@@ -112,8 +120,7 @@ class FitResult:
             (`plateau_steps`, `plateau_rtol`; in the last phase).
         coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`), every start's.
         start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
-        polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt; after a
-            coarse phase, every full-resolution step).
+        polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt).
     """
 
     effect: Effect
@@ -194,174 +201,12 @@ def polishes(solver, loss: str) -> bool:
     return isinstance(solver, str) and loss == "mse" and solver in ("auto", "levenberg_marquardt")
 
 
-def _forward_mode(function, groups=None):
-    """`function(y)` (flat `y`) whose JVP is a precomputed forward-mode Jacobian times the tangent.
-
-    optimistix linearises the objective; linearising the kernels' sample loops
-    directly would store every iteration. Here the Jacobian is computed with
-    one vectorised `jax.jvp` per parameter (memory O(output x parameters)) and
-    the linearisation only keeps that Jacobian.
-
-    `groups`, a partition of `y`'s indices (`FitProblem.lane_groups`): `function` then takes one vector per group
-    (`y` at its indices) and each group's columns are a vectorised JVP of their own, in which the other groups'
-    unknowns are constants. A group's lanes then run only through the operations its unknowns reach, where one
-    vectorised JVP of all carries every lane through every operation that any of them reaches.
-    """
-    indices = None if groups is None else [np.asarray(group) for group in groups]
-
-    def split(y):
-        return (y,) if indices is None else [y[index] for index in indices]
-
-    @jax.custom_jvp
-    def wrapped(y):
-        return function(*split(y))
-
-    @wrapped.defjvp
-    def wrapped_jvp(primals, tangents):
-        (y,), (tangent,) = primals, tangents
-        vectors, product = split(y), 0.0
-        for position, vector in enumerate(vectors):
-
-            def along(own, position=position):
-                return function(*vectors[:position], own, *vectors[position + 1 :])
-
-            basis = jnp.eye(vector.shape[0], dtype=y.dtype)
-            value, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
-            own_tangent = tangent if indices is None else tangent[indices[position]]
-            product = product + jnp.matmul(jacobian, own_tangent, precision="highest")
-        return value, product
-
-    return wrapped
-
-
-def _residual_function(y, data):
-    problem, frame_data = data
-    residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
-    return _forward_mode(residuals, problem.lane_groups)(y), None
-
-
-def _objective_function(y, data):
-    problem, frame_data = data
-    objective = lambda *vectors: problem.objective(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
-    return _forward_mode(objective, problem.lane_groups)(y), None
-
-
-@eqx.filter_jit
-def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
-    """The residuals at the fitted fields' `positions` in their ranges (`FitProblem.effect_at_positions`) and their
-    Jacobian in those positions, `(residuals, unknowns)`: one vectorised JVP per stage of the effect
-    (`FitProblem.lane_groups`), so that a stage's lanes run only through the operations its fields reach.
-
-    The one compiled program of a fit by Levenberg-Marquardt (`marquardt`) and of `determination`.
-    """
-    groups = [np.asarray(group) for group in problem.lane_groups]
-    vectors = [positions[group] for group in groups]
-    columns = []
-    for index, vector in enumerate(vectors):
-
-        def along(own, index=index):
-            groups_now = [*vectors[:index], own, *vectors[index + 1 :]]
-            return problem.residuals_of(problem.effect_of_groups(groups_now, positions=True), frame_data)
-
-        basis = jnp.eye(vector.shape[0], dtype=vector.dtype)
-        residuals, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
-        columns.append(jacobian)
-    order = np.argsort(np.concatenate(groups))
-    return residuals, jnp.concatenate(columns, axis=-1)[:, order]
-
-
-def _host_evaluator(problem: FitProblem, frame_data, dtype, own=None):
-    """`marquardt.Evaluate` of the unknowns `y`: the residuals and normal equations in `y` (the positions'
-    Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`.
-
-    `own`, a function of the fitted fields' positions: the effect whose own residuals replace the problem's (its
-    stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in).
-    """
-
-    def evaluate(y):
-        positions, slope = folded_positions(y)
-        positions = jnp.asarray(positions, dtype)
-        residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
-        if own is not None:
-            residuals = effect_residuals(problem, own(positions), frame_data)
-        residuals = np.asarray(residuals)
-        normal, gradient = normal_equations(np.asarray(jacobian), residuals)
-        return residuals, normal * np.outer(slope, slope), gradient * slope
-
-    return evaluate
-
-
-def _rendered(candidate: Effect, frame_data) -> list:
-    return [render_compiled(candidate, frame, light, front, depth) for frame, light, _, front, depth in zip(*frame_data)]
-
-
-@eqx.filter_jit
-def _image_residuals(problem, images, frame_data):
-    return problem.residuals_of_images(images, frame_data)
-
-
-def effect_residuals(problem: FitProblem, candidate: Effect, frame_data) -> jax.Array:
-    """`problem`'s residuals of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`)."""
-    return exported.call("fit_image_residuals", _image_residuals, problem, _rendered(candidate, frame_data), frame_data)
-
-
-@eqx.filter_jit
-def _image_loss(problem, images, frame_data):
-    return problem.objective_of_images(images, frame_data)
-
-
-def effect_loss(problem: FitProblem, candidate: Effect, frame_data) -> float:
-    """`problem`'s loss of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`): a
-    fit's losses of the effect itself share that compiled program with the frames its command then renders."""
-    return float(exported.call("fit_image_loss", _image_loss, problem, _rendered(candidate, frame_data), frame_data))
-
-
-@eqx.filter_jit
-def _evaluate(candidate, data):
-    problem, frame_data = data
-    return problem.objective(candidate, frame_data)
-
-
 @eqx.filter_jit
 def _fitted_effects(problem, positions):
     """The fitted effect at `positions` in its fields' ranges and its counts rounded, compiled (op by op each scalar
     operation compiles on its own)."""
     effect = problem.effect_at_positions(positions)
     return effect, round_counts(effect)
-
-
-def _first_state(optimiser, function, y, data):
-    f_struct = jax.eval_shape(lambda: function(y, data)[0])
-    return optimiser.init(function, y, data, {}, f_struct, None, frozenset())
-
-
-@eqx.filter_jit
-def _init(optimiser, function, y, data):
-    """The solver's first state (its array leaves), whether it is done already and whether that is a success.
-
-    The residuals' shape is found here, not by tracing the effect again on
-    every fit. The state travels between steps as its leaves alone: its
-    static parts (a linearised operator's jaxpr, compared by identity) would
-    make every step trace again in a later fit, and no stored program
-    (`exported`) could take them.
-    """
-    state = _first_state(optimiser, function, y, data)
-    done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
-    return jax.tree.leaves(eqx.filter(state, eqx.is_array)), done, result == optx.RESULTS.successful
-
-
-@eqx.filter_jit
-def _step(optimiser, function, y, state_leaves, data, least_squares):
-    """One solver step from the state's leaves: the new unknowns and leaves, whether it is done (and a success), and
-    the loss at its last accepted point."""
-    template = eqx.filter_eval_shape(_first_state, optimiser, function, y, data)
-    shapes, static = eqx.partition(template, lambda leaf: isinstance(leaf, jax.ShapeDtypeStruct))
-    state = eqx.combine(jax.tree.unflatten(jax.tree.structure(shapes), state_leaves), static)
-    y, state, _ = optimiser.step(function, y, data, {}, state, frozenset())
-    done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
-    accepted_loss = jnp.sum(state.f_info.residual**2) if least_squares else state.f_info.f
-    state_leaves = jax.tree.leaves(eqx.filter(state, eqx.is_array))
-    return y, state_leaves, done, result == optx.RESULTS.successful, accepted_loss
 
 
 @dataclasses.dataclass
@@ -406,7 +251,7 @@ def _descend(
 ) -> tuple[list[_Run], int]:
     """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
-    goes on to `max_steps`. Returns the runs and the winner's index. `own`: as `_host_evaluator`'s (Levenberg-
+    goes on to `max_steps`. Returns the runs and the winner's index. `own`: as `host_evaluator`'s (Levenberg-
     Marquardt on the host only).
 
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
@@ -418,7 +263,7 @@ def _descend(
     data = (problems[0], frame_data)
     runs = []
     if isinstance(optimiser, LevenbergMarquardt):
-        evaluate = _host_evaluator(problems[0], frame_data, dtype, own)
+        evaluate = host_evaluator(problems[0], frame_data, dtype, own)
         for problem in problems:
             y = np.asarray(start_point(problem, dtype), np.float64)
             first = evaluate(y)  # the first step's evaluation: the start's loss
@@ -429,16 +274,16 @@ def _descend(
             return run.state.loss
 
     else:
-        function = _residual_function if least_squares else _objective_function
+        function = residual_function if least_squares else objective_function
         for problem in problems:
             y = start_point(problem, dtype)
-            state, done, succeeded = exported.call("fit_init", _init, optimiser, function, y, (problem, frame_data))
-            start_loss = float(exported.call("fit_loss", _evaluate, problem.effect, (problem, frame_data)))
+            state, done, succeeded = exported.call("fit_init", solver_init, optimiser, function, y, (problem, frame_data))
+            start_loss = float(exported.call("fit_loss", evaluate_loss, problem.effect, (problem, frame_data)))
             runs.append(_Run(problems[0], (y, state, done, succeeded), [start_loss]))
 
         def step(run):
             y, leaves, done, succeeded, accepted_loss = exported.call(
-                "fit_step", _step, optimiser, function, run.state[0], run.state[1], data, least_squares
+                "fit_step", solver_step, optimiser, function, run.state[0], run.state[1], data, least_squares
             )  # fmt: skip
             run.state = (y, leaves, done, succeeded)
             return float(accepted_loss)
@@ -531,8 +376,7 @@ def fit(
             (`residuals_and_jacobian`; `marquardt`: optimistix's steps, the
             damped normal equations solved in NumPy), and is followed by a
             polish phase with Marquardt's scaling (up to `max_steps` more
-            steps, with the plateau stop; after a coarse phase the full
-            resolution's descent is that polish); the others are optimistix's
+            steps, with the plateau stop); the others are optimistix's
             with its default linear solvers. Gauss-Newton takes full,
             undamped steps: use it from a start near the solution.
         fixed: names of fittable fields to leave as they are.
@@ -577,8 +421,8 @@ def fit(
             (`Effect.fit_stand_in`: the same fields read more cheaply, where
             the effect names one; for `VolumetricFog` with its shadows read
             along lines, read along fewer lines on rays farther apart), and
-            the polish (Levenberg-Marquardt's polish phase; after a coarse
-            phase, the full resolution) takes the effect's own residuals with
+            the polish (Levenberg-Marquardt's polish phase) takes the
+            effect's own residuals with
             the stand-in's Jacobian: the result is the effect given with its
             static fields, its losses the effect's own (`loss_history`: the
             stand-in's until the polish). Without a polish phase (another

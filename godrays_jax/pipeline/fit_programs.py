@@ -1,0 +1,178 @@
+"""The compiled programs a fit runs, each stored traced (`exported`): the residuals and their Jacobian by stages
+(`residuals_and_jacobian`, all that Levenberg-Marquardt on the host and `determination` run), an effect's own
+residuals and loss from its frames rendered as `apply` renders them, and optimistix's first state and step for the
+other solvers (the objective's Jacobian by forward mode, `forward_mode`)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from godrays_jax.effects.base import Effect
+from godrays_jax.pipeline import exported
+from godrays_jax.pipeline.compiled import render_compiled
+from godrays_jax.pipeline.marquardt import normal_equations
+from godrays_jax.pipeline.problem import FitProblem, folded_positions
+
+
+def forward_mode(function, groups=None):
+    """`function(y)` (flat `y`) whose JVP is a precomputed forward-mode Jacobian times the tangent.
+
+    optimistix linearises the objective; linearising the kernels' sample loops
+    directly would store every iteration. Here the Jacobian is computed with
+    one vectorised `jax.jvp` per parameter (memory O(output x parameters)) and
+    the linearisation only keeps that Jacobian.
+
+    `groups`, a partition of `y`'s indices (`FitProblem.lane_groups`): `function` then takes one vector per group
+    (`y` at its indices) and each group's columns are a vectorised JVP of their own, in which the other groups'
+    unknowns are constants. A group's lanes then run only through the operations its unknowns reach, where one
+    vectorised JVP of all carries every lane through every operation that any of them reaches.
+    """
+    indices = None if groups is None else [np.asarray(group) for group in groups]
+
+    def split(y):
+        return (y,) if indices is None else [y[index] for index in indices]
+
+    @jax.custom_jvp
+    def wrapped(y):
+        return function(*split(y))
+
+    @wrapped.defjvp
+    def wrapped_jvp(primals, tangents):
+        (y,), (tangent,) = primals, tangents
+        vectors, product = split(y), 0.0
+        for position, vector in enumerate(vectors):
+
+            def along(own, position=position):
+                return function(*vectors[:position], own, *vectors[position + 1 :])
+
+            basis = jnp.eye(vector.shape[0], dtype=y.dtype)
+            value, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
+            own_tangent = tangent if indices is None else tangent[indices[position]]
+            product = product + jnp.matmul(jacobian, own_tangent, precision="highest")
+        return value, product
+
+    return wrapped
+
+
+def residual_function(y, data):
+    problem, frame_data = data
+    residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+    return forward_mode(residuals, problem.lane_groups)(y), None
+
+
+def objective_function(y, data):
+    problem, frame_data = data
+    objective = lambda *vectors: problem.objective(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+    return forward_mode(objective, problem.lane_groups)(y), None
+
+
+@eqx.filter_jit
+def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
+    """The residuals at the fitted fields' `positions` in their ranges (`FitProblem.effect_at_positions`) and their
+    Jacobian in those positions, `(residuals, unknowns)`: one vectorised JVP per stage of the effect
+    (`FitProblem.lane_groups`), so that a stage's lanes run only through the operations its fields reach.
+
+    The one compiled program of a fit by Levenberg-Marquardt (`marquardt`) and of `determination`.
+    """
+    groups = [np.asarray(group) for group in problem.lane_groups]
+    vectors = [positions[group] for group in groups]
+    columns = []
+    for index, vector in enumerate(vectors):
+
+        def along(own, index=index):
+            groups_now = [*vectors[:index], own, *vectors[index + 1 :]]
+            return problem.residuals_of(problem.effect_of_groups(groups_now, positions=True), frame_data)
+
+        basis = jnp.eye(vector.shape[0], dtype=vector.dtype)
+        residuals, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
+        columns.append(jacobian)
+    order = np.argsort(np.concatenate(groups))
+    return residuals, jnp.concatenate(columns, axis=-1)[:, order]
+
+
+def host_evaluator(problem: FitProblem, frame_data, dtype, own=None):
+    """`marquardt.Evaluate` of the unknowns `y`: the residuals and normal equations in `y` (the positions'
+    Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`.
+
+    `own`, a function of the fitted fields' positions: the effect whose own residuals replace the problem's (its
+    stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in).
+    """
+
+    def evaluate(y):
+        positions, slope = folded_positions(y)
+        positions = jnp.asarray(positions, dtype)
+        residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+        if own is not None:
+            residuals = effect_residuals(problem, own(positions), frame_data)
+        residuals = np.asarray(residuals)
+        normal, gradient = normal_equations(np.asarray(jacobian), residuals)
+        return residuals, normal * np.outer(slope, slope), gradient * slope
+
+    return evaluate
+
+
+def _rendered(candidate: Effect, frame_data) -> list:
+    return [render_compiled(candidate, frame, light, front, depth) for frame, light, _, front, depth in zip(*frame_data)]
+
+
+@eqx.filter_jit
+def _image_residuals(problem, images, frame_data):
+    return problem.residuals_of_images(images, frame_data)
+
+
+def effect_residuals(problem: FitProblem, candidate: Effect, frame_data) -> jax.Array:
+    """`problem`'s residuals of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`)."""
+    return exported.call("fit_image_residuals", _image_residuals, problem, _rendered(candidate, frame_data), frame_data)
+
+
+@eqx.filter_jit
+def _image_loss(problem, images, frame_data):
+    return problem.objective_of_images(images, frame_data)
+
+
+def effect_loss(problem: FitProblem, candidate: Effect, frame_data) -> float:
+    """`problem`'s loss of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`): a
+    fit's losses of the effect itself share that compiled program with the frames its command then renders."""
+    return float(exported.call("fit_image_loss", _image_loss, problem, _rendered(candidate, frame_data), frame_data))
+
+
+@eqx.filter_jit
+def evaluate_loss(candidate, data):
+    problem, frame_data = data
+    return problem.objective(candidate, frame_data)
+
+
+def _first_state(optimiser, function, y, data):
+    f_struct = jax.eval_shape(lambda: function(y, data)[0])
+    return optimiser.init(function, y, data, {}, f_struct, None, frozenset())
+
+
+@eqx.filter_jit
+def solver_init(optimiser, function, y, data):
+    """The solver's first state (its array leaves), whether it is done already and whether that is a success.
+
+    The residuals' shape is found here, not by tracing the effect again on
+    every fit. The state travels between steps as its leaves alone: its
+    static parts (a linearised operator's jaxpr, compared by identity) would
+    make every step trace again in a later fit, and no stored program
+    (`exported`) could take them.
+    """
+    state = _first_state(optimiser, function, y, data)
+    done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
+    return jax.tree.leaves(eqx.filter(state, eqx.is_array)), done, result == optx.RESULTS.successful
+
+
+@eqx.filter_jit
+def solver_step(optimiser, function, y, state_leaves, data, least_squares):
+    """One solver step from the state's leaves: the new unknowns and leaves, whether it is done (and a success), and
+    the loss at its last accepted point."""
+    template = eqx.filter_eval_shape(_first_state, optimiser, function, y, data)
+    shapes, static = eqx.partition(template, lambda leaf: isinstance(leaf, jax.ShapeDtypeStruct))
+    state = eqx.combine(jax.tree.unflatten(jax.tree.structure(shapes), state_leaves), static)
+    y, state, _ = optimiser.step(function, y, data, {}, state, frozenset())
+    done, result = optimiser.terminate(function, y, data, {}, state, frozenset())
+    accepted_loss = jnp.sum(state.f_info.residual**2) if least_squares else state.f_info.f
+    state_leaves = jax.tree.leaves(eqx.filter(state, eqx.is_array))
+    return y, state_leaves, done, result == optx.RESULTS.successful, accepted_loss

@@ -330,6 +330,40 @@ def test_every_preset_finite_values_and_gradients_for_any_finite_light(name, dat
     assert _finite(light_grad) and _finite(effect_grad), light
 
 
+FOGS = ("participating_media", "volumetric_haze", "physically_based")
+LIGHT_DEPTHS = (0.0, 1e-30, 1e-3, 1.0, 1e3, 1e12, 1e30, np.inf)
+"""A point light at the camera, within a hair of it, near, far, beyond float32's squares, and the sun."""
+
+
+@eqx.filter_jit
+def _fog_with_depth(effect, buffers, light, in_front, light_depth):
+    return effect(buffers, light, light_in_front=in_front, light_depth=light_depth)
+
+
+@eqx.filter_jit
+@eqx.filter_grad
+def _fog_grad(effect_and_light, buffers, in_front, light_depth):
+    effect, light = effect_and_light
+    return jnp.sum(effect(buffers, light, light_in_front=in_front, light_depth=light_depth) ** 2)
+
+
+@pytest.mark.parametrize("name", FOGS)
+@settings(SETTINGS, max_examples=6)
+@given(st.data())
+def test_fog_presets_finite_values_and_gradients_for_any_light_and_distance(name, data):
+    """Every fog preset, any light position (on screen, far off it), in front or behind, at any distance from the
+    camera (a point light at the camera once gave every pixel NaN): finite frames and gradients."""
+    buffers = data.draw(frames())
+    light = data.draw(st.one_of(lights(buffers.height, buffers.width), any_finite_lights(buffers.height, buffers.width)))
+    in_front = jnp.asarray(data.draw(st.booleans()))
+    light_depth = jnp.float32(data.draw(st.sampled_from(LIGHT_DEPTHS)))
+    effect = _small(name)
+    out = _fog_with_depth(effect, buffers, light, in_front, light_depth)
+    assert out.shape == buffers.color.shape and _finite(out), (light, light_depth)
+    effect_grad, light_grad = _fog_grad((effect, light), buffers, in_front, light_depth)
+    assert _finite(effect_grad) and _finite(light_grad), (light, light_depth, in_front)
+
+
 @pytest.mark.parametrize("name", sorted(gr.PRESETS))
 def test_effects_vmap_over_frames_equals_loop(name):
     rng = np.random.default_rng(5)

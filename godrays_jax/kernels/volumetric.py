@@ -91,7 +91,7 @@ from godrays_jax.primitives.checks import check_image, check_light, check_plane,
 from godrays_jax.primitives.sampling import bilinear_corners
 
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
-_NEAREST_LIGHT = 1e-6
+_NEAREST_LIGHT = 1e-3
 
 # A piece's segments are even in the transmittance of a homogeneous medium of the piece's optical depth, taken
 # at most this deep: beyond it the first segments are short enough, and float32 would lose the last bound's place.
@@ -364,8 +364,8 @@ def volumetric_fog_terms(
         check_plane(uncovered_depth, "uncovered_depth", height, width)
     dtype = jnp.result_type(depth, jnp.float32)
     depth = jnp.asarray(depth, dtype)
-    # A point light within a millionth of the medium's reach of the camera is taken at that distance: nearer, its
-    # inverse distance and the irradiance around it overflow float32 (a light at the camera lights nothing apart).
+    # A point light within a thousandth of the medium's reach of the camera is taken at that distance: nearer, its
+    # inverse distance overflows float32 in the irradiance around it and its shadows read along lines lose their angles.
     light_depth = jnp.maximum(jnp.asarray(light_depth, dtype), _NEAREST_LIGHT * jnp.asarray(max_distance, dtype))
     medium = dict(extinction=extinction, height_falloff=height_falloff)
     bounds = dict(max_distance=max_distance, layer_top=layer_top)

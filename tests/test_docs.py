@@ -74,7 +74,7 @@ def has_docstring(module_name: str, name: str) -> bool:
             else [statement.target] if isinstance(statement, ast.AnnAssign) else []
         )  # fmt: skip
         if any(isinstance(target, ast.Name) and target.id == name for target in targets):
-            return isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)
+            return isinstance(after, ast.Expr) and isinstance(getattr(after.value, "value", None), str)
     raise AssertionError(f"{module_name} does not define {name}")
 
 
@@ -95,7 +95,7 @@ def test_every_public_name_has_a_docstring():
 
 def fenced(page: Path, language: str) -> list[str]:
     """A page's fenced blocks in that language that run, in order, dedented."""
-    fence = re.compile(r"(?:^(.*)\n)?^( *)```" + language + r"\n(.*?)^\2```", re.MULTILINE | re.DOTALL)
+    fence = re.compile(r"(?:^([^\n]*)\n)?^( *)```" + language + r"\n(.*?)^\2```", re.MULTILINE | re.DOTALL)
     return [textwrap.dedent(found.group(3)) for found in fence.finditer(page.read_text()) if found.group(1) != NOT_RUN]
 
 
@@ -177,7 +177,9 @@ def test_the_shell_commands_of_a_page_run_in_order(page, tmp_path):
         "JAX_PLATFORMS": "cpu",  # the compilation cache: GODRAYS_JAX_CACHE_DIR, set by conftest.py
     }
     for command in commands(DOCS / page):
-        done = subprocess.run(["bash", "-c", command], cwd=scratch, env=env, capture_output=True, text=True, timeout=600)
+        done = subprocess.run(
+            ["bash", "-c", command], cwd=scratch, env=env, capture_output=True, text=True, timeout=600
+        )
         assert done.returncode == 0, f"{command}\n{done.stderr[-3000:]}"
     for name in WRITES.get(page, []):
         assert (scratch / name).is_file(), name

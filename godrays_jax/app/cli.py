@@ -265,8 +265,8 @@ def _add_fit(subparsers) -> None:
     parser.add_argument("--max-steps", type=int, default=50, help="solver steps at most, in each phase (default 50)")
     parser.add_argument(
         "--coarse-factor", type=int, metavar="N",
-        help="fit first at 1/N of the frames' resolution, then at full resolution from there; default: the smallest N "
-        "that brings the first frame to 256x256 pixels or fewer (1: no coarse phase)",
+        help="race the starts at 1/N of the frames' resolution, then fit at full resolution from there; default: the "
+        "smallest N that brings the first frame to 160x90 pixels or fewer (1: no coarse phase)",
     )  # fmt: skip
     parser.add_argument(
         "--fractional-counts", action="store_true",

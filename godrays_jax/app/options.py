@@ -42,10 +42,11 @@ def default_fit_effect() -> Effect:
 
 
 COARSE_FIT_PIXELS = 160 * 90
-"""Without `--coarse-factor`, `fit` first fits at a reduced resolution frames larger than this many pixels.
+"""Without `--coarse-factor`, `fit` races its starts at a reduced resolution on frames larger than this many pixels.
 
-Below it a coarse phase saves little: `VolumetricFog` marches at a quarter of the frame's resolution, so
-a frame of the references' size (320x180) halved marches on the same grid (`benchmarks/README.md`)."""
+A race step there costs a fraction of a full-resolution one; the winner then descends and is polished at full
+resolution, where thin surfaces a reduced frame loses count again (benchmarks/README.md, "The fit as users run
+it")."""
 
 
 def model_presets(effect: Effect) -> list[str]:

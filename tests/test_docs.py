@@ -35,7 +35,7 @@ LEFT_OUT = ("python -m pytest", "godrays-jax tune", "python examples/", "python 
 
 # Public names whose definition has no docstring yet: each one's docstring belongs beside its definition in
 # godrays_jax/ (a string literal right after a constant's assignment), which then drops it from this set.
-WITHOUT_DOCSTRING = {"BLEND_MODES"}
+WITHOUT_DOCSTRING: set[str] = set()
 
 # What a page's shell commands leave in its scratch folder.
 WRITES = {

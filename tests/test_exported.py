@@ -172,7 +172,7 @@ def test_a_fit_from_stored_programs_equals_the_fit_traced(tmp_path, monkeypatch)
     try:
         stored = _fit_and_look(*problem)
         names = {p.name.rsplit("-", 1)[0] for p in tmp_path.glob("*.jaxexport")}
-        assert names == {"fit_loss", "fit_init", "fit_step", "determination_jacobian", "render"}
+        assert names == {"fit_jacobian", "fit_image_loss", "render"}
         exported.use_directory(tmp_path)
         rendered = []
         call = gr.GodRays.__call__

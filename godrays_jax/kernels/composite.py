@@ -14,6 +14,7 @@ from godrays_jax.primitives.checks import check_image
 
 BlendMode = Literal["add", "screen", "multiply", "alpha_over"]
 BLEND_MODES: tuple[str, ...] = ("add", "screen", "multiply", "alpha_over")
+"""The ways `blend` puts a layer onto a scene."""
 
 
 def _split(scene, layer):

@@ -10,7 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.effects.base import Effect
 from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.problem import check_inside_bounds
+from godrays_jax.pipeline.problem import check_inside_bounds, strongly_typed
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
 
@@ -32,8 +32,13 @@ def render_compiled(
     if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(effect)):
         return _render(effect, buffers, light_xy, light_in_front, light_depth, True)  # traced fields: checked when run
     check_inside_bounds(effect)
+    # Every field an argument of the program: a NumPy value or a weakly typed one would make another program.
+    effect = jax.tree.map(strongly_typed, effect)
     light_depth = jnp.asarray(np.asarray(light_depth, buffers.color.dtype))
-    return exported.call("render", _render, effect, buffers, light_xy, light_in_front, light_depth, False)
+    # Checked here, so the program is the same whether or not the caller guarantees ranges, and at the default
+    # matmul precision whatever the caller's (a fit sets both for its solver): one stored program for every caller.
+    with ranges_guaranteed(), jax.default_matmul_precision(None):
+        return exported.call("render", _render, effect, buffers, light_xy, light_in_front, light_depth, False)
 
 
 @eqx.filter_jit

@@ -398,8 +398,8 @@ def test_compiled_forward_mode_jacobian_keeps_its_lanes_on_a_partly_covered_fram
     surface light: every lane its own. At 36 x 64 and 45 x 80 the same program is right, so the frame is this large.
 
     Compiled without XLA's YNNPACK fusions (its CPU library calls for short reductions): with them, jaxlib 0.10.2
-    gives the anisotropy lane the extinction lane's value on some machines (those of sessions 15 and 16) and the right
-    one on others (session 17's AMD EPYC), so a test of XLA's default program passes or fails with the
+    gives the anisotropy lane the extinction lane's value on some machines and the right one on others (an AMD
+    EPYC), so a test of XLA's default program passes or fails with the
     machine; without them both machines compile it right, and what is left to test is the kernel's own (benchmarks/
     README.md, 'The fit's Jacobian and XLA'). The option is XLA's own: a release that renames it fails here."""
     height, width = 90, 160

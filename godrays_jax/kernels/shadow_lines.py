@@ -199,8 +199,9 @@ def _face_deltas(start, width, s_min, log_step, num_bins):
     return index, jnp.diff(value, axis=-1, prepend=0.0)
 
 
-def _coverage_prefix(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins, in_front):
-    """The prefix integral over `s` of each cell's coverage, at the bins' nodes: `(cells, num_lines, num_bins + 1)`."""
+def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins, in_front):
+    """Each cell's coverage at the bins, the maximum of its texels' blend from the light out to it:
+    `(cells, num_lines, num_bins)`."""
     height, width = depth.shape
     dtype = depth.dtype
     x, y = lines.positions(0.0)
@@ -217,30 +218,39 @@ def _coverage_prefix(depth, lines, toward, inverse, focal, thickness, softness, 
     rise_at, rise = _face_deltas(low, face, s_min, log_step, num_bins)
     fall_at, fall = _face_deltas(high - face, face, s_min, log_step, num_bins)
     amount = jnp.where(blocks, weight, 0.0)[..., None]
-    index = jnp.concatenate([rise_at, fall_at], axis=-1)  # (4, lines, cells, 2 * _FACE_BINS)
-    change = jnp.concatenate([rise, -fall], axis=-1) * amount
-    num_lines, cells = x.shape
-    slot = (jnp.arange(cells)[None, None, :, None] * num_lines + jnp.arange(num_lines)[None, :, None, None]) * num_bins
-    # A face's rise past the last bin (beyond the medium) is zeroed: its slot is the next line's first bins.
-    flat = jnp.zeros(cells * num_lines * num_bins, dtype).at[(slot + index).ravel()].add(
-        jnp.where(index < num_bins, change, 0.0).ravel(), mode="drop"
-    )  # fmt: skip
-    gaps = jnp.diff(_coordinate_at_bin(jnp.arange(num_bins + 1, dtype=dtype), s_min, log_step))
+    # Per cell (the scan's axis first): each line's texels' face changes and the bins they fall in, a face's rise
+    # past the last bin (beyond the medium) dropped.
+    index = jnp.moveaxis(jnp.concatenate([rise_at, fall_at], axis=-1), 2, 0)  # (cells, 4, lines, 2 * _FACE_BINS)
+    change = jnp.moveaxis(jnp.concatenate([rise, -fall], axis=-1) * amount, 2, 0)
+    num_lines = x.shape[0]
+    line_index = jnp.arange(num_lines)[None, :, None]
 
-    def along_line(covered, rises):
-        # The blend's coverage at the bins; its maximum from the light out to this cell; that coverage's integral
-        # over `s` by trapezoids at the nodes, node 0 (s = 0) holding the lowest bin's coverage.
+    def along_line(covered, cell):
+        # The blend's coverage at the bins (its changes summed into the bins they fall in, then their running sum:
+        # per cell, where a table of every cell's changes would be the size of the coverage's); its maximum from
+        # the light out to this cell.
+        cell_index, cell_change = cell
+        rises = jnp.zeros((num_lines, num_bins), dtype).at[jnp.broadcast_to(line_index, cell_index.shape), cell_index].add(
+            cell_change, mode="drop"
+        )  # fmt: skip
         covered = jnp.maximum(covered, jnp.cumsum(rises, axis=-1))
-        nodes = jnp.concatenate([covered[..., :1], covered], axis=-1)
-        steps = 0.5 * (nodes[..., 1:] + nodes[..., :-1]) * gaps
-        return covered, jnp.concatenate([jnp.zeros_like(steps[..., :1]), jnp.cumsum(steps, axis=-1)], axis=-1)
+        return covered, covered
 
-    rises = flat.reshape(cells, num_lines, num_bins)
     start = jnp.zeros((num_lines, num_bins), dtype)
     if isinstance(in_front, bool):
-        return jax.lax.scan(along_line, start, rises, reverse=not in_front)[1]
-    outward, inward = (jax.lax.scan(along_line, start, rises, reverse=reverse)[1] for reverse in (False, True))
+        return jax.lax.scan(along_line, start, (index, change), reverse=not in_front)[1]
+    outward, inward = (jax.lax.scan(along_line, start, (index, change), reverse=reverse)[1] for reverse in (False, True))
     return jnp.where(in_front, outward, inward)
+
+
+def _prefix_integral(covered, s_min, log_step):
+    """The integral over `s` of a coverage at the bins (`(..., num_bins)`) from 0 to each node, by trapezoids at the
+    nodes, node 0 (s = 0) holding the lowest bin's coverage: `(..., num_bins + 1)`."""
+    num_bins = covered.shape[-1]
+    gaps = jnp.diff(_coordinate_at_bin(jnp.arange(num_bins + 1, dtype=covered.dtype), s_min, log_step))
+    nodes = jnp.concatenate([covered[..., :1], covered], axis=-1)
+    steps = 0.5 * (nodes[..., 1:] + nodes[..., :-1]) * gaps
+    return jnp.concatenate([jnp.zeros_like(steps[..., :1]), jnp.cumsum(steps, axis=-1)], axis=-1)
 
 
 def segment_visibility_by_lines(
@@ -334,7 +344,7 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
     log_step = math.log(_BIN_SPAN) / (num_bins - 1)
     thickness = jnp.asarray(thickness, dtype)
     softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
-    prefix = _coverage_prefix(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins,
+    covered = _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins,
                               in_front)  # fmt: skip
 
     # Each pixel's four (line, cell) corners and their weights; each segment's ends as node coordinates.
@@ -343,7 +353,7 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
     line_frac, cell_frac = (line - line0)[..., None], (cell - cell0)[..., None]
     line0, cell0 = line0.astype(jnp.int32), cell0.astype(jnp.int32)
     corners = [
-        ((cell0 + dc).clip(0, cells - 1), (line0 + dl) % num_lines, wl * wc)
+        ((cell0 + dc).clip(0, cells - 1) * num_lines + (line0 + dl) % num_lines, wl * wc)
         for dl, wl in ((0, 1.0 - line_frac), (1, line_frac))
         for dc, wc in ((0, 1.0 - cell_frac), (1, cell_frac))
     ]
@@ -357,9 +367,12 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
     b_low = jnp.clip(jnp.where(narrow, middle - 0.5, b_low), 0.0, num_bins)
     b_high = jnp.clip(jnp.where(narrow, middle + 0.5, b_high), 0.0, num_bins)
 
-    # Each pixel's own row of the prefix sums, blended from its four corners once: the reads at its segments' ends
-    # are then two neighbouring nodes of one row.
-    row = sum(weight * prefix[cell_index, line_index] for cell_index, line_index, weight in corners)
+    # Each pixel's own row of coverage, blended from its four corners once, and its prefix integral over `s` (the
+    # integral is linear: the blend of the corners' integrals): the reads at its segments' ends are then two
+    # neighbouring nodes of one row. The four corners are one gather of the table's rows: in a fit's vectorised
+    # Jacobian each gather of the table moves its lanes first, a copy of the whole table.
+    rows = covered.reshape(cells * num_lines, num_bins)[jnp.stack([index for index, _ in corners])]
+    row = _prefix_integral(jnp.sum(jnp.stack([weight for _, weight in corners]) * rows, axis=0), s_min, log_step)
 
     def prefix_at(b):
         node = jnp.clip(jnp.floor(b), 0, num_bins - 1)

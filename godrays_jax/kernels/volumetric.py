@@ -366,7 +366,10 @@ def volumetric_fog_terms(
     depth = jnp.asarray(depth, dtype)
     # A point light within a thousandth of the medium's reach of the camera is taken at that distance: nearer, its
     # inverse distance overflows float32 in the irradiance around it and its shadows read along lines lose their angles.
-    light_depth = jnp.maximum(jnp.asarray(light_depth, dtype), _NEAREST_LIGHT * jnp.asarray(max_distance, dtype))
+    # The floor is a guard, not a model: no gradient reaches `max_distance` through it (one would carry the medium's
+    # reach through every use of the light's distance, the shadows' table among them, in a fit's Jacobian).
+    nearest = jax.lax.stop_gradient(_NEAREST_LIGHT * jnp.asarray(max_distance, dtype))
+    light_depth = jnp.maximum(jnp.asarray(light_depth, dtype), nearest)
     medium = dict(extinction=extinction, height_falloff=height_falloff)
     bounds = dict(max_distance=max_distance, layer_top=layer_top)
     view = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype)

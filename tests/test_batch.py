@@ -115,6 +115,7 @@ def test_light_tracks(tmp_path):
 def test_light_for_each_source(tmp_path):
     (path,) = _sequence(tmp_path, 1, first=7)
     assert sequences.light_for(str(path), (1, 2)) == ((1.0, 2.0), True)
+    assert sequences.light_for(str(path), ((1, 2), False)) == ((1.0, 2.0), False)  # `--light 1,2,behind`
     assert sequences.light_for(str(path), sequences.METADATA) == (_light(7), True)
     assert sequences.light_for(str(path), {7: ((3.0, 4.0), False)}) == ((3.0, 4.0), False)
     with pytest.raises(ValueError, match=r"frame 7 is outside the light track \(frames 8-9\)"):

@@ -63,7 +63,10 @@ def test_apply_with_params_file_and_layer_only(tmp_path):
 
 @pytest.mark.parametrize(
     "case",
-    ["missing_file", "not_an_image", "no_depth", "bad_light", "nan_colour", "bad_params", "overwrite_input", "no_light"],
+    [
+        "missing_file", "not_an_image", "no_depth", "bad_light", "bad_light_side", "nan_colour", "bad_params",
+        "overwrite_input", "no_light",
+    ],
 )
 def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
     frame = small_frame(tmp_path / "frame.exr")
@@ -81,6 +84,8 @@ def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
         args += ["--preset", "participating_media"]
     elif case == "bad_light":
         args[3], expected = "3;2", "--light must be X,Y"
+    elif case == "bad_light_side":
+        args[3], expected = "3,2,above", "X,Y,behind"
     elif case == "nan_colour":
         args[1], expected = small_frame(tmp_path / "nan.exr", nan=True), "NaN"
     elif case == "bad_params":
@@ -102,6 +107,20 @@ def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
     assert len(lines) == 1, result.stderr
     assert expected in lines[0] and "Traceback" not in result.stderr
     assert sorted(os.listdir(tmp_path)) == before, "a failed run must not leave files behind"
+
+
+@pytest.mark.parametrize("side", ["front", "behind"])
+def test_apply_takes_a_light_behind_the_camera(tmp_path, side):
+    """`--light X,Y,behind` is the light behind the camera, as a frame's header says it: the effect with
+    `light_in_front=False`; `X,Y,front` is plain `X,Y`."""
+    frame_path, output = small_frame(tmp_path / "frame.exr"), tmp_path / "out.exr"
+    assert main(["apply", str(frame_path), "--preset", "participating_media", "--light", f"3,2,{side}", "-o", str(output)]) == 0
+    frame = gr.read_buffers(frame_path)
+    effect = gr.preset("participating_media")
+    expected = effect(frame, np.asarray([3.0, 2.0], np.float32), light_in_front=side == "front")
+    other = effect(frame, np.asarray([3.0, 2.0], np.float32), light_in_front=side != "front")
+    assert not np.allclose(expected, other)  # the side matters to this frame
+    np.testing.assert_allclose(gr.read_image(output)[..., :3], expected[..., :3], rtol=1e-3, atol=1e-5)
 
 
 def test_every_command_has_help():

@@ -127,8 +127,9 @@ def _add_apply(subparsers) -> None:
     parser.add_argument(
         "--light",
         type=parse_light,
-        metavar="X,Y",
-        help="the light's pixel position (x right, y down; may be negative: --light -5,10); default: the frame's godrays:light_px metadata",
+        metavar="X,Y[,behind]",
+        help="the light's pixel position (x right, y down; may be negative: --light -5,10), ',behind' for a light "
+        "behind the camera; default: the frame's godrays:light_px metadata",
     )
     parser.add_argument(
         "--light-depth",
@@ -162,7 +163,10 @@ def _add_batch(subparsers) -> None:
     parser.add_argument("pattern", help=FRAME_PATTERN_HELP.replace("%", "%%"))
     parser.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder (created if missing)")
     lights = parser.add_mutually_exclusive_group()
-    lights.add_argument("--light", type=parse_light, metavar="X,Y", help="the same light pixel position for every frame")
+    lights.add_argument(
+        "--light", type=parse_light, metavar="X,Y[,behind]",
+        help="the same light pixel position for every frame (',behind': behind the camera)",
+    )  # fmt: skip
     lights.add_argument(
         "--light-from-metadata", action="store_true", help="each frame's godrays:light_px metadata (the default)"
     )
@@ -211,8 +215,9 @@ def _add_tune(subparsers) -> None:
     parser.add_argument(
         "--light",
         type=parse_light,
-        metavar="X,Y",
-        help="the light's starting pixel position; default: the frame's godrays:light_px metadata",
+        metavar="X,Y[,behind]",
+        help="the light's starting pixel position (',behind': behind the camera); default: the frame's "
+        "godrays:light_px metadata",
     )
     _add_effect_options(parser)
     parser.add_argument("--port", type=int, default=8000, help="port on 127.0.0.1 (default 8000; 0: any free port)")
@@ -241,8 +246,9 @@ def _add_fit(subparsers) -> None:
         help="one more frame and its target sharing the parameters (repeatable)",
     )  # fmt: skip
     parser.add_argument(
-        "--light", type=parse_light, action="append", metavar="X,Y",
-        help="the light's pixel position, once per frame in order; default: each frame's godrays:light_px metadata",
+        "--light", type=parse_light, action="append", metavar="X,Y[,behind]",
+        help="the light's pixel position, once per frame in order (',behind': behind the camera); default: each "
+        "frame's godrays:light_px metadata",
     )  # fmt: skip
     parser.add_argument(
         "--light-depth", type=parse_light_depth, metavar="D",

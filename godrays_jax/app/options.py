@@ -66,23 +66,33 @@ class CommandError(Exception):
     """A user error the CLI reports as one line (no traceback)."""
 
 
-def parse_light(text: str) -> tuple[float, float]:
-    """`"X,Y"` -> `(x, y)` pixels; both finite numbers, a far light moved along its direction to `MAX_LIGHT_PX`."""
+LIGHT_SIDES = {"front": True, "behind": False}
+"""`--light X,Y,SIDE`'s last word: the light in front of the camera (the default) or behind it (its position then
+the projection `camera.project_point` gives, mirrored through the camera plane)."""
+
+
+def parse_light(text: str) -> tuple[tuple[float, float], bool]:
+    """`"X,Y"` or `"X,Y,front"` or `"X,Y,behind"` -> `((x, y), in_front)`: pixels, both finite numbers, a far light
+    moved along its direction to `MAX_LIGHT_PX`; `behind` a light behind the camera (`LIGHT_SIDES`)."""
     parts = text.replace(" ", "").split(",")
+    side = parts.pop().lower() if len(parts) == 3 else "front"
+    usage = f"--light must be X,Y in pixels, or X,Y,behind for a light behind the camera (e.g. 160.5,42), got {text!r}"
+    if side not in LIGHT_SIDES:
+        raise argparse.ArgumentTypeError(usage)
     try:
         x, y = (float(part) for part in parts)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--light must be X,Y in pixels (e.g. 160.5,42), got {text!r}") from None
+        raise argparse.ArgumentTypeError(usage) from None
     if not (math.isfinite(x) and math.isfinite(y)):
         raise argparse.ArgumentTypeError(f"--light must be finite, got {text!r}")
     x, y = check_light((x, y))  # as the library bounds it, before a float32 cast could overflow
-    return float(x), float(y)
+    return (float(x), float(y)), LIGHT_SIDES[side]
 
 
-def resolve_light(light: tuple[float, float] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:
-    """The `--light` value, or the position stored in the frame's metadata."""
+def resolve_light(light: tuple[tuple[float, float], bool] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:
+    """The `--light` value (`parse_light`'s), or the position and side stored in the frame's metadata."""
     if light is not None:
-        return light, True
+        return light
     stored = read_light(buffers_path)
     if stored is None:
         raise CommandError(f"{buffers_path} stores no light position (godrays:light_px): pass --light X,Y")
@@ -276,13 +286,13 @@ def with_frame_camera(effect: Effect, args: argparse.Namespace, path: str) -> Ef
 
 
 def frame_for_command(
-    command: str, effect: Effect, buffers: Buffers, path: str, light: tuple[float, float] | None
+    command: str, effect: Effect, buffers: Buffers, path: str, light: tuple[tuple[float, float], bool] | None
 ) -> tuple[Effect, Buffers, tuple[float, float], bool]:
     """One frame made ready for `effect` (`ready_frame`): `(effect, buffers, light pixel, light in front)`.
 
     The effect falls back to the disc emitter when the frame lacks its light
-    pass (`effect_for_frame`); the light is `light` or the frame's header
-    (`resolve_light`); a frame without sky gets a warning. Raises
+    pass (`effect_for_frame`); the light is `light` (`parse_light`'s position
+    and side) or the frame's header (`resolve_light`); a frame without sky gets a warning. Raises
     `CommandError` for a frame the effect cannot use (no depth).
     """
     effect = effect_for_frame(command, effect, buffers, path)

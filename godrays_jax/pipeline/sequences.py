@@ -220,8 +220,9 @@ def _parse_bool(value: object, path: str, number: int) -> bool:
     raise ValueError(f"light track {path}: frame {number} has in_front {value!r} (use 1/0 or true/false)")
 
 
-LightSource = tuple[float, float] | str | Mapping[int, Light]
-"""Where each frame's light comes from: a fixed `(x, y)`, `METADATA`, or a track `{frame: Light}`."""
+LightSource = tuple[float, float] | Light | str | Mapping[int, Light]
+"""Where each frame's light comes from: a fixed `(x, y)` in front of the camera or a fixed `Light`, `METADATA`, or a
+track `{frame: Light}`."""
 
 
 def light_for(path: str, light: LightSource) -> Light:
@@ -238,6 +239,9 @@ def light_for(path: str, light: LightSource) -> Light:
         if number is None:
             raise ValueError("no frame number in its name to look up in the light track")
         return _track_light(light, number)
+    if isinstance(light[0], (tuple, list)):  # a `Light`: the position and its side
+        (x, y), in_front = light
+        return (float(x), float(y)), bool(in_front)
     x, y = light
     return (float(x), float(y)), True
 

@@ -1,0 +1,129 @@
+"""`godrays-jax fit` at its limits, as a user's shell runs it: degenerate frames and far lights under a memory limit,
+and a fit interrupted or killed while it finishes, which leaves its parameters and report both or neither."""
+
+import json
+import math
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+
+MEMORY_LIMIT = 2 << 30
+"""The limit on the command's data (`RLIMIT_DATA`: its heap and private mappings, where XLA's buffers live). Not its
+address space: JAX alone reserves about 1.5 GB of addresses it never touches."""
+
+
+def _command(*arguments, env, limit=None, **options):
+    """`godrays-jax ARGUMENTS` in a fresh interpreter, its data limited to `limit` bytes (None: no limit)."""
+
+    def limited():
+        if limit is not None:
+            resource.setrlimit(resource.RLIMIT_DATA, (limit, limit))
+
+    return subprocess.Popen(
+        [sys.executable, "-m", "godrays_jax", *arguments], env=env, preexec_fn=limited, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, **options,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def environment(tmp_path_factory):
+    """The commands' environment: one compilation cache for the module's commands, as a user's shell has."""
+    return {**os.environ, "GODRAYS_JAX_CACHE_DIR": str(tmp_path_factory.mktemp("cache"))}
+
+
+def _frame(depth: np.ndarray) -> gr.Buffers:
+    height, width = depth.shape
+    return gr.Buffers(color=np.full((height, width, 3), 0.2, np.float32), depth=depth.astype(np.float32),
+                      coverage=np.isfinite(depth).astype(np.float32))  # fmt: skip
+
+
+def _ground(height, width):
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[height // 3 :] = 40.0
+    return depth
+
+
+DEGENERATE = {
+    "all sky": (lambda h, w: np.full((h, w), np.inf), "160,40"),
+    "all zero": (lambda h, w: np.zeros((h, w)), "160,40"),
+    "a light 1e12 pixels away": (_ground, "1e12,1e12"),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(DEGENERATE))
+def test_a_default_fit_of_a_degenerate_frame_stays_within_two_gigabytes(case, tmp_path, environment):
+    """The default fit (`volumetric_haze`) of a 320x180 frame whose depth is all sky or all zero, or whose light is
+    far off screen, under a 2 GB data limit: it fits (finite parameters) or refuses in one line and writes nothing."""
+    make_depth, light = DEGENERATE[case]
+    frame, target, params = tmp_path / "frame.exr", tmp_path / "target.exr", tmp_path / "params.json"
+    gr.write_buffers(frame, _frame(make_depth(180, 320)))
+    gr.write_image(target, np.full((180, 320, 3), 0.3, np.float32))
+    done = _command("fit", str(frame), str(target), "--light", light, "-o", str(params), "--max-steps", "2",
+                    env=environment, limit=MEMORY_LIMIT)  # fmt: skip
+    out, err = done.communicate(timeout=900)
+    errors = [line for line in err.splitlines() if "error" in line]
+    if done.returncode == 0:
+        values = json.loads(params.read_text())["params"]
+        flat = [v for value in values.values() for v in np.ravel(value) if isinstance(v, (int, float))]
+        assert flat and all(math.isfinite(v) for v in flat), values
+    else:
+        assert done.returncode == 1 and len(errors) == 1 and "Traceback" not in err, err
+        assert not params.exists()
+
+
+def _small_fit(tmp_path, environment, *extra):
+    """A quick fit of a small frame with a report, started: the process, the params and report paths."""
+    depth = _ground(36, 64)
+    depth[:, 30:34] = 10.0  # a pillar in the light
+    frame, target = tmp_path / "frame.exr", tmp_path / "target.exr"
+    gr.write_buffers(frame, _frame(depth), light_xy=(32.5, 6.0))
+    gr.write_image(target, np.asarray(gr.preset("xna_crepuscular")(_frame(depth), np.asarray([32.5, 6.0], np.float32))))
+    params, report = tmp_path / "params.json", tmp_path / "report.png"
+    process = _command("fit", str(frame), str(target), "--preset", "xna_crepuscular", "-o", str(params),
+                       "--report", str(report), "--max-steps", "6", *extra, env=environment)  # fmt: skip
+    return process, params, report
+
+
+def _wait_for_line(process, text, timeout=600):
+    """Read the process's stdout until a line containing `text`; the lines read."""
+    lines, start = [], time.monotonic()
+    while time.monotonic() - start < timeout:
+        line = process.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        if text in line:
+            return lines
+    raise AssertionError(f"no line with {text!r} in {lines}")
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGKILL], ids=["interrupted", "killed"])
+@pytest.mark.parametrize("delay", [0.0, 0.5])
+def test_a_fit_stopped_after_it_converged_leaves_both_files_or_neither(stop, delay, tmp_path, environment):
+    """Stopped once it has printed its result (while it checks the fit, renders the report and writes): the params
+    file and the report exist both (each whole) or neither; an interrupt exits 130 with one line."""
+    process, params, report = _small_fit(tmp_path, environment)
+    _wait_for_line(process, "fitted ")
+    time.sleep(delay)
+    process.send_signal(stop)
+    out, err = process.communicate(timeout=600)
+    assert params.exists() == report.exists(), (out, err)
+    if params.exists():
+        assert json.loads(params.read_text())["effect"] == type(gr.preset("xna_crepuscular")).__name__
+        assert gr.read_image(report).ndim == 3
+    if stop == signal.SIGINT and process.returncode != 0:
+        # Interrupted in its work: 130 and one line. Interrupted while the interpreter exits (Python's handler gone):
+        # killed by the signal, its work done.
+        exiting = process.returncode == -signal.SIGINT and params.exists()
+        assert exiting or (process.returncode == 130 and err.strip().splitlines()[-1].endswith("interrupted")), err
+    leftovers = sorted(path.name for path in tmp_path.iterdir()) if not params.exists() else []
+    assert not [name for name in leftovers if name.startswith(("params", "report"))], leftovers

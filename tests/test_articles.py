@@ -299,12 +299,13 @@ def test_render_writes_the_frames_camera(tmp_path):
     assert tuple(spec.getattribute("godrays:clip_planes")) == pytest.approx((0.25, 900.0))
     assert spec.getattribute("godrays:light_depth") == pytest.approx(25.0)
     # ... and the commands hand them to the effects that read them.
-    from godrays_jax.app.options import with_field_of_view, with_frame_clip_planes
+    from godrays_jax.primitives.camera_metadata import read_clip_planes
 
-    effect = with_frame_clip_planes(gr.preset("xna_crepuscular"), str(tmp_path / "frame.exr"))
+    planes = read_clip_planes(str(tmp_path / "frame.exr"))
+    effect = gr.preset("xna_crepuscular").with_camera(clip_planes=planes)
     assert (effect.near_plane, effect.far_plane) == pytest.approx((0.25, 900.0))
-    assert float(with_field_of_view(effect, spec.getattribute("godrays:fov_x_deg")).fov_x_deg) == pytest.approx(37.0)
-    assert with_frame_clip_planes(gr.preset("vbex_bloom"), str(tmp_path / "frame.exr")) == gr.preset("vbex_bloom")
+    assert float(effect.with_camera(fov_x_deg=spec.getattribute("godrays:fov_x_deg")).fov_x_deg) == pytest.approx(37.0)
+    assert gr.preset("vbex_bloom").with_camera(fov_x_deg=37.0, clip_planes=planes) == gr.preset("vbex_bloom")
 
 
 def test_vbex_night_lights_are_towns_clustered_on_continents():

@@ -99,6 +99,29 @@ def test_relaxed_sample_count_equals_integer_count_in_the_effect():
     np.testing.assert_allclose(effect.layer(frame, LIGHT)[..., :1], exact, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+def test_with_camera_sets_the_camera_fields_an_effect_reads_and_nothing_else(name):
+    """`Effect.with_camera` gives an effect a frame's field of view and clip planes in the fields it names
+    (`CAMERA_FIELDS`), each a field of the effect; every other field, and an effect that reads no camera, unchanged."""
+    effect = gr.preset(name)
+    names = {field.name for field in dataclasses.fields(effect)}
+    assert set(type(effect).CAMERA_FIELDS) <= names
+    assert ("near_plane" in type(effect).CAMERA_FIELDS) == ("far_plane" in type(effect).CAMERA_FIELDS)
+    assert effect.with_camera() is effect
+    seen = effect.with_camera(fov_x_deg=33.0, clip_planes=(0.5, 500.0))
+    expected = {"fov_x_deg": 33.0, "near_plane": 0.5, "far_plane": 500.0}
+    for field in names:
+        value, before = getattr(seen, field), getattr(effect, field)
+        if field in type(effect).CAMERA_FIELDS:
+            assert float(value) == pytest.approx(expected[field])
+        elif eqx.is_array(before):
+            assert value is before
+        else:
+            assert value == before
+    if not type(effect).CAMERA_FIELDS:
+        assert seen is effect
+
+
 def test_bounds_cover_every_fittable_field_and_contain_the_presets():
     for name in gr.PRESETS:
         effect = gr.preset(name)

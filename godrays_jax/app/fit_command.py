@@ -24,8 +24,7 @@ from godrays_jax.app.options import (
     resolve_light,
     resolve_light_depth,
     warn,
-    with_field_of_view,
-    with_frame_clip_planes,
+    with_frame_camera,
 )
 from godrays_jax.effects.fields import field_metadata, field_value
 from godrays_jax.effects.presets import preset
@@ -52,8 +51,7 @@ def run(args) -> int:
         raise CommandError(f"give --light once per frame ({len(pairs)} frames) or not at all, got {len(lights)}")
     effect = effect_option(args.preset, args.params, default=default_fit_effect)
     fov = frame_field_of_view(args, args.buffers)
-    effect = with_field_of_view(effect, fov)
-    effect = with_frame_clip_planes(effect, args.buffers)
+    effect = with_frame_camera(effect, args, args.buffers)
     frames, light_positions, in_front, targets, depths = [], [], [], [], []
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = read_buffers(buffers_path, **frame_reading(args))
@@ -76,7 +74,7 @@ def run(args) -> int:
         depths.append(resolve_light_depth(args.light_depth, buffers_path))
         targets.append(target)
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
-    if fov is not None and hasattr(effect, "fov_x_deg") and "fov_x_deg" not in fixed:
+    if fov is not None and "fov_x_deg" in effect.CAMERA_FIELDS and "fov_x_deg" not in fixed:
         fixed += ("fov_x_deg",)  # the frame's camera says it: not a parameter to fit
     # Checked before the progress bar is drawn: an error is then the command's one line.
     if args.max_steps < 0:
@@ -159,7 +157,7 @@ def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
     the frame's field of view `fov_x_deg` (or keep theirs when it is `None`), which the layer's heights need.
     """
     names = [f"preset {name}" for name in model_presets(effect)]
-    starts = [with_field_of_view(preset(name), fov_x_deg) for name in model_presets(effect)]
+    starts = [preset(name).with_camera(fov_x_deg=fov_x_deg) for name in model_presets(effect)]
     for name, base in [("the start given", effect), *zip(list(names), list(starts))]:
         layer = ground_layer_start(base, frames)
         if layer is not None:

@@ -225,15 +225,6 @@ def frame_field_of_view(args: argparse.Namespace, path: str) -> float | None:
     return args.fov_x_deg if args.fov_x_deg is not None else read_frame_camera(path).fov_x_deg
 
 
-def with_frame_clip_planes(effect: Effect, path: str) -> Effect:
-    """The effect with the frame's camera clip planes (`godrays:clip_planes`, as `render` writes them), if it has
-    `near_plane` and `far_plane` fields (the XNA depth test's) and the frame carries them."""
-    planes = read_clip_planes(path)
-    if planes is None or not {"near_plane", "far_plane"} <= {field.name for field in dataclasses.fields(effect)}:
-        return effect
-    return dataclasses.replace(effect, near_plane=planes[0], far_plane=planes[1])
-
-
 def read_target(path: str) -> np.ndarray:
     """A reference image's colour: its plain `R, G, B`, or a render's colour layer (Blender's `ViewLayer.Combined`).
 
@@ -241,13 +232,6 @@ def read_target(path: str) -> np.ndarray:
     (`ViewLayer.AO.R`, `ViewLayer.Depth.Z`, ...) are never taken for its colour.
     """
     return read_buffers(path, without_depth=True, depth_kind="ray").color
-
-
-def with_field_of_view(effect: Effect, fov_x_deg: float | None) -> Effect:
-    """The effect with the frame's field of view, if it has a `fov_x_deg` field and the frame's is known."""
-    if fov_x_deg is None or "fov_x_deg" not in {field.name for field in dataclasses.fields(effect)}:
-        return effect
-    return dataclasses.replace(effect, fov_x_deg=np.float32(fov_x_deg))
 
 
 def warn(command: str, text: str) -> None:
@@ -281,8 +265,9 @@ def effect_for_frame(command: str, effect: Effect, buffers: Buffers, name: str) 
 
 
 def with_frame_camera(effect: Effect, args: argparse.Namespace, path: str) -> Effect:
-    """`effect` with the camera of the frame at `path`: its field of view (`--fov-x-deg`, else its header) and clip planes."""
-    return with_frame_clip_planes(with_field_of_view(effect, frame_field_of_view(args, path)), path)
+    """`effect` through the camera of the frame at `path` (`Effect.with_camera`): its field of view (`--fov-x-deg`,
+    else its header) and its clip planes (`godrays:clip_planes`, as `render` writes them)."""
+    return effect.with_camera(fov_x_deg=frame_field_of_view(args, path), clip_planes=read_clip_planes(path))
 
 
 def frame_for_command(

@@ -25,6 +25,7 @@ the light is behind the camera (`light_in_front` false: the frame comes back
 unchanged). `Bloom` does not depend on the light and ignores both.
 """
 
+import dataclasses
 import functools
 import math
 import typing
@@ -105,6 +106,21 @@ class Effect(Part):
 
     NEEDS_DEPTH: typing.ClassVar[bool] = False
     FIELD_STAGES: typing.ClassVar[dict[str, str]] = {}
+    CAMERA_FIELDS: typing.ClassVar[tuple[str, ...]] = ()
+    """The fields in which the effect reads its frame's camera (`with_camera`): `"fov_x_deg"`, and `"near_plane"`
+    with `"far_plane"`."""
+
+    def with_camera(self, *, fov_x_deg: float | None = None, clip_planes: tuple[float, float] | None = None) -> "Effect":
+        """This effect seen through a frame's camera: its horizontal field of view in degrees and its near and far
+        clip planes in scene units (a renderer's, as `godrays:clip_planes` stores them), each set where the effect
+        reads it (`CAMERA_FIELDS`) and left as it is when None. An effect that reads neither is returned as it is;
+        the commands give every effect its frame's camera this way."""
+        values = {}
+        if fov_x_deg is not None and "fov_x_deg" in self.CAMERA_FIELDS:
+            values["fov_x_deg"] = np.float32(fov_x_deg)
+        if clip_planes is not None and "near_plane" in self.CAMERA_FIELDS:
+            values["near_plane"], values["far_plane"] = (float(plane) for plane in clip_planes)
+        return dataclasses.replace(self, **values) if values else self
 
     def fit_stand_in(self) -> "Effect":
         """The effect `fit` fits in this one's place (`pipeline.fit.fit`'s `stand_in`): the same fields, read

@@ -56,6 +56,7 @@ class ScatteringFog(Effect):
     max_samples: int = static(32, low=1, high=4096)
 
     NEEDS_DEPTH: ClassVar[bool] = True
+    CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg",)
 
     def lit(self, buffers: Buffers, light_xy, *, light_in_front=True) -> Float[Array, "H W"]:
         """The fraction of each camera ray the sun reaches, in [0, 1] (1 without occluders)."""

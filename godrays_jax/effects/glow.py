@@ -124,6 +124,8 @@ class LensDirt(Effect):
     blend_mode: BlendMode = static("add")
 
     NEEDS_DEPTH: ClassVar[bool] = True
+    # Its `far_plane` is where its dirt stops catching light, a parameter of its own, not the camera's clip plane.
+    CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg",)
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The lit dirt alone, `(H, W, 3)`."""
@@ -157,6 +159,8 @@ class SunSpot(Effect):
     `Bloom` blurs its glow target (no threshold), and the article adds the
     glow at full strength (`bloom.intensity = 1`).
     """
+
+    CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg",)
 
     sun_distance: Float[Array, ""] = param(1.0, low=0.01, high=100.0)
     sun_sharpness: Float[Array, ""] = param(1.0, low=0.0, high=100.0)

@@ -170,6 +170,7 @@ class GodRays(Effect, Emitter):
     resolution.
     """
 
+    CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg", "near_plane", "far_plane")
     FLARE_SQUARED: ClassVar[bool] = True
 
     density: Float[Array, ""] = param(0.5, low=0.0, high=2.0)
@@ -261,6 +262,7 @@ class FlareOuts(Effect, Emitter):
     `num_iters` is fittable (loop length `max_iters`).
     """
 
+    CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg", "near_plane", "far_plane")
     FLARE_SQUARED: ClassVar[bool] = False
 
     scale_step: Float[Array, ""] = param(1.03, low=0.8, high=1.5)

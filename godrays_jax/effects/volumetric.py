@@ -101,6 +101,7 @@ class VolumetricFog(Effect):
     resolution_factor: int = static(4, low=1, high=64)
 
     NEEDS_DEPTH: ClassVar[bool] = True
+    CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg",)
     # The colours and the terms' weights enter the final sum alone; the medium's ends only where each piece of a
     # ray stops; the slabs' fields reach the shadows, which the medium's own fields do not (read along lines, the
     # shadows' table is most of the work: its derivatives are taken for these two alone). The march's fields reach

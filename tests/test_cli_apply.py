@@ -123,6 +123,16 @@ def test_apply_takes_a_light_behind_the_camera(tmp_path, side):
     np.testing.assert_allclose(gr.read_image(output)[..., :3], expected[..., :3], rtol=1e-3, atol=1e-5)
 
 
+def test_verbose_adds_the_traceback_after_the_one_line(tmp_path):
+    """`--verbose` (every command's) keeps the error's one line first and adds its traceback; without it, one line."""
+    args = ["apply", tmp_path / "missing.exr", "--light", "3,2", "-o", tmp_path / "out.png"]
+    quiet, verbose = run_cli(*args), run_cli(*args, "--verbose")
+    assert quiet.returncode == verbose.returncode == 1
+    assert len(quiet.stderr.strip().splitlines()) == 1
+    lines = verbose.stderr.strip().splitlines()
+    assert lines[0] == quiet.stderr.strip() and "Traceback" in verbose.stderr and len(lines) > 3
+
+
 def test_every_command_has_help():
     from godrays_jax.app.cli import build_parser
 

@@ -11,6 +11,7 @@ import importlib
 import os
 import re
 import sys
+import traceback
 import warnings
 from collections.abc import Callable
 
@@ -32,6 +33,9 @@ from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
 
 PROGRAM = "godrays-jax"
+
+MEMORY_HINT = "a smaller frame, or fit's --coarse-factor, needs less; docs/fitting.md says how memory grows"
+"""What to do about an out-of-memory error: said after XLA's one line."""
 
 
 _NEGATIVE_VALUE = re.compile(r"-\s*(?:\d|\.\d)")
@@ -340,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     for add_command in COMMANDS:
         add_command(subparsers)
+    for command in subparsers.choices.values():
+        command.add_argument("--verbose", action="store_true", help="on an error, its traceback after the one line")
     return parser
 
 
@@ -362,8 +368,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{PROGRAM} {args.command}: interrupted", file=sys.stderr)
         return 130
-    except Exception as error:  # every failure becomes one line, never a traceback
-        print(f"{PROGRAM} {args.command}: error: {error_line(error)}", file=sys.stderr)
+    except Exception as error:  # every failure becomes one line; its traceback only when asked for
+        line = error_line(error)
+        if "RESOURCE_EXHAUSTED" in line:
+            line += f" (the frame needs more memory than this machine has free: {MEMORY_HINT})"
+        print(f"{PROGRAM} {args.command}: error: {line}", file=sys.stderr)
+        if args.verbose:
+            traceback.print_exception(error, file=sys.stderr)
         return 1
 
 

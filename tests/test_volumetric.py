@@ -543,6 +543,31 @@ def test_reduced_resolution_matches_loop(x64):
     np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
 
 
+@pytest.mark.parametrize("band_pixels", [40, 64])
+def test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives(x64, monkeypatch, band_pixels):
+    """On a larger frame the pixels read the march rays a band of rows at a time (`_BAND_PIXELS`): the same terms
+    and derivatives as the whole frame at once, with a last band the frame's rows fill only partly (13 rows in
+    bands of 3 or 5) and a partly covered frame."""
+    light_xy, light_depth, in_front = CASES["point light off screen"]
+    depth = np.repeat(np.repeat(np.asarray(_depth()), 3, axis=0), 2, axis=1)[:13]  # 13 x 12
+    coverage = jnp.asarray(np.isfinite(depth) * 0.75 + 0.25)
+    fields = jnp.asarray([MEDIUM["extinction"], MEDIUM["max_distance"]])
+
+    def terms(values):
+        options = {**MEDIUM, "extinction": values[0], "max_distance": values[1]}
+        return jnp.stack(volumetric_fog_terms(
+            jnp.asarray(depth), light_xy, light_depth=light_depth, light_in_front=in_front, resolution_factor=2.5,
+            coverage=coverage, **options,
+        ))  # fmt: skip
+
+    whole = jax.jit(jax.jacfwd(terms))(fields), jax.jit(terms)(fields)
+    monkeypatch.setattr(volumetric, "_BAND_PIXELS", band_pixels)  # bands of 3 or 5 rows of 12 pixels
+    banded = jax.jit(jax.jacfwd(terms))(fields), jax.jit(terms)(fields)
+    for got, expected in zip(banded, whole):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-10, atol=1e-12)
+    assert np.all(np.isfinite(np.asarray(banded[0]))) and float(jnp.max(jnp.abs(banded[0]))) > 0
+
+
 def test_march_rays_ride_with_the_light(x64):
     """The march rays sit at the light's position plus multiples of the spacing and cover the screen with a margin:
     a light moved by part of a spacing moves every ray by as much, a light moved by whole spacings (far off screen

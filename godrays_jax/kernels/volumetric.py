@@ -93,6 +93,10 @@ from godrays_jax.primitives.sampling import bilinear_corners
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
 _NEAREST_LIGHT = 1e-3
 
+# The pixels' reads of the march rays are made this many pixels (whole rows) at a time on larger frames: memory
+# O(band x lanes) in a fit's Jacobian instead of O(frame x lanes), the same values.
+_BAND_PIXELS = 1 << 16
+
 # A piece's segments are even in the transmittance of a homogeneous medium of the piece's optical depth, taken
 # at most this deep: beyond it the first segments are short enough, and float32 would lose the last bound's place.
 _DEEPEST_PLACEMENT = 12.0
@@ -238,18 +242,18 @@ def _read_at_depth(lit, first, last, optical, even_in_light, row, col, ray_end):
     return before[row, col, index] + lit[row, col, index] * share
 
 
-def _upsample_by_depth(lit, firsts, lasts, opticals, even_in_light, ray_end, xs, ys, spacing):
+def _upsample_by_depth(lit, firsts, lasts, opticals, even_in_light, ray_end, xs, ys, spacing, first_row=0):
     """The in-scattering of the march rays at `(xs, ys)` (`spacing` pixels apart; their pieces' segments' light
     `lit`, `(L, h, w, M)`, from `firsts` to `lasts`, placed by `opticals`, each `(L, h, w)`; `even_in_light` as
-    `_read_at_depth`'s) at every pixel: each of its four nearest rays read up
-    to the pixel's own `ray_end` (`(H, W)`, scene units, `inf` on sky: read as it is, so that a read beyond a
+    `_read_at_depth`'s) at every pixel of the rows from `first_row` on: each of its four nearest rays read up
+    to the pixel's own `ray_end` (`(rows, W)`, scene units, `inf` on sky: read as it is, so that a read beyond a
     piece's end takes the piece whole with the piece's own derivatives), by bilinear weights at the rays' true
     positions."""
     height, width = ray_end.shape
     _, small_h, small_w, _ = lit.shape
     dtype = lit.dtype
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
-    y = (jnp.arange(height, dtype=dtype) + 0.5 - ys[0]) / spacing
+    y = (jnp.arange(height, dtype=dtype) + first_row + 0.5 - ys[0]) / spacing
     row, col, tent = bilinear_corners(x[None, :], y[:, None], small_h, small_w)
     read = sum(_read_at_depth(*piece, even_in_light, row, col, ray_end) for piece in zip(lit, firsts, lasts, opticals))
     return jnp.sum(tent * read, axis=0)
@@ -377,7 +381,7 @@ def volumetric_fog_terms(
     share = jnp.asarray(direct_fraction, dtype)
     rise = jnp.asarray(ambient_rise, dtype)
 
-    def surface_and_ambient(ray_end):
+    def surface_and_ambient(view, ray_end):
         origin = jnp.zeros_like(view)
         start, end = medium_interval(origin, view, jnp.where(jnp.isfinite(ray_end), ray_end, jnp.inf), **bounds)
         tau = optical_depth(origin, view, start, end, **medium)
@@ -395,7 +399,7 @@ def volumetric_fog_terms(
     if spacing == 1:
         x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, jnp.arange(height, dtype=dtype) + 0.5)
 
-        def march(ray_end):
+        def march(ray_end, first_row):  # the whole frame: every pixel's own ray
             return jnp.sum(_in_scattered(view, (ray_end,), depth, light_xy, jnp.stack([x, y], axis=-1), options)[0][0], axis=-1)
 
     else:
@@ -416,21 +420,40 @@ def volumetric_fog_terms(
         split = jnp.where(coarse_depth < end, coarse_depth, 0.5 * (start + end))
         pieces = _in_scattered(rays, (split, sky), depth, light_xy, jnp.stack([x, y], axis=-1), options)
 
-        def march(ray_end):
-            return _upsample_by_depth(*pieces, ray_end, xs, ys, spacing)
+        def march(ray_end, first_row):
+            return _upsample_by_depth(*pieces, ray_end, xs, ys, spacing, first_row)
+
+    def pixel_terms(view, first_row, surface_depth, covered, uncovered):
+        """The three terms at the rows of `view` from `first_row` on."""
+        surface, ambient = surface_and_ambient(view, surface_depth)
+        on_surface = (surface, march(surface_depth, first_row), ambient)
+        if covered is None:
+            return on_surface
+        # A silhouette's pixel is partly the surface (on sky: its nearest neighbour's) and partly what lies beside it.
+        surface, ambient = surface_and_ambient(view, uncovered)
+        on_sky = (surface, march(uncovered, first_row), ambient)
+        return tuple(covered * one + (1.0 - covered) * other for one, other in zip(on_surface, on_sky))
 
     if coverage is None:
-        surface, ambient = surface_and_ambient(depth)
-        return surface, march(depth), ambient
-    # A silhouette's pixel is partly the surface (on sky: its nearest neighbour's) and partly what lies beside it.
-    covered = jnp.asarray(coverage, dtype)
-    surface_depth = _covering_depth(depth)
-    uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
-    terms = []
-    for ray_end in (surface_depth, uncovered):
-        surface, ambient = surface_and_ambient(ray_end)
-        terms.append((surface, march(ray_end), ambient))
-    return tuple(covered * on_surface + (1.0 - covered) * on_sky for on_surface, on_sky in zip(*terms))
+        planes = (depth, None, None)
+    else:
+        uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
+        planes = (_covering_depth(depth), jnp.asarray(coverage, dtype), uncovered)
+    band = max(_BAND_PIXELS // width, 1)
+    if spacing == 1 or band >= height:
+        return pixel_terms(view, 0, *planes)
+    # Band by band: every pixel's reads of its rays (in a fit's Jacobian, in every lane) held for a band of rows at
+    # a time instead of the frame. The rows beyond the frame that fill the last band are sky, cut off again.
+    bands = -(-height // band)
+
+    def in_bands(plane, fill):
+        padded = jnp.pad(plane, [(0, bands * band - height)] + [(0, 0)] * (plane.ndim - 1), constant_values=fill)
+        return padded.reshape(bands, band, *plane.shape[1:])
+
+    inputs = [in_bands(view, 0.0), jnp.arange(bands) * band]
+    inputs += [None if plane is None else in_bands(plane, fill) for plane, fill in zip(planes, (jnp.inf, 1.0, jnp.inf))]
+    terms = jax.lax.map(lambda rows: pixel_terms(*rows), inputs)
+    return tuple(term.reshape(bands * band, width)[:height] for term in terms)
 
 
 def apply_volumetric_fog(

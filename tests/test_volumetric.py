@@ -560,9 +560,12 @@ def test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives(x64, monke
             coverage=coverage, **options,
         ))  # fmt: skip
 
-    whole = jax.jit(jax.jacfwd(terms))(fields), jax.jit(terms)(fields)
+    def derivatives(values):  # forward and reverse mode, as a fit and a user's grad take them
+        return jax.jacfwd(terms)(values), jax.jacrev(terms)(values)
+
+    whole = *jax.jit(derivatives)(fields), jax.jit(terms)(fields)
     monkeypatch.setattr(volumetric, "_BAND_PIXELS", band_pixels)  # bands of 3 or 5 rows of 12 pixels
-    banded = jax.jit(jax.jacfwd(terms))(fields), jax.jit(terms)(fields)
+    banded = *jax.jit(derivatives)(fields), jax.jit(terms)(fields)
     for got, expected in zip(banded, whole):
         np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-10, atol=1e-12)
     assert np.all(np.isfinite(np.asarray(banded[0]))) and float(jnp.max(jnp.abs(banded[0]))) > 0

@@ -443,15 +443,15 @@ def volumetric_fog_terms(
     if spacing == 1 or band >= height:
         return pixel_terms(view, 0, *planes)
     # Band by band: every pixel's reads of its rays (in a fit's Jacobian, in every lane) held for a band of rows at
-    # a time instead of the frame. The rows beyond the frame that fill the last band are sky, cut off again.
+    # a time instead of the frame. The rows that fill the last band repeat the frame's last (pixels like its own,
+    # whose derivatives are finite: reverse mode multiplies theirs by zero) and are cut off again.
     bands = -(-height // band)
 
-    def in_bands(plane, fill):
-        padded = jnp.pad(plane, [(0, bands * band - height)] + [(0, 0)] * (plane.ndim - 1), constant_values=fill)
+    def in_bands(plane):
+        padded = jnp.pad(plane, [(0, bands * band - height)] + [(0, 0)] * (plane.ndim - 1), mode="edge")
         return padded.reshape(bands, band, *plane.shape[1:])
 
-    inputs = [in_bands(view, 0.0), jnp.arange(bands) * band]
-    inputs += [None if plane is None else in_bands(plane, fill) for plane, fill in zip(planes, (jnp.inf, 1.0, jnp.inf))]
+    inputs = [in_bands(view), jnp.arange(bands) * band, *[None if plane is None else in_bands(plane) for plane in planes]]
     terms = jax.lax.map(lambda rows: pixel_terms(*rows), inputs)
     return tuple(term.reshape(bands * band, width)[:height] for term in terms)
 

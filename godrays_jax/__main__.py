@@ -2,6 +2,6 @@
 
 import sys
 
-from godrays_jax.app.cli import main
+from godrays_jax.app.cli import console_main
 
-sys.exit(main())
+sys.exit(console_main())

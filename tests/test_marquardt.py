@@ -26,7 +26,7 @@ def _evaluator(data, residuals=_curve):
     def evaluate(y):
         y = jnp.asarray(y)
         r, jacobian = np.asarray(residuals(y, data)), np.asarray(jax.jacfwd(residuals)(y, data))
-        return (r, *normal_equations(jacobian, r))
+        return r, lambda: normal_equations(jacobian, r)
 
     return evaluate
 
@@ -60,7 +60,8 @@ def test_it_takes_optimistix_levenberg_marquardts_steps():
 def test_the_scaled_step_solves_the_damped_normal_equations():
     data = _data([1.0, 1.0, 1.0])
     y = np.asarray([1.5, 0.4, 0.1])
-    residual, normal, gradient = _evaluator(data)(y)
+    _, linearise = _evaluator(data)(y)
+    normal, gradient = linearise()
     step_size = 0.25
     step = LevenbergMarquardt(1e-10, 1e-12, scaled=True)._damped_step(normal, gradient, step_size)
     expected = np.linalg.solve(normal + np.diag(np.diag(normal)) / step_size, -gradient)
@@ -116,3 +117,32 @@ def test_the_normal_equations_by_blocks_are_the_whole_ones():
     whole = jacobian.astype(np.float64)
     np.testing.assert_allclose(normal, whole.T @ whole, rtol=1e-12)
     np.testing.assert_allclose(gradient, whole.T @ residuals.astype(np.float64), rtol=1e-12)
+
+
+@pytest.mark.usefixtures("x64")
+def test_a_step_linearises_only_the_points_it_accepts():
+    """A rejected step costs its residuals only: the normal equations are asked for at accepted points alone."""
+    data, accepted_losses, linearised = _data([1.0, 1.0, 1.0]), [], []
+    full = _evaluator(data)
+
+    def evaluate(y):
+        residuals, linearise = full(y)
+
+        def counted():
+            linearised.append(float(np.sum(np.square(residuals))))
+            return linearise()
+
+        return residuals, counted
+
+    solver = LevenbergMarquardt(1e-10, 1e-12)
+    state = solver.init(np.asarray([10.0, 0.0, 3.0]))  # far off: some steps overshoot and are rejected
+    losses = []
+    for _ in range(12):
+        before = None if state.residuals is None else state.loss
+        state = solver.step(state, evaluate)
+        losses.append((before, state.loss))
+        if before is None or state.loss != before:
+            accepted_losses.append(state.loss)
+    rejected = sum(1 for before, after in losses if before is not None and after == before)
+    assert rejected > 0
+    np.testing.assert_allclose(linearised, accepted_losses, rtol=1e-12)

@@ -16,7 +16,7 @@ import warnings
 from collections.abc import Callable
 
 import godrays_jax
-from godrays_jax.app import compile_cache
+from godrays_jax.app import allocator, compile_cache
 from godrays_jax.app.options import (
     DEFAULT_PRESET,
     SKY_DEPTH_HELP,
@@ -347,6 +347,13 @@ def build_parser() -> argparse.ArgumentParser:
     for command in subparsers.choices.values():
         command.add_argument("--verbose", action="store_true", help="on an error, its traceback after the one line")
     return parser
+
+
+def console_main() -> int:
+    """The `godrays-jax` script and `python -m godrays_jax`: `main` in a process whose allocator keeps the memory
+    XLA frees (`allocator.keep_freed_memory`: each call of a compiled program then reuses its temporaries)."""
+    allocator.keep_freed_memory()
+    return main()
 
 
 def main(argv: list[str] | None = None) -> int:

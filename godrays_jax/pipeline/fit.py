@@ -266,8 +266,12 @@ def _descend(
         evaluate = host_evaluator(problems[0], frame_data, dtype, own)
         for problem in problems:
             y = np.asarray(start_point(problem, dtype), np.float64)
-            first = evaluate(y)  # the first step's evaluation: the start's loss
-            runs.append(_Run(problems[0], optimiser.init(y, first), [float(np.sum(np.square(first[0], dtype=np.float64)))]))
+            # The first step's evaluation, the start's loss; linearised now (the first step accepts its point), so
+            # that the starts waiting for their first step hold normal equations, not Jacobians.
+            residuals, linearise = evaluate(y)
+            normal_equations = linearise()
+            first = (residuals, lambda normal_equations=normal_equations: normal_equations)
+            runs.append(_Run(problems[0], optimiser.init(y, first), [float(np.sum(np.square(residuals, dtype=np.float64)))]))
 
         def step(run):
             run.state = optimiser.step(run.state, evaluate)

@@ -93,22 +93,30 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
 
 
 def host_evaluator(problem: FitProblem, frame_data, dtype, own=None):
-    """`marquardt.Evaluate` of the unknowns `y`: the residuals and normal equations in `y` (the positions'
+    """`marquardt.Evaluate` of the unknowns `y`: the residuals, and their normal equations in `y` (the positions'
     Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`.
 
     `own`, a function of the fitted fields' positions: the effect whose own residuals replace the problem's (its
-    stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in).
+    stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in), computed only when
+    the step accepts the point.
     """
 
     def evaluate(y):
         positions, slope = folded_positions(y)
         positions = jnp.asarray(positions, dtype)
-        residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+
+        def linearise(jacobian=None, residuals=None):
+            if jacobian is None:
+                _, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+            normal, gradient = normal_equations(np.asarray(jacobian), residuals)
+            return normal * np.outer(slope, slope), gradient * slope
+
         if own is not None:
-            residuals = effect_residuals(problem, own(positions), frame_data)
+            residuals = np.asarray(effect_residuals(problem, own(positions), frame_data))
+            return residuals, lambda: linearise(residuals=residuals)
+        residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
         residuals = np.asarray(residuals)
-        normal, gradient = normal_equations(np.asarray(jacobian), residuals)
-        return residuals, normal * np.outer(slope, slope), gradient * slope
+        return residuals, lambda: linearise(jacobian, residuals)
 
     return evaluate
 

@@ -41,9 +41,14 @@ _SHRINK, _GROW = 0.25, 3.5
 # damped system stays positive definite and such an unknown takes no step (its gradient is zero as well).
 _SMALLEST_DAMPING_SHARE = 1e-6
 
-Evaluate = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
-"""`evaluate(y)`: at the unknowns `y` `(n,)`, the residuals `(N,)` and the normal equations `J^T J` `(n, n)` and
-`J^T r` `(n,)` of their Jacobian `J` (`normal_equations`)."""
+Linearise = Callable[[], tuple[np.ndarray, np.ndarray]]
+"""`linearise()`: the normal equations `J^T J` `(n, n)` and `J^T r` `(n,)` of the residuals' Jacobian `J` at the
+point evaluated (`normal_equations`)."""
+
+Evaluate = Callable[[np.ndarray], tuple[np.ndarray, Linearise]]
+"""`evaluate(y)`: at the unknowns `y` `(n,)`, the residuals `(N,)` and how to linearise them there. A step calls
+`linearise` only when it accepts the point: where the residuals cost less than their Jacobian (a fit's polish,
+`fit_programs.host_evaluator`), a rejected step costs only its residuals."""
 
 
 def normal_equations(jacobian: np.ndarray, residuals: np.ndarray, rows: int = 1 << 19) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +75,7 @@ class MarquardtState:
     step_size: float = 1.0
     first_step: bool = True
     done: bool = False
-    evaluated: tuple | None = None  # the proposal's evaluation (`Evaluate`'s), when made already
+    evaluated: tuple | None = None  # the proposal's `Evaluate`, when made already
 
     @property
     def loss(self) -> float:
@@ -94,7 +99,7 @@ class LevenbergMarquardt:
 
     def step(self, state: MarquardtState, evaluate: Evaluate) -> MarquardtState:
         """One step: evaluate the proposal, accept or reject it, test for convergence, propose the next point."""
-        residuals, normal, gradient = state.evaluated if state.evaluated is not None else evaluate(state.proposal)
+        residuals, linearise = state.evaluated if state.evaluated is not None else evaluate(state.proposal)
         loss = float(np.sum(np.square(residuals, dtype=np.float64)))
         if state.first_step:
             accept, good = True, False
@@ -109,6 +114,7 @@ class LevenbergMarquardt:
         if accept:
             previous = np.zeros_like(residuals) if state.residuals is None else state.residuals
             done = _converged(self.rtol, self.atol, state.proposal, state.proposal - state.y, residuals, previous)
+            normal, gradient = linearise()
             state = dataclasses.replace(state, y=state.proposal, residuals=residuals, normal=normal, gradient=gradient)
         else:
             done = False

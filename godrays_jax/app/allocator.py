@@ -1,0 +1,40 @@
+"""The command's process keeps the memory XLA frees, instead of handing it back to the kernel after every call.
+
+XLA on the CPU allocates each compiled program's large temporaries afresh on
+every call, from the threads that run it. glibc serves such blocks from
+`mmap` (every block above its threshold, and every block too large for a
+thread's own arena) and unmaps them on `free`, so the next call faults the
+same memory in again, a 4 KiB page at a time: a fit, whose every step calls
+the same program, spent a large share of its time in the kernel doing that.
+With one arena (the process's heap, which grows as far as it needs), no
+`mmap` for large blocks and no trimming of the heap's free top, a freed
+temporary stays mapped and the next call reuses it. The process's peak
+memory is still that of its largest call; memory is only handed back when
+the process ends, which for a command is soon (benchmarks/README.md, "The
+fit as users run it", measures both).
+
+Applied by the `godrays-jax` command (`cli.console_main`) only: a library
+must not retune the allocator of the process that imports it. Research code
+with the same calling pattern gets the same effect from the environment,
+`MALLOC_ARENA_MAX=1 MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=2147483647`.
+"""
+
+import ctypes
+import ctypes.util
+import platform
+
+# mallopt's parameter numbers (glibc's malloc.h).
+_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
+_LARGEST_INT = 2**31 - 1  # mallopt takes a C int
+
+
+def keep_freed_memory() -> bool:
+    """Tune glibc's allocator as the module's docstring says; returns whether it was (False off glibc)."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    settings = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, _LARGEST_INT))
+    return all(mallopt(parameter, value) == 1 for parameter, value in settings)

@@ -3,7 +3,7 @@ and then a warm one, peak memory.
 
     python benchmarks/bench_fit_cli.py [--sizes 320x180 960x540 1920x1080] [--apply] [--tests] [--json FILE]
 
-Each case runs the command line in a child process (`_child.py` below: the command's own `main`, with a
+Each case runs the command line in a child process (`_child.py` below: the command's own `console_main`, with a
 `jax.monitoring` listener that sums the time JAX spends compiling or loading compiled programs, and timers around
 `fit` and what follows it), twice: first with `GODRAYS_JAX_CACHE_DIR` an empty folder (cold), then again on the
 folder the first run filled (warm). Recorded: wall seconds, seconds compiling (XLA's compilation or a load from
@@ -51,11 +51,12 @@ CHILD = textwrap.dedent(
             times["fit"] = time.perf_counter() - start
             times["fit_end"] = time.perf_counter()
     fit_command.fit = timed_fit
-    status = cli.main(sys.argv[2:])
+    record_path = sys.argv.pop(1)
+    status = cli.console_main()  # as the `godrays-jax` script runs it
     end = time.perf_counter()
     record = {"status": status, "compiling": compiling[0], "fit": times.get("fit"),
               "after_fit": end - times["fit_end"] if "fit_end" in times else None}
-    with open(sys.argv[1], "w") as stream:
+    with open(record_path, "w") as stream:
         json.dump(record, stream)
     """
 )

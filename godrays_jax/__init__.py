@@ -28,6 +28,7 @@ from godrays_jax.kernels.blur import POISSON_OFFSETS as POISSON_OFFSETS
 from godrays_jax.kernels.blur import bloom as bloom
 from godrays_jax.kernels.blur import gaussian_blur as gaussian_blur
 from godrays_jax.kernels.blur import poisson_blur as poisson_blur
+from godrays_jax.kernels.bounded_medium import BoundedMedium as BoundedMedium
 from godrays_jax.kernels.bounded_medium import light_transmittance as light_transmittance
 from godrays_jax.kernels.bounded_medium import optical_depth as optical_depth
 from godrays_jax.kernels.composite import BLEND_MODES as BLEND_MODES
@@ -73,8 +74,13 @@ from godrays_jax.kernels.rays import radial_rays as radial_rays
 from godrays_jax.kernels.rays import scale_iterated_flares as scale_iterated_flares
 from godrays_jax.kernels.rays import scaled_copies as scaled_copies
 from godrays_jax.kernels.shadow_lines import segment_visibility_by_lines as segment_visibility_by_lines
+from godrays_jax.kernels.shadow_reading import ShadowLines as ShadowLines
+from godrays_jax.kernels.shadow_reading import ShadowSamples as ShadowSamples
+from godrays_jax.kernels.shadow_reading import Slabs as Slabs
 from godrays_jax.kernels.volumetric import apply_volumetric_fog as apply_volumetric_fog
 from godrays_jax.kernels.shadow_samples import segment_visibility as segment_visibility
+from godrays_jax.kernels.volumetric import composite_fog as composite_fog
+from godrays_jax.kernels.volumetric import fog_light as fog_light
 from godrays_jax.kernels.volumetric import volumetric_fog_terms as volumetric_fog_terms
 
 # Effects: parameter sets (equinox Modules), presets, serialisation.

@@ -177,9 +177,18 @@ CASES = {
     "apply_volumetric_fog": Case(
         lambda image, depth, light, extinction: gr.apply_volumetric_fog(
             image, depth, light, light_color=(1.0, 0.9, 0.8), ambient_color=(0.1, 0.1, 0.1), fov_x_deg=50.0,
-            extinction=extinction, max_distance=60.0, anisotropy=0.7, ambient_rise=0.1, num_view_steps=4,
-            num_shadow_samples=6),
+            medium=gr.BoundedMedium(extinction=extinction, max_distance=60.0, anisotropy=0.7), ambient_rise=0.1,
+            num_view_steps=4, shadows=gr.ShadowSamples(6)),
         lambda r, t: (_image(r, t), _depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
+    ),  # fmt: skip
+    "composite_fog": Case(
+        lambda image, surface, light: gr.composite_fog(image, surface, light),
+        lambda r, t: (_image(r, t), _plane(r, t, 0.0, 1.0), r.uniform(0.0, 1.0, (HEIGHT, WIDTH, 3)).astype(t)),
+    ),
+    "fog_light": Case(
+        lambda scattered, ambient, warmth: gr.fog_light(
+            scattered, ambient, light_color=jnp.stack([1.0, warmth, 0.5]), ambient_color=(0.1, 0.2, 0.3)),
+        lambda r, t: (_plane(r, t, 0.0, 1.0), _plane(r, t, 0.0, 1.0), _scalar(r, t, 0.5, 0.9)),
     ),  # fmt: skip
     "bright_sky": Case(
         lambda luminance, light, threshold: gr.bright_sky(luminance, light, threshold=threshold),
@@ -219,8 +228,9 @@ CASES = {
     ),  # fmt: skip
     "volumetric_fog_terms": Case(
         lambda depth, light, extinction: jnp.stack(gr.volumetric_fog_terms(
-            depth, light, fov_x_deg=50.0, extinction=extinction, max_distance=60.0, anisotropy=0.7, ambient_rise=0.1,
-            num_view_steps=4, num_shadow_samples=6), axis=-1),
+            depth, light, fov_x_deg=50.0, medium=gr.BoundedMedium(extinction=extinction, max_distance=60.0,
+            anisotropy=0.7), ambient_rise=0.1, num_view_steps=4, shadows=gr.ShadowLines(num_lines=16, num_bins=12)),
+            axis=-1),
         lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
     ),  # fmt: skip
 }

@@ -10,9 +10,12 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from godrays_jax.kernels import volumetric
+from godrays_jax.kernels import fog_march, volumetric
+from godrays_jax.kernels.bounded_medium import BoundedMedium
+from godrays_jax.kernels.fog_march import march_grid
+from godrays_jax.kernels.shadow_reading import ShadowLines, ShadowSamples, Slabs
 from godrays_jax.kernels.shadow_samples import segment_visibility
-from godrays_jax.kernels.volumetric import _march_grid, apply_volumetric_fog, volumetric_fog_terms
+from godrays_jax.kernels.volumetric import apply_volumetric_fog, volumetric_fog_terms
 
 HEIGHT, WIDTH = 4, 6
 MEDIUM = dict(
@@ -20,6 +23,25 @@ MEDIUM = dict(
     direct_fraction=0.7, ambient_rise=0.08, thickness=0.3, edge_softness=0.1, num_view_steps=3, num_shadow_samples=4,
 )  # fmt: skip
 COLOURS = dict(light_color=(2.0, 1.5, 1.0), ambient_color=(0.1, 0.2, 0.3))
+
+
+def kernel_options(flat):
+    """The kernel's keywords from the flat names `_Loop` takes: the medium, the slabs and the shadow reading as
+    their types (`BoundedMedium`, `Slabs`, `ShadowSamples` or `ShadowLines`), the rest as they are."""
+    flat = dict(flat)
+
+    def taken(*names):
+        return {name: flat.pop(name) for name in names if name in flat}
+
+    medium = BoundedMedium(**taken("extinction", "max_distance", "anisotropy", "height_falloff", "layer_top"))
+    slabs = Slabs(**taken("thickness", "edge_softness"))
+    lines = taken("num_shadow_lines", "num_shadow_bins")
+    samples = taken("num_shadow_samples")
+    if flat.pop("shadows", "samples") == "lines":
+        shadows = ShadowLines(**{name.replace("num_shadow_", "num_"): count for name, count in lines.items()})
+    else:
+        shadows = ShadowSamples(*samples.values())
+    return dict(flat, medium=medium, slabs=slabs, shadows=shadows)
 
 
 def _depth():
@@ -284,7 +306,7 @@ class _Loop:
 def _terms(depth, light_xy, *, coverage=None, uncovered_depth=None, **options):
     """`volumetric_fog_terms` compiled, the options constants: eager, each operation of the march is dispatched and
     compiled alone (test_composite_eager_jit_vmap takes that path)."""
-    run = jax.jit(functools.partial(volumetric_fog_terms, **options))
+    run = jax.jit(functools.partial(volumetric_fog_terms, **kernel_options(options)))
     return run(jnp.asarray(depth), jnp.asarray(light_xy), coverage=coverage, uncovered_depth=uncovered_depth)
 
 
@@ -354,12 +376,12 @@ def test_box_hiding_the_sun_shades_the_whole_ray_in_front_of_it(x64):
 def _fog(image, depth, light_xy, **overrides):
     options = dict(MEDIUM, **COLOURS, light_depth=12.0)
     options.update(overrides)
-    return apply_volumetric_fog(image, depth, light_xy, **options)
+    return apply_volumetric_fog(image, depth, light_xy, **kernel_options(options))
 
 
 def test_composite_eager_jit_vmap(x64, rng):
     image, depth, light = jnp.asarray(_image(rng)), jnp.asarray(_depth()), jnp.asarray([2.3, 0.7])
-    surface, scattered, ambient = volumetric_fog_terms(depth, light, light_depth=12.0, **MEDIUM)
+    surface, scattered, ambient = volumetric_fog_terms(depth, light, light_depth=12.0, **kernel_options(MEDIUM))
     light_rgb = scattered[..., None] * jnp.asarray(COLOURS["light_color"]) + ambient[..., None] * jnp.asarray(COLOURS["ambient_color"])
     expected = jnp.concatenate([image[..., :3] * surface[..., None] + light_rgb, image[..., 3:]], axis=-1)
     eager = _fog(image, depth, light)
@@ -411,8 +433,9 @@ def test_compiled_forward_mode_jacobian_keeps_its_lanes_on_a_partly_covered_fram
 
     def weighted_terms(fields):
         terms = volumetric_fog_terms(
-            depth, jnp.asarray([80.8, 27.5]), fov_x_deg=60.0, extinction=fields[0], max_distance=fields[1],
-            anisotropy=fields[2], direct_fraction=0.3, resolution_factor=4, coverage=coverage,
+            depth, jnp.asarray([80.8, 27.5]), fov_x_deg=60.0,
+            medium=BoundedMedium(extinction=fields[0], max_distance=fields[1], anisotropy=fields[2]),
+            direct_fraction=0.3, resolution_factor=4, coverage=coverage,
         )  # fmt: skip
         return jnp.stack([jnp.sum(weight * term) for weight, term in zip(weights, terms)])
 
@@ -431,11 +454,11 @@ FITTED = ("extinction", "max_distance", "height_falloff", "layer_top", "anisotro
 @pytest.mark.parametrize("light_depth", [12.0, math.inf])
 def test_gradients_float64(x64, rng, light_depth, monkeypatch):
     """Every fitted field's derivative against central differences, with the segments' placement held where the
-    start put it, as the kernel holds it (`_placement_depth`: where the segments lie is a sampling choice)."""
+    start put it, as the kernel holds it (`fog_march.placement_depth`: where the segments lie is a sampling choice)."""
     image, depth = jnp.asarray(_image(rng)), jnp.asarray(_depth())
     values = dict(MEDIUM, light_depth=light_depth)
     names = [name for name in FITTED if not (name == "light_depth" and math.isinf(light_depth))]
-    placements, placed = [], volumetric._placement_depth
+    placements, placed = [], fog_march.placement_depth
 
     def recording(*args, **kwargs):
         placements.append(placed(*args, **kwargs))
@@ -453,10 +476,10 @@ def test_gradients_float64(x64, rng, light_depth, monkeypatch):
         return jax.jit(lambda *primals: jax.jvp(fogged, primals, direction)[1])(*start)
 
     kernels = derivative()
-    monkeypatch.setattr(volumetric, "_placement_depth", recording)
+    monkeypatch.setattr(fog_march, "placement_depth", recording)
     held = jax.jit(lambda *args: (fogged(*args), placements[:]))(*start)[1]
     calls = itertools.count()
-    monkeypatch.setattr(volumetric, "_placement_depth", lambda *args, **kwargs: held[next(calls) % len(held)])
+    monkeypatch.setattr(fog_march, "placement_depth", lambda *args, **kwargs: held[next(calls) % len(held)])
     np.testing.assert_allclose(derivative(), kernels, rtol=1e-9, atol=1e-12)  # the kernel holds it too
     check_grads(jax.jit(fogged), start, order=1, modes=("fwd", "rev"), eps=1e-5, atol=1e-4, rtol=1e-4)
 
@@ -471,7 +494,8 @@ def test_reduced_march_derivative_where_pixels_see_the_sky(x64):
     options.pop("max_distance")
 
     def total(max_distance):
-        return jnp.sum(volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([13.3, 1.7]), max_distance=max_distance, **options)[1])
+        fog = kernel_options(dict(options, max_distance=max_distance))
+        return jnp.sum(volumetric_fog_terms(jnp.asarray(depth), jnp.asarray([13.3, 1.7]), **fog)[1])
 
     @jax.jit
     def derivatives(max_distance):
@@ -557,7 +581,7 @@ def test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives(x64, monke
         options = {**MEDIUM, "extinction": values[0], "max_distance": values[1]}
         return jnp.stack(volumetric_fog_terms(
             jnp.asarray(depth), light_xy, light_depth=light_depth, light_in_front=in_front, resolution_factor=2.5,
-            coverage=coverage, **options,
+            coverage=coverage, **kernel_options(options),
         ))  # fmt: skip
 
     def derivatives(values):  # forward and reverse mode, as a fit and a user's grad take them
@@ -576,14 +600,14 @@ def test_march_rays_ride_with_the_light(x64):
     a light moved by part of a spacing moves every ray by as much, a light moved by whole spacings (far off screen
     too) leaves them where they were."""
     light = np.array([5.3, 2.2])
-    xs, ys = _march_grid(jnp.asarray(light), 8, 12, 2.5, jnp.float64)
+    xs, ys = march_grid(jnp.asarray(light), 8, 12, 2.5, jnp.float64)
     assert xs[0] <= 0 and xs[-1] >= 12 and ys[0] <= 0 and ys[-1] >= 8
     np.testing.assert_allclose(np.diff(xs), 2.5)
     np.testing.assert_allclose(np.mod(xs - light[0], 2.5), 0, atol=1e-12)
-    moved = _march_grid(jnp.asarray(light + [0.7, 0.2]), 8, 12, 2.5, jnp.float64)
+    moved = march_grid(jnp.asarray(light + [0.7, 0.2]), 8, 12, 2.5, jnp.float64)
     np.testing.assert_allclose(moved[0], xs + 0.7, atol=1e-12)
     np.testing.assert_allclose(moved[1], ys + 0.2, atol=1e-12)
-    far = _march_grid(jnp.asarray(light + [2.5e6, -5.0e5]), 8, 12, 2.5, jnp.float64)
+    far = march_grid(jnp.asarray(light + [2.5e6, -5.0e5]), 8, 12, 2.5, jnp.float64)
     np.testing.assert_allclose(far[0], xs, atol=1e-6)
     np.testing.assert_allclose(far[1], ys, atol=1e-6)
 
@@ -595,7 +619,7 @@ def test_reduced_march_moves_with_a_panned_scene(x64):
     depth = np.full((8, 16), np.inf)
     depth[3:, 2:4], depth[2:, 9], depth[5:, 12:15] = 6.0, 9.0, 12.0
     options = dict(MEDIUM, fov_x_deg=2.0, resolution_factor=4)
-    run = jax.jit(lambda d, l: volumetric_fog_terms(d, l, light_depth=40.0, **options)[1])
+    run = jax.jit(lambda d, l: volumetric_fog_terms(d, l, light_depth=40.0, **kernel_options(options))[1])
     still = np.asarray(run(jnp.asarray(depth), jnp.asarray([8.3, 1.6])))
     panned = np.asarray(run(jnp.asarray(np.roll(depth, 1, axis=1)), jnp.asarray([9.3, 1.6])))
     np.testing.assert_allclose(panned[:, 5:12], still[:, 4:11], rtol=2e-3)  # the margin beyond the screen differs
@@ -609,7 +633,7 @@ def test_a_hole_under_a_march_ray_changes_its_neighbours_by_the_sampling_alone(x
     depth[3:, 9:11] = 2.0  # a post in front of the wall, shadowing the haze toward the camera
     options = dict(MEDIUM, layer_top=math.inf, num_view_steps=64, resolution_factor=4)
     light = jnp.asarray([13.3, 1.7])
-    run = jax.jit(lambda d: volumetric_fog_terms(d, light, **options)[1])
+    run = jax.jit(lambda d: volumetric_fog_terms(d, light, **kernel_options(options))[1])
     holed = depth.copy()
     holed[5, 5] = np.inf  # under the march ray at (5.3, 5.7)
     wall, hole = np.array(run(jnp.asarray(depth))), np.array(run(jnp.asarray(holed)))
@@ -641,14 +665,22 @@ def test_shadows_move_smoothly_with_the_light(x64):
 
 
 def test_bad_options_name_the_argument():
-    depth = jnp.ones((HEIGHT, WIDTH))
+    depth, fog = jnp.ones((HEIGHT, WIDTH)), kernel_options(MEDIUM)
     with pytest.raises(ValueError, match="num_view_steps"):
-        volumetric_fog_terms(depth, jnp.zeros(2), **dict(MEDIUM, num_view_steps=0))
+        volumetric_fog_terms(depth, jnp.zeros(2), **dict(fog, num_view_steps=0))
     with pytest.raises(ValueError, match="resolution_factor"):
-        volumetric_fog_terms(depth, jnp.zeros(2), resolution_factor=0.5, **MEDIUM)
-    with pytest.raises(ValueError, match="num_shadow_samples"):
-        volumetric_fog_terms(depth, jnp.zeros(2), **dict(MEDIUM, num_shadow_samples=2.5))
+        volumetric_fog_terms(depth, jnp.zeros(2), **dict(fog, resolution_factor=0.5))
+    with pytest.raises(ValueError, match="shadow samples' count"):
+        ShadowSamples(2.5)
+    with pytest.raises(ValueError, match="num_bins"):
+        ShadowLines(num_lines=8, num_bins=1)
+    with pytest.raises(ValueError, match="thickness"):
+        Slabs(thickness=jnp.ones(2))
+    with pytest.raises(ValueError, match="shadows must be a ShadowSamples or a ShadowLines"):
+        volumetric_fog_terms(depth, jnp.zeros(2), **dict(fog, shadows="lines"))
+    with pytest.raises(ValueError, match="medium must be a BoundedMedium"):
+        volumetric_fog_terms(depth, jnp.zeros(2), **dict(fog, medium=dict(extinction=0.1)))
     with pytest.raises(ValueError, match="uncovered_depth needs coverage"):
-        volumetric_fog_terms(depth, jnp.zeros(2), uncovered_depth=depth, **MEDIUM)
+        volumetric_fog_terms(depth, jnp.zeros(2), uncovered_depth=depth, **fog)
     with pytest.raises(ValueError, match="uncovered_depth"):
-        volumetric_fog_terms(depth, jnp.zeros(2), coverage=depth, uncovered_depth=depth[1:], **MEDIUM)
+        volumetric_fog_terms(depth, jnp.zeros(2), coverage=depth, uncovered_depth=depth[1:], **fog)

@@ -38,10 +38,17 @@ def _fog(**medium):
 def test_effect_is_the_kernel_composited(rng):
     buffers = _frame(rng)
     effect = _fog()
+    colours = {name: MEDIUM[name] for name in ("light_color", "ambient_color")}
+    medium = gr.BoundedMedium(
+        extinction=MEDIUM["extinction"], max_distance=MEDIUM["max_distance"], anisotropy=MEDIUM["anisotropy"],
+        height_falloff=0.0, layer_top=1e4,
+    )  # fmt: skip
+    kernel = {name: EFFECT[name] for name in ("direct_fraction", "fov_x_deg", "num_view_steps", "resolution_factor")}
     expected = gr.apply_volumetric_fog(
-        buffers.color, buffers.depth, jnp.asarray(LIGHT), light_depth=20.0, height_falloff=0.0, layer_top=1e4,
-        thickness=0.15, edge_softness=0.05, **dict(zip(("coverage", "uncovered_depth"), silhouette_mix(
-            buffers.coverage, buffers.depth, buffers.color))), **MEDIUM, **EFFECT,
+        buffers.color, buffers.depth, jnp.asarray(LIGHT), light_depth=20.0, medium=medium,
+        slabs=gr.Slabs(thickness=0.15, edge_softness=0.05), shadows=gr.ShadowSamples(EFFECT["num_shadow_samples"]),
+        **dict(zip(("coverage", "uncovered_depth"), silhouette_mix(buffers.coverage, buffers.depth, buffers.color))),
+        **colours, **kernel,
     )  # fmt: skip
     np.testing.assert_allclose(effect(buffers, jnp.asarray(LIGHT), light_depth=20.0), expected, rtol=1e-6)
     layer = effect.layer(buffers, jnp.asarray(LIGHT), light_depth=20.0)

@@ -4,16 +4,25 @@ import dataclasses
 import math
 from typing import ClassVar, Literal
 
-import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import Effect, frame_ray_depth
 from godrays_jax.effects.fields import param, part, static
 from godrays_jax.effects.medium import FLAT_NAMES, Medium
+from godrays_jax.kernels.bounded_medium import BoundedMedium
+from godrays_jax.kernels.shadow_reading import (
+    ShadowLines,
+    ShadowReading,
+    ShadowSamples,
+    Slabs,
+)
 from godrays_jax.kernels.silhouettes import silhouette_mix
-from godrays_jax.kernels.volumetric import volumetric_fog_terms
+from godrays_jax.kernels.volumetric import (
+    composite_fog,
+    fog_light,
+    volumetric_fog_terms,
+)
 from godrays_jax.primitives.checks import check_light
-
 
 # The frame size (its larger side, pixels) up to which the march rays are `resolution_factor` pixels apart; on
 # larger frames they keep that fraction of the frame, so a preset looks and costs the same, up to this many times
@@ -130,33 +139,31 @@ class VolumetricFog(Effect):
         coverage, uncovered_depth = silhouette_mix(buffers.coverage, depth, buffers.color)
         return volumetric_fog_terms(
             depth, light_xy, fov_x_deg=self.fov_x_deg, light_depth=light_depth, light_in_front=light_in_front,
-            extinction=self.medium.extinction, max_distance=self.medium.max_distance,
-            height_falloff=self.height_falloff, layer_top=self.layer_top, anisotropy=self.medium.anisotropy,
-            direct_fraction=self.direct_fraction, ambient_rise=self.ambient_rise, thickness=self.thickness,
-            edge_softness=self.edge_softness, num_view_steps=self.num_view_steps,
-            num_shadow_samples=self.num_shadow_samples, shadows=self.shadows, num_shadow_lines=self.num_shadow_lines,
-            num_shadow_bins=self.num_shadow_bins, resolution_factor=factor,
-            coverage=coverage, uncovered_depth=uncovered_depth,
+            medium=BoundedMedium(
+                extinction=self.medium.extinction, max_distance=self.medium.max_distance,
+                anisotropy=self.medium.anisotropy, height_falloff=self.height_falloff, layer_top=self.layer_top,
+            ),
+            slabs=Slabs(thickness=self.thickness, edge_softness=self.edge_softness), shadows=self.shadow_reading,
+            direct_fraction=self.direct_fraction, ambient_rise=self.ambient_rise, num_view_steps=self.num_view_steps,
+            resolution_factor=factor, coverage=coverage, uncovered_depth=uncovered_depth,
         )  # fmt: skip
 
-    def _light(self, scattered, ambient, dtype):
-        medium = self.medium
-        light = scattered[..., None] * medium.light_color.astype(dtype) + ambient[..., None] * medium.ambient_color.astype(dtype)
-        return light.astype(dtype)
+    @property
+    def shadow_reading(self) -> ShadowReading:
+        """How the kernel reads each segment's shadow (`kernels.shadow_reading`), from `shadows` and its counts."""
+        if self.shadows == "lines":
+            return ShadowLines(num_lines=self.num_shadow_lines, num_bins=self.num_shadow_bins)
+        return ShadowSamples(count=self.num_shadow_samples)
+
+    def _light(self, scattered, ambient):
+        return fog_light(scattered, ambient, light_color=self.medium.light_color, ambient_color=self.medium.ambient_color)
 
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The scattered light alone, `(H, W, 3)`."""
         _, scattered, ambient = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
-        return self._light(scattered, ambient, buffers.color.dtype)
+        return self._light(scattered, ambient).astype(buffers.color.dtype)
 
     def __call__(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The fogged frame: `color * surface + layer` on the colour channels, alpha unchanged."""
         surface, scattered, ambient = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
-        color = buffers.color
-        dtype = color.dtype
-        light = self._light(scattered, ambient, dtype)
-        channels = min(color.shape[-1], 3)
-        if channels == 1:
-            light = jnp.mean(light, axis=-1, keepdims=True)
-        fogged = color[..., :channels] * surface[..., None].astype(dtype) + light[..., :channels]
-        return jnp.concatenate([fogged, color[..., channels:]], axis=-1)
+        return composite_fog(buffers.color, surface, self._light(scattered, ambient))

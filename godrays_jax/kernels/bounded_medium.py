@@ -12,16 +12,50 @@ on sky (`inf`), for the sun and for a light at the camera.
 
 import math
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.kernels.lens import light_direction
+from godrays_jax.primitives.checks import check_scalar
 
 # exp() arguments are clipped here: a height falloff that would make the medium e^60 times denser than at
 # the camera is outside any fog, and float32 overflows near e^88.
 _MAX_EXPONENT = 60.0
 # A point light's irradiance is floored as if it were a ball of this fraction of its distance.
 _POINT_LIGHT_RADIUS = 1e-3
+
+
+class BoundedMedium(eqx.Module):
+    """The medium the module's docstring describes, as `volumetric.volumetric_fog_terms` takes it.
+
+    `extinction` per scene unit at the camera's height (>= 0); `max_distance`
+    the sphere's radius (scene units); `anisotropy` the Henyey-Greenstein `g`
+    of its phase function, in (-1, 1); `height_falloff` per scene unit (>= 0,
+    0: homogeneous in height); `layer_top` scene units above the camera
+    (negative: the camera above the layer; `inf`: no top). Scalars, each
+    traceable and differentiable.
+    """
+
+    extinction: Float[ArrayLike, ""]
+    max_distance: Float[ArrayLike, ""]
+    anisotropy: Float[ArrayLike, ""]
+    height_falloff: Float[ArrayLike, ""] = 0.0
+    layer_top: Float[ArrayLike, ""] = math.inf
+
+    def __check_init__(self):
+        for name in ("extinction", "max_distance", "anisotropy", "height_falloff", "layer_top"):
+            check_scalar(getattr(self, name), name)
+
+    @property
+    def density(self) -> dict:
+        """The fields that give the extinction at a point: `optical_depth`'s and `light_transmittance`'s keywords."""
+        return dict(extinction=self.extinction, height_falloff=self.height_falloff)
+
+    @property
+    def extent(self) -> dict:
+        """The fields that bound the medium: `medium_interval`'s and `light_transmittance`'s keywords."""
+        return dict(max_distance=self.max_distance, layer_top=self.layer_top)
 
 
 def safe_divide(numerator, denominator, fallback, tiny=1e-20):

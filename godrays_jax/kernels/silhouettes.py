@@ -70,7 +70,7 @@ def _unmixed_share(brightness, depth, first, second):
     the sky.
     """
     depths, values = _neighbours(depth), _neighbours(brightness)
-    display = lambda c: c / (1 + jnp.abs(c))  # noqa: E731
+    display = lambda c: c / (1 + jnp.abs(c))
 
     def side(side_depth):
         """The side's brightness (median) and how much its members' vary (mean absolute deviation from it in

@@ -24,7 +24,11 @@ from jax.interpreters import ad, batching, mlir
 
 from godrays_jax.kernels._copies.adjoint import copy_adjoint
 from godrays_jax.kernels._copies.cpu_loop import copy_sums_cpu
-from godrays_jax.kernels._copies.forward_mode import FEW_NUMBERS, differentiated, tangent_of
+from godrays_jax.kernels._copies.forward_mode import (
+    FEW_NUMBERS,
+    differentiated,
+    tangent_of,
+)
 from godrays_jax.kernels._copies.gpu_loop import copy_sums_gpu
 from godrays_jax.kernels._copies.planes import (
     Planes,

@@ -42,7 +42,7 @@ def _transposed_apart(step, values):
     once per copy, and returning the values themselves (reshaped) made XLA
     copy them every step.
     """
-    never_taken = lambda rows: jnp.broadcast_to(rows[0, 0], rows.shape[::-1])  # noqa: E731
+    never_taken = lambda rows: jnp.broadcast_to(rows[0, 0], rows.shape[::-1])
     return jax.lax.cond(step >= 0, _tiled_transpose, never_taken, values)
 
 

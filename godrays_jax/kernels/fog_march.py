@@ -1,0 +1,161 @@
+"""The march: view rays through the medium in pieces, each piece's segments lit by the light they see.
+
+A march ray runs through the bounded medium (`bounded_medium`) in
+consecutive pieces (`scattered_pieces`; the last to the medium's end), each
+in `num_view_steps` segments even in transmittance rather than in distance
+(`bound_fraction`: in dense haze most of the light reaching the camera comes
+from its first stretch). A segment's light is single scattering in closed
+form: the transmittance from the camera across it, the light dimmed on its
+way in, its irradiance (a point light's falls off), the phase function at
+the angle to the light and the segment's visibility of the light
+(`shadow_reading`), each taken where the segment's light comes from (near a
+point light, the ray's closest approach). On a coarse grid the rays sit at
+the light's position plus multiples of the spacing (`march_grid`), so under
+a pan they ride with the scene. `volumetric` has the whole model.
+"""
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from godrays_jax.kernels.bounded_medium import (
+    BoundedMedium,
+    dot,
+    irradiance_coordinate,
+    irradiance_median,
+    light_approach,
+    light_geometry,
+    light_transmittance,
+    medium_interval,
+    optical_depth,
+    segment_irradiance,
+    toward_light,
+)
+from godrays_jax.kernels.media import henyey_greenstein
+from godrays_jax.kernels.shadow_reading import ShadowReading, Slabs
+
+# A piece's segments are even in the transmittance of a homogeneous medium of the piece's optical depth, taken
+# at most this deep: beyond it the first segments are short enough, and float32 would lose the last bound's place.
+_DEEPEST_PLACEMENT = 12.0
+
+
+class MarchedPieces(NamedTuple):
+    """March rays' pieces (`scattered_pieces`): each segment's light `lit` `(L, h, w, M)` (L pieces of M
+    segments), each piece's first and last bound `firsts`, `lasts` (scene units) and its optical depth
+    `opticals` (which places its bounds, `bound_fraction`), each `(L, h, w)`, and `even_in_light(distance, row,
+    col)`, a function of distances along the rays (rows and columns index them) even in the light's
+    irradiance."""
+
+    lit: Float[Array, "L h w M"]
+    firsts: Float[Array, "L h w"]
+    lasts: Float[Array, "L h w"]
+    opticals: Float[Array, "L h w"]
+    even_in_light: Callable
+
+
+def bound_fraction(fraction, optical):
+    """Where a piece's segment bound lies, as a fraction of the piece's length, for the bound at `fraction` of the
+    segments (`k / num_view_steps`): even in `1 - T` through a homogeneous medium of optical depth `optical`
+    over the piece, so that each segment holds an equal share of the light a lit piece scatters toward the
+    camera (even in distance, dense haze spent most segments where its light no longer reaches the camera);
+    even in distance as `optical` goes to 0. `fraction` in [0, 1], 1 on the piece's end exactly."""
+    small = optical < 1e-4
+    x = jnp.where(small, 1.0, jnp.minimum(optical, _DEEPEST_PLACEMENT))
+    placed = -jnp.log1p(jnp.minimum(fraction, 1.0 - 1e-6) * jnp.expm1(-x)) / x
+    return jnp.where(small, fraction, jnp.where(fraction >= 1.0, 1.0, placed))
+
+
+def placement_depth(origin, view, first, end, medium: BoundedMedium):
+    """The optical depth of each piece from `first` to `end` that places its segments (`bound_fraction`), held
+    under differentiation. Where the segments lie is a sampling choice: its derivative is the sampling error's
+    (large where a shadow's edge crosses a segment's middle), not the medium's, and in the fit's Jacobian it made
+    every Levenberg-Marquardt step fail from a fog layer's start (benchmarks/README.md, "Segments even in
+    transmittance"). The bounds still move with the piece's ends, as before."""
+    return jax.lax.stop_gradient(
+        optical_depth(origin, view, first, end, **medium.density)
+    )
+
+
+def segment_fraction(fraction, optical):
+    """`bound_fraction`'s inverse: for a point at `fraction` of a piece's length, the fraction of the segments
+    before it (not floored)."""
+    small = optical < 1e-4
+    x = jnp.where(small, 1.0, jnp.minimum(optical, _DEEPEST_PLACEMENT))
+    return jnp.where(small, fraction, jnp.expm1(-x * fraction) / jnp.expm1(-x))
+
+
+def march_grid(light_xy, height, width, spacing, dtype):
+    """Pixel positions `(xs, ys)` (`(w,)`, `(h,)`) of the march rays: the light's position plus `spacing` times integers.
+
+    Anchored to the light, not to the pixels: under a pan the rays ride with the scene and its light, and any
+    spacing works on any frame size. The count is static, the screen `[0, width] x [0, height]` plus one
+    spacing on each side wherever the light is: only the light's position modulo `spacing` counts, so a far
+    off-screen light is fine. No gradient flows through the grid's phase: where the rays sit is a sampling
+    choice, and its derivative (of order one whatever the light's distance) is the sampling error's, which for
+    a light millions of pixels away swamps the light's true, vanishing effect and overflows.
+    """
+    anchor = jnp.mod(jax.lax.stop_gradient(jnp.asarray(light_xy, dtype)), spacing) - spacing
+    xs = anchor[0] + spacing * jnp.arange(math.ceil(width / spacing) + 2, dtype=dtype)
+    ys = anchor[1] + spacing * jnp.arange(math.ceil(height / spacing) + 2, dtype=dtype)
+    return xs, ys
+
+
+def scattered_pieces(
+    view, ray_ends, depth, light_xy, pixel_xy, *, fov_x_deg, light_depth, light_in_front, medium: BoundedMedium,
+    slabs: Slabs, shadows: ShadowReading, num_view_steps: int,
+) -> "MarchedPieces":
+    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) in consecutive pieces, the
+    first from the medium's start up to `ray_ends[0]`, each next one from where the previous ended up to its own
+    end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium), each in `num_view_steps` segments
+    even in transmittance (`bound_fraction`): `(L, h, w, num_view_steps)`, each piece's first and last bound
+    (scene units, two `(L, h, w)`), its optical depth (`(L, h, w)`, which places its bounds) and a function
+    of a ray's distances that is even in the light's irradiance along it (`irradiance_coordinate` of the rays,
+    each `(h, w)`, indexed by rows and columns), as `MarchedPieces`. The pieces share each shadow reading of
+    the depth buffer."""
+    height, width = depth.shape
+    dtype = view.dtype
+    toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    origin = jnp.zeros_like(view)
+    fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
+    lower, upper, attenuated, firsts, lasts, opticals = [], [], [], [], [], []
+    previous = None
+    for ray_end in ray_ends:
+        start, end = medium_interval(origin, view, ray_end, **medium.extent)
+        first = start if previous is None else jnp.clip(previous, start, end)
+        previous = end
+        firsts.append(first)
+        lasts.append(end)
+        optical = placement_depth(origin, view, first, end, medium)
+        opticals.append(optical)
+        bounds = first[..., None] + (end - first)[..., None] * bound_fraction(fractions, optical[..., None])
+        tau = optical_depth(
+            origin[..., None, :], view[..., None, :], start[..., None], bounds, **medium.density
+        )
+        lower.append(bounds[..., :-1])
+        upper.append(bounds[..., 1:])
+        attenuated.append(jnp.exp(-tau[..., :-1]) - jnp.exp(-tau[..., 1:]))
+    lower, upper, attenuated = (jnp.concatenate(parts, axis=-1) for parts in (lower, upper, attenuated))
+    along, miss = light_approach(view, toward, inverse)
+    # What varies along a segment (the angle to the light, the shadow, the light's way in) is taken where its
+    # light comes from: near a point light that is the ray's closest approach, not the segment's middle.
+    middles = irradiance_median(lower, upper, along[..., None], miss[..., None], inverse)
+    points = view[..., None, :] * middles[..., None]
+    dimmed = light_transmittance(points, toward, light_depth=light_depth, **medium.density, **medium.extent)
+    to_light, _ = toward_light(points, toward, inverse)
+    phase = henyey_greenstein(dot(view[..., None, :], to_light), anisotropy=medium.anisotropy)
+    irradiance = segment_irradiance(view, lower, upper, toward, inverse)
+    visible = shadows.segment_visibility(
+        depth, light_xy, pixel_xy, lower, upper, middles, fov_x_deg=fov_x_deg, light_depth=light_depth,
+        light_in_front=light_in_front, slabs=slabs, max_distance=medium.max_distance,
+    )  # fmt: skip
+    lit = attenuated * visible * dimmed * phase * irradiance
+    pieces = jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0)
+
+    def even_in_light(distance, row, col):
+        return irradiance_coordinate(distance, along[row, col], miss[row, col], inverse)
+
+    return MarchedPieces(pieces, jnp.stack(firsts), jnp.stack(lasts), jnp.stack(opticals), even_in_light)

@@ -6,8 +6,9 @@ the I/O functions build on them. This is the library: the command line and
 the tuner's server live in `godrays_jax.app` and are not imported here.
 """
 
-import importlib
-import importlib.metadata
+import importlib as _importlib
+import types as _types
+from importlib import metadata as _metadata
 
 
 # Image primitives: sampling, resampling, colour, buffers, camera (files load on first use, below).
@@ -156,16 +157,23 @@ _ON_FIRST_USE = {
 }
 
 
+__all__ = sorted([
+    *(name for name, value in globals().items() if not name.startswith("_") and not isinstance(value, _types.ModuleType)),
+    *_ON_FIRST_USE,
+])  # fmt: skip
+"""Every public name: those imported above and those loaded on first use (subpackages are not names of the API)."""
+
+
 def __getattr__(name: str):
     if name not in _ON_FIRST_USE:
         raise AttributeError(f"module 'godrays_jax' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_ON_FIRST_USE[name]), name)
+    value = getattr(_importlib.import_module(_ON_FIRST_USE[name]), name)
     globals()[name] = value
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted([*globals(), *_ON_FIRST_USE])
+    return sorted({*globals(), *_ON_FIRST_USE})
 
 
-__version__ = importlib.metadata.version("godrays_jax")
+__version__ = _metadata.version("godrays_jax")

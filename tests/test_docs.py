@@ -87,6 +87,17 @@ def test_every_public_name_is_in_the_api_reference_once():
     assert set(entries) == set(public_names()), "the API reference names what godrays_jax does not export"
 
 
+def test_all_lists_the_public_names_and_no_helper_module_leaks():
+    """`godrays_jax.__all__` is exactly what users get (`from godrays_jax import *` included, the names loaded on
+    first use too), and the modules the package's `__init__` uses itself are not among its attributes."""
+    assert gr.__all__ == public_names()
+    modules = {name for name in dir(gr) if not name.startswith("_") and isinstance(getattr(gr, name), types.ModuleType)}
+    assert modules <= {"app", "effects", "kernels", "pipeline", "primitives", "raster"}, modules
+    namespace = {}
+    exec("from godrays_jax import *", namespace)  # noqa: S102 - the star import users write
+    assert set(gr.__all__) <= set(namespace)
+
+
 def test_every_public_name_has_a_docstring():
     entries = api_entries()
     missing = {name for name in public_names() if not has_docstring(entries[name][0].rsplit(".", 1)[0], name)}

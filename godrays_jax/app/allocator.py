@@ -13,6 +13,12 @@ memory is still that of its largest call; memory is only handed back when
 the process ends, which for a command is soon (benchmarks/README.md, "The
 fit as users run it", measures both).
 
+The price is memory: each compiled program's temporaries stay resident
+after its call, so a fit that alternates two programs (the polish: the
+effect's render and the stand-in's Jacobian) holds both at once where it
+held the larger. `GODRAYS_JAX_KEEP_FREED_MEMORY=0` leaves the allocator as
+it is, for a machine where memory is tighter than time.
+
 Applied by the `godrays-jax` command (`cli.console_main`) only: a library
 must not retune the allocator of the process that imports it. Research code
 with the same calling pattern gets the same effect from the environment,
@@ -21,15 +27,22 @@ with the same calling pattern gets the same effect from the environment,
 
 import ctypes
 import ctypes.util
+import os
 import platform
 
 # mallopt's parameter numbers (glibc's malloc.h).
 _M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
 _LARGEST_INT = 2**31 - 1  # mallopt takes a C int
 
+OPT_OUT = "GODRAYS_JAX_KEEP_FREED_MEMORY"
+"""The environment variable that, set to `0`, leaves the allocator as it is."""
+
 
 def keep_freed_memory() -> bool:
-    """Tune glibc's allocator as the module's docstring says; returns whether it was (False off glibc)."""
+    """Tune glibc's allocator as the module's docstring says; returns whether it was (False off glibc, or with
+    `GODRAYS_JAX_KEEP_FREED_MEMORY=0`)."""
+    if os.environ.get(OPT_OUT, "1") == "0":
+        return False
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return False
     try:

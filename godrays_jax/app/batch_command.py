@@ -87,7 +87,7 @@ def run(args) -> int:
     if args.light_depth is None and (moved := _other_light_depth(inputs, light_depth)) is not None:
         warn("batch", f"{moved[0]} stores the light's distance {moved[1]:g}, the first frame {light_depth:g}: every "
              "frame takes the first frame's (one compiled program); pass --light-depth D to choose")  # fmt: skip
-    if getattr(effect, "source", None) == "light_pass":
+    if effect.reads_light_pass:
         effect = effect_for_frame("batch", effect, read_buffers(inputs[0], **frame_reading(args)), inputs[0])
     jobs = plan_batch(
         inputs,

@@ -2,7 +2,6 @@
 
 import argparse
 import contextlib
-import dataclasses
 import math
 import os
 import sys
@@ -144,15 +143,13 @@ def with_flare_texture(effect: Effect, texture_path: str | None) -> Effect:
     """
     if texture_path is None:
         return effect
-    if "flare_texture" not in {field.name for field in dataclasses.fields(effect)}:
-        raise CommandError(f"--flare-texture: {type(effect).__name__} draws no flare (use a GodRays or FlareOuts effect)")
     try:
         with _c_library_messages_dropped():
             width, height = image_size(texture_path)
             if max(width, height) > MAX_TEXTURE_SIDE:
                 raise ValueError(f"{width}x{height} texels, more than {MAX_TEXTURE_SIDE} on a side: resample it")
             texture = read_image(texture_path)
-        return dataclasses.replace(effect, flare_texture=texture)
+        return effect.with_flare_texture(texture)
     except (OSError, ValueError) as error:
         raise CommandError(f"--flare-texture {texture_path}: {error_line(error)}") from None
 
@@ -252,16 +249,12 @@ NO_SKY = (
 
 
 def effect_for_frame(command: str, effect: Effect, buffers: Buffers, name: str) -> Effect:
-    """`effect`, or its disc-emitter version (with a warning) when it reads a light pass the frame lacks.
-
-    The galaxy-engine VLS preset shines from a rendered light pass (`light.Y`,
-    written by `godrays-jax render`); a renderer's frame seldom has one, and
-    the disc at the light position is the nearest stand-in.
-    """
-    if getattr(effect, "source", None) != "light_pass" or buffers.light_pass is not None:
-        return effect
-    warn(command, f"{name} has no light pass (light.Y): using the disc emitter at the light instead (source='disc')")
-    return dataclasses.replace(effect, source="disc")
+    """The effect to draw on the frame `name` (`Effect.for_buffers`), with a warning when it is a stand-in for one
+    that reads what the frame lacks (the galaxy-engine VLS preset's rendered light pass)."""
+    chosen, why = effect.for_buffers(buffers)
+    if why is not None:
+        warn(command, f"{name} {why}")
+    return chosen
 
 
 def with_frame_camera(effect: Effect, args: argparse.Namespace, path: str) -> Effect:

@@ -122,6 +122,22 @@ class Effect(Part):
             values["near_plane"], values["far_plane"] = (float(plane) for plane in clip_planes)
         return dataclasses.replace(self, **values) if values else self
 
+    @property
+    def reads_light_pass(self) -> bool:
+        """Whether the effect draws from the frame's rendered light pass (`Buffers.light_pass`)."""
+        return False
+
+    def for_buffers(self, buffers: Buffers) -> tuple["Effect", str | None]:
+        """The effect to draw on `buffers`, and why it is another one (None: it is this one). An effect that
+        reads a pass the frame lacks gives its nearest stand-in, the commands warn with the reason; this effect
+        itself by default."""
+        return self, None
+
+    def with_flare_texture(self, texture: Float[Array, "h w C"]) -> "Effect":
+        """This effect drawing `texture` (linear, 1 to 4 channels) as its flare. Raises `ValueError` for an effect
+        that draws no flare."""
+        raise ValueError(f"{type(self).__name__} draws no flare (use a GodRays or FlareOuts effect)")
+
     def fit_stand_in(self) -> "Effect":
         """The effect `fit` fits in this one's place (`pipeline.fit.fit`'s `stand_in`): the same fields, read
         more cheaply where a cheaper reading gives nearly the same frame; this effect itself by default."""

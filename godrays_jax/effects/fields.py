@@ -385,9 +385,6 @@ class Part(eqx.Module):
             elif info.kind == "fittable" and not isinstance(value, jax.core.Tracer):
                 # A traced value (built inside a traced function): the kernels check what they must at run time.
                 _check_fittable(owner, name, value, _bounds(self, name, info), info.size)
-        bias = getattr(self, "depth_bias", 0.0)
-        if not 0.0 <= bias < 1.0:
-            raise ValueError(f"{owner}.depth_bias must be a number in [0, 1), got {bias!r}")
 
     def __repr__(self) -> str:
         """`GodRays(density=0.5, ...)`: every field with its value (equinox shows `f32[]` placeholders)."""

@@ -1,5 +1,6 @@
 """Light-shaft effects: radial rays (`GodRays`, GPU Gems 3 ch. 13) and kbEngine's flare-outs (`FlareOuts`)."""
 
+import dataclasses
 import math
 from typing import ClassVar, Literal
 
@@ -120,7 +121,28 @@ class Emitter(eqx.Module):
     scene_mask: SceneMask = static("coverage")
 
     def __check_init__(self):
-        _check_clip_planes(type(self).__name__, self.near_plane, self.far_plane)
+        owner = type(self).__name__
+        _check_clip_planes(owner, self.near_plane, self.far_plane)
+        bias = self.depth_bias
+        if not (isinstance(bias, (int, float)) and not isinstance(bias, bool) and 0.0 <= bias < 1.0):
+            raise ValueError(f"{owner}.depth_bias must be a number in [0, 1), got {bias!r}")
+
+    @property
+    def reads_light_pass(self) -> bool:
+        """Whether the emitter is the frame's rendered light pass (`source="light_pass"`)."""
+        return self.source == "light_pass"
+
+    def for_buffers(self, buffers):
+        """On a frame without a light pass, the emitter that reads one becomes the disc at the light, the nearest
+        stand-in (a renderer's frame seldom has one; `godrays-jax render` writes it)."""
+        if not self.reads_light_pass or buffers.light_pass is not None:
+            return self, None
+        why = "has no light pass (light.Y): using the disc emitter at the light instead (source='disc')"
+        return dataclasses.replace(self, source="disc"), why
+
+    def with_flare_texture(self, texture):
+        """This effect drawing `texture` as its flare (checked as the `flare_texture` field checks it)."""
+        return dataclasses.replace(self, flare_texture=texture)
 
 
 class GodRays(Effect, Emitter):
@@ -172,6 +194,10 @@ class GodRays(Effect, Emitter):
 
     CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg", "near_plane", "far_plane")
     FLARE_SQUARED: ClassVar[bool] = True
+    # The emitter's own, over `Effect`'s defaults (`Effect` comes first among the bases).
+    reads_light_pass = Emitter.reads_light_pass
+    for_buffers = Emitter.for_buffers
+    with_flare_texture = Emitter.with_flare_texture
 
     density: Float[Array, ""] = param(0.5, low=0.0, high=2.0)
     decay: Float[Array, ""] = param(0.95, low=0.5, high=1.0)
@@ -264,6 +290,10 @@ class FlareOuts(Effect, Emitter):
 
     CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg", "near_plane", "far_plane")
     FLARE_SQUARED: ClassVar[bool] = False
+    # The emitter's own, over `Effect`'s defaults (`Effect` comes first among the bases).
+    reads_light_pass = Emitter.reads_light_pass
+    for_buffers = Emitter.for_buffers
+    with_flare_texture = Emitter.with_flare_texture
 
     scale_step: Float[Array, ""] = param(1.03, low=0.8, high=1.5)
     intensity: Float[Array, ""] = param(0.1, low=0.0, high=10.0)

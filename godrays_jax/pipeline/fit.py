@@ -437,86 +437,42 @@ def fit(
         A `FitResult`: fitted effect, rounded-count effect, loss history and
         the losses before, after and after rounding.
     """
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
-    if not (isinstance(max_steps, int) and max_steps >= 0):
-        raise ValueError(f"max_steps must be an int >= 0, got {max_steps!r}")
-    if not (isinstance(probe_steps, int) and probe_steps >= 1):
-        raise ValueError(f"probe_steps must be an int >= 1, got {probe_steps!r}")
-    if not (isinstance(coarse_factor, int) and coarse_factor >= 1):
-        raise ValueError(f"coarse_factor must be an int >= 1, got {coarse_factor!r}")
-    if not (isinstance(plateau_steps, int) and plateau_steps >= 0):
-        raise ValueError(f"plateau_steps must be an int >= 0, got {plateau_steps!r}")
-    if not (plateau_rtol >= 0 and coarse_plateau_rtol >= 0):
-        raise ValueError(f"plateau_rtol and coarse_plateau_rtol must be >= 0, got {plateau_rtol!r}, {coarse_plateau_rtol!r}")
-    check_space(space)
-    optimiser = _solver(solver, loss, rtol, atol)
-    polisher = LevenbergMarquardt(rtol=rtol, atol=atol, scaled=True) if polishes(solver, loss) else None
-    least_squares = isinstance(optimiser, (LevenbergMarquardt, optx.AbstractLeastSquaresSolver))
+    phases = _Phases.of(
+        loss=loss, space=space, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol, probe_steps=probe_steps,
+        coarse_factor=coarse_factor, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
+        coarse_plateau_rtol=coarse_plateau_rtol,
+    )  # fmt: skip
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
     given = jax.tree.map(strongly_typed, effect)
     effect = given.fit_stand_in() if stand_in else given
-    frames, lights, targets, in_front, depths = as_frames(buffers, light_xy, target, light_in_front, light_depth)
+    frame_data = tuple(as_frames(buffers, light_xy, target, light_in_front, light_depth))
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
     check_inside_bounds(effect)
-    frame_data = (frames, lights, targets, in_front, depths)
-
-    def as_given(fitted):
-        """The fitted fields (of the stand-in) in the effect given."""
-        return fitted if given is effect else replace_fields(given, {n: field_value(fitted, n) for n in names})
-
-    # A start that repeats an earlier one (the effect given is often one of the model's presets) is raced once.
-    candidates, origins = [], []
-    for index, candidate in enumerate([effect, *[_start_like(effect, other, bounds) for other in starts]]):
-        if not any(_same_values(candidate, other, names) for other in candidates):
-            candidates.append(candidate)
-            origins.append(index)
-    descend = dict(
-        optimiser=optimiser, least_squares=least_squares, loss=loss, space=space, max_steps=max_steps,
-        probe_steps=probe_steps, plateau_steps=plateau_steps,
-        plateau_rtol=plateau_rtol,
-    )  # fmt: skip
+    candidates, origins = _distinct_starts(effect, starts, bounds)
     counter = _StepCounter(progress)
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
     # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
-        problem = FitProblem.of(effect, bounds, frames, loss=loss, space=space)
+        problem = FitProblem.of(effect, bounds, frame_data[0], loss=loss, space=space)
         loss_before = effect_loss(problem, given, frame_data)
-        coarse_steps = 0
-        if coarse_factor > 1:
-            # The starts race at the reduced resolution; the winner's result goes on at full resolution.
-            reduced = (
-                [downsample_buffers(frame, coarse_factor) for frame in frames],
-                [light / coarse_factor for light in lights], [downsample_box(image, coarse_factor) for image in targets],
-                in_front, depths,
-            )  # fmt: skip
-            scaled = [scale_pixel_fields(candidate, 1.0 / coarse_factor) for candidate in candidates]
-            coarse = {**descend, "plateau_rtol": coarse_plateau_rtol}
-            coarse_runs, start_index = _descend(scaled, bounds, reduced, counter, **coarse)
-            coarse_steps = counter.steps
-            fine_start = _effect_of_run(coarse_runs[start_index])
-            candidates = [clip_to_bounds(scale_pixel_fields(fine_start, float(coarse_factor)), bounds)]
-        # Through a stand-in the polish takes the effect's own residuals (its losses the effect's), the stand-in's
-        # Jacobian: it ends where the effect's loss stops falling along the stand-in's directions.
-        own = None if given is effect else lambda positions: as_given(_fitted_effects(problem, positions)[0])
-        polish = None if polisher is None else {**descend, "optimiser": polisher, "own": own}
-        runs, winner = _descend(candidates, bounds, frame_data, counter, **descend)
-        polish_steps = 0
-        if coarse_factor == 1:
-            start_index = winner
-        start_index = origins[start_index]
+        candidates, coarse_start = _coarse_phase(phases, candidates, bounds, frame_data, counter)
+        coarse_steps = counter.steps
+        runs, winner = _descend(candidates, bounds, frame_data, counter, **phases.descend)
+        start_index = origins[winner if coarse_start is None else coarse_start]
         run = runs[winner]
-        history = run.history if coarse_factor == 1 and start_index == 0 else [loss_before, *run.history]
-        if polish is not None and max_steps > 0:
-            before = counter.steps
-            polished, _ = _descend([_effect_of_run(run)], bounds, frame_data, counter, **polish)
-            run, polish_steps = polished[0], counter.steps - before
-            history = [*history, *run.history]  # one entry per step, as the descent's (its first: where it starts)
-        positions = jnp.asarray(run.positions(), np.dtype(frames[0].color.dtype))
-        fitted_effect, rounded = (as_given(e) for e in _fitted_effects(run.problem, positions))
+        history = run.history if coarse_start is None and start_index == 0 else [loss_before, *run.history]
+        def own(positions):  # through a stand-in, the polish's residuals: the effect given, at the positions
+            return _as_given(given, effect, _fitted_effects(problem, positions)[0], names)
+
+        run, polish_history, polish_steps = _polish_phase(
+            phases, run, bounds, frame_data, counter, None if given is effect else own
+        )  # fmt: skip
+        history = [*history, *polish_history]
+        positions = jnp.asarray(run.positions(), np.dtype(frame_data[0][0].color.dtype))
+        fitted_effect, rounded = (_as_given(given, effect, e, names) for e in _fitted_effects(run.problem, positions))
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
         loss_after = effect_loss(problem, fitted_effect, frame_data)
@@ -537,3 +493,89 @@ def fit(
         start=start_index,
         polish_steps=polish_steps,
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Phases:
+    """How a fit runs, from `fit`'s keyword arguments (checked): its solver and the polish's, and the settings of
+    its descents (`_descend`'s keywords), at full and at the coarse resolution."""
+
+    optimiser: object
+    polisher: LevenbergMarquardt | None
+    descend: dict
+    coarse_factor: int
+    coarse_plateau_rtol: float
+
+    @classmethod
+    def of(cls, *, loss, space, solver, max_steps, rtol, atol, probe_steps, coarse_factor, plateau_steps,
+           plateau_rtol, coarse_plateau_rtol) -> "_Phases":  # fmt: skip
+        if loss not in LOSSES:
+            raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
+        for name, value, least in (("max_steps", max_steps, 0), ("probe_steps", probe_steps, 1),
+                                   ("coarse_factor", coarse_factor, 1), ("plateau_steps", plateau_steps, 0)):  # fmt: skip
+            if not (isinstance(value, int) and value >= least):
+                raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
+        if not (plateau_rtol >= 0 and coarse_plateau_rtol >= 0):
+            raise ValueError(f"plateau_rtol and coarse_plateau_rtol must be >= 0, got {plateau_rtol!r}, {coarse_plateau_rtol!r}")
+        check_space(space)
+        optimiser = _solver(solver, loss, rtol, atol)
+        descend = dict(
+            optimiser=optimiser, least_squares=isinstance(optimiser, (LevenbergMarquardt, optx.AbstractLeastSquaresSolver)),
+            loss=loss, space=space, max_steps=max_steps, probe_steps=probe_steps, plateau_steps=plateau_steps,
+            plateau_rtol=plateau_rtol,
+        )  # fmt: skip
+        polisher = LevenbergMarquardt(rtol=rtol, atol=atol, scaled=True) if polishes(solver, loss) else None
+        return cls(optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol)
+
+
+def _distinct_starts(effect: Effect, starts: Sequence[Effect], bounds) -> tuple[list[Effect], list[int]]:
+    """The starts to race: `effect` and each of `starts` like it (`_start_like`), a start that repeats an earlier
+    one left out (the effect given is often one of the model's presets); and each one's index among them all."""
+    candidates, origins = [], []
+    for index, candidate in enumerate([effect, *[_start_like(effect, other, bounds) for other in starts]]):
+        if not any(_same_values(candidate, other, tuple(bounds)) for other in candidates):
+            candidates.append(candidate)
+            origins.append(index)
+    return candidates, origins
+
+
+def _coarse_phase(phases: _Phases, candidates, bounds, frame_data, counter) -> tuple[list[Effect], int | None]:
+    """With a coarse factor, the starts race at the reduced resolution (`reduced.downsample_buffers`) and the
+    winner descends there: returns its result at full resolution as the one start left, and the index of the
+    start that won. Without one, the starts as they are and None."""
+    factor = phases.coarse_factor
+    if factor == 1:
+        return candidates, None
+    frames, lights, targets, in_front, depths = frame_data
+    reduced = (
+        [downsample_buffers(frame, factor) for frame in frames], [light / factor for light in lights],
+        [downsample_box(image, factor) for image in targets], in_front, depths,
+    )  # fmt: skip
+    scaled = [scale_pixel_fields(candidate, 1.0 / factor) for candidate in candidates]
+    coarse_runs, winner = _descend(
+        scaled, bounds, reduced, counter, **{**phases.descend, "plateau_rtol": phases.coarse_plateau_rtol}
+    )  # fmt: skip
+    fine_start = _effect_of_run(coarse_runs[winner])
+    return [clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)], winner
+
+
+def _polish_phase(phases: _Phases, run: _Run, bounds, frame_data, counter, own) -> tuple[_Run, list[float], int]:
+    """The polish after Levenberg-Marquardt (Marquardt's scaling, from where `run` stopped): its run, its losses
+    (one per step, as a descent's: its first where it starts) and its steps. Through a stand-in it takes the
+    effect's own residuals (`own`, as `host_evaluator`'s: its losses the effect's) and the stand-in's Jacobian: it
+    ends where the effect's loss stops falling along the stand-in's directions. Without a polish, `run`, no
+    losses and no steps."""
+    if phases.polisher is None or phases.descend["max_steps"] == 0:
+        return run, [], 0
+    before = counter.steps
+    polish = {**phases.descend, "optimiser": phases.polisher, "own": own}
+    polished, _ = _descend([_effect_of_run(run)], bounds, frame_data, counter, **polish)
+    return polished[0], polished[0].history, counter.steps - before
+
+
+def _as_given(given: Effect, fitted_type: Effect, fitted: Effect, names: Sequence[str]) -> Effect:
+    """`fitted`'s fields `names` in the effect given; `fitted` itself when it is of the effect given (no stand-in:
+    `fitted_type` is `given`)."""
+    if fitted_type is given:
+        return fitted
+    return replace_fields(given, {name: field_value(fitted, name) for name in names})

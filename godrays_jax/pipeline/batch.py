@@ -343,150 +343,188 @@ def run_batch(
     """
     start = time.perf_counter()
     devices = list(devices) if devices is not None else jax.local_devices()
-    report = BatchReport(devices=len(devices))
-    report.skipped = [job.input for job in jobs if job.done]
     todo = [job for job in jobs if not job.done]
     for folder in {os.path.dirname(os.path.abspath(job.output)) for job in todo}:
         os.makedirs(folder, exist_ok=True)
     remove_stale_temporaries(jobs)
-    bar = tqdm.tqdm(total=len(todo), unit="frame", file=progress, disable=progress is None, dynamic_ncols=True)
-
-    traces_before = _traces["frames"]
-    apply_to_frames = frames_function(effect, layer_only=layer_only, light_depth=light_depth)
-    mesh = jax.sharding.Mesh(np.array(devices), ("frames",))
-    frame_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("frames"))
-    group_size = len(devices)
-    size = _common_size(todo)
-    timing_lock = threading.Lock()
     reading = {
         "depth_channel": depth_channel, "color_layer": color_layer, "sky_depth": sky_depth, "depth_kind": depth_kind,
         "fov_x_deg": fov_x_deg, "without_depth": True,
     }  # fmt: skip
-
-    def timed_load(job):
-        began = time.perf_counter()
-        try:
-            return _load(job, light, reading, effect)
-        finally:
-            with timing_lock:
-                report.read_s += time.perf_counter() - began
-
-    def write(job: Job, image: np.ndarray, frame_file: FrameFile) -> None:
-        began = time.perf_counter()
-        try:
-            # EXR to EXR keeps every channel and the header; other formats are display-encoded colour.
-            if all(os.path.splitext(path)[1].lower() == ".exr" for path in (job.output, job.input)):
-                write_frame_like(job.output, image, frame_file, replace=job.overwrite)
-            else:
-                seed = dither_seed_of(job.input) if dither else None
-                write_image(job.output, image, replace=job.overwrite, dither_seed=seed)
-        finally:
-            with timing_lock:
-                report.write_s += time.perf_counter() - began
-
-    structure = None
-    group: list[_Loaded] = []
-    pending_writes: collections.deque = collections.deque()
-
-    claims: dict[str, Claim] = {}
-
-    def fail(job: Job, reason: str) -> None:
-        report.failures[job.input] = reason
-        release(claims.pop(job.output, None))
-        bar.update()
-
-    def take(job: Job) -> bool:
-        """Claim the frame; False (and left to the other run) if another run holds it or placed it meanwhile."""
-        held = claim(job.output)
-        if held is not None and (job.overwrite or not os.path.exists(job.output)):
-            claims[job.output] = held
-            return True
-        release(held)
-        report.held.append(job.input)
-        bar.update()
-        return False
-
-    def settle_writes(limit: int) -> None:
-        while len(pending_writes) > limit:
-            job, future = pending_writes.popleft()
-            try:
-                future.result()
-                report.written.append(job.input)
-                release(claims.pop(job.output, None))
-                bar.update()
-            except Exception as error:
-                fail(job, error_line(error))
-
-    def flush_group() -> None:
-        if not group:
-            return
-        began = time.perf_counter()
-        padded = group + [group[-1]] * (group_size - len(group))
-        stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(item.buffers for item in padded))
-        lights = np.array([item.light[0] for item in padded], np.float32)
-        in_front = np.array([item.light[1] for item in padded], bool)
-        args = jax.device_put((stacked, lights, in_front), frame_sharding)
-        images = np.asarray(apply_to_frames(*args))
-        report.compute_s += time.perf_counter() - began
-        for item, image in zip(group, images):
-            if not np.all(np.isfinite(image)):
-                fail(item.job, "the effect produced NaN or infinite values")
-                continue
-            pending_writes.append((item.job, writers.submit(write, item.job, image, item.frame_file)))
-        group.clear()
-        settle_writes(limit=2 * group_size)
-
+    traces_before = _traces["frames"]
+    run = _Run(
+        report=BatchReport(devices=len(devices), skipped=[job.input for job in jobs if job.done]),
+        bar=tqdm.tqdm(total=len(todo), unit="frame", file=progress, disable=progress is None, dynamic_ncols=True),
+        apply=frames_function(effect, layer_only=layer_only, light_depth=light_depth),
+        sharding=jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("frames",)), jax.sharding.PartitionSpec("frames")),
+        group_size=len(devices), size=_common_size(todo), dither=dither,
+    )  # fmt: skip
     try:
         with (
             concurrent.futures.ThreadPoolExecutor(io_threads, thread_name_prefix="godrays-read") as readers,
             concurrent.futures.ThreadPoolExecutor(io_threads, thread_name_prefix="godrays-write") as writers,
         ):
-            reads: collections.deque = collections.deque()
-            queue = iter(todo)
-            lookahead = max(2 * group_size, io_threads + 1)
+            run.writers = writers
+            reads = _Reads(run, readers, iter(todo), lambda job: _load(job, light, reading, effect),
+                           lookahead=max(2 * run.group_size, io_threads + 1))  # fmt: skip
             try:
-                while True:
-                    while len(reads) < lookahead and (job := next(queue, None)) is not None:
-                        if take(job):
-                            reads.append((job, readers.submit(timed_load, job)))
-                    if not reads:
-                        break
-                    job, future = reads.popleft()
-                    try:
-                        loaded = future.result()
-                    except Exception as error:
-                        fail(job, error_line(error))
-                        continue
-                    frame_size = (loaded.buffers.height, loaded.buffers.width)
-                    size = size or frame_size
-                    if frame_size != size:
-                        fail(job, f"wrong size {frame_size[1]}x{frame_size[0]} (the run's frames are {size[1]}x{size[0]})")
-                        continue
-                    frame_structure = jax.tree.structure(loaded.buffers)
-                    if structure is None:
-                        structure = frame_structure
-                    elif frame_structure != structure:
-                        fail(job, f"different passes ({_structure_text(loaded.buffers)}) than the run's first frame")
-                        continue
-                    if np.min(np.asarray(loaded.buffers.coverage)) >= 1.0:
-                        report.without_sky.append(job.input)
-                    group.append(loaded)
-                    if len(group) == group_size:
-                        flush_group()
-                flush_group()
-                settle_writes(limit=0)
+                for job, loaded in reads:
+                    run.admit(job, loaded)
+                run.flush_group()
+                run.settle_writes(limit=0)
             except BaseException:
-                for _, future in reads:
-                    future.cancel()
+                reads.cancel()
                 raise
             finally:
-                bar.close()
+                run.bar.close()
     finally:
-        for held in claims.values():  # frames an interruption left unfinished (written ones are released)
+        for held in run.claims.values():  # frames an interruption left unfinished (written ones are released)
             release(held)
-    report.wall_s = time.perf_counter() - start
-    report.compilations = _traces["frames"] - traces_before
-    return report
+    run.report.wall_s = time.perf_counter() - start
+    run.report.compilations = _traces["frames"] - traces_before
+    return run.report
+
+
+@dataclasses.dataclass
+class _Run:
+    """A batch's state: its report and progress bar, the frames it holds claims on, the group being gathered for
+    the devices, the writes in flight, and the size and passes every frame must share (the first frame's where
+    the headers do not say). One thread (the caller's) changes it; the readers and writers only time themselves
+    into the report under `lock`."""
+
+    report: BatchReport
+    bar: tqdm.tqdm
+    apply: object  # `frames_function`'s
+    sharding: jax.sharding.NamedSharding
+    group_size: int
+    size: tuple[int, int] | None
+    dither: bool
+    writers: concurrent.futures.Executor | None = None
+    structure: object = None
+    claims: dict[str, Claim] = dataclasses.field(default_factory=dict)
+    group: list[_Loaded] = dataclasses.field(default_factory=list)
+    pending_writes: collections.deque = dataclasses.field(default_factory=collections.deque)
+    lock: threading.Lock = dataclasses.field(default_factory=threading.Lock)
+
+    def take(self, job: Job) -> bool:
+        """Claim the frame; False (and left to the other run) if another run holds it or placed it meanwhile."""
+        held = claim(job.output)
+        if held is not None and (job.overwrite or not os.path.exists(job.output)):
+            self.claims[job.output] = held
+            return True
+        release(held)
+        self.report.held.append(job.input)
+        self.bar.update()
+        return False
+
+    def fail(self, job: Job, reason: str) -> None:
+        self.report.failures[job.input] = reason
+        release(self.claims.pop(job.output, None))
+        self.bar.update()
+
+    def admit(self, job: Job, loaded: "_Loaded | BaseException") -> None:
+        """A frame read (or its reading's error): refused with its reason, or into the group, which goes to the
+        devices when full. Every frame must have the run's size and the first frame's passes (one program)."""
+        if isinstance(loaded, BaseException):
+            self.fail(job, error_line(loaded))
+            return
+        frame_size = (loaded.buffers.height, loaded.buffers.width)
+        self.size = self.size or frame_size
+        if frame_size != self.size:
+            self.fail(job, f"wrong size {frame_size[1]}x{frame_size[0]} (the run's frames are {self.size[1]}x{self.size[0]})")
+            return
+        structure = jax.tree.structure(loaded.buffers)
+        if self.structure is None:
+            self.structure = structure
+        if structure != self.structure:
+            self.fail(job, f"different passes ({_structure_text(loaded.buffers)}) than the run's first frame")
+            return
+        if np.min(np.asarray(loaded.buffers.coverage)) >= 1.0:
+            self.report.without_sky.append(job.input)
+        self.group.append(loaded)
+        if len(self.group) == self.group_size:
+            self.flush_group()
+
+    def flush_group(self) -> None:
+        """The group through the effect on the devices (the last frame repeated to fill it), each image to the
+        writers; a frame whose image is not finite fails."""
+        if not self.group:
+            return
+        began = time.perf_counter()
+        padded = self.group + [self.group[-1]] * (self.group_size - len(self.group))
+        stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(item.buffers for item in padded))
+        lights = np.array([item.light[0] for item in padded], np.float32)
+        in_front = np.array([item.light[1] for item in padded], bool)
+        images = np.asarray(self.apply(*jax.device_put((stacked, lights, in_front), self.sharding)))
+        self.report.compute_s += time.perf_counter() - began
+        for item, image in zip(self.group, images):
+            if not np.all(np.isfinite(image)):
+                self.fail(item.job, "the effect produced NaN or infinite values")
+                continue
+            self.pending_writes.append((item.job, self.writers.submit(self.write, item.job, image, item.frame_file)))
+        self.group.clear()
+        self.settle_writes(limit=2 * self.group_size)
+
+    def write(self, job: Job, image: np.ndarray, frame_file: FrameFile) -> None:
+        """On a writer thread: EXR to EXR keeps every channel and the header; other formats are display-encoded
+        colour, 8-bit ones dithered (`dither_seed_of`)."""
+        began = time.perf_counter()
+        try:
+            if all(os.path.splitext(path)[1].lower() == ".exr" for path in (job.output, job.input)):
+                write_frame_like(job.output, image, frame_file, replace=job.overwrite)
+            else:
+                seed = dither_seed_of(job.input) if self.dither else None
+                write_image(job.output, image, replace=job.overwrite, dither_seed=seed)
+        finally:
+            with self.lock:
+                self.report.write_s += time.perf_counter() - began
+
+    def settle_writes(self, limit: int) -> None:
+        """Wait for the oldest writes until at most `limit` are in flight, recording each as written or failed."""
+        while len(self.pending_writes) > limit:
+            job, future = self.pending_writes.popleft()
+            try:
+                future.result()
+                self.report.written.append(job.input)
+                release(self.claims.pop(job.output, None))
+                self.bar.update()
+            except Exception as error:
+                self.fail(job, error_line(error))
+
+
+class _Reads:
+    """The frames read ahead on the readers, in order: iterating gives `(job, loaded)` (or the reading's error in
+    place of `loaded`), each frame claimed (`_Run.take`) before it is read; at most `lookahead` in flight."""
+
+    def __init__(self, run: _Run, readers: concurrent.futures.Executor, queue, load, *, lookahead: int):
+        self.run, self.readers, self.queue, self.load, self.lookahead = run, readers, queue, load, lookahead
+        self.in_flight: collections.deque = collections.deque()
+
+    def _timed_load(self, job: Job) -> _Loaded:
+        began = time.perf_counter()
+        try:
+            return self.load(job)
+        finally:
+            with self.run.lock:
+                self.run.report.read_s += time.perf_counter() - began
+
+    def __iter__(self):
+        while True:
+            while len(self.in_flight) < self.lookahead and (job := next(self.queue, None)) is not None:
+                if self.run.take(job):
+                    self.in_flight.append((job, self.readers.submit(self._timed_load, job)))
+            if not self.in_flight:
+                return
+            job, future = self.in_flight.popleft()
+            try:
+                yield job, future.result()
+            except Exception as error:  # noqa: BLE001 - a frame that cannot be read fails alone (`_Run.admit`)
+                yield job, error
+
+    def cancel(self) -> None:
+        """Cancel the reads not yet started (an interruption)."""
+        for _, future in self.in_flight:
+            future.cancel()
 
 
 def describe_plan(jobs: Sequence[Job], light: LightSource) -> list[str]:

@@ -98,7 +98,7 @@ _NEAREST_LIGHT = 1e-3
 
 # The pixels' reads of the march rays are made this many pixels (whole rows) at a time on larger frames: memory
 # O(band x lanes) in a fit's Jacobian instead of O(frame x lanes), the same values.
-_BAND_PIXELS = 1 << 16
+_BAND_PIXELS = 1 << 14
 
 def _covering_depth(depth):
     """Each pixel's depth, or on sky the nearest depth among its eight neighbours (`inf` where they are all sky)."""

@@ -10,6 +10,7 @@ from godrays_jax.effects.base import Effect, frame_ray_depth
 from godrays_jax.effects.fields import param, part, static
 from godrays_jax.effects.medium import FLAT_NAMES, Medium
 from godrays_jax.kernels.bounded_medium import BoundedMedium
+from godrays_jax.kernels.shadow_lines import REFERENCE_SIDE
 from godrays_jax.kernels.shadow_reading import (
     ShadowLines,
     ShadowReading,
@@ -24,10 +25,8 @@ from godrays_jax.kernels.volumetric import (
 )
 from godrays_jax.primitives.checks import check_light
 
-# The frame size (its larger side, pixels) up to which the march rays are `resolution_factor` pixels apart; on
-# larger frames they keep that fraction of the frame, so a preset looks and costs the same, up to this many times
-# farther apart.
-_REFERENCE_SIDE = 320
+# On frames larger than `REFERENCE_SIDE` the march rays keep their fraction of the frame, so a preset looks and costs
+# the same, up to this many times farther apart.
 _MAX_SPACING_SCALE = 4.0
 # The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines, and
 # the share of the lines it reads (all the bins: with half, thin slats' shadows fit worse).
@@ -43,7 +42,7 @@ def march_factor(height: int, width: int, resolution_factor: int) -> float:
     to 320 pixels, as far apart as a pixel of such a frame beyond (`volumetric_haze`'s shadows read along
     lines need rays that close to hold still, and look the same at any size).
     """
-    scale = min(max(max(height, width) / _REFERENCE_SIDE, 1.0), _MAX_SPACING_SCALE)
+    scale = min(max(max(height, width) / REFERENCE_SIDE, 1.0), _MAX_SPACING_SCALE)
     return resolution_factor * scale
 
 

@@ -70,14 +70,16 @@ from godrays_jax.primitives.sampling import bilinear_corners
 _BIN_SPAN = 5e3
 # A slab face's ramp is spread over at most this many bins; a softer face is cut to it (still reaching 1).
 _FACE_BINS = 2
-# Cells are one pixel long on a frame up to this many pixels on its larger side, the same fraction of it beyond.
-_REFERENCE_SIDE = 320
+REFERENCE_SIDE = 320
+"""The frame side (pixels, the larger side) up to which the fog samples by the pixel: its lines' cells are one
+pixel long (`default_cell_px`) and its march rays `resolution_factor` pixels apart (`effects.volumetric`'s
+`march_factor`); on a larger frame each keeps its fraction of the frame, so a preset looks the same at any size."""
 
 
 def default_cell_px(height: int, width: int) -> float:
     """The cells' length in pixels on a `height x width` frame: 1 up to 320 pixels on its larger side, the same
     fraction of that side beyond, so a frame's lines hold the same cells at any size."""
-    return max(1.0, max(height, width) / _REFERENCE_SIDE)
+    return max(1.0, max(height, width) / REFERENCE_SIDE)
 
 
 def line_coordinate(

@@ -5,8 +5,10 @@ import platform
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
+import godrays_jax as gr
 from godrays_jax.app import allocator, cli
 
 # In a fresh process: allocate a block far above glibc's mmap threshold, touch every page, free it, and print how
@@ -38,11 +40,34 @@ def test_freed_memory_stays_with_the_process_only_when_tuned():
     assert kept("tuned") > 192  # kept mapped: the next allocation of its size reuses it
 
 
-def test_the_command_tunes_the_allocator_and_a_call_of_main_does_not(monkeypatch):
+def test_the_command_keeps_freed_memory_where_it_repeats_its_programs(monkeypatch, tmp_path):
+    """`godrays-jax` tunes the allocator for a batch, the tuner and a fit up to `KEPT_FIT_PIXELS` pixels, not for
+    `apply` or a larger fit; a call of `main` from a user's process never does. Each command here then stops at
+    its own argument check, after the choice."""
     calls = []
     monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append("tuned") or True)
-    monkeypatch.setattr(sys, "argv", ["godrays-jax", "cache"])
-    assert cli.main(["cache"]) == 0
-    assert calls == []
+    small, large = tmp_path / "small.exr", tmp_path / "large.exr"
+    gr.write_image(small, np.zeros((36, 64, 3), np.float32))
+    gr.write_image(large, np.zeros((1080, 1000, 3), np.float32))  # just above 2^20 pixels
+    fit = ["fit", "TARGET", "-o", str(tmp_path / "p.json"), "--max-steps", "-1"]
+
+    def tuned(argv, **options):
+        calls.clear()
+        cli.main(argv, **options)
+        return calls == ["tuned"]
+
+    assert not tuned([fit[0], str(small), *fit[1:]])  # a call of main: the user's process is left alone
+    assert tuned([fit[0], str(small), *fit[1:]], keep_freed_memory=True)
+    assert not tuned([fit[0], str(large), *fit[1:]], keep_freed_memory=True)
+    assert not tuned([fit[0], str(small), "--frames", str(large), "T", *fit[1:]], keep_freed_memory=True)
+    assert not tuned([fit[0], str(tmp_path / "missing.exr"), *fit[1:]], keep_freed_memory=True)
+    assert tuned(["batch", str(tmp_path / "none_####.exr"), "-o", str(tmp_path)], keep_freed_memory=True)
+    assert not tuned(["apply", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "out.exr")], keep_freed_memory=True)
+    assert not tuned(["cache"], keep_freed_memory=True)
+
+
+def test_the_command_line_entry_points_keep_freed_memory(monkeypatch):
+    chosen = []
+    monkeypatch.setattr(cli, "main", lambda argv=None, **options: chosen.append(options) or 0)
     assert cli.console_main() == 0
-    assert calls == ["tuned"]
+    assert chosen == [{"keep_freed_memory": True}]

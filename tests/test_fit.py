@@ -12,7 +12,7 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
-from godrays_jax.pipeline.fit import _plateaued, fit, round_counts
+from godrays_jax.pipeline.fit import plateaued, fit, round_counts
 from godrays_jax.pipeline.fit_programs import objective_function
 from godrays_jax.pipeline.problem import (
     FOLD_ROUNDING,
@@ -284,10 +284,10 @@ def test_the_fit_stops_once_the_loss_stops_moving():
 def test_steps_rejected_before_the_loss_first_falls_are_no_plateau():
     """ground_fog from a layer top of 10: the solver's start loss, five rejected steps, then the fall (13:38 note)."""
     start, fallen = 0.012738488614559174, 0.011144778691232204
-    assert not _plateaued([start] * 6, 5, 1e-3)  # stopped here before: the loss evaluated first was 2e-6 higher
-    assert not _plateaued([start] * 6 + [fallen] * 5, 5, 1e-3)  # five steps since the fall, one of them the fall
-    assert _plateaued([start] * 6 + [fallen] * 6, 5, 1e-3)
-    assert _plateaued([start, fallen, fallen], 2, 1.0) and not _plateaued([start, fallen], 2, 1.0)
+    assert not plateaued([start] * 6, 5, 1e-3)  # stopped here before: the loss evaluated first was 2e-6 higher
+    assert not plateaued([start] * 6 + [fallen] * 5, 5, 1e-3)  # five steps since the fall, one of them the fall
+    assert plateaued([start] * 6 + [fallen] * 6, 5, 1e-3)
+    assert plateaued([start, fallen, fallen], 2, 1.0) and not plateaued([start, fallen], 2, 1.0)
 
 
 def test_the_fit_command_fits_large_frames_at_a_reduced_resolution_first():

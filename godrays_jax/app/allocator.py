@@ -16,8 +16,11 @@ fit as users run it", measures both).
 The price is memory: each compiled program's temporaries stay resident
 after its call, so a fit that alternates two programs (the polish: the
 effect's render and the stand-in's Jacobian) holds both at once where it
-held the larger. `GODRAYS_JAX_KEEP_FREED_MEMORY=0` leaves the allocator as
-it is, for a machine where memory is tighter than time.
+held the larger. So the command keeps them where it repeats its programs
+on buffers of bounded size (`cli.repeats_programs`: a batch, the tuner, a
+fit up to `KEPT_FIT_PIXELS`), not for one `apply` (nothing to reuse);
+`GODRAYS_JAX_KEEP_FREED_MEMORY=0` leaves the allocator as it is, for a
+machine where memory is tighter than time.
 
 Applied by the `godrays-jax` command (`cli.console_main`) only: a library
 must not retune the allocator of the process that imports it. Research code
@@ -33,6 +36,10 @@ import platform
 # mallopt's parameter numbers (glibc's malloc.h).
 _M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
 _LARGEST_INT = 2**31 - 1  # mallopt takes a C int
+
+KEPT_FIT_PIXELS = 1 << 20
+"""The largest fit (its frames' pixels in all) whose process keeps what it frees (`cli.repeats_programs`): at
+1920x1080 the buffers the polish's two programs hold at once passed the 4 GB the fit's memory bound allows."""
 
 OPT_OUT = "GODRAYS_JAX_KEEP_FREED_MEMORY"
 """The environment variable that, set to `0`, leaves the allocator as it is."""

@@ -31,6 +31,7 @@ from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP
 from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
+from godrays_jax.primitives.image_files import image_size
 
 PROGRAM = "godrays-jax"
 
@@ -351,15 +352,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 def console_main() -> int:
     """The `godrays-jax` script and `python -m godrays_jax`: `main` in a process whose allocator keeps the memory
-    XLA frees (`allocator.keep_freed_memory`: each call of a compiled program then reuses its temporaries)."""
-    allocator.keep_freed_memory()
-    return main()
+    XLA frees where the command calls the same programs over and over (`repeats_programs`)."""
+    return main(keep_freed_memory=True)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; returns the exit status (0 success, 1 error, 2 usage, 130 interrupted)."""
+def repeats_programs(args: argparse.Namespace) -> bool:
+    """Whether the command calls the same compiled programs many times on buffers its process may keep between
+    the calls (`allocator.keep_freed_memory`): a batch, the tuner, and a fit of at most `allocator.KEPT_FIT_PIXELS`
+    pixels in all (the polish alternates two programs, whose buffers a larger frame's fit would then hold both;
+    `benchmarks/README.md`, "The fit as users run it"). A frame whose size cannot be read counts as large: the
+    command says what is wrong with it."""
+    if args.command in ("batch", "tune"):
+        return True
+    if args.command != "fit":
+        return False
+    try:
+        sizes = [image_size(path) for path in [args.buffers, *(pair[0] for pair in args.frames or ())]]
+    except (OSError, ValueError):
+        return False
+    return sum(width * height for width, height in sizes) <= allocator.KEPT_FIT_PIXELS
+
+
+def main(argv: list[str] | None = None, *, keep_freed_memory: bool = False) -> int:
+    """Run the CLI; returns the exit status (0 success, 1 error, 2 usage, 130 interrupted). `keep_freed_memory`:
+    tune the process's allocator for the commands that repeat their programs (`repeats_programs`); the
+    `godrays-jax` command does, a call from your own process by default does not."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if keep_freed_memory and repeats_programs(args):
+        allocator.keep_freed_memory()
     try:
         with warnings.catch_warnings():
             # The library's warnings (a params file's old field name) as one line each, like every other message.

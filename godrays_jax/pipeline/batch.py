@@ -269,11 +269,10 @@ def _structure_text(buffers: Buffers) -> str:
     return ", ".join(f.name for f in dataclasses.fields(buffers) if getattr(buffers, f.name) is not None)
 
 
-_traces = collections.Counter()
-"""How many times a run's effect was traced (compiled): `BatchReport.compilations` reads it."""
-
-
-def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: float = math.inf, stored: bool = False):
+def frames_function(
+    effect: Effect, *, layer_only: bool = False, light_depth: float = math.inf, stored: bool = False,
+    traces: collections.Counter | None = None,
+):  # fmt: skip
     """The effect on a group of stacked frames `(G, H, W, ...)`, jitted with the effect's fields as constants.
 
     `light_depth` is the light's distance (scene units) for every frame of the group (`Effect.layer`).
@@ -286,6 +285,8 @@ def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: fl
     traced once and kept by `exported` (keyed by the effect's values too), so
     a later process does not trace it either; for arrays on one device (a
     batch spreads its groups over devices and runs the program as traced).
+    `traces`: counts each trace (compilation) under `"frames"` (a run's
+    `BatchReport.compilations`).
     """
 
     def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
@@ -294,7 +295,8 @@ def frames_function(effect: Effect, *, layer_only: bool = False, light_depth: fl
 
     @jax.jit
     def apply(buffers: Buffers, lights: Float[Array, "G 2"], in_front: Bool[Array, " G"]) -> Float[Array, "G H W C"]:
-        _traces["frames"] += 1
+        if traces is not None:
+            traces["frames"] += 1
         return jax.vmap(one_frame)(buffers, lights, in_front)
 
     if not stored:
@@ -351,11 +353,11 @@ def run_batch(
         "depth_channel": depth_channel, "color_layer": color_layer, "sky_depth": sky_depth, "depth_kind": depth_kind,
         "fov_x_deg": fov_x_deg, "without_depth": True,
     }  # fmt: skip
-    traces_before = _traces["frames"]
+    traces = collections.Counter()
     run = _Run(
         report=BatchReport(devices=len(devices), skipped=[job.input for job in jobs if job.done]),
         bar=tqdm.tqdm(total=len(todo), unit="frame", file=progress, disable=progress is None, dynamic_ncols=True),
-        apply=frames_function(effect, layer_only=layer_only, light_depth=light_depth),
+        apply=frames_function(effect, layer_only=layer_only, light_depth=light_depth, traces=traces),
         sharding=jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("frames",)), jax.sharding.PartitionSpec("frames")),
         group_size=len(devices), size=_common_size(todo), dither=dither,
     )  # fmt: skip
@@ -381,7 +383,7 @@ def run_batch(
         for held in run.claims.values():  # frames an interruption left unfinished (written ones are released)
             release(held)
     run.report.wall_s = time.perf_counter() - start
-    run.report.compilations = _traces["frames"] - traces_before
+    run.report.compilations = traces["frames"]
     return run.report
 
 

@@ -299,7 +299,7 @@ def _descend(
             if run.steps > 1:  # after the first step the state holds the start's loss, already recorded
                 run.history.append(run.solver_losses[-1])
             counter(run.history[-1])
-            run.plateaued = bool(plateau_steps) and _plateaued(run.solver_losses, plateau_steps, plateau_rtol)
+            run.plateaued = bool(plateau_steps) and plateaued(run.solver_losses, plateau_steps, plateau_rtol)
 
     alive, budget = list(range(len(runs))), probe_steps
     while len(alive) > 1:
@@ -319,7 +319,7 @@ def _effect_of_run(run: _Run) -> Effect:
     return _fitted_effects(run.problem, jnp.asarray(run.positions(), dtype))[0]
 
 
-def _plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
+def plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
     """Whether the loss has stopped moving: it fell by less than `plateau_rtol` of itself over the last
     `plateau_steps` steps, all taken since it first fell.
 

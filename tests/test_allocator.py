@@ -48,7 +48,7 @@ def test_the_command_keeps_freed_memory_where_it_repeats_its_programs(monkeypatc
     monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append("tuned") or True)
     small, large = tmp_path / "small.exr", tmp_path / "large.exr"
     gr.write_image(small, np.zeros((36, 64, 3), np.float32))
-    gr.write_image(large, np.zeros((1080, 1000, 3), np.float32))  # just above 2^20 pixels
+    gr.write_image(large, np.zeros((520, 520, 3), np.float32))  # just above 2^18 pixels
     fit = ["fit", "TARGET", "-o", str(tmp_path / "p.json"), "--max-steps", "-1"]
 
     def tuned(argv, **options):

@@ -37,9 +37,10 @@ import platform
 _M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
 _LARGEST_INT = 2**31 - 1  # mallopt takes a C int
 
-KEPT_FIT_PIXELS = 1 << 20
-"""The largest fit (its frames' pixels in all) whose process keeps what it frees (`cli.repeats_programs`): at
-1920x1080 the buffers the polish's two programs hold at once passed the 4 GB the fit's memory bound allows."""
+KEPT_FIT_PIXELS = 1 << 18
+"""The largest fit (its frames' pixels in all) whose process keeps what it frees (`cli.repeats_programs`): on
+larger frames the buffers the polish's two programs then hold at once passed the fit's memory bound (at 960x540
+and at 1920x1080)."""
 
 OPT_OUT = "GODRAYS_JAX_KEEP_FREED_MEMORY"
 """The environment variable that, set to `0`, leaves the allocator as it is."""

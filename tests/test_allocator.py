@@ -41,8 +41,8 @@ def test_freed_memory_stays_with_the_process_only_when_tuned():
 
 
 def test_the_command_keeps_freed_memory_where_it_repeats_its_programs(monkeypatch, tmp_path):
-    """`godrays-jax` tunes the allocator for a batch, the tuner and a fit up to `KEPT_FIT_PIXELS` pixels, not for
-    `apply` or a larger fit; a call of `main` from a user's process never does. Each command here then stops at
+    """`godrays-jax` tunes the allocator for the tuner and a batch or fit up to `KEPT_FIT_PIXELS` pixels, not for
+    `apply` or larger frames; a call of `main` from a user's process never does. Each command here then stops at
     its own argument check, after the choice."""
     calls = []
     monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append("tuned") or True)
@@ -61,7 +61,13 @@ def test_the_command_keeps_freed_memory_where_it_repeats_its_programs(monkeypatc
     assert not tuned([fit[0], str(large), *fit[1:]], keep_freed_memory=True)
     assert not tuned([fit[0], str(small), "--frames", str(large), "T", *fit[1:]], keep_freed_memory=True)
     assert not tuned([fit[0], str(tmp_path / "missing.exr"), *fit[1:]], keep_freed_memory=True)
-    assert tuned(["batch", str(tmp_path / "none_####.exr"), "-o", str(tmp_path)], keep_freed_memory=True)
+    assert not tuned(["batch", str(tmp_path / "none_####.exr"), "-o", str(tmp_path)], keep_freed_memory=True)
+    for name, frame in (("small", small), ("large", large)):
+        (tmp_path / name).mkdir()
+        os.link(frame, tmp_path / name / "shot_0001.exr")
+    batch = ["-o", str(tmp_path / "out"), "--coordinator", "host:1"]  # refused: it needs --distributed
+    assert tuned(["batch", str(tmp_path / "small" / "shot_####.exr"), *batch], keep_freed_memory=True)
+    assert not tuned(["batch", str(tmp_path / "large" / "shot_####.exr"), *batch], keep_freed_memory=True)
     assert not tuned(["apply", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "out.exr")], keep_freed_memory=True)
     assert not tuned(["cache"], keep_freed_memory=True)
 

@@ -28,7 +28,7 @@ from godrays_jax.app.options import (
 )
 from godrays_jax.effects.presets import PRESETS
 from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP
+from godrays_jax.pipeline.sequences import FRAME_PATTERN_HELP, expand_frames
 from godrays_jax.primitives.checks import error_line
 from godrays_jax.primitives.frame_reading import SKY_DEPTH
 from godrays_jax.primitives.image_files import image_size
@@ -358,17 +358,20 @@ def console_main() -> int:
 
 def repeats_programs(args: argparse.Namespace) -> bool:
     """Whether the command calls the same compiled programs many times on buffers its process may keep between
-    the calls (`allocator.keep_freed_memory`): a batch, the tuner, and a fit of at most `allocator.KEPT_FIT_PIXELS`
-    pixels in all (the polish alternates two programs, whose buffers a larger frame's fit would then hold both;
-    `benchmarks/README.md`, "The fit as users run it"). A frame whose size cannot be read counts as large: the
-    command says what is wrong with it."""
-    if args.command in ("batch", "tune"):
+    the calls (`allocator.keep_freed_memory`): the tuner (its preview is small), and a batch or a fit of at most
+    `allocator.KEPT_FIT_PIXELS` pixels (a batch's frames each, a fit's frames together). On larger frames the
+    buffers kept grew beyond the commands' memory bounds for little time (`benchmarks/README.md`, "The fit as
+    users run it"). A frame whose size cannot be read counts as large: the command says what is wrong with it."""
+    if args.command == "tune":
         return True
-    if args.command != "fit":
-        return False
     try:
-        sizes = [image_size(path) for path in [args.buffers, *(pair[0] for pair in args.frames or ())]]
-    except (OSError, ValueError):
+        if args.command == "batch":
+            sizes = [image_size(expand_frames(args.pattern)[0])]
+        elif args.command == "fit":
+            sizes = [image_size(path) for path in [args.buffers, *(pair[0] for pair in args.frames or ())]]
+        else:
+            return False
+    except (OSError, ValueError, IndexError):
         return False
     return sum(width * height for width, height in sizes) <= allocator.KEPT_FIT_PIXELS
 

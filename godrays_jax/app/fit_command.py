@@ -30,7 +30,6 @@ from godrays_jax.effects.fields import field_metadata, field_value
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
-from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.fit import fit, polishes
 from godrays_jax.pipeline.frame_start import ground_layer_start
@@ -116,9 +115,8 @@ def run(args) -> int:
     loss_name = f"{args.loss} ({args.space})"
     after = result.loss_after if args.fractional_counts else result.loss_rounded
     _say(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
-    frame_data = list(zip(frames, light_positions, in_front, depths))
-    fitted_images = [render_compiled(chosen, *frame) for frame in frame_data]
-    _say(_metrics_line(effect, fitted_images, frame_data, targets))
+    fitted_images = result.images_after if args.fractional_counts else result.images_rounded
+    _say(_metrics_line(result.images_before, fitted_images, targets))
     for line in _determination_lines(result, frames, light_positions, targets, in_front, depths, args.space):
         _say(line)
     report = fit_report_image(targets[0], fitted_images[0], result.loss_history) if args.report else None
@@ -185,9 +183,9 @@ def _steps_line(result, coarse_factor: int) -> str:
     return f"{coarse}{result.steps} steps{polish}, {why}"
 
 
-def _metrics_line(start, fitted_images, frame_data, targets) -> str:
+def _metrics_line(start_images, fitted_images, targets) -> str:
     """PSNR and SSIM before and after, by scikit-image in display space: a check independent of the fit's loss."""
-    before = [image_metrics(render_compiled(start, *frame), target) for frame, target in zip(frame_data, targets)]
+    before = [image_metrics(image, target) for image, target in zip(start_images, targets)]
     after = [image_metrics(image, target) for image, target in zip(fitted_images, targets)]
     (psnr_before, ssim_before), (psnr_after, ssim_after) = np.mean(before, axis=0), np.mean(after, axis=0)
     over = f", mean over {len(targets)} frames" if len(targets) > 1 else ""

@@ -121,6 +121,8 @@ class FitResult:
         coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`), every start's.
         start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
         polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt).
+        images_before, images_after, images_rounded: each frame as the effect given, `effect` and `rounded`
+            render it (`(H, W, C)` linear, as `apply` renders it), from which the losses were taken.
     """
 
     effect: Effect
@@ -136,6 +138,9 @@ class FitResult:
     coarse_steps: int = 0
     start: int = 0
     polish_steps: int = 0
+    images_before: list = dataclasses.field(default_factory=list, repr=False)
+    images_after: list = dataclasses.field(default_factory=list, repr=False)
+    images_rounded: list = dataclasses.field(default_factory=list, repr=False)
 
 
 def round_counts(effect: Effect) -> Effect:
@@ -457,7 +462,7 @@ def fit(
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         problem = FitProblem.of(effect, bounds, frame_data[0], loss=loss, space=space)
-        loss_before = effect_loss(problem, given, frame_data)
+        loss_before, images_before = effect_loss(problem, given, frame_data)
         candidates, coarse_start = _coarse_phase(phases, candidates, bounds, frame_data, counter)
         coarse_steps = counter.steps
         runs, winner = _descend(candidates, bounds, frame_data, counter, **phases.descend)
@@ -475,9 +480,9 @@ def fit(
         fitted_effect, rounded = (_as_given(given, effect, e, names) for e in _fitted_effects(run.problem, positions))
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
-        loss_after = effect_loss(problem, fitted_effect, frame_data)
+        loss_after, images_after = effect_loss(problem, fitted_effect, frame_data)
         same = _same_values(fitted_effect, rounded, names)
-        loss_rounded = loss_after if same else effect_loss(problem, rounded, frame_data)
+        loss_rounded, images_rounded = (loss_after, images_after) if same else effect_loss(problem, rounded, frame_data)
     return FitResult(
         effect=fitted_effect,
         rounded=rounded,
@@ -485,6 +490,9 @@ def fit(
         loss_before=loss_before,
         loss_after=loss_after,
         loss_rounded=loss_rounded,
+        images_before=images_before,
+        images_after=images_after,
+        images_rounded=images_rounded,
         fitted=names,
         steps=counter.steps - coarse_steps,
         converged=bool(run.converged),

@@ -140,10 +140,12 @@ def _image_loss(problem, images, frame_data):
     return problem.objective_of_images(images, frame_data)
 
 
-def effect_loss(problem: FitProblem, candidate: Effect, frame_data) -> float:
-    """`problem`'s loss of `candidate`, from its frames rendered as `apply` renders them (`render_compiled`): a
-    fit's losses of the effect itself share that compiled program with the frames its command then renders."""
-    return float(exported.call("fit_image_loss", _image_loss, problem, _rendered(candidate, frame_data), frame_data))
+def effect_loss(problem: FitProblem, candidate: Effect, frame_data) -> tuple[float, list]:
+    """`problem`'s loss of `candidate` and its frames, rendered as `apply` renders them (`render_compiled`): a
+    fit's losses of the effect itself share that compiled program with the frames its command then renders, and
+    the command reports on these frames without rendering them again."""
+    images = _rendered(candidate, frame_data)
+    return float(exported.call("fit_image_loss", _image_loss, problem, images, frame_data)), images
 
 
 @eqx.filter_jit

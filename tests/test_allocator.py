@@ -29,7 +29,8 @@ print(resident_mib() - before)
 """
 
 
-@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
+@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="the allocator is tuned through glibc's mallopt; on other C libraries (macOS, musl) "
+                    "keep_freed_memory leaves it as it is and returns False")
 def test_freed_memory_stays_with_the_process_only_when_tuned():
     def kept(mode, **env):
         done = subprocess.run([sys.executable, "-c", _PROBE, mode], capture_output=True, text=True, check=True,

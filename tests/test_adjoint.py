@@ -1,4 +1,4 @@
-"""The image's adjoint of scaled copies (kernels/_copies/adjoint.py) against a slow loop, and through every transformation."""
+"""The image's adjoint of scaled copies (kernels/copy_sums/adjoint.py) against a slow loop, and through every transformation."""
 
 import math
 
@@ -9,8 +9,8 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from godrays_jax.kernels._copies import adjoint, copies, cpu_loop
-from godrays_jax.kernels._copies.planes import Planes
+from godrays_jax.kernels.copy_sums import adjoint, copies, cpu_loop
+from godrays_jax.kernels.copy_sums.planes import Planes
 
 HEIGHT, WIDTH = 9, 13
 LIGHTS = {

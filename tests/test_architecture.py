@@ -77,23 +77,23 @@ def test_the_kernels_and_effects_load_no_files_progress_bar_or_solver():
         "for package in (godrays_jax.kernels, godrays_jax.effects):\n"
         "    for module in pkgutil.walk_packages(package.__path__, package.__name__ + '.'):\n"
         "        importlib.import_module(module.name)\n"
-        "print(len([m for m in sys.modules if m.startswith('godrays_jax.kernels._copies.')]))\n"
+        "print(len([m for m in sys.modules if m.startswith('godrays_jax.kernels.copy_sums.')]))\n"
         f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))"
     )
     assert done.returncode == 0, done.stderr
     copies_loaded, heavy = done.stdout.split("\n")[:2]
-    assert int(copies_loaded) >= 6, "the walk must reach the private subpackage"
+    assert int(copies_loaded) >= 6, "the walk must reach the subpackage of the copy sums"
     assert heavy == "[]"
 
 
-def test_the_scaled_copies_are_private_to_the_kernels():
+def test_only_the_kernels_import_the_copy_sums():
     offenders = [
         f"{path.relative_to(ROOT)} line {node.lineno}"
         for path in SOURCES
         if PACKAGE / "kernels" not in path.parents
         for node in _imports(path)[1]
         for name in ([node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names])
-        if name.startswith("godrays_jax.kernels._copies")
+        if name.startswith("godrays_jax.kernels.copy_sums")
     ]
     assert not offenders
 

@@ -315,8 +315,8 @@ def test_vbex_night_lights_are_towns_clustered_on_continents():
     rng = np.random.default_rng(0)
     normals = rng.normal(size=(3, 200_000))
     normals /= np.linalg.norm(normals, axis=0)
-    lights = np.asarray(shading._city_pattern(jnp.asarray(normals, jnp.float32)))
-    land = np.asarray(shading._field(jnp.asarray(normals, jnp.float32), shading._CONTINENTS)) > 0.3
+    lights = np.asarray(shading.city_lights(jnp.asarray(normals, jnp.float32)))
+    land = np.asarray(shading.continents(jnp.asarray(normals, jnp.float32))) > shading.LAND_LEVEL
     assert 0.15 < land.mean() < 0.4  # continents, not the whole sphere
     assert lights[~land].max() == 0.0  # the sea is dark
     lit = lights > 0.5

@@ -1,6 +1,7 @@
 """The commands on frames as renderers and cameras write them: Blender's planar depth and camera, photographs
 without depth, 8-bit outputs dithered."""
 
+import base64
 import dataclasses
 import json
 import math
@@ -194,8 +195,10 @@ def test_fit_reads_the_lights_distance(tmp_path, capsys):
     assert "loss before 0," in out
 
 
-def test_tuner_renders_with_the_lights_distance():
-    from godrays_jax.app.tuner import TONEMAPS, Tuner, _render_view, display_encode
+def test_tuner_renders_with_the_lights_distance(tmp_path):
+    import OpenImageIO as oiio
+
+    from godrays_jax.app.tuner import TONEMAPS, Tuner, display_encode
 
     height, width = 18, 32
     depth = np.full((height, width), np.inf, np.float32)
@@ -204,12 +207,22 @@ def test_tuner_renders_with_the_lights_distance():
     effect = gr.preset("xna_crepuscular")
     light = jnp.asarray([21.0, 5.0])
     tonemap = TONEMAPS[0]
-    view = np.asarray(_render_view(effect, frame, light, jnp.asarray(True), None, "after", tonemap, 0.4))
+
+    def shown(light_depth):
+        """The pixels of the full-resolution view a tuner started with the light at `light_depth` sends the page."""
+        tuner = Tuner(frame, (21.0, 5.0), effect=effect, light_depth=light_depth)
+        try:
+            answer = tuner.render({"quality": "full", "view": "after", "tonemap": tonemap})
+        finally:
+            tuner.close()
+        path = tmp_path / "view.png"
+        path.write_bytes(base64.b64decode(answer["image"].removeprefix("data:image/png;base64,")))
+        return oiio.ImageBuf(str(path)).get_pixels(oiio.UINT8)
+
+    view = shown(0.4)
     expected = np.asarray(display_encode(effect(frame, light, light_depth=0.4), tonemap=tonemap))
     np.testing.assert_array_equal(view, expected)
-    at_infinity = np.asarray(_render_view(effect, frame, light, jnp.asarray(True), None, "after", tonemap))
-    assert np.any(view != at_infinity)
-    assert Tuner(frame, (21.0, 5.0), effect=effect, light_depth=0.4).light_depth == 0.4
+    assert np.any(view != shown(math.inf))
 
 
 def test_targets_read_a_renders_colour_layer(tmp_path):

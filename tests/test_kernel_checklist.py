@@ -316,7 +316,7 @@ def test_vmap_equals_a_loop(name):
 
 
 WITH_OWN_PRIMITIVE = ("radial_rays", "scale_iterated_flares", "scaled_copies")
-"""The kernels that call the scaled copies' own primitive (`kernels/_copies`), whose eager implementation differs from
+"""The kernels that call the scaled copies' own primitive (`kernels/copy_sums`), whose eager implementation differs from
 its compiled one; every other kernel is JAX's own operations, the same eager or under `jit` once traced (as the
 issue's `grad` of `vmap` crash was, at trace time, with or without `jit`). Their gradient of `vmap` runs eager too."""
 
@@ -347,7 +347,7 @@ def test_grad_of_vmap_and_vmap_of_grad_equal_per_example_gradients(name):
 
 
 WITH_OWN_PRIMITIVE = ("radial_rays", "scale_iterated_flares", "scaled_copies")
-"""The kernels that call the scaled copies' own primitive (`kernels/_copies`), whose eager implementation differs from
+"""The kernels that call the scaled copies' own primitive (`kernels/copy_sums`), whose eager implementation differs from
 its compiled one; every other kernel is JAX's own operations, the same eager or under `jit` once traced (as the
 issue's `grad` of `vmap` crash was, at trace time, with or without `jit`). Their gradient of `vmap` runs eager too."""
 

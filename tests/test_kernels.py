@@ -10,9 +10,9 @@ from jax.test_util import check_grads
 
 import godrays_jax as gr
 from godrays_jax.kernels import rays
-from godrays_jax.kernels._copies import cpu_loop
-from godrays_jax.kernels._copies.cpu_loop import copy_sums_cpu
-from godrays_jax.kernels._copies.gpu_loop import copy_sums_gpu
+from godrays_jax.kernels.copy_sums import cpu_loop
+from godrays_jax.kernels.copy_sums.cpu_loop import copy_sums_cpu
+from godrays_jax.kernels.copy_sums.gpu_loop import copy_sums_gpu
 import reference
 
 HEIGHT, WIDTH = 9, 13
@@ -143,22 +143,32 @@ def test_radial_rays_on_a_window_around_a_compact_source_equal_the_full_loop(lig
         np.testing.assert_allclose(windowed, full, rtol=1e-5, atol=1e-5 * float(jnp.max(full) + 1))
     # The window really is smaller than the frame here, also under jit with
     # the parameters closed over; traced or unbounded scales use the whole frame.
-    window = rays._rays_window
-    assert window((height, width, 3), radius, 0.5, 32, 32, False) == (50, 50, 24)
-    assert window((height, width, 3), radius, jnp.float32(0.5), jnp.float32(20.5), 24, True) == (52, 52, 25)
-    assert window((height, width, 3), radius, 1.0, 32, 32, False) is None
-    assert window((height, width, 3), radius, -0.5, 32, 32, False) is None
-    assert jax.jit(lambda d: jnp.asarray(window((height, width, 3), radius, d, 32, 32, False) is None))(0.5)
-    calls = []
-    original = rays._rays_window
-    try:
-        rays._rays_window = lambda *args: calls.append(original(*args)) or calls[-1]
-        density = jnp.float32(0.5)  # closed over, as an effect's fields are: concrete at trace time
-        jax.jit(lambda im, xy: gr.radial_rays(im, xy, source_radius=radius, num_samples=32, density=density,
-                                              decay=0.95, weight=1.0, exposure=0.2))(image, light)  # fmt: skip
-    finally:
-        rays._rays_window = original
-    assert calls == [(50, 50, 24)]
+    # An image that breaks the promise (ones everywhere) shows the window: the rays are 0 outside it.
+    ones, centre = jnp.ones((height, width, 3), jnp.float32), jnp.asarray(WINDOW_LIGHTS["centre"], jnp.float32)
+    options = {"source_radius": radius, "decay": 0.95, "weight": 1.0, "exposure": 0.2}
+    whole_frame = ((0, height), (0, width))
+
+    def support(density, num_samples=32, max_samples=None):
+        return nonzero_box(gr.radial_rays(ones, centre, density=density, num_samples=num_samples,
+                                          max_samples=max_samples, **options))  # fmt: skip
+
+    # Reach ceil((10 + 2) / 0.5) = 24 px around the light's pixel (151, 80), 50 px square.
+    assert support(0.5) == ((80 - 24, 80 + 26), (151 - 24, 151 + 26))
+    # Relaxed: the last live sample (21 of 24) sits at scale 1 - 21 * 0.5 / 20.5: reach 25 px.
+    assert support(jnp.float32(0.5), jnp.float32(20.5), 24) == ((80 - 25, 80 + 27), (151 - 25, 151 + 27))
+    assert support(1.0) == whole_frame, "the last sample lands on the light (scale 0): unbounded"
+    assert support(-0.5) == whole_frame, "scales above 1: unbounded"
+    traced = jax.jit(lambda d: gr.radial_rays(ones, centre, density=d, num_samples=32, **options))(0.5)
+    assert nonzero_box(traced) == whole_frame
+    density = jnp.float32(0.5)  # closed over, as an effect's fields are: concrete at trace time
+    closed_over = jax.jit(lambda im, xy: gr.radial_rays(im, xy, density=density, num_samples=32, **options))
+    assert nonzero_box(closed_over(ones, centre)) == ((80 - 24, 80 + 26), (151 - 24, 151 + 26))
+
+
+def nonzero_box(image):
+    """`((top, bottom), (left, right))`, bottom and right exclusive, of the box around the image's non-zero pixels."""
+    rows, columns = np.nonzero(np.any(np.asarray(image) != 0, axis=-1))
+    return (int(rows.min()), int(rows.max()) + 1), (int(columns.min()), int(columns.max()) + 1)
 
 
 def test_radial_rays_window_gradients(x64):

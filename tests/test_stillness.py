@@ -10,8 +10,8 @@ pixel, and every bilinear resampling on the grid blurs by an amount that follows
 
 import dataclasses
 from pathlib import Path
-from unittest import mock
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,16 +54,14 @@ def _frames(count: int = 6):
 
 
 def _converged(effect):
-    """Every sample of the preset's loop spread over `OVERSAMPLE`, exact loop (a longer loop than a user may set)."""
+    """Every sample of the preset's loop spread over `OVERSAMPLE`, exact loop: a longer loop than a user may set, so
+    `eqx.tree_at` puts the count in without the fields' checks (the rest goes through them)."""
     count = int(round(float(effect.num_samples))) * OVERSAMPLE
-    values = dict(num_samples=jnp.asarray(float(count)), decay=effect.decay ** (1.0 / OVERSAMPLE))
+    values = dict(max_samples=count, decay=effect.decay ** (1.0 / OVERSAMPLE))
     if isinstance(effect, gr.GodRays):
         values |= dict(weight=effect.weight / OVERSAMPLE, method="exact")
-    with (
-        mock.patch("godrays_jax.effects.fields._check_static"),
-        mock.patch("godrays_jax.effects.fields._check_fittable"),
-    ):
-        return dataclasses.replace(effect, max_samples=count, **values)
+    checked = dataclasses.replace(effect, **values)
+    return eqx.tree_at(lambda longer: longer.num_samples, checked, jnp.asarray(float(count)))
 
 
 def _codes(image) -> np.ndarray:

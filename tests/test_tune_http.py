@@ -19,7 +19,7 @@ from tune_support import Client, server, small_effect, small_frame  # noqa: F401
 
 
 def test_server_listens_on_loopback_only(server):
-    assert server._http.server_address[0] == "127.0.0.1"
+    assert server.address[0] == "127.0.0.1"
     assert server.url.startswith("http://127.0.0.1:")
 
 

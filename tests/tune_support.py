@@ -112,10 +112,9 @@ def next_waiting(queue: RenderQueue, previous: Future | None = None) -> Future:
     Orders requests from several threads without sleeping: each is known to
     wait before the next is sent.
     """
-    with queue._condition:
-        arrived = lambda: queue._pending is not None and queue._pending[1] is not previous
-        assert queue._condition.wait_for(arrived, timeout=60), "no render request arrived"
-        return queue._pending[1]
+    waiting = queue.wait_for_request(previous, timeout=60)
+    assert waiting is not None, "no render request arrived"
+    return waiting
 
 
 def fit_until_cancelled(tuner: Tuner, stepped: threading.Event | None = None):
@@ -125,7 +124,7 @@ def fit_until_cancelled(tuner: Tuner, stepped: threading.Event | None = None):
         progress(1, 1.0)
         if stepped is not None:
             stepped.set()
-        assert tuner._fit_cancel.wait(300), "the fit was not cancelled"
+        assert tuner.wait_fit_cancelled(300), "the fit was not cancelled"
         progress(2, 0.5)  # raises: cancelled
         raise AssertionError("a cancelled fit must stop at its next step")
 

@@ -430,8 +430,13 @@ class TuneServer:
         self._thread.start()
 
     @property
+    def address(self) -> tuple[str, int]:
+        """The (host, port) the listening socket is bound to, as the OS reports it, not as it was asked for."""
+        return self._http.server_address[:2]
+
+    @property
     def port(self) -> int:
-        return self._http.server_address[1]
+        return self.address[1]
 
     @property
     def url(self) -> str:

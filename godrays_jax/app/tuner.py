@@ -138,8 +138,22 @@ class RenderQueue:
             if self._pending is not None:
                 self._pending[1].set_exception(Superseded("superseded by a newer render request"))
             self._pending = (job, future)
-            self._condition.notify()
+            self._condition.notify_all()  # the worker, and whoever waits in `wait_for_request`
         return future.result()
+
+    def wait_for_request(self, previous: Future | None = None, timeout: float | None = None) -> Future | None:
+        """Block until a request other than `previous` waits for the worker: its future (None once closed or after
+        `timeout` seconds).
+
+        A caller that knows one request waits before it sends the next knows which of them will be superseded,
+        whatever the threads' timing: concurrent requests are ordered without sleeping.
+        """
+        def arrived() -> bool:
+            return self._pending is not None and self._pending[1] is not previous
+
+        with self._condition:
+            self._condition.wait_for(lambda: self._closed or arrived(), timeout)
+            return self._pending[1] if arrived() else None
 
     def close(self) -> None:
         """Stop the worker after the job in progress; a waiting job is answered `Superseded`."""
@@ -148,7 +162,7 @@ class RenderQueue:
             if self._pending is not None:
                 self._pending[1].set_exception(Superseded("the tuner is shutting down"))
                 self._pending = None
-            self._condition.notify()
+            self._condition.notify_all()
         self._worker.join()
 
     def _work(self) -> None:
@@ -396,6 +410,15 @@ class Tuner:
         """Ask the running fit to stop after its current step (nothing happens if none runs); its progress."""
         self._fit_cancel.set()
         return self.fit_progress()
+
+    def wait_fit_cancelled(self, timeout: float | None = None) -> bool:
+        """Block until the running fit is asked to stop (`cancel_fit`, `close`); whether it was, within `timeout`
+        seconds.
+
+        The fit itself notices at its next step; code that runs beside it (a stand-in for the solver) waits here
+        instead of polling.
+        """
+        return self._fit_cancel.wait(timeout)
 
     def wait_fit(self, timeout: float | None = None) -> dict:
         """Wait until the running fit (if any) ends; its progress."""

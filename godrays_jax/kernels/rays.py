@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from godrays_jax.kernels._copies.copies import scaled_copies_of
+from godrays_jax.kernels.copy_sums.copies import scaled_copies_of
 from godrays_jax.primitives.checks import (
     check_image,
     check_light,

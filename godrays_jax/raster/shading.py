@@ -49,17 +49,27 @@ def _smoothstep(low: float, high: float, x):
     return t * t * (3.0 - 2.0 * t)
 
 
-def _city_pattern(normal: Float[Array, "3 *P"]) -> Float[Array, "*P"]:
+LAND_LEVEL = 0.3
+"""Where `continents` turns to land (about a quarter of the sphere): below it is the sea, which `city_lights` leaves
+dark."""
+
+
+def continents(normal: Float[Array, "3 *P"]) -> Float[Array, "*P"]:
+    """The night-light map's continents at unit normals: a smooth random field over the sphere (unit RMS), land above
+    `LAND_LEVEL`."""
+    return _field(normal, _CONTINENTS)
+
+
+def city_lights(normal: Float[Array, "3 *P"]) -> Float[Array, "*P"]:
     """Procedural stand-in for an emissive night-light map, in [0, 1] at unit normals: city lights.
 
-    Continents (a smooth random field over the sphere above a threshold,
-    about a quarter of it) hold towns (small bright spots of a fine random
-    field) clustered in regions and along the coasts, with a faint glow of
-    the dense regions between them; the sea is dark.
+    The `continents` hold towns (small bright spots of a fine random field)
+    clustered in regions and along the coasts, with a faint glow of the dense
+    regions between them; the sea is dark.
     """
-    continents = _field(normal, _CONTINENTS)
-    land = _smoothstep(0.3, 0.45, continents)
-    coast = land * (1.0 - _smoothstep(0.45, 1.05, continents))
+    height = continents(normal)
+    land = _smoothstep(LAND_LEVEL, 0.45, height)
+    coast = land * (1.0 - _smoothstep(0.45, 1.05, height))
     density = _smoothstep(0.0, 1.6, _field(normal, _REGIONS) + 0.8 * coast)
     towns = _smoothstep(1.3, 2.3, _field(normal, _TOWNS))
     return jnp.clip(land * density * (3.0 * towns + 0.1 * density), 0.0, 1.0)
@@ -101,7 +111,7 @@ def shade(scene: Scene, camera: Camera, surface: Layer, world_rays: Float[Array,
     sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
     dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
     atmosphere = materials.atmosphere_color[:, obj]
-    emissive = materials.emission[:, obj] + materials.night_color[:, obj] * (_city_pattern(normal) * dark_side)
+    emissive = materials.emission[:, obj] + materials.night_color[:, obj] * (city_lights(normal) * dark_side)
     opaque_colour = (
         materials.albedo[:, obj] * (scene.ambient[:, None] + scene.light.color[:, None] * lit)
         + atmosphere * (rim * lit)

@@ -22,15 +22,15 @@ from jax.custom_derivatives import SymbolicZero
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
-from godrays_jax.kernels._copies.adjoint import copy_adjoint
-from godrays_jax.kernels._copies.cpu_loop import copy_sums_cpu
-from godrays_jax.kernels._copies.forward_mode import (
+from godrays_jax.kernels.copy_sums.adjoint import copy_adjoint
+from godrays_jax.kernels.copy_sums.cpu_loop import copy_sums_cpu
+from godrays_jax.kernels.copy_sums.forward_mode import (
     FEW_NUMBERS,
     differentiated,
     tangent_of,
 )
-from godrays_jax.kernels._copies.gpu_loop import copy_sums_gpu
-from godrays_jax.kernels._copies.planes import (
+from godrays_jax.kernels.copy_sums.gpu_loop import copy_sums_gpu
+from godrays_jax.kernels.copy_sums.planes import (
     Planes,
     copy_derivatives,
     copy_taps,

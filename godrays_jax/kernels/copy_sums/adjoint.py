@@ -31,8 +31,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from godrays_jax.kernels._copies.cpu_loop import rows_per_block
-from godrays_jax.kernels._copies.planes import Planes
+from godrays_jax.kernels.copy_sums.cpu_loop import rows_per_block
+from godrays_jax.kernels.copy_sums.planes import Planes
 from godrays_jax.primitives.sampling import Addressing, axis_taps
 
 BANDS = (2, 4, 8)

@@ -7,7 +7,7 @@ into one kernel. GPU timings: `benchmarks/README.md`.
 import jax
 import jax.numpy as jnp
 
-from godrays_jax.kernels._copies.planes import taps_and_slopes
+from godrays_jax.kernels.copy_sums.planes import taps_and_slopes
 
 COPIES_PER_STEP = 8
 """Copies a GPU sums per loop step (the loop unrolled), each from 2-D gathers of its four bilinear corners.

@@ -8,7 +8,7 @@ in `benchmarks/fit_results.md`.
 import jax
 import jax.numpy as jnp
 
-from godrays_jax.kernels._copies.planes import Planes, copy_taps, lerp_rows, offsets
+from godrays_jax.kernels.copy_sums.planes import Planes, copy_taps, lerp_rows, offsets
 
 BLOCKED_SIZE = 2**21
 """Images of at least this many numbers (`H * W` times the planes sampled) are summed in blocks of output rows on a CPU.

@@ -127,6 +127,29 @@ def test_matches_shadow_rays_traced_in_3d(name):
         assert np.mean(np.abs(kernel(True) - expected)) > 0.04
 
 
+def test_many_pixels_read_at_once_as_each_alone():
+    """A frame's worth of pixels (more than the kernel reads in one chunk, and not a multiple of it) reads as the
+    same pixels read a row at a time: the chunks hold each pixel's own reads, in place."""
+    depth = _depth()
+    light_xy, light_depth, in_front = _light((20.0, 30.0, 70.0))
+    rng = np.random.default_rng(0)
+    rows = 131
+    pixel_xy = np.stack([rng.uniform(0, WIDTH, (rows, 129)), rng.uniform(0, HEIGHT, (rows, 129))], -1)
+    lower = rng.uniform(0, 0.6 * MAX_DISTANCE, (rows, 129, 3))
+    upper = lower + rng.uniform(0, 0.4 * MAX_DISTANCE, (rows, 129, 3))
+    read = functools.partial(
+        segment_visibility_by_lines, jnp.asarray(depth, jnp.float32), light_xy, fov_x_deg=FOV, light_depth=light_depth,
+        light_in_front=in_front, thickness=THICKNESS, edge_softness=0.05, max_distance=MAX_DISTANCE,
+    )  # fmt: skip
+    at_once = np.asarray(read(*(jnp.asarray(a, jnp.float32) for a in (pixel_xy, lower, upper))))
+    by_row = np.concatenate([
+        np.asarray(read(*(jnp.asarray(a[row : row + 1], jnp.float32) for a in (pixel_xy, lower, upper))))
+        for row in range(rows)
+    ])  # fmt: skip
+    assert 0.05 < np.mean(at_once < 0.5) < 0.95  # the pixels see shadows and light
+    np.testing.assert_allclose(at_once, by_row, atol=1e-4)  # float32 rounding of differently shaped programs
+
+
 def test_line_coordinate_is_kept_along_a_shadow_ray(x64):
     """Every point of a shadow ray toward a point light (and toward the sun) has the same `s`."""
     light = np.asarray([3.0, 2.0, 20.0])

@@ -49,7 +49,8 @@ light's position, depth and direction reach the result through `s`, the
 texels read and the lines' shared hub.
 
 Memory is `num_lines * num_bins` times the cells a line has (its length over
-`cell_px`, a frame's diagonal), whatever the frame's size.
+`cell_px`, a frame's diagonal), whatever the frame's size, and the reads of
+`_READ_CHUNK` pixels at a time, four rows of `num_bins` each.
 """
 
 import functools
@@ -70,6 +71,8 @@ from godrays_jax.primitives.sampling import bilinear_corners
 _BIN_SPAN = 5e3
 # A slab face's ramp is spread over at most this many bins; a softer face is cut to it (still reaching 1).
 _FACE_BINS = 2
+# The pixels whose reads of the table are held at once (`segment_visibility_by_lines`).
+_READ_CHUNK = 1 << 14
 REFERENCE_SIDE = 320
 """The frame side (pixels, the larger side) up to which the fog samples by the pixel: its lines' cells are one
 pixel long (`default_cell_px`) and its march rays `resolution_factor` pixels apart (`effects.volumetric`'s
@@ -349,40 +352,57 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
     covered = _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins,
                               in_front)  # fmt: skip
 
-    # Each pixel's four (line, cell) corners and their weights; each segment's ends as node coordinates.
-    line, cell = lines.coordinates(pixel_xy)
-    line0, cell0 = jnp.floor(line), jnp.floor(cell)
-    line_frac, cell_frac = (line - line0)[..., None], (cell - cell0)[..., None]
-    line0, cell0 = line0.astype(jnp.int32), cell0.astype(jnp.int32)
-    corners = [
-        ((cell0 + dc).clip(0, cells - 1) * num_lines + (line0 + dl) % num_lines, wl * wc)
-        for dl, wl in ((0, 1.0 - line_frac), (1, line_frac))
-        for dc, wc in ((0, 1.0 - cell_frac), (1, cell_frac))
-    ]
-    sine, cosine = _off_axis(pixel_xy[..., 0], pixel_xy[..., 1], toward, height, width, focal)
-    sine, cosine = sine[..., None], cosine[..., None]
-    b_low, b_high = (_bin_coordinate(line_coordinate(d, sine, cosine, inverse), s_min, log_step) for d in (lower, upper))
-    # A segment reads at least one bin: its mean coverage over a narrower range would be a difference of nearly
-    # equal prefix sums.
-    middle = jnp.clip(0.5 * (b_low + b_high), 0.5, num_bins - 0.5)
-    narrow = b_high - b_low < 1.0
-    b_low = jnp.clip(jnp.where(narrow, middle - 0.5, b_low), 0.0, num_bins)
-    b_high = jnp.clip(jnp.where(narrow, middle + 0.5, b_high), 0.0, num_bins)
+    def read(pixel_xy, lower, upper):
+        """The visibility of the segments `[lower, upper]` (`(n, M)`) of the rays through `pixel_xy` (`(n, 2)`)."""
+        # Each pixel's four (line, cell) corners and their weights; each segment's ends as node coordinates.
+        line, cell = lines.coordinates(pixel_xy)
+        line0, cell0 = jnp.floor(line), jnp.floor(cell)
+        line_frac, cell_frac = (line - line0)[..., None], (cell - cell0)[..., None]
+        line0, cell0 = line0.astype(jnp.int32), cell0.astype(jnp.int32)
+        corners = [
+            ((cell0 + dc).clip(0, cells - 1) * num_lines + (line0 + dl) % num_lines, wl * wc)
+            for dl, wl in ((0, 1.0 - line_frac), (1, line_frac))
+            for dc, wc in ((0, 1.0 - cell_frac), (1, cell_frac))
+        ]
+        sine, cosine = _off_axis(pixel_xy[..., 0], pixel_xy[..., 1], toward, height, width, focal)
+        sine, cosine = sine[..., None], cosine[..., None]
+        b_low, b_high = (
+            _bin_coordinate(line_coordinate(d, sine, cosine, inverse), s_min, log_step) for d in (lower, upper)
+        )
+        # A segment reads at least one bin: its mean coverage over a narrower range would be a difference of nearly
+        # equal prefix sums.
+        middle = jnp.clip(0.5 * (b_low + b_high), 0.5, num_bins - 0.5)
+        narrow = b_high - b_low < 1.0
+        b_low = jnp.clip(jnp.where(narrow, middle - 0.5, b_low), 0.0, num_bins)
+        b_high = jnp.clip(jnp.where(narrow, middle + 0.5, b_high), 0.0, num_bins)
 
-    # Each pixel's own row of coverage, blended from its four corners once, and its prefix integral over `s` (the
-    # integral is linear: the blend of the corners' integrals): the reads at its segments' ends are then two
-    # neighbouring nodes of one row. The four corners are one gather of the table's rows: in a fit's vectorised
-    # Jacobian each gather of the table moves its lanes first, a copy of the whole table.
-    rows = covered.reshape(cells * num_lines, num_bins)[jnp.stack([index for index, _ in corners])]
-    row = _prefix_integral(jnp.sum(jnp.stack([weight for _, weight in corners]) * rows, axis=0), s_min, log_step)
+        # Each pixel's own row of coverage, blended from its four corners once, and its prefix integral over `s` (the
+        # integral is linear: the blend of the corners' integrals): the reads at its segments' ends are then two
+        # neighbouring nodes of one row. The four corners are one gather of the table's rows: in a fit's vectorised
+        # Jacobian each gather of the table moves its lanes first, a copy of the whole table.
+        rows = covered.reshape(cells * num_lines, num_bins)[jnp.stack([index for index, _ in corners])]
+        row = _prefix_integral(jnp.sum(jnp.stack([weight for _, weight in corners]) * rows, axis=0), s_min, log_step)
 
-    def prefix_at(b):
-        node = jnp.clip(jnp.floor(b), 0, num_bins - 1)
-        frac = b - node
-        node = node.astype(jnp.int32)
-        below, above = (jnp.take_along_axis(row, index, axis=-1) for index in (node, node + 1))
-        return (1.0 - frac) * below + frac * above
+        def prefix_at(b):
+            node = jnp.clip(jnp.floor(b), 0, num_bins - 1)
+            frac = b - node
+            node = node.astype(jnp.int32)
+            below, above = (jnp.take_along_axis(row, index, axis=-1) for index in (node, node + 1))
+            return (1.0 - frac) * below + frac * above
 
-    span = _coordinate_at_bin(b_high, s_min, log_step) - _coordinate_at_bin(b_low, s_min, log_step)
-    mean = (prefix_at(b_high) - prefix_at(b_low)) / jnp.maximum(span, 1e-30)
-    return 1.0 - jnp.clip(mean, 0.0, 1.0)
+        span = _coordinate_at_bin(b_high, s_min, log_step) - _coordinate_at_bin(b_low, s_min, log_step)
+        mean = (prefix_at(b_high) - prefix_at(b_low)) / jnp.maximum(span, 1e-30)
+        return 1.0 - jnp.clip(mean, 0.0, 1.0)
+
+    # The pixels read a chunk at a time: each reads four rows of the table, `num_bins` values each (and in a fit's
+    # Jacobian as many again per lane), which for a whole frame would outweigh the table itself.
+    shape = lower.shape
+    count = shape[0] * shape[1]
+    flat = [pixel_xy.reshape(count, 2), lower.reshape(count, -1), upper.reshape(count, -1)]
+    if count <= _READ_CHUNK:
+        return read(*flat).reshape(shape)
+    chunks = -(-count // _READ_CHUNK)
+    # The pixels that fill the last chunk repeat the last one (finite, with finite derivatives) and are cut off.
+    padded = [jnp.pad(a, [(0, chunks * _READ_CHUNK - count), (0, 0)], mode="edge") for a in flat]
+    visible = jax.lax.map(lambda chunk: read(*chunk), [a.reshape(chunks, _READ_CHUNK, -1) for a in padded])
+    return visible.reshape(chunks * _READ_CHUNK, -1)[:count].reshape(shape)

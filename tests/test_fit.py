@@ -13,7 +13,9 @@ import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.pipeline.fit import plateaued, fit, round_counts
-from godrays_jax.pipeline.fit_programs import objective_function
+from godrays_jax.pipeline import fit_programs
+from godrays_jax.pipeline.fit_programs import CoarseLinearisation, objective_function, residuals_and_jacobian
+from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
 from godrays_jax.pipeline.problem import (
     FOLD_ROUNDING,
     START_INSET,
@@ -227,6 +229,65 @@ def test_a_coarse_phase_then_the_full_resolution_recovers_the_parameters():
     assert result.loss_history[1] < 0.1 * result.loss_history[0]  # the coarse phase's result, at full resolution
     for name in result.fitted:
         np.testing.assert_allclose(getattr(result.effect, name), TRUTH[name], rtol=0.02, err_msg=name)
+
+
+def test_a_coarse_jacobian_fit_descends_on_the_coarse_jacobian_and_polishes_on_its_own(monkeypatch):
+    """With `coarse_jacobian` the full resolution's descent takes the coarse Jacobian (each pixel's derivatives its
+    block's) and only the polish the full resolution's; the fit still recovers the parameters, its losses and
+    accepted steps the full resolution's own."""
+    frame = _frame()
+    effect = _rays(**START)
+    target = _rays(**TRUTH)(frame, LIGHT)
+    heights = []
+    linearise = fit_programs.residuals_and_jacobian
+    monkeypatch.setattr(fit_programs, "residuals_and_jacobian",
+                        lambda problem, positions, frame_data: heights.append(frame_data[0][0].height) or linearise(problem, positions, frame_data))  # fmt: skip
+    for coarse_jacobian in (True, False):
+        heights.clear()
+        result = fit(effect, frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, coarse_factor=2,
+                     coarse_jacobian=coarse_jacobian)  # fmt: skip
+        fine_steps = result.steps - result.polish_steps
+        assert result.coarse_steps > 0 and result.polish_steps > 0 and fine_steps > 0
+        full = heights.count(HEIGHT)
+        if coarse_jacobian:
+            assert heights.count(HEIGHT // 2) > result.coarse_steps and full <= result.polish_steps + 1
+        else:
+            assert full >= fine_steps
+        history = result.loss_history[1:]  # the full resolution's losses, each accepted step's
+        assert np.all(np.diff(history) <= 1e-6 * history[:-1] + 1e-12)
+        own_loss = float(jnp.mean((gr.display_map(result.effect(frame, LIGHT)) - gr.display_map(target)) ** 2))
+        np.testing.assert_allclose(result.loss_after, own_loss, rtol=1e-4, atol=1e-12)
+        for name in result.fitted:
+            np.testing.assert_allclose(getattr(result.effect, name), TRUTH[name], rtol=0.02, err_msg=name)
+
+
+def test_the_coarse_linearisation_is_the_full_resolutions_on_a_frame_of_blocks():
+    """On a frame whose every 2 x 2 block is one colour and depth, seen by an effect that reads what lies around a
+    pixel (the rays' samples toward the light), the coarse linearisation's normal equations are the full
+    resolution's Jacobian's to within what the block's pixels see differently; a factor or a scale wrong by the
+    blocks' size would miss by 4x."""
+    coarse_frame = _frame()
+    block = lambda a: jnp.repeat(jnp.repeat(jnp.asarray(a), 2, 0), 2, 1)  # noqa: E731
+    frame = gr.Buffers(color=block(coarse_frame.color), depth=block(coarse_frame.depth), coverage=block(coarse_frame.coverage))
+    effect = _rays(**START)
+    target = _rays(**TRUTH)(frame, 2 * LIGHT)
+    frame_data = as_frames(frame, 2 * LIGHT, target, True)
+    bounds = fitted_bounds(effect, fixed=FIXED_RAYS)
+    problem = FitProblem.of(effect, bounds, frame_data[0], loss="mse", space="display")
+    positions = problem.positions(jnp.float32)
+    residuals, jacobian = residuals_and_jacobian(problem, positions, frame_data)
+    reduced = downsample_frames(frame_data, 2)
+    coarse_problem = FitProblem.of(scale_pixel_fields(effect, 0.5), bounds, reduced[0], loss="mse", space="display")
+    linearisation = CoarseLinearisation.of(coarse_problem, reduced, 2)
+    normal, gradient = linearisation.normal_equations(positions, np.asarray(residuals), frame_data[0])
+    fine_normal = np.asarray(jacobian, np.float64).T @ np.asarray(jacobian, np.float64)
+    fine_gradient = np.asarray(jacobian, np.float64).T @ np.asarray(residuals, np.float64)
+    np.testing.assert_allclose(np.diag(normal), np.diag(fine_normal), rtol=0.2)
+    np.testing.assert_allclose(gradient, fine_gradient, rtol=0.2, atol=0.05 * np.abs(fine_gradient).max())
+    assert np.linalg.norm(normal - fine_normal) < 0.1 * np.linalg.norm(fine_normal)
+    with_pixels = FitProblem.of(effect, fitted_bounds(effect, fixed=[n for n in FIXED_RAYS if n != "flare_size"]),
+                                frame_data[0], loss="mse", space="display")  # fmt: skip
+    assert CoarseLinearisation.of(with_pixels, reduced, 2) is None  # a size in pixels is another value at each
 
 
 def test_the_fit_begins_from_the_start_with_the_lowest_loss():

@@ -98,7 +98,7 @@ def run(args) -> int:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
             fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, progress=progress,
-            coarse_factor=coarse_factor, starts=starts,
+            coarse_factor=coarse_factor, coarse_jacobian=True, starts=starts,
         )  # fmt: skip
     finally:
         bar.close()

@@ -70,6 +70,7 @@ from godrays_jax.effects.fields import count_fields, field_value, replace_fields
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.fit_programs import (
+    CoarseLinearisation,
     effect_loss,
     evaluate_loss,
     host_evaluator,
@@ -88,10 +89,9 @@ from godrays_jax.pipeline.problem import (
     start_point,
     strongly_typed,
 )
-from godrays_jax.pipeline.reduced import clip_to_bounds, downsample_buffers, scale_pixel_fields
+from godrays_jax.pipeline.reduced import clip_to_bounds, downsample_frames, scale_pixel_fields
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
-from godrays_jax.primitives.resample import downsample_box
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
@@ -252,12 +252,13 @@ class _Run:
 
 def _descend(
     candidates, bounds, frame_data, counter, *, optimiser, least_squares, loss, space, max_steps, probe_steps,
-    plateau_steps, plateau_rtol, own=None,
+    plateau_steps, plateau_rtol, own=None, coarse=None,
 ) -> tuple[list[_Run], int]:
     """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
     goes on to `max_steps`. Returns the runs and the winner's index. `own`: as `host_evaluator`'s (Levenberg-
-    Marquardt on the host only).
+    Marquardt on the host only); `coarse`: a `CoarseLinearisation` (Levenberg-Marquardt only), with the
+    residuals of `own`, or of the problem's own effect without it.
 
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
     keeps its own solver state, so a start that goes on is not started again.
@@ -268,7 +269,11 @@ def _descend(
     data = (problems[0], frame_data)
     runs = []
     if isinstance(optimiser, LevenbergMarquardt):
-        evaluate = host_evaluator(problems[0], frame_data, dtype, own)
+        if coarse is not None and own is None:
+            def own(positions):
+                return _fitted_effects(problems[0], positions)[0]
+
+        evaluate = host_evaluator(problems[0], frame_data, dtype, own, coarse)
         for problem in problems:
             y = np.asarray(start_point(problem, dtype), np.float64)
             # The first step's evaluation, the start's loss; linearised now (the first step accepts its point), so
@@ -362,6 +367,7 @@ def fit(
     plateau_steps: int = 5,
     plateau_rtol: float = 1e-3,
     coarse_plateau_rtol: float = 2e-2,
+    coarse_jacobian: bool = False,
     stand_in: bool = True,
 ) -> FitResult:
     """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
@@ -426,6 +432,14 @@ def fit(
         coarse_plateau_rtol: `plateau_rtol` of the coarse phase: its result
             only starts the full resolution, which then starts near its own
             minimum and ends on `plateau_rtol`.
+        coarse_jacobian: with a coarse phase and Levenberg-Marquardt, the
+            full resolution's descent before the polish takes its Jacobian
+            from the coarse resolution (each pixel's derivatives its block's,
+            `fit_programs.CoarseLinearisation`): its residuals, losses and
+            the steps it accepts stay the full resolution's, each step a
+            render and a coarse Jacobian. The polish takes the full
+            resolution's own: the result is as close as without. Ignored
+            when a fitted field is in pixels (`reduced.pixel_fields`).
         stand_in: the starts race and descend as the effect's stand-in
             (`Effect.fit_stand_in`: the same fields read more cheaply, where
             the effect names one; for `VolumetricFog` with its shadows read
@@ -445,7 +459,7 @@ def fit(
     phases = _Phases.of(
         loss=loss, space=space, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol, probe_steps=probe_steps,
         coarse_factor=coarse_factor, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
-        coarse_plateau_rtol=coarse_plateau_rtol,
+        coarse_plateau_rtol=coarse_plateau_rtol, coarse_jacobian=coarse_jacobian,
     )  # fmt: skip
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
@@ -463,9 +477,9 @@ def fit(
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         problem = FitProblem.of(effect, bounds, frame_data[0], loss=loss, space=space)
         loss_before, images_before = effect_loss(problem, given, frame_data)
-        candidates, coarse_start = _coarse_phase(phases, candidates, bounds, frame_data, counter)
+        candidates, coarse_start, coarse = _coarse_phase(phases, candidates, bounds, frame_data, counter)
         coarse_steps = counter.steps
-        runs, winner = _descend(candidates, bounds, frame_data, counter, **phases.descend)
+        runs, winner = _descend(candidates, bounds, frame_data, counter, **phases.descend, coarse=coarse)
         start_index = origins[winner if coarse_start is None else coarse_start]
         run = runs[winner]
         history = run.history if coarse_start is None and start_index == 0 else [loss_before, *run.history]
@@ -513,10 +527,11 @@ class _Phases:
     descend: dict
     coarse_factor: int
     coarse_plateau_rtol: float
+    coarse_jacobian: bool
 
     @classmethod
     def of(cls, *, loss, space, solver, max_steps, rtol, atol, probe_steps, coarse_factor, plateau_steps,
-           plateau_rtol, coarse_plateau_rtol) -> "_Phases":  # fmt: skip
+           plateau_rtol, coarse_plateau_rtol, coarse_jacobian) -> "_Phases":  # fmt: skip
         if loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
         for name, value, least in (("max_steps", max_steps, 0), ("probe_steps", probe_steps, 1),
@@ -533,7 +548,7 @@ class _Phases:
             plateau_rtol=plateau_rtol,
         )  # fmt: skip
         polisher = LevenbergMarquardt(rtol=rtol, atol=atol, scaled=True) if polishes(solver, loss) else None
-        return cls(optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol)
+        return cls(optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol, bool(coarse_jacobian))
 
 
 def _distinct_starts(effect: Effect, starts: Sequence[Effect], bounds) -> tuple[list[Effect], list[int]]:
@@ -547,24 +562,27 @@ def _distinct_starts(effect: Effect, starts: Sequence[Effect], bounds) -> tuple[
     return candidates, origins
 
 
-def _coarse_phase(phases: _Phases, candidates, bounds, frame_data, counter) -> tuple[list[Effect], int | None]:
+def _coarse_phase(
+    phases: _Phases, candidates, bounds, frame_data, counter
+) -> tuple[list[Effect], int | None, CoarseLinearisation | None]:
     """With a coarse factor, the starts race at the reduced resolution (`reduced.downsample_buffers`) and the
-    winner descends there: returns its result at full resolution as the one start left, and the index of the
-    start that won. Without one, the starts as they are and None."""
+    winner descends there: returns its result at full resolution as the one start left, the index of the
+    start that won, and the full resolution's linearisation from there (`coarse_jacobian`; None without it or
+    where it does not apply). Without a coarse factor, the starts as they are, None and None."""
     factor = phases.coarse_factor
     if factor == 1:
-        return candidates, None
-    frames, lights, targets, in_front, depths = frame_data
-    reduced = (
-        [downsample_buffers(frame, factor) for frame in frames], [light / factor for light in lights],
-        [downsample_box(image, factor) for image in targets], in_front, depths,
-    )  # fmt: skip
+        return candidates, None, None
+    reduced = downsample_frames(frame_data, factor)
     scaled = [scale_pixel_fields(candidate, 1.0 / factor) for candidate in candidates]
     coarse_runs, winner = _descend(
         scaled, bounds, reduced, counter, **{**phases.descend, "plateau_rtol": phases.coarse_plateau_rtol}
     )  # fmt: skip
     fine_start = _effect_of_run(coarse_runs[winner])
-    return [clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)], winner
+    linearisation = None
+    # Positions in a pixel field's range mean other sizes at the two resolutions: such a fit linearises at its own.
+    if phases.coarse_jacobian and isinstance(phases.optimiser, LevenbergMarquardt):
+        linearisation = CoarseLinearisation.of(coarse_runs[winner].problem, reduced, factor)
+    return [clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)], winner, linearisation
 
 
 def _polish_phase(phases: _Phases, run: _Run, bounds, frame_data, counter, own) -> tuple[_Run, list[float], int]:

@@ -3,6 +3,11 @@
 residuals and loss from its frames rendered as `apply` renders them, and optimistix's first state and step for the
 other solvers (the objective's Jacobian by forward mode, `forward_mode`)."""
 
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,6 +19,7 @@ from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.marquardt import normal_equations
 from godrays_jax.pipeline.problem import FitProblem, folded_positions
+from godrays_jax.pipeline.reduced import pixel_fields
 
 
 def forward_mode(function, groups=None):
@@ -92,13 +98,83 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
     return residuals, jnp.concatenate(columns, axis=-1)[:, order]
 
 
-def host_evaluator(problem: FitProblem, frame_data, dtype, own=None):
+@dataclasses.dataclass(frozen=True)
+class CoarseLinearisation:
+    """The fine resolution's Jacobian from the coarse resolution's: each fine pixel's derivatives taken as those of
+    its `factor x factor` block (`downsample_box`'s blocks), from `problem` on the coarse frames `frame_data`
+    (`reduced.downsample_frames`). A fit then compiles one Jacobian, the coarse one, and its fine steps cost a
+    render and a coarse Jacobian; the residuals, the losses and what a step accepts stay the fine resolution's."""
+
+    problem: FitProblem
+    frame_data: tuple
+    factor: int
+
+    @classmethod
+    def of(cls, problem: FitProblem, frame_data, factor: int) -> "CoarseLinearisation | None":
+        """The linearisation, or None where positions mean other values at the two resolutions (a fitted field in
+        pixels, `reduced.pixel_fields`)."""
+        return None if set(pixel_fields(problem.effect)) & set(problem.names) else cls(problem, frame_data, factor)
+
+    def jacobian(self, positions, fine_frames) -> np.ndarray:
+        """Rows `J` whose `J^T J` is that of the fine residuals (one part per frame of `fine_frames`), a row per
+        coarse residual: the coarse Jacobian's row times the square root of its block's fine pixels, and times
+        `sqrt(coarse size / fine size)`, as a frame's residuals are scaled by the square root of its weight over
+        its size."""
+        _, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, self.problem, positions, self.frame_data)
+        jacobian = np.asarray(jacobian)
+        parts, start = [], 0
+        for block in self._blocks(fine_frames):
+            parts.append(jacobian[start : start + block.weight.size] * block.weight[:, None])
+            start += block.weight.size
+        return np.concatenate(parts)
+
+    def normal_equations(self, positions, residuals, fine_frames) -> tuple[np.ndarray, np.ndarray]:
+        """`(J^T J, J^T r)` of the fine `residuals` with `jacobian`'s rows: `J^T r` is each block's row times the
+        sum of its fine residuals, so the residuals are summed over each block, divided by its row's weight over
+        the frame's scale."""
+        folded, start = [], 0
+        for block in self._blocks(fine_frames):
+            folded.append(block.sums(residuals[start : start + block.fine_size]) / np.sqrt(block.count))
+            start += block.fine_size
+        if start != len(residuals):
+            raise ValueError(f"expected {start} residuals of the fine frames, got {len(residuals)}")
+        return normal_equations(self.jacobian(positions, fine_frames), np.concatenate(folded))
+
+    def _blocks(self, fine_frames) -> list["_Blocks"]:
+        blocks = []
+        for fine, coarse, target in zip(fine_frames, self.frame_data[0], self.frame_data[2]):
+            channels = min(np.shape(fine.color)[-1], np.shape(target)[-1], 3)  # as `problem._match_channels`
+            shape = (fine.height, fine.width, channels)
+            pad = [(0, coarse.height * self.factor - fine.height), (0, coarse.width * self.factor - fine.width), (0, 0)]
+            blocks_shape = (coarse.height, self.factor, coarse.width, self.factor, channels)
+
+            def sums(values, shape=shape, pad=pad, blocks_shape=blocks_shape):
+                return np.pad(np.reshape(values, shape), pad).reshape(blocks_shape).sum(axis=(1, 3)).ravel()
+
+            count = sums(np.ones(math.prod(shape)))
+            scale = math.sqrt(coarse.height * coarse.width / (fine.height * fine.width))
+            blocks.append(_Blocks(math.prod(shape), count, scale * np.sqrt(count), sums))
+        return blocks
+
+
+class _Blocks(NamedTuple):
+    """A frame's fine residuals by block: their count, each block's fine pixels (times channels, a coarse
+    residual each), each coarse row's weight, and the sum of fine values over each block."""
+
+    fine_size: int
+    count: np.ndarray
+    weight: np.ndarray
+    sums: Callable[[np.ndarray], np.ndarray]
+
+
+def host_evaluator(problem: FitProblem, frame_data, dtype, own=None, coarse: CoarseLinearisation | None = None):
     """`marquardt.Evaluate` of the unknowns `y`: the residuals, and their normal equations in `y` (the positions'
     Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`.
 
     `own`, a function of the fitted fields' positions: the effect whose own residuals replace the problem's (its
     stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in), computed only when
-    the step accepts the point.
+    the step accepts the point. `coarse`: the normal equations from the coarse resolution's Jacobian instead, of
+    `own`'s residuals (required then: the problem's own effect at the positions when it is not a polish).
     """
 
     def evaluate(y):
@@ -106,9 +182,12 @@ def host_evaluator(problem: FitProblem, frame_data, dtype, own=None):
         positions = jnp.asarray(positions, dtype)
 
         def linearise(jacobian=None, residuals=None):
-            if jacobian is None:
-                _, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
-            normal, gradient = normal_equations(np.asarray(jacobian), residuals)
+            if coarse is not None:
+                normal, gradient = coarse.normal_equations(positions, residuals, frame_data[0])
+            else:
+                if jacobian is None:
+                    _, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+                normal, gradient = normal_equations(np.asarray(jacobian), residuals)
             return normal * np.outer(slope, slope), gradient * slope
 
         if own is not None:

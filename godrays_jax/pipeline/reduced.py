@@ -47,6 +47,17 @@ def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
     )
 
 
+def downsample_frames(frame_data, factor: int) -> tuple:
+    """A fit's frames (`problem.as_frames`'s `(frames, lights, targets, in_front, depths)`) at `1 / factor` of
+    their resolution: the frames as `downsample_buffers`, the lights' positions in its pixels, the targets
+    box-averaged."""
+    frames, lights, targets, in_front, depths = frame_data
+    return (
+        [downsample_buffers(frame, factor) for frame in frames], [light / factor for light in lights],
+        [downsample_box(image, factor) for image in targets], in_front, depths,
+    )  # fmt: skip
+
+
 def scale_pixel_fields(effect: Effect, scale: float) -> Effect:
     """The effect with every field in `pixel_fields` multiplied by `scale` (to render at another resolution).
 

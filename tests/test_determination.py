@@ -112,3 +112,34 @@ def test_every_offset_keeps_every_field_inside_its_range_and_fields_on_a_bound_a
         assert found.offset_change[name] == pytest.approx(found.sensitivity[name] * part_taken)
     # The count sits on its cap: its offset steps down, into the range.
     assert found.offsets["num_samples"]["num_samples"] < 0
+
+
+def test_after_a_coarse_phase_the_jacobian_is_the_polishs(case):
+    """`coarse_factor`: the Jacobian as a fit's polish after a coarse phase takes it (the sharp stages at full
+    resolution, the rest at the coarse one): for `VolumetricFog` the sensitivities stay near the full resolution's;
+    an effect that names no sharp stages is examined at full resolution whatever the factor."""
+    frame, light, target = case
+    fitted = ("density", "decay", "weight", "num_samples")
+    full, coarse = (determination(TRUTH, frame, light, target, fitted=fitted, coarse_factor=f) for f in (1, 2))
+    assert coarse.sensitivity == full.sensitivity
+    with pytest.raises(ValueError, match="coarse_factor"):
+        determination(TRUTH, frame, light, target, fitted=fitted, coarse_factor=0)
+    height, width = 24, 40
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[height // 2 :] = 12.0
+    depth[4:, 18:23] = 6.0
+    color = np.where(np.isfinite(depth)[..., None], 0.05, 0.4).astype(np.float32) * np.ones(3, np.float32)
+    coverage = jnp.asarray(np.isfinite(depth), jnp.float32)
+    fog_frame = gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=coverage)
+    fog_light = jnp.asarray([20.3, 5.6], jnp.float32)
+    fog = gr.VolumetricFog(medium=gr.Medium(extinction=0.03, max_distance=40.0), fov_x_deg=60.0, shadows="lines",
+                           num_shadow_lines=32, num_shadow_bins=16, num_view_steps=2, resolution_factor=1)  # fmt: skip
+    fog_target = fog(fog_frame, fog_light)
+    fog_fitted = ("medium.extinction", "medium.anisotropy", "thickness", "edge_softness")
+    full, coarse = (
+        determination(fog, fog_frame, fog_light, fog_target, fitted=fog_fitted, coarse_factor=f) for f in (1, 2)
+    )
+    assert coarse.poorly_determined == full.poorly_determined
+    for name in fog_fitted:  # a 12 x 20 frame's blocks stand in for a 24 x 40 one's pixels: within a factor of 3
+        assert 1 / 3 < coarse.sensitivity[name] / full.sensitivity[name] < 3, name
+    assert coarse.sensitivity != full.sensitivity  # the coarse columns are the blocks'

@@ -1,5 +1,6 @@
 """fit: parameter recovery on tiny frames, several frames, bounds, rounding, errors, the `fit` command."""
 
+import dataclasses
 import json
 
 import equinox as eqx
@@ -279,15 +280,53 @@ def test_the_coarse_linearisation_is_the_full_resolutions_on_a_frame_of_blocks()
     reduced = downsample_frames(frame_data, 2)
     coarse_problem = FitProblem.of(scale_pixel_fields(effect, 0.5), bounds, reduced[0], loss="mse", space="display")
     linearisation = CoarseLinearisation.of(coarse_problem, reduced, 2)
-    normal, gradient = linearisation.normal_equations(positions, np.asarray(residuals), frame_data[0])
+    normal, gradient = linearisation.normal_equations(positions, np.asarray(residuals), problem, frame_data)
     fine_normal = np.asarray(jacobian, np.float64).T @ np.asarray(jacobian, np.float64)
     fine_gradient = np.asarray(jacobian, np.float64).T @ np.asarray(residuals, np.float64)
     np.testing.assert_allclose(np.diag(normal), np.diag(fine_normal), rtol=0.2)
     np.testing.assert_allclose(gradient, fine_gradient, rtol=0.2, atol=0.05 * np.abs(fine_gradient).max())
     assert np.linalg.norm(normal - fine_normal) < 0.1 * np.linalg.norm(fine_normal)
+    # Every stage sharp: the full resolution's own normal equations.
+    every = dataclasses.replace(linearisation, sharp=problem.group_stages)
+    own_normal, own_gradient = every.normal_equations(positions, np.asarray(residuals), problem, frame_data)
+    np.testing.assert_allclose(own_normal, fine_normal, rtol=1e-5, atol=1e-9 * np.abs(fine_normal).max())
+    np.testing.assert_allclose(own_gradient, fine_gradient, rtol=1e-5, atol=1e-9 * np.abs(fine_gradient).max())
     with_pixels = FitProblem.of(effect, fitted_bounds(effect, fixed=[n for n in FIXED_RAYS if n != "flare_size"]),
                                 frame_data[0], loss="mse", space="display")  # fmt: skip
     assert CoarseLinearisation.of(with_pixels, reduced, 2) is None  # a size in pixels is another value at each
+
+
+def test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolution():
+    """The polish's normal equations after a coarse phase are those of the Jacobian whose `SHARP_STAGES` columns
+    are the full resolution's own and whose other columns are the coarse ones spread over their blocks (built here
+    explicitly, on `VolumetricFog`, whose slabs' fields are its sharp stage)."""
+    height, width = 12, 20
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[height // 2 :] = 12.0
+    depth[2:, 9:12] = 6.0
+    color = np.where(np.isfinite(depth)[..., None], 0.05, 0.4).astype(np.float32) * np.ones(3, np.float32)
+    frame = gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(np.isfinite(depth), jnp.float32))
+    light = jnp.asarray([10.3, 2.6], jnp.float32)
+    shape = dict(fov_x_deg=60.0, shadows="lines", num_shadow_lines=16, num_shadow_bins=16, num_view_steps=2, resolution_factor=1)
+    effect = gr.VolumetricFog(medium=gr.Medium(extinction=0.02, max_distance=40.0), **shape)
+    target = gr.VolumetricFog(medium=gr.Medium(extinction=0.03, max_distance=40.0), thickness=0.3, **shape)(frame, light)
+    frame_data = as_frames(frame, light, target, True)
+    bounds = fitted_bounds(effect, fixed=["fov_x_deg", "medium.ambient_color", "layer_top", "height_falloff"])
+    problem = FitProblem.of(effect, bounds, frame_data[0], loss="mse", space="display")
+    assert len(problem.group_stages) > 1 and gr.VolumetricFog.SHARP_STAGES == ("shadows",)
+    positions = problem.positions(jnp.float32)
+    residuals, fine = (np.asarray(a, np.float64) for a in residuals_and_jacobian(problem, positions, frame_data))
+    reduced = downsample_frames(frame_data, 2)
+    coarse_problem = FitProblem.of(effect, bounds, reduced[0], loss="mse", space="display")
+    _, coarse = residuals_and_jacobian(coarse_problem, positions, reduced)
+    spread = np.repeat(np.repeat(np.asarray(coarse, np.float64).reshape(height // 2, width // 2, 3, -1), 2, 0), 2, 1)
+    mixed = 0.5 * spread.reshape(fine.shape)  # a fine residual's scale over a coarse one's: sqrt(1 / 4)
+    sharp = list(problem.stage_unknowns(("shadows",)))
+    mixed[:, sharp] = fine[:, sharp]
+    linearisation = dataclasses.replace(CoarseLinearisation.of(coarse_problem, reduced, 2), sharp=("shadows",))
+    normal, gradient = linearisation.normal_equations(positions, residuals, problem, frame_data)
+    np.testing.assert_allclose(normal, mixed.T @ mixed, rtol=1e-4, atol=1e-7 * np.abs(mixed.T @ mixed).max())
+    np.testing.assert_allclose(gradient, mixed.T @ residuals, rtol=1e-4, atol=1e-7 * np.abs(mixed.T @ residuals).max())
 
 
 def test_the_fit_begins_from_the_start_with_the_lowest_loss():

@@ -117,7 +117,8 @@ def run(args) -> int:
     _say(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
     fitted_images = result.images_after if args.fractional_counts else result.images_rounded
     _say(_metrics_line(result.images_before, fitted_images, targets))
-    for line in _determination_lines(result, frames, light_positions, targets, in_front, depths, args.space):
+    lines = _determination_lines(result, frames, light_positions, targets, in_front, depths, args.space, coarse_factor)
+    for line in lines:
         _say(line)
     report = fit_report_image(targets[0], fitted_images[0], result.loss_history) if args.report else None
     _write_pair(args.output, chosen, args.report, report)
@@ -195,11 +196,12 @@ def _metrics_line(start_images, fitted_images, targets) -> str:
     )
 
 
-def _determination_lines(result, frames, lights, targets, in_front, depths, space) -> list[str]:
-    """Which fitted parameters the frames leave poorly determined, and what offsets them (`determination`)."""
+def _determination_lines(result, frames, lights, targets, in_front, depths, space, coarse_factor) -> list[str]:
+    """Which fitted parameters the frames leave poorly determined, and what offsets them (`determination`, its
+    Jacobian as the fit's polish took it)."""
     found = determination(
         result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front,
-        light_depth=depths,
+        light_depth=depths, coarse_factor=coarse_factor,
     )
     lines = []
     if found.on_bound:

@@ -106,6 +106,11 @@ class Effect(Part):
 
     NEEDS_DEPTH: typing.ClassVar[bool] = False
     FIELD_STAGES: typing.ClassVar[dict[str, str]] = {}
+    SHARP_STAGES: typing.ClassVar[tuple[str, ...] | None] = None
+    """The stages (of `FIELD_STAGES`) whose fields move edges a pixel or two wide, which a coarser frame's
+    derivatives blur: a fit's polish after a coarse phase takes theirs at the frame's own resolution and the other
+    fields' at the coarse one (`fit(..., coarse_jacobian=True)`). None: the effect does not say, and the polish takes
+    every field's at the frame's own."""
     CAMERA_FIELDS: typing.ClassVar[tuple[str, ...]] = ()
     """The fields in which the effect reads its frame's camera (`with_camera`): `"fov_x_deg"`, and `"near_plane"`
     with `"far_plane"`."""

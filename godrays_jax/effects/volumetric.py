@@ -118,6 +118,7 @@ class VolumetricFog(Effect):
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
     }  # fmt: skip
+    SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
 
     def fit_stand_in(self) -> "VolumetricFog":
         """Read along lines, the shadows' table and every pixel's own ray are most of a fit's work, and a fit

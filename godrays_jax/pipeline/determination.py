@@ -11,8 +11,8 @@ from jaxtyping import ArrayLike, Bool, Float
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import parameter_bounds
 from godrays_jax.kernels.losses import Space, check_space
-from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.fit_programs import residuals_and_jacobian
+from godrays_jax.pipeline import exported, fit_programs
+from godrays_jax.pipeline.fit_programs import CoarseLinearisation, residuals_and_jacobian
 from godrays_jax.pipeline.problem import (
     FitProblem,
     as_frames,
@@ -20,6 +20,7 @@ from godrays_jax.pipeline.problem import (
     fitted_bounds,
     strongly_typed,
 )
+from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
 
@@ -75,6 +76,7 @@ def determination(
     light_depth: float | Sequence[float] = math.inf,
     change: float = 0.1,
     threshold: float = 1e-3,
+    coarse_factor: int = 1,
 ) -> Determination:
     """Which fitted fields the frames determine poorly, from the Jacobian at a fit's solution.
 
@@ -95,6 +97,13 @@ def determination(
         space: `"display"` or `"linear"`, as the fit compared.
         change: the step, a fraction of each field's range (> 0).
         threshold: RMS image change below which a step goes unseen (> 0).
+        coarse_factor: a Python int >= 1; above 1, `J` as the polish of a
+            fit with that `coarse_factor` and `coarse_jacobian` takes it: the
+            effect's `SHARP_STAGES` at full resolution, the other fields'
+            derivatives at `1 / coarse_factor` of it, each pixel's its block's
+            (`fit_programs.CoarseLinearisation`); after such a fit, its
+            compiled programs. The full resolution's alone where the effect
+            names no sharp stages or a field in pixels is examined.
 
     Raises:
         ValueError: an unknown or static field in `fitted`, bad frames, or a
@@ -102,6 +111,8 @@ def determination(
     """
     if not (change > 0 and threshold > 0):
         raise ValueError(f"change and threshold must be > 0, got {change!r} and {threshold!r}")
+    if not (isinstance(coarse_factor, int) and coarse_factor >= 1):
+        raise ValueError(f"coarse_factor must be an int >= 1, got {coarse_factor!r}")
     check_space(space)
     effect = jax.tree.map(strongly_typed, effect)
     frames, lights, targets, in_front, depths = as_frames(buffers, light_xy, target, light_in_front, light_depth)
@@ -119,12 +130,22 @@ def determination(
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         positions = problem.positions(np.dtype(frames[0].color.dtype))
         frame_data = (frames, lights, targets, in_front, depths)
-        _, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+        coarse = _polish_linearisation(problem, frame_data, coarse_factor)
+        if coarse is None:
+            residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+            rows = jacobian.shape[0]
+            # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares
+            # offset below are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
+            jacobian = _triangular(np.asarray(jacobian))
+        else:
+            residuals = fit_programs.effect_residuals(problem, problem.effect, frame_data)
+            normal, _ = coarse.normal_equations(positions, np.asarray(residuals), problem, frame_data)
+            rows = len(residuals)
+            # R with R^T R = J^T J: |R v| = |J v| for every v, as the QR decomposition's.
+            values, vectors = np.linalg.eigh(normal)
+            jacobian = np.sqrt(np.maximum(values, 0.0))[:, None] * vectors.T
     # The cut-off below which `lstsq` treats singular values as zero stays the Jacobian's (it scales with the rows).
-    cutoff = np.finfo(np.float64).eps * max(jacobian.shape)
-    # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares offset below
-    # are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
-    jacobian = _triangular(np.asarray(jacobian))
+    cutoff = np.finfo(np.float64).eps * max(rows, jacobian.shape[1])
     owners, labels, lows, spans = [], [], [], []
     for name, shape in zip(names, problem.shapes):
         size = math.prod(shape)
@@ -173,6 +194,20 @@ def determination(
         on_bound=on_bound,
         condition=float(singular.max() / smallest) if smallest > 0 else math.inf,
     )
+
+
+def _polish_linearisation(problem: FitProblem, frame_data, factor: int) -> CoarseLinearisation | None:
+    """The linearisation a fit's polish takes after a coarse phase of `factor` (`fit._polish_phase`), or None where it
+    takes the full resolution's (no coarse phase, no sharp stages named, a field in pixels)."""
+    sharp = type(problem.effect).SHARP_STAGES
+    if factor == 1 or sharp is None:
+        return None
+    reduced = downsample_frames(frame_data, factor)
+    scaled = scale_pixel_fields(problem.effect, 1.0 / factor)
+    coarse_problem = FitProblem.of(scaled, dict(zip(problem.names, problem.bounds)), reduced[0], loss=problem.loss,
+                                   space=problem.space)  # fmt: skip
+    coarse = CoarseLinearisation.of(coarse_problem, reduced, factor)
+    return None if coarse is None else dataclasses.replace(coarse, sharp=tuple(sharp))
 
 
 def _triangular(jacobian: np.ndarray, rows: int = 1 << 19) -> np.ndarray:

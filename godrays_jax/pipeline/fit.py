@@ -438,8 +438,10 @@ def fit(
             `fit_programs.CoarseLinearisation`): its residuals, losses and
             the steps it accepts stay the full resolution's, each step a
             render and a coarse Jacobian. The polish takes the full
-            resolution's own: the result is as close as without. Ignored
-            when a fitted field is in pixels (`reduced.pixel_fields`).
+            resolution's derivatives of the fields that move sharp edges
+            (`Effect.SHARP_STAGES`; every field's where the effect names
+            none) and the coarse ones of the rest. Ignored when a fitted
+            field is in pixels (`reduced.pixel_fields`).
         stand_in: the starts race and descend as the effect's stand-in
             (`Effect.fit_stand_in`: the same fields read more cheaply, where
             the effect names one; for `VolumetricFog` with its shadows read
@@ -487,7 +489,7 @@ def fit(
             return _as_given(given, effect, _fitted_effects(problem, positions)[0], names)
 
         run, polish_history, polish_steps = _polish_phase(
-            phases, run, bounds, frame_data, counter, None if given is effect else own
+            phases, run, bounds, frame_data, counter, None if given is effect else own, coarse
         )  # fmt: skip
         history = [*history, *polish_history]
         positions = jnp.asarray(run.positions(), np.dtype(frame_data[0][0].color.dtype))
@@ -585,16 +587,22 @@ def _coarse_phase(
     return [clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)], winner, linearisation
 
 
-def _polish_phase(phases: _Phases, run: _Run, bounds, frame_data, counter, own) -> tuple[_Run, list[float], int]:
+def _polish_phase(
+    phases: _Phases, run: _Run, bounds, frame_data, counter, own, coarse: CoarseLinearisation | None
+) -> tuple[_Run, list[float], int]:
     """The polish after Levenberg-Marquardt (Marquardt's scaling, from where `run` stopped): its run, its losses
     (one per step, as a descent's: its first where it starts) and its steps. Through a stand-in it takes the
     effect's own residuals (`own`, as `host_evaluator`'s: its losses the effect's) and the stand-in's Jacobian: it
-    ends where the effect's loss stops falling along the stand-in's directions. Without a polish, `run`, no
-    losses and no steps."""
+    ends where the effect's loss stops falling along the stand-in's directions. With the descent's `coarse`
+    linearisation, the effect's `SHARP_STAGES` take the full resolution's columns and the rest the coarse ones;
+    where the effect names none, every column is the full resolution's. Without a polish, `run`, no losses and no
+    steps."""
     if phases.polisher is None or phases.descend["max_steps"] == 0:
         return run, [], 0
     before = counter.steps
-    polish = {**phases.descend, "optimiser": phases.polisher, "own": own}
+    sharp = type(run.problem.effect).SHARP_STAGES
+    linearisation = None if coarse is None or sharp is None else dataclasses.replace(coarse, sharp=tuple(sharp))
+    polish = {**phases.descend, "optimiser": phases.polisher, "own": own, "coarse": linearisation}
     polished, _ = _descend([_effect_of_run(run)], bounds, frame_data, counter, **polish)
     return polished[0], polished[0].history, counter.steps - before
 

@@ -75,17 +75,20 @@ def objective_function(y, data):
 
 
 @eqx.filter_jit
-def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
+def residuals_and_jacobian(problem: FitProblem, positions, frame_data, stages: tuple[str, ...] | None = None):
     """The residuals at the fitted fields' `positions` in their ranges (`FitProblem.effect_at_positions`) and their
     Jacobian in those positions, `(residuals, unknowns)`: one vectorised JVP per stage of the effect
     (`FitProblem.lane_groups`), so that a stage's lanes run only through the operations its fields reach.
+    `stages`: only these stages' columns (`FitProblem.stage_unknowns`), in the unknowns' order.
 
     The one compiled program of a fit by Levenberg-Marquardt (`marquardt`) and of `determination`.
     """
     groups = [np.asarray(group) for group in problem.lane_groups]
     vectors = [positions[group] for group in groups]
+    kept = [index for index, stage in enumerate(problem.group_stages) if stages is None or stage in stages]
     columns = []
-    for index, vector in enumerate(vectors):
+    for index in kept:
+        vector = vectors[index]
 
         def along(own, index=index):
             groups_now = [*vectors[:index], own, *vectors[index + 1 :]]
@@ -94,7 +97,7 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
         basis = jnp.eye(vector.shape[0], dtype=vector.dtype)
         residuals, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
         columns.append(jacobian)
-    order = np.argsort(np.concatenate(groups))
+    order = np.argsort(np.concatenate([groups[index] for index in kept]))
     return residuals, jnp.concatenate(columns, axis=-1)[:, order]
 
 
@@ -108,6 +111,9 @@ class CoarseLinearisation:
     problem: FitProblem
     frame_data: tuple
     factor: int
+    sharp: tuple[str, ...] = ()
+    """Stages whose columns are the fine resolution's own instead (`Effect.SHARP_STAGES`: the fields that move
+    edges a pixel wide, which a block's derivatives blur)."""
 
     @classmethod
     def of(cls, problem: FitProblem, frame_data, factor: int) -> "CoarseLinearisation | None":
@@ -128,17 +134,34 @@ class CoarseLinearisation:
             start += block.weight.size
         return np.concatenate(parts)
 
-    def normal_equations(self, positions, residuals, fine_frames) -> tuple[np.ndarray, np.ndarray]:
-        """`(J^T J, J^T r)` of the fine `residuals` with `jacobian`'s rows: `J^T r` is each block's row times the
-        sum of its fine residuals, so the residuals are summed over each block, divided by its row's weight over
-        the frame's scale."""
-        folded, start = [], 0
-        for block in self._blocks(fine_frames):
-            folded.append(block.sums(residuals[start : start + block.fine_size]) / np.sqrt(block.count))
-            start += block.fine_size
-        if start != len(residuals):
-            raise ValueError(f"expected {start} residuals of the fine frames, got {len(residuals)}")
-        return normal_equations(self.jacobian(positions, fine_frames), np.concatenate(folded))
+    def normal_equations(
+        self, positions, residuals, fine_problem: FitProblem, fine_frame_data
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`(J^T J, J^T r)` of the fine `residuals` (of `fine_problem` on `fine_frame_data`): `J` is `jacobian`'s
+        rows, whose product with the residuals is each block's row times the sum of the block's residuals; the
+        `sharp` stages' columns are `fine_problem`'s own, their products with a block's row each column's sum over
+        the block."""
+        blocks = self._blocks(fine_frame_data[0])
+        if sum(block.fine_size for block in blocks) != len(residuals):
+            raise ValueError(f"expected the residuals of {len(fine_frame_data[0])} fine frames, got {len(residuals)}")
+        rows = self.jacobian(positions, fine_frame_data[0])
+        if not self.sharp:
+            return normal_equations(rows, _folded(blocks, residuals))
+        sharp = np.asarray(fine_problem.stage_unknowns(self.sharp))
+        rest = np.setdiff1d(np.arange(rows.shape[1]), sharp)
+        _, fine = exported.call(
+            "fit_jacobian", residuals_and_jacobian, fine_problem, positions, fine_frame_data, self.sharp
+        )  # fmt: skip
+        fine = np.asarray(fine, np.float64)
+        normal, gradient = np.zeros((rows.shape[1],) * 2), np.zeros(rows.shape[1])
+        coarse_rows, fine_folded = np.asarray(rows[:, rest], np.float64), _folded(blocks, fine)
+        normal[np.ix_(rest, rest)] = coarse_rows.T @ coarse_rows
+        normal[np.ix_(rest, sharp)] = coarse_rows.T @ fine_folded
+        normal[np.ix_(sharp, rest)] = normal[np.ix_(rest, sharp)].T
+        normal[np.ix_(sharp, sharp)] = fine.T @ fine
+        gradient[rest] = coarse_rows.T @ _folded(blocks, residuals)
+        gradient[sharp] = fine.T @ np.asarray(residuals, np.float64)
+        return normal, gradient
 
     def _blocks(self, fine_frames) -> list["_Blocks"]:
         blocks = []
@@ -149,12 +172,26 @@ class CoarseLinearisation:
             blocks_shape = (coarse.height, self.factor, coarse.width, self.factor, channels)
 
             def sums(values, shape=shape, pad=pad, blocks_shape=blocks_shape):
-                return np.pad(np.reshape(values, shape), pad).reshape(blocks_shape).sum(axis=(1, 3)).ravel()
+                """Each block's sum of `values` (a frame's fine residuals, or columns of them)."""
+                columns = np.reshape(values, (*shape, -1))
+                summed = np.pad(columns, [*pad, (0, 0)]).reshape(*blocks_shape, -1).sum(axis=(1, 3))
+                return summed.reshape(-1, *np.shape(values)[1:])
 
             count = sums(np.ones(math.prod(shape)))
             scale = math.sqrt(coarse.height * coarse.width / (fine.height * fine.width))
             blocks.append(_Blocks(math.prod(shape), count, scale * np.sqrt(count), sums))
         return blocks
+
+
+def _folded(blocks: list["_Blocks"], values) -> np.ndarray:
+    """Fine residuals (or columns of them), frame after frame, as each block's sum over the root of its count: a
+    coarse row of `CoarseLinearisation.jacobian` times these is the fine rows' product with the values."""
+    folded, start = [], 0
+    for block in blocks:
+        part = np.asarray(values[start : start + block.fine_size], np.float64)
+        folded.append(block.sums(part) / np.sqrt(block.count).reshape(-1, *[1] * (part.ndim - 1)))
+        start += block.fine_size
+    return np.concatenate(folded)
 
 
 class _Blocks(NamedTuple):
@@ -183,7 +220,7 @@ def host_evaluator(problem: FitProblem, frame_data, dtype, own=None, coarse: Coa
 
         def linearise(jacobian=None, residuals=None):
             if coarse is not None:
-                normal, gradient = coarse.normal_equations(positions, residuals, frame_data[0])
+                normal, gradient = coarse.normal_equations(positions, residuals, problem, frame_data)
             else:
                 if jacobian is None:
                     _, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)

@@ -196,6 +196,16 @@ class FitProblem(eqx.Module):
         )
 
     @property
+    def group_stages(self) -> tuple[str, ...]:
+        """The stage of each of `lane_groups`, in its order."""
+        return tuple(dict.fromkeys(self.stages))
+
+    def stage_unknowns(self, stages) -> tuple[int, ...]:
+        """The indices of the unknowns whose fields belong to `stages`, in order."""
+        chosen = (group for group, stage in zip(self.lane_groups, self.group_stages) if stage in stages)
+        return tuple(sorted(index for group in chosen for index in group))
+
+    @property
     def lane_groups(self) -> tuple[tuple[int, ...], ...]:
         """The unknowns' indices grouped by their fields' stage (`Effect.FIELD_STAGES`), in order of first appearance."""
         groups, offset = {}, 0

@@ -124,22 +124,22 @@ def test_after_a_coarse_phase_the_jacobian_is_the_polishs(case):
     assert coarse.sensitivity == full.sensitivity
     with pytest.raises(ValueError, match="coarse_factor"):
         determination(TRUTH, frame, light, target, fitted=fitted, coarse_factor=0)
-    height, width = 24, 40
+    height, width = 12, 20
     depth = np.full((height, width), np.inf, np.float32)
     depth[height // 2 :] = 12.0
-    depth[4:, 18:23] = 6.0
+    depth[2:, 9:12] = 6.0
     color = np.where(np.isfinite(depth)[..., None], 0.05, 0.4).astype(np.float32) * np.ones(3, np.float32)
     coverage = jnp.asarray(np.isfinite(depth), jnp.float32)
     fog_frame = gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=coverage)
-    fog_light = jnp.asarray([20.3, 5.6], jnp.float32)
+    fog_light = jnp.asarray([10.3, 2.6], jnp.float32)
     fog = gr.VolumetricFog(medium=gr.Medium(extinction=0.03, max_distance=40.0), fov_x_deg=60.0, shadows="lines",
-                           num_shadow_lines=32, num_shadow_bins=16, num_view_steps=2, resolution_factor=1)  # fmt: skip
+                           num_shadow_lines=16, num_shadow_bins=16, num_view_steps=2, resolution_factor=1)  # fmt: skip
     fog_target = fog(fog_frame, fog_light)
     fog_fitted = ("medium.extinction", "medium.anisotropy", "thickness", "edge_softness")
     full, coarse = (
         determination(fog, fog_frame, fog_light, fog_target, fitted=fog_fitted, coarse_factor=f) for f in (1, 2)
     )
     assert coarse.poorly_determined == full.poorly_determined
-    for name in fog_fitted:  # a 12 x 20 frame's blocks stand in for a 24 x 40 one's pixels: within a factor of 3
+    for name in fog_fitted:  # a 6 x 10 frame's blocks stand in for a 12 x 20 one's pixels: within a factor of 3
         assert 1 / 3 < coarse.sensitivity[name] / full.sensitivity[name] < 3, name
     assert coarse.sensitivity != full.sensitivity  # the coarse columns are the blocks'

@@ -72,8 +72,8 @@ def test_a_default_fit_of_a_degenerate_frame_stays_within_two_gigabytes(case, tm
     out, err = done.communicate(timeout=900)
     errors = [line for line in err.splitlines() if "error" in line]
     if done.returncode == 0:
-        values = json.loads(params.read_text())["params"]
-        flat = [v for value in values.values() for v in np.ravel(value) if isinstance(v, (int, float))]
+        values = json.loads(params.read_text())  # the effect's name and its fields, as `apply --params` reads them
+        flat = [v for value in values.values() for v in np.ravel(value).tolist() if isinstance(v, (int, float))]
         assert flat and all(math.isfinite(v) for v in flat), values
     else:
         assert done.returncode == 1 and len(errors) == 1 and "Traceback" not in err, err

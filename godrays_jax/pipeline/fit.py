@@ -32,25 +32,19 @@ How the parameters are fitted:
   scaling from the start, the race keeps worse starts on some frames
   (`benchmarks/README.md`, "Marquardt's scaling"); as a polish it can only
   lower the loss.
-- Derivatives are forward-mode: the Jacobian of the residuals (or the
-  gradient of a scalar loss) is one vectorised JVP per fitted parameter,
-  memory O(image x parameters) whatever the loop lengths. Levenberg-Marquardt
-  and Gauss-Newton need that Jacobian (millions of residuals, a handful of
-  parameters), which reverse mode would build one residual at a time.
-  The kernels' sample loops have custom JVPs: a handful of parameters are
-  differentiated inside the loop that sums the copies (one loop for all of
-  them, where vectorised JVPs of a plain loop would run one per parameter),
-  so the Jacobian costs about what a reverse-mode gradient costs and memory
-  O(image) for any loop length, where a plain differentiated loop would store
-  every iteration; `benchmarks/bench_fit.py` compares the two. The vectorised
-  JVP runs once per stage of the effect (`Effect.FIELD_STAGES`), so that
-  fields that enter late (`VolumetricFog`'s colours) are not carried through
-  the march beside the fields that enter it.
-- Levenberg-Marquardt (the default for MSE) runs on the host
-  (`marquardt`) around one compiled program, `residuals_and_jacobian`: the
-  starts' race, the descent, the polish and `determination` afterwards all
-  run that program, so a fit compiles it once per frame size, and the
-  persistent cache (`app.compile_cache`) keeps it for the next process.
+- Derivatives are forward-mode: the Jacobian of the residuals (millions of
+  them, a handful of parameters, which reverse mode would build one residual
+  at a time) is one vectorised JVP per stage of the effect
+  (`Effect.FIELD_STAGES`: fields that enter late are not carried through the
+  march), memory O(image x parameters) whatever the loop lengths. The
+  kernels' sample loops have custom JVPs that differentiate the parameters
+  inside the loop that sums the copies, so the Jacobian costs about a
+  reverse-mode gradient and stores no iteration (`benchmarks/bench_fit.py`).
+- Levenberg-Marquardt (the default for MSE) runs on the host (`marquardt`)
+  around compiled programs of the residuals and their Jacobian
+  (`residuals_and_jacobian`), shared by the race, the descents, the polish
+  and `determination`, kept by the persistent cache (`app.compile_cache`);
+  with `coarse_jacobian` the full resolution linearises at the coarse one.
 """
 
 import dataclasses
@@ -191,9 +185,7 @@ def _solver(solver, loss, rtol, atol):
         solver = "levenberg_marquardt" if loss == "mse" else "bfgs"
     if solver in ("levenberg_marquardt", "gauss_newton") and loss != "mse":
         raise ValueError(f"solver={solver!r} fits least squares (loss='mse') only; use solver='bfgs' for loss={loss!r}")
-    if solver == "levenberg_marquardt":
-        # On the host around the one compiled program of the residuals and their Jacobian (`marquardt`): every
-        # phase of the fit and `determination` then run that program, and none compiles a solver step of its own.
+    if solver == "levenberg_marquardt":  # on the host (`marquardt`): no phase compiles a solver step of its own
         return LevenbergMarquardt(rtol=rtol, atol=atol)
     if solver == "gauss_newton":
         return optx.GaussNewton(rtol=rtol, atol=atol)
@@ -257,8 +249,7 @@ def _descend(
     """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
     goes on to `max_steps`. Returns the runs and the winner's index. `own`: as `host_evaluator`'s (Levenberg-
-    Marquardt on the host only); `coarse`: a `CoarseLinearisation` (Levenberg-Marquardt only), with the
-    residuals of `own`, or of the problem's own effect without it.
+    Marquardt on the host only); `coarse`: a `CoarseLinearisation` of the residuals of `own` (or the problem's).
 
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
     keeps its own solver state, so a start that goes on is not started again.
@@ -270,9 +261,7 @@ def _descend(
     runs = []
     if isinstance(optimiser, LevenbergMarquardt):
         if coarse is not None and own is None:
-            def own(positions):
-                return _fitted_effects(problems[0], positions)[0]
-
+            own = lambda positions: _fitted_effects(problems[0], positions)[0]  # noqa: E731
         evaluate = host_evaluator(problems[0], frame_data, dtype, own, coarse)
         for problem in problems:
             y = np.asarray(start_point(problem, dtype), np.float64)
@@ -568,9 +557,8 @@ def _coarse_phase(
     phases: _Phases, candidates, bounds, frame_data, counter
 ) -> tuple[list[Effect], int | None, CoarseLinearisation | None]:
     """With a coarse factor, the starts race at the reduced resolution (`reduced.downsample_buffers`) and the
-    winner descends there: returns its result at full resolution as the one start left, the index of the
-    start that won, and the full resolution's linearisation from there (`coarse_jacobian`; None without it or
-    where it does not apply). Without a coarse factor, the starts as they are, None and None."""
+    winner descends there: its result at full resolution as the one start left, the index of the start that won
+    and the linearisation at the coarse resolution (`coarse_jacobian`, else None). Without, the starts and Nones."""
     factor = phases.coarse_factor
     if factor == 1:
         return candidates, None, None
@@ -580,10 +568,8 @@ def _coarse_phase(
         scaled, bounds, reduced, counter, **{**phases.descend, "plateau_rtol": phases.coarse_plateau_rtol}
     )  # fmt: skip
     fine_start = _effect_of_run(coarse_runs[winner])
-    linearisation = None
-    # Positions in a pixel field's range mean other sizes at the two resolutions: such a fit linearises at its own.
-    if phases.coarse_jacobian and isinstance(phases.optimiser, LevenbergMarquardt):
-        linearisation = CoarseLinearisation.of(coarse_runs[winner].problem, reduced, factor)
+    linearises = phases.coarse_jacobian and isinstance(phases.optimiser, LevenbergMarquardt)
+    linearisation = CoarseLinearisation.of(coarse_runs[winner].problem, reduced, factor) if linearises else None
     return [clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)], winner, linearisation
 
 
@@ -592,11 +578,9 @@ def _polish_phase(
 ) -> tuple[_Run, list[float], int]:
     """The polish after Levenberg-Marquardt (Marquardt's scaling, from where `run` stopped): its run, its losses
     (one per step, as a descent's: its first where it starts) and its steps. Through a stand-in it takes the
-    effect's own residuals (`own`, as `host_evaluator`'s: its losses the effect's) and the stand-in's Jacobian: it
-    ends where the effect's loss stops falling along the stand-in's directions. With the descent's `coarse`
-    linearisation, the effect's `SHARP_STAGES` take the full resolution's columns and the rest the coarse ones;
-    where the effect names none, every column is the full resolution's. Without a polish, `run`, no losses and no
-    steps."""
+    effect's own residuals (`own`, as `host_evaluator`'s) and the stand-in's Jacobian; after the descent's
+    `coarse` one, the `SHARP_STAGES`' columns at full resolution (all where the effect names none), the rest
+    coarse. Without a polish, `run`, no losses and no steps."""
     if phases.polisher is None or phases.descend["max_steps"] == 0:
         return run, [], 0
     before = counter.steps

@@ -10,6 +10,7 @@ from godrays_jax.app.options import (
     effect_option,
     frame_for_command,
     frame_reading,
+    light_of_params,
     resolve_light_depth,
     with_flare_texture,
     with_frame_camera,
@@ -28,7 +29,8 @@ def run(args) -> int:
     effect = with_flare_texture(effect_option(args.preset, args.params), args.flare_texture)
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
     effect = with_frame_camera(effect, args, args.buffers)
-    effect, buffers, light_xy, in_front = frame_for_command("apply", effect, buffers, args.buffers, args.light)
+    light = light_of_params(args.light, args.params, args.buffers, buffers)
+    effect, buffers, light_xy, in_front = frame_for_command("apply", effect, buffers, args.buffers, light)
     light_depth = resolve_light_depth(args.light_depth, args.buffers)
     # The program `batch` runs, on a group of one frame, stored traced: a later `apply` neither traces nor compiles it.
     apply = frames_function(effect, layer_only=args.layer_only, light_depth=light_depth, stored=True)

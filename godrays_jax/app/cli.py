@@ -20,6 +20,7 @@ from godrays_jax.app import allocator, compile_cache
 from godrays_jax.app.options import (
     DEFAULT_PRESET,
     SKY_DEPTH_HELP,
+    parse_fit_light,
     parse_fov,
     parse_light,
     parse_light_depth,
@@ -134,7 +135,8 @@ def _add_apply(subparsers) -> None:
         type=parse_light,
         metavar="X,Y[,behind]",
         help="the light's pixel position (x right, y down; may be negative: --light -5,10), ',behind' for a light "
-        "behind the camera; default: the frame's godrays:light_px metadata",
+        "behind the camera; default: the light `fit --light auto` found for this frame, written beside --params "
+        "(PARAMS.light.json), else the frame's godrays:light_px metadata",
     )
     parser.add_argument(
         "--light-depth",
@@ -251,9 +253,14 @@ def _add_fit(subparsers) -> None:
         help="one more frame and its target sharing the parameters (repeatable)",
     )  # fmt: skip
     parser.add_argument(
-        "--light", type=parse_light, action="append", metavar="X,Y[,behind]",
-        help="the light's pixel position, once per frame in order (',behind': behind the camera); default: each "
-        "frame's godrays:light_px metadata",
+        "--light", type=parse_fit_light, action="append", metavar="X,Y[,behind]|auto",
+        help="the light's pixel position, once per frame in order (',behind': behind the camera), or 'auto': found "
+        "from the frame and its target before the fit (once for every frame); default: each frame's "
+        "godrays:light_px metadata; a light found is written beside -o (PARAMS.light.json) for apply --params",
+    )  # fmt: skip
+    parser.add_argument(
+        "--fit-light", action="store_true",
+        help="refine each given or stored light as --light auto finds one, from it, before the fit",
     )  # fmt: skip
     parser.add_argument(
         "--light-depth", type=parse_light_depth, metavar="D",

@@ -8,7 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 import tqdm
 
+from godrays_jax.app.fit_light import (
+    first_light,
+    found_lights_text,
+    light_lines,
+    write_text,
+)
 from godrays_jax.app.options import (
+    LIGHT_AUTO,
     NO_SKY,
     CommandError,
     auto_coarse_factor,
@@ -16,12 +23,12 @@ from godrays_jax.app.options import (
     default_fit_effect,
     effect_for_frame,
     effect_option,
+    found_lights_path,
     frame_field_of_view,
     frame_reading,
     has_sky,
     model_presets,
     read_target,
-    resolve_light,
     resolve_light_depth,
     warn,
     with_frame_camera,
@@ -33,6 +40,7 @@ from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.fit import fit, polishes
 from godrays_jax.pipeline.frame_start import ground_layer_start
+from godrays_jax.pipeline.light_search import find_light
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
@@ -46,27 +54,35 @@ def run(args) -> int:
     if args.report:
         check_output_path(args.report, *[path for pair in pairs for path in pair])
     lights = args.light or []
+    if lights == [LIGHT_AUTO]:
+        lights *= len(pairs)  # `--light auto` once finds every frame's light
     if len(lights) not in (0, len(pairs)):
         raise CommandError(f"give --light once per frame ({len(pairs)} frames) or not at all, got {len(lights)}")
+    if args.fit_light or LIGHT_AUTO in lights:
+        check_output_path(found_lights_path(args.output), *[path for pair in pairs for path in pair])
     effect = effect_option(args.preset, args.params, default=default_fit_effect)
     fov = frame_field_of_view(args, args.buffers)
     effect = with_frame_camera(effect, args, args.buffers)
     frames, light_positions, in_front, targets, depths = [], [], [], [], []
+    searched = {}  # frame index -> (the frame as read, whether from the target alone) for each light searched for
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = read_buffers(buffers_path, **frame_reading(args))
         effect = effect_for_frame("fit", effect, frame, buffers_path)
-        (light, front) = resolve_light(lights[index] if lights else None, buffers_path)
+        target = read_target(target_path)
+        if target.shape[:2] != frame.color.shape[:2]:
+            raise CommandError(
+                f"{target_path} is {target.shape[1]}x{target.shape[0]} but {buffers_path} is {frame.width}x{frame.height}"
+            )
+        given = lights[index] if lights else None
+        (light, front) = first_light(given, frame, target, buffers_path, fit_light=args.fit_light, space=args.space)
+        if given == LIGHT_AUTO or args.fit_light:
+            searched[index] = (frame, given == LIGHT_AUTO)
         try:
             frame = ready_frame(effect, frame, light, buffers_path)
         except ValueError as error:
             raise CommandError(str(error)) from None
         if not has_sky(frame):
             warn("fit", f"{buffers_path} has {NO_SKY}")
-        target = read_target(target_path)
-        if target.shape[:2] != frame.color.shape[:2]:
-            raise CommandError(
-                f"{target_path} is {target.shape[1]}x{target.shape[0]} but {buffers_path} is {frame.width}x{frame.height}"
-            )
         frames.append(frame)
         light_positions.append(jnp.asarray(light, jnp.float32))
         in_front.append(bool(front))
@@ -86,6 +102,20 @@ def run(args) -> int:
     coarse_factor = auto_coarse_factor(frames[0].height, frames[0].width) if args.coarse_factor is None else args.coarse_factor
     if coarse_factor < 1:
         raise CommandError(f"--coarse-factor must be an integer >= 1, got {coarse_factor}")
+    start_names, starts = fit_starts(effect, frames, fov)
+    found = {}
+    for index, (frame, auto) in searched.items():
+        path = pairs[index][0]
+        _say(f"finding the light of {path} ({'from the target' if auto else 'refining its light'})")
+        search = find_light(
+            effect, frames[index], targets[index], start_xy=None if auto else np.asarray(light_positions[index]),
+            fields=tuple(fitted_bounds(effect, fixed=fixed)), starts=starts, light_depth=depths[index], space=args.space,
+        )  # fmt: skip
+        for line in light_lines(path, search, auto=auto, start_names=start_names):
+            _say(line)
+        found[path] = (search, frame)
+        light_positions[index] = jnp.asarray(search.light_xy, jnp.float32)
+        frames[index] = ready_frame(effect, frame, tuple(search.light_xy), path)
     phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes
     bar = tqdm.tqdm(total=phases * args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
 
@@ -93,7 +123,6 @@ def run(args) -> int:
         bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
         bar.update(step - bar.n)
 
-    start_names, starts = fit_starts(effect, frames, fov)
     try:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
@@ -121,7 +150,12 @@ def run(args) -> int:
     for line in lines:
         _say(line)
     report = fit_report_image(targets[0], fitted_images[0], result.loss_history) if args.report else None
-    _write_pair(args.output, chosen, args.report, report)
+    _write_outputs(args.output, chosen, [
+        *([(args.report, lambda path: write_image(path, report))] if args.report else []),
+        *([(found_lights_path(args.output), lambda path: write_text(path, found_lights_text(found)))] if found else []),
+    ])  # fmt: skip
+    if found:
+        _say(f"wrote {found_lights_path(args.output)}")
     if args.report:
         _say(f"wrote {args.report}")
     _say(f"wrote {args.output}")
@@ -133,19 +167,25 @@ def _say(line: str) -> None:
     print(line, flush=True)
 
 
-def _write_pair(output: str, effect, report_path: str | None, report) -> None:
-    """The fitted parameters and the report, both or neither: each is written whole (atomically), the report first,
-    and removed again if the parameters cannot follow it (an error, an interrupt)."""
-    if report_path is None:
-        save_effect(output, effect)
-        return
-    write_image(report_path, report)
+def _write_outputs(output: str, effect, beside: list) -> None:
+    """The fitted parameters and the files written with them (`beside`: `(path, write)` pairs, the report and the
+    lights found), all or none: each is written whole (atomically), the parameters last, and those written before
+    are removed again if the parameters cannot follow them (an error, an interrupt). Lights found by an earlier fit
+    beside `output` and not by this one are removed, so that `apply --params` does not read them with these."""
+    written = []
     try:
+        for path, write in beside:
+            write(path)
+            written.append(path)
         save_effect(output, effect)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(report_path)
+        for path in written:
+            with contextlib.suppress(OSError):
+                os.remove(path)
         raise
+    if found_lights_path(output) not in written:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(found_lights_path(output))
 
 
 def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:

@@ -12,7 +12,7 @@ import numpy as np
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import MAX_TEXTURE_SIDE
 from godrays_jax.effects.presets import PRESETS, preset
-from godrays_jax.effects.serialization import load_effect
+from godrays_jax.effects.serialization import MAX_EFFECT_FILE_BYTES, load_effect, parse_json_object
 from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light, error_line
@@ -96,6 +96,61 @@ def resolve_light(light: tuple[tuple[float, float], bool] | None, buffers_path: 
     if stored is None:
         raise CommandError(f"{buffers_path} stores no light position (godrays:light_px): pass --light X,Y")
     return stored
+
+
+LIGHT_AUTO = "auto"
+"""`fit --light auto`: the light found from the frame and its target (`pipeline.light_search.find_light`)."""
+
+
+def parse_fit_light(text: str) -> tuple[tuple[float, float], bool] | str:
+    """`fit --light`: `LIGHT_AUTO` (`"auto"`, any case), or a position as `parse_light` reads it."""
+    if text.strip().lower() == LIGHT_AUTO:
+        return LIGHT_AUTO
+    try:
+        return parse_light(text)
+    except argparse.ArgumentTypeError as error:
+        raise argparse.ArgumentTypeError(f"{error}; or auto, to find it from the target") from None
+
+
+def found_lights_path(params_path: str) -> str:
+    """The file beside a fit's parameters where `fit --light auto` / `--fit-light` writes the lights it found
+    (`params.json` -> `params.light.json`), which `apply --params` reads."""
+    root, extension = os.path.splitext(params_path)
+    return f"{root}.light{extension or '.json'}"
+
+
+def light_of_params(
+    light: tuple[tuple[float, float], bool] | None, params_path: str | None, frame_path: str, buffers: Buffers
+) -> tuple[tuple[float, float], bool] | None:
+    """`light` (`--light`) if given; else the light `fit` found for this frame (by its file name) beside the
+    parameters `params_path` (`found_lights_path`), its position scaled to the frame's size and said on stdout;
+    else None (the frame's header then, `resolve_light`)."""
+    if light is not None or params_path is None or not os.path.exists(path := found_lights_path(params_path)):
+        return light
+    try:
+        found = _found_light(path, os.path.basename(frame_path))
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise CommandError(f"{path} is not the lights `fit` writes: {error_line(error)}") from None
+    if found is None:
+        return None
+    (x, y), (width, height) = found
+    position = tuple(float(v) for v in check_light((x * buffers.width / width, y * buffers.height / height)))
+    print(f"light {position[0]:.6g},{position[1]:.6g} from {path} (found by fit)", flush=True)
+    return position, True
+
+
+def _found_light(path: str, frame_name: str) -> tuple[tuple[float, float], tuple[int, int]] | None:
+    """The position and frame size of the light `fit` found for the frame named `frame_name`, from the file at
+    `path`; None when it holds none for that frame."""
+    with open(path, "rb") as stream:
+        entries = parse_json_object(stream.read(MAX_EFFECT_FILE_BYTES + 1))["lights"]
+    entry = next((entry for entry in entries if entry["frame"] == frame_name), None)
+    if entry is None:
+        return None
+    (x, y), (width, height) = (float(v) for v in entry["light_px"]), (int(v) for v in entry["size"])
+    if not (math.isfinite(x) and math.isfinite(y) and width > 0 and height > 0):
+        raise ValueError(f"the light of {frame_name} must be finite on a frame of positive size, got {entry}")
+    return (x, y), (width, height)
 
 
 def parse_light_depth(text: str) -> float:

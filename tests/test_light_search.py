@@ -1,0 +1,180 @@
+"""Finding the light from a frame and a target (`find_light`, `halo_starts`) and `godrays-jax fit --light auto` /
+`--fit-light`: targets drawn by a known light on a small frame are found again, on screen, near an edge and just off
+it, and the command writes the light beside its parameters for `apply --params`."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from godrays_jax.app.cli import main
+
+HEIGHT, WIDTH = 36, 64
+TINT = (0.9, 0.7, 0.45)
+
+
+def _frame() -> gr.Buffers:
+    """Sky above a ground at row 24 and a pillar: the XNA preset's flare and rays shine through the sky."""
+    depth = np.full((HEIGHT, WIDTH), np.inf, np.float32)
+    depth[24:] = 20.0
+    depth[:, 38:42] = 10.0
+    coverage = np.isfinite(depth).astype(np.float32)
+    color = np.where(coverage[..., None] > 0, 0.05, 0.3).astype(np.float32) * np.ones(3, np.float32)
+    return gr.Buffers(color=jnp.asarray(color), depth=jnp.asarray(depth), coverage=jnp.asarray(coverage))
+
+
+def _effect(tint=(1.0, 0.85, 0.6)) -> gr.GodRays:
+    return gr.replace_fields(gr.preset("xna_crepuscular"), {"tint": tint})
+
+
+def _target(light) -> jnp.ndarray:
+    return _effect(TINT)(_frame(), jnp.asarray(light, jnp.float32))
+
+
+LIGHTS = {"on screen": (22.3, 10.6), "near an edge": (2.2, 8.4), "just off screen": (-3.5, 9.2)}
+
+
+@pytest.mark.parametrize("case", list(LIGHTS))
+def test_a_light_is_found_from_a_start_several_pixels_away(case):
+    light = np.asarray(LIGHTS[case])
+    start = light + (5.0, 4.0)
+    found = gr.find_light(_effect(), _frame(), _target(light), start_xy=start)
+    assert np.linalg.norm(found.light_xy - light) < 1.0, (found.light_xy, light)
+    np.testing.assert_allclose(np.asarray(gr.field_value(found.effect, "tint")), TINT, atol=0.05)
+    np.testing.assert_array_equal(found.start_xy, start)
+    assert found.factor == 1 and found.fields == ("tint",)
+
+
+@pytest.mark.parametrize("case", list(LIGHTS))
+def test_a_light_is_found_from_the_targets_halo(case):
+    light = np.asarray(LIGHTS[case])
+    found = gr.find_light(_effect(), _frame(), _target(light))
+    assert np.linalg.norm(found.light_xy - light) < 1.0, (found.light_xy, found.start_xy, light)
+
+
+@pytest.mark.parametrize("light", [(-12.0, 12.0), (30.0, -10.0)])
+def test_the_halo_of_a_light_off_screen_gives_starts_past_the_edge_nearest_it(light):
+    """The XNA preset's rays reach a few pixels (decay .95 per sample): `gpu_gems`' cross the frame, so its halo
+    still shows a light a fifth of the frame off screen, and its peak lies on the edge nearest the light."""
+    effect = gr.preset("gpu_gems")
+    target = gr.replace_fields(effect, {"tint": (0.5, 0.4, 0.3)})(_frame(), jnp.asarray(light))
+    starts = gr.halo_starts(_frame(), target)
+    outside = (starts[:, 0] < 0) | (starts[:, 1] < 0)
+    assert np.any(outside) and np.all(starts[:, 0] < WIDTH) and np.all(starts[:, 1] < HEIGHT), starts
+    assert np.min(np.linalg.norm(starts - light, axis=1)) < 5.0, starts
+    found = gr.find_light(effect, _frame(), target)
+    assert np.linalg.norm(found.light_xy - light) < 1.0, (found.light_xy, found.start_xy)
+
+
+def test_the_halo_of_a_light_on_screen_gives_starts_on_screen_near_it():
+    light = LIGHTS["on screen"]
+    starts = gr.halo_starts(_frame(), _target(light))
+    assert np.all((starts >= 0) & (starts <= (WIDTH, HEIGHT))), starts
+    assert np.min(np.linalg.norm(starts - light, axis=1)) < 4.0, starts
+
+
+def test_the_determination_is_small_for_a_sharp_halo_and_large_where_the_target_shows_no_light():
+    light = LIGHTS["on screen"]
+    found = gr.find_light(_effect(), _frame(), _target(light), start_xy=light)
+    assert np.all(np.isfinite(found.standard_error)) and np.all(found.standard_error < 0.1), found.standard_error
+    assert np.all(np.isfinite(found.visible_shift)) and np.all(found.visible_shift < 0.5), found.visible_shift
+    np.testing.assert_allclose(found.standard_error, np.sqrt(np.diag(found.covariance)))
+    unchanged = gr.find_light(_effect(), _frame(), _frame().color, start_xy=light)
+    assert np.all(unchanged.visible_shift > 100.0), unchanged.visible_shift
+    assert np.all(unchanged.standard_error > 100.0 * found.standard_error), unchanged.standard_error
+
+
+def test_more_fields_race_the_starts_given():
+    """Beyond the colours, the light and `fields` descend again, from the effect and from each of `starts`: the
+    start that shares the target's decay wins, and the light, decay and tint are the target's."""
+    light = np.asarray(LIGHTS["on screen"])
+    target = gr.replace_fields(_effect(TINT), {"decay": 0.8})(_frame(), jnp.asarray(light, jnp.float32))
+    starts = [gr.replace_fields(_effect(), {"decay": 0.99}), gr.replace_fields(_effect(), {"decay": 0.8})]
+    found = gr.find_light(_effect(), _frame(), target, start_xy=light + 3.0, fields=("tint", "decay"), starts=starts)
+    assert np.linalg.norm(found.light_xy - light) < 0.1, found.light_xy
+    assert found.fields == ("decay", "tint") and found.start == 2  # the effect's order; starts[1]
+    assert abs(float(gr.field_value(found.effect, "decay")) - 0.8) < 1e-3
+    np.testing.assert_allclose(np.asarray(gr.field_value(found.effect, "tint")), TINT, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "named"),
+    [
+        ({"target": np.zeros((HEIGHT, WIDTH + 1, 3))}, "target"),
+        ({"start_xy": (1.0, np.nan)}, "start_xy"),
+        ({"fields": ("tint", "nonsense")}, "fields"),
+        ({"starts": [gr.preset("kbengine_flares")]}, "starts"),
+        ({"factor": 0}, "factor"),
+        ({"max_steps": 0}, "max_steps"),
+        ({"light_depth": -1.0}, "light_depth"),
+        ({"space": "log"}, "space"),
+    ],
+)
+def test_errors_name_the_argument(arguments, named):
+    given = {"target": _target(LIGHTS["on screen"]), **arguments}
+    with pytest.raises(ValueError, match=named):
+        gr.find_light(_effect(), _frame(), given.pop("target"), **given)
+
+
+# Every fittable field but the tint held: the command's fit and its search stay short.
+HELD = "flare_size,offscreen_fade,fov_x_deg,density,decay,weight,exposure,sun_size,threshold,num_samples"
+
+
+def _files(tmp_path, light):
+    frame, target = tmp_path / "frame.exr", tmp_path / "target.exr"
+    gr.write_buffers(frame, _frame())  # no godrays:light_px: the light is not known
+    gr.write_image(target, np.asarray(_target(light)))
+    return frame, target
+
+
+def _fit(*arguments) -> list[str]:
+    return ["fit", *map(str, arguments), "--preset", "xna_crepuscular", "--fixed", HELD, "--max-steps", "2"]
+
+
+def test_fit_light_auto_finds_the_light_and_apply_params_uses_it(tmp_path, capsys):
+    light = np.asarray(LIGHTS["on screen"])
+    frame, target = _files(tmp_path, light)
+    params = tmp_path / "params.json"
+    assert main([*_fit(frame, target, "-o", params), "--light", "auto"]) == 0
+    out = capsys.readouterr().out
+    (line,) = [line for line in out.splitlines() if line.startswith("light of")]
+    assert "from the target's halo" in line, out
+    (entry,) = json.loads((tmp_path / "params.light.json").read_text())["lights"]
+    assert entry["frame"] == "frame.exr" and entry["size"] == [WIDTH, HEIGHT]
+    assert np.linalg.norm(np.asarray(entry["light_px"]) - light) < 1.0, entry
+    assert all(0 < error < 0.5 for error in entry["standard_error_px"]), entry
+
+    output = tmp_path / "applied.exr"
+    assert main(["apply", str(frame), "--params", str(params), "-o", str(output)]) == 0
+    assert "from " + str(tmp_path / "params.light.json") in capsys.readouterr().out
+    drawn = gr.load_effect(params)(gr.read_buffers(frame), jnp.asarray(entry["light_px"], jnp.float32))
+    np.testing.assert_allclose(np.asarray(gr.read_image(output))[..., :3], np.asarray(drawn)[..., :3], atol=2e-3)
+
+
+def test_fit_light_refines_the_light_given_and_a_later_fit_without_it_removes_the_file(tmp_path, capsys):
+    light = np.asarray(LIGHTS["near an edge"])
+    frame, target = _files(tmp_path, light)
+    params, lights = tmp_path / "params.json", tmp_path / "params.light.json"
+    assert main([*_fit(frame, target, "-o", params), "--light", "5,11", "--fit-light"]) == 0
+    assert "refined from 5,11" in capsys.readouterr().out
+    (entry,) = json.loads(lights.read_text())["lights"]
+    assert np.linalg.norm(np.asarray(entry["light_px"]) - light) < 1.0, entry
+    assert main([*_fit(frame, target, "-o", params), "--light", "5,11"]) == 0
+    assert not lights.exists()  # its light was another fit's: apply --params must not read it
+
+
+def test_fit_light_errors_are_one_line_naming_the_argument(tmp_path, capsys):
+    frame, target = _files(tmp_path, LIGHTS["on screen"])
+    params = tmp_path / "params.json"
+    assert main([*_fit(frame, target, "-o", params), "--fit-light"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--light" in err and "stores no light position" in err, err
+    assert main([*_fit(frame, target, "-o", params), "--light", "3,4,behind", "--fit-light"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.endswith("fit without --fit-light") and "--fit-light: " in err, err
+    with pytest.raises(SystemExit) as exit_:
+        main([*_fit(frame, target, "-o", params), "--light", "somewhere"])
+    assert exit_.value.code == 2 and "--light" in capsys.readouterr().err
+    assert not params.exists() and not (tmp_path / "params.light.json").exists()

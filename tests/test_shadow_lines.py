@@ -118,6 +118,9 @@ def test_matches_shadow_rays_traced_in_3d(name):
         ))  # fmt: skip
 
     got = kernel(in_front)
+    # The light's side traced (a batch's frames, each its own side: the cells scanned in the light's order) reads
+    # as the side given as a Python bool.
+    np.testing.assert_allclose(kernel(jnp.asarray(in_front)), got, rtol=1e-6, atol=1e-6)
     # The scene casts shadows the loop sees, and the kernel agrees but at the slabs' edges.
     assert 0.03 < np.mean(expected < 0.5) < 0.95
     assert np.mean(np.abs(got - expected)) < 0.04, np.mean(np.abs(got - expected))

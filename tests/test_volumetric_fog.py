@@ -10,6 +10,7 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.effects.serialization import load_effect, save_effect
 from godrays_jax.effects.volumetric import march_factor
+from godrays_jax.kernels import silhouettes
 from godrays_jax.kernels.silhouettes import silhouette_mix
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.fit import fit
@@ -50,7 +51,7 @@ def test_effect_is_the_kernel_composited(rng):
         **dict(zip(("coverage", "uncovered_depth"), silhouette_mix(buffers.coverage, buffers.depth, buffers.color))),
         **colours, **kernel,
     )  # fmt: skip
-    np.testing.assert_allclose(effect(buffers, jnp.asarray(LIGHT), light_depth=20.0), expected, rtol=1e-6)
+    np.testing.assert_allclose(effect(buffers, jnp.asarray(LIGHT), light_depth=20.0), expected, rtol=1e-5)
     layer = effect.layer(buffers, jnp.asarray(LIGHT), light_depth=20.0)
     surface, _, _ = effect.terms(buffers, jnp.asarray(LIGHT), light_depth=20.0)
     np.testing.assert_allclose(buffers.color * surface[..., None] + layer, expected, rtol=1e-5, atol=1e-6)
@@ -83,6 +84,23 @@ def _filtered_edge(far_depth, covered):
     color[3, 5] = 50.0
     coverage = np.isfinite(depth)
     return tuple(jnp.asarray(a, jnp.float32) for a in (coverage, depth, color))
+
+
+@pytest.mark.parametrize("band_pixels", [16, 24, 40])
+def test_silhouettes_mixed_by_bands_of_rows_are_the_frames(rng, monkeypatch, band_pixels):
+    """On a larger frame the silhouettes are mixed a band of rows at a time, each with the rows around it: the same
+    shares and depths as the whole frame at once (bands of 2, 3 and 5 rows of 8, the last one partly filled, on a
+    frame whose every row has a silhouette between two surfaces or the sky)."""
+    covered = rng.uniform(0.1, 0.9, 13)
+    coverage, depth, color = _filtered_edge(30.0, covered)
+    depth = depth.at[2:5, 6].set(jnp.inf).at[9, 1].set(9.0)
+    coverage = coverage.at[11, 2].set(0.4)
+    whole = silhouette_mix(coverage, depth, color)
+    monkeypatch.setattr(silhouettes, "_BAND_PIXELS", band_pixels)
+    banded = silhouette_mix(coverage, depth, color)
+    for got, expected in zip(banded, whole):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(expected))
+    assert 0.0 < float(jnp.min(whole[0])) < 1.0 and np.isfinite(np.asarray(whole[1])).any()
 
 
 @pytest.mark.parametrize("far_depth", [np.inf, 30.0])

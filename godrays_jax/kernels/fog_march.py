@@ -28,7 +28,6 @@ from godrays_jax.kernels.bounded_medium import (
     irradiance_coordinate,
     irradiance_median,
     light_approach,
-    light_geometry,
     light_transmittance,
     medium_interval,
     optical_depth,
@@ -36,7 +35,6 @@ from godrays_jax.kernels.bounded_medium import (
     toward_light,
 )
 from godrays_jax.kernels.media import henyey_greenstein
-from godrays_jax.kernels.shadow_reading import ShadowReading, Slabs
 
 # A piece's segments are even in the transmittance of a homogeneous medium of the piece's optical depth, taken
 # at most this deep: beyond it the first segments are short enough, and float32 would lose the last bound's place.
@@ -44,17 +42,26 @@ _DEEPEST_PLACEMENT = 12.0
 
 
 class MarchedPieces(NamedTuple):
-    """March rays' pieces (`scattered_pieces`): each segment's light `lit` `(L, h, w, M)` (L pieces of M
-    segments), each piece's first and last bound `firsts`, `lasts` (scene units) and its optical depth
-    `opticals` (which places its bounds, `bound_fraction`), each `(L, h, w)`, and `even_in_light(distance, row,
-    col)`, a function of distances along the rays (rows and columns index them) even in the light's
-    irradiance."""
+    """March rays' pieces (`scattered_pieces`), L pieces of M segments on `(h, w)` rays: each segment's light
+    `lit` and the light of the piece's segments before it `lit_before` (`(L, h, w, M)`); each piece's first and
+    last bound `firsts`, `lasts` (scene units) and its optical depth `opticals` (which places its bounds,
+    `bound_fraction`), each `(L, h, w)`; each segment bound in a coordinate even in the light's irradiance
+    `light_bounds` (`(L, h, w, M + 1)`, `irradiance_coordinate`), and the rays' `light_approach` (`along`, `miss`,
+    `(h, w)`) with the light's `inverse` distance, for the same coordinate of any distance (`even_in_light`)."""
 
     lit: Float[Array, "L h w M"]
+    lit_before: Float[Array, "L h w M"]
     firsts: Float[Array, "L h w"]
     lasts: Float[Array, "L h w"]
     opticals: Float[Array, "L h w"]
-    even_in_light: Callable
+    light_bounds: Float[Array, "L h w M+1"]
+    along: Float[Array, "h w"]
+    miss: Float[Array, "h w"]
+    inverse: Float[Array, ""]
+
+    def even_in_light(self, distance, row, col):
+        """`irradiance_coordinate` of distances along the rays `(row, col)`."""
+        return irradiance_coordinate(distance, self.along[row, col], self.miss[row, col], self.inverse)
 
 
 def bound_fraction(fraction, optical):
@@ -105,23 +112,19 @@ def march_grid(light_xy, height, width, spacing, dtype):
 
 
 def scattered_pieces(
-    view, ray_ends, depth, light_xy, pixel_xy, *, fov_x_deg, light_depth, light_in_front, medium: BoundedMedium,
-    slabs: Slabs, shadows: ShadowReading, num_view_steps: int,
+    view, ray_ends, pixel_xy, *, toward, inverse, light_depth, medium: BoundedMedium, visibility: Callable,
+    num_view_steps: int,
 ) -> "MarchedPieces":
-    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`) in consecutive pieces, the
-    first from the medium's start up to `ray_ends[0]`, each next one from where the previous ended up to its own
-    end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium), each in `num_view_steps` segments
-    even in transmittance (`bound_fraction`): `(L, h, w, num_view_steps)`, each piece's first and last bound
-    (scene units, two `(L, h, w)`), its optical depth (`(L, h, w)`, which places its bounds) and a function
-    of a ray's distances that is even in the light's irradiance along it (`irradiance_coordinate` of the rays,
-    each `(h, w)`, indexed by rows and columns), as `MarchedPieces`. The pieces share each shadow reading of
-    the depth buffer."""
-    height, width = depth.shape
+    """Single scattering of the light along the rays `view` (unit, `(h, w, 3)`, through the pixel positions
+    `pixel_xy`) in consecutive pieces, the first from the medium's start up to `ray_ends[0]`, each next one from
+    where the previous ended up to its own end (`ray_ends`: a sequence of `(h, w)`, each clamped to the medium),
+    each in `num_view_steps` segments even in transmittance (`bound_fraction`), as `MarchedPieces`. `toward`,
+    `inverse`: the light's direction and inverse distance (`light_geometry`); `visibility`: the shadow's reading
+    (`shadow_reading`'s `reader`), which the pieces share."""
     dtype = view.dtype
-    toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     origin = jnp.zeros_like(view)
     fractions = jnp.arange(num_view_steps + 1, dtype=dtype) / num_view_steps
-    lower, upper, attenuated, firsts, lasts, opticals = [], [], [], [], [], []
+    all_bounds, attenuated, firsts, lasts, opticals = [], [], [], [], []
     previous = None
     for ray_end in ray_ends:
         start, end = medium_interval(origin, view, ray_end, **medium.extent)
@@ -135,10 +138,11 @@ def scattered_pieces(
         tau = optical_depth(
             origin[..., None, :], view[..., None, :], start[..., None], bounds, **medium.density
         )
-        lower.append(bounds[..., :-1])
-        upper.append(bounds[..., 1:])
+        all_bounds.append(bounds)
         attenuated.append(jnp.exp(-tau[..., :-1]) - jnp.exp(-tau[..., 1:]))
-    lower, upper, attenuated = (jnp.concatenate(parts, axis=-1) for parts in (lower, upper, attenuated))
+    lower, upper = (jnp.concatenate(parts, axis=-1) for parts in ([b[..., :-1] for b in all_bounds],
+                                                                  [b[..., 1:] for b in all_bounds]))  # fmt: skip
+    attenuated = jnp.concatenate(attenuated, axis=-1)
     along, miss = light_approach(view, toward, inverse)
     # What varies along a segment (the angle to the light, the shadow, the light's way in) is taken where its
     # light comes from: near a point light that is the ray's closest approach, not the segment's middle.
@@ -148,14 +152,11 @@ def scattered_pieces(
     to_light, _ = toward_light(points, toward, inverse)
     phase = henyey_greenstein(dot(view[..., None, :], to_light), anisotropy=medium.anisotropy)
     irradiance = segment_irradiance(view, lower, upper, toward, inverse)
-    visible = shadows.segment_visibility(
-        depth, light_xy, pixel_xy, lower, upper, middles, fov_x_deg=fov_x_deg, light_depth=light_depth,
-        light_in_front=light_in_front, slabs=slabs, max_distance=medium.max_distance,
-    )  # fmt: skip
+    visible = visibility(pixel_xy, lower, upper, middles)
     lit = attenuated * visible * dimmed * phase * irradiance
     pieces = jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0)
-
-    def even_in_light(distance, row, col):
-        return irradiance_coordinate(distance, along[row, col], miss[row, col], inverse)
-
-    return MarchedPieces(pieces, jnp.stack(firsts), jnp.stack(lasts), jnp.stack(opticals), even_in_light)
+    light_bounds = irradiance_coordinate(jnp.stack(all_bounds), along[..., None], miss[..., None], inverse)
+    return MarchedPieces(
+        pieces, jnp.cumsum(pieces, axis=-1) - pieces, jnp.stack(firsts), jnp.stack(lasts), jnp.stack(opticals),
+        light_bounds, along, miss, jnp.asarray(inverse, dtype),
+    )  # fmt: skip

@@ -55,6 +55,7 @@ Memory is `num_lines * num_bins` times the cells a line has (its length over
 
 import functools
 import math
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -206,7 +207,8 @@ def _face_deltas(start, width, s_min, log_step, num_bins):
 
 def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins, in_front):
     """Each cell's coverage at the bins, the maximum of its texels' blend from the light out to it:
-    `(cells, num_lines, num_bins)`."""
+    `(cells, num_lines, num_bins)`, and whether its cells are stored last first (a bool, traced when `in_front`
+    is)."""
     height, width = depth.shape
     dtype = depth.dtype
     x, y = lines.positions(0.0)
@@ -243,9 +245,12 @@ def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s
 
     start = jnp.zeros((num_lines, num_bins), dtype)
     if isinstance(in_front, bool):
-        return jax.lax.scan(along_line, start, (index, change), reverse=not in_front)[1]
-    outward, inward = (jax.lax.scan(along_line, start, (index, change), reverse=reverse)[1] for reverse in (False, True))
-    return jnp.where(in_front, outward, inward)
+        return jax.lax.scan(along_line, start, (index, change), reverse=not in_front)[1], False
+    # A light whose side is traced (a batch's frames, each its own): one scan outward over the cells taken in the
+    # light's order, inward ones reversed, instead of a scan each way and a choice between two tables.
+    inward = jnp.logical_not(in_front)
+    index, change = (jnp.where(inward, values[::-1], values) for values in (index, change))
+    return jax.lax.scan(along_line, start, (index, change))[1], inward
 
 
 def _prefix_integral(covered, s_min, log_step):
@@ -333,9 +338,24 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
     """`segment_visibility_by_lines` after its checks, compiled once per shape and count (called eagerly, a scan
     over a function defined in the call would be traced and compiled again on every call); `static_front`: the
     light's side when the caller gave it as a Python bool, else None (`light_in_front` traced)."""
+    read = lines_reader(
+        depth, light_xy, fov_x_deg=fov_x_deg, light_depth=light_depth,
+        light_in_front=light_in_front if static_front is None else static_front, thickness=thickness,
+        edge_softness=edge_softness, max_distance=max_distance, num_lines=num_lines, num_bins=num_bins, cell_px=cell_px,
+    )  # fmt: skip
+    return read(pixel_xy, lower, upper)
+
+
+def lines_reader(
+    depth, light_xy, *, fov_x_deg, light_depth, light_in_front, thickness, edge_softness, max_distance, num_lines,
+    num_bins, cell_px,
+) -> Callable[[Array, Array, Array], Array]:
+    """The lines' table of a frame (`depth` in the caller's dtype, `light_xy` as `segment_visibility_by_lines`
+    takes them, checked), and the function `read(pixel_xy, lower, upper)` that reads segments from it: built once,
+    read by every band of a march. `light_in_front` a Python bool or a traced one."""
     height, width = depth.shape
     dtype = depth.dtype
-    in_front = light_in_front if static_front is None else static_front
+    in_front = light_in_front
     focal = focal_length_px(width, fov_x_deg, dtype)
     toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, in_front, dtype)
     centre = jnp.asarray([0.5 * width, 0.5 * height], dtype)
@@ -349,8 +369,8 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
     log_step = math.log(_BIN_SPAN) / (num_bins - 1)
     thickness = jnp.asarray(thickness, dtype)
     softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
-    covered = _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins,
-                              in_front)  # fmt: skip
+    covered, reversed_cells = _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min,
+                                              log_step, num_bins, in_front)  # fmt: skip
 
     def read(pixel_xy, lower, upper):
         """The visibility of the segments `[lower, upper]` (`(n, M)`) of the rays through `pixel_xy` (`(n, 2)`)."""
@@ -359,8 +379,13 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
         line0, cell0 = jnp.floor(line), jnp.floor(cell)
         line_frac, cell_frac = (line - line0)[..., None], (cell - cell0)[..., None]
         line0, cell0 = line0.astype(jnp.int32), cell0.astype(jnp.int32)
+
+        def stored(cell):  # where the table holds a cell
+            cell = cell.clip(0, cells - 1)
+            return jnp.where(reversed_cells, cells - 1 - cell, cell)
+
         corners = [
-            ((cell0 + dc).clip(0, cells - 1) * num_lines + (line0 + dl) % num_lines, wl * wc)
+            (stored(cell0 + dc) * num_lines + (line0 + dl) % num_lines, wl * wc)
             for dl, wl in ((0, 1.0 - line_frac), (1, line_frac))
             for dc, wc in ((0, 1.0 - cell_frac), (1, cell_frac))
         ]
@@ -394,8 +419,18 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
         mean = (prefix_at(b_high) - prefix_at(b_low)) / jnp.maximum(span, 1e-30)
         return 1.0 - jnp.clip(mean, 0.0, 1.0)
 
-    # The pixels read a chunk at a time: each reads four rows of the table, `num_bins` values each (and in a fit's
-    # Jacobian as many again per lane), which for a whole frame would outweigh the table itself.
+    def read_in_chunks(pixel_xy, lower, upper):
+        """`read` of `(h, w, ...)` pixels a chunk at a time: each pixel reads four rows of the table, `num_bins`
+        values each (and in a fit's Jacobian as many again per lane), which for a whole frame would outweigh the
+        table itself."""
+        return _in_chunks(read, pixel_xy, lower, upper)
+
+    return read_in_chunks
+
+
+def _in_chunks(read, pixel_xy, lower, upper):
+    """`read(pixel_xy, lower, upper)` of `(n, 2)`, `(n, M)`, `(n, M)` applied to `(h, w, ...)` arrays
+    `_READ_CHUNK` pixels at a time."""
     shape = lower.shape
     count = shape[0] * shape[1]
     flat = [pixel_xy.reshape(count, 2), lower.reshape(count, -1), upper.reshape(count, -1)]

@@ -12,11 +12,12 @@ each.
 """
 
 import math
+from collections.abc import Callable
 
 import equinox as eqx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.kernels.shadow_lines import segment_visibility_by_lines
+from godrays_jax.kernels.shadow_lines import default_cell_px, lines_reader
 from godrays_jax.kernels.shadow_samples import segment_visibility
 from godrays_jax.primitives.checks import check_scalar, is_static_int
 
@@ -40,32 +41,30 @@ def _check_count(value, name: str, smallest: int) -> None:
 
 
 class _Reading(eqx.Module):
-    """What the two readings share: how the fog asks for a segment's visibility."""
+    """What the two readings share: how the fog asks for its segments' visibility."""
 
-    def segment_visibility(
+    def reader(
         self,
         depth: Float[Array, "H W"],
-        light_xy: Float[ArrayLike, "2"],
-        pixel_xy: Float[Array, "h w 2"],
-        lower: Float[Array, "h w M"],
-        upper: Float[Array, "h w M"],
-        middles: Float[Array, "h w M"],
+        light_xy: Float[Array, "2"],
         *,
         fov_x_deg: Float[ArrayLike, ""],
         light_depth: Float[ArrayLike, ""] = math.inf,
         light_in_front: Bool[ArrayLike, ""] | bool = True,
         slabs: Slabs,
         max_distance: Float[ArrayLike, ""],
-    ) -> Float[Array, "h w M"]:
-        """How much of the light reaches each segment `[lower, upper]` (scene units) of the view rays through
-        `pixel_xy` (pixels), in [0, 1]: `ShadowSamples` reads it at `middles` (the distances where each segment's
-        light comes from), `ShadowLines` over the whole segment, its bins reaching the largest shadow ray inside
-        the medium's radius `max_distance`."""
+    ) -> Callable[[Array, Array, Array, Array], Array]:
+        """The function `visibility(pixel_xy, lower, upper, middles)`: how much of the light reaches each segment
+        `[lower, upper]` (`(h, w, M)`, scene units) of the view rays through `pixel_xy` (`(h, w, 2)`, pixels), in
+        [0, 1]. `ShadowSamples` reads it at `middles` (the distances where each segment's light comes from),
+        `ShadowLines` over the whole segment, its bins reaching the largest shadow ray inside the medium's radius
+        `max_distance`, from one table of the frame that every call reads (a march in bands builds it once).
+        `depth` and `light_xy` in the caller's floating dtype, checked by the caller."""
         light = dict(
             fov_x_deg=fov_x_deg, light_depth=light_depth, light_in_front=light_in_front, thickness=slabs.thickness,
             edge_softness=slabs.edge_softness,
         )  # fmt: skip
-        return self._read(depth, light_xy, pixel_xy, (lower, upper, middles), max_distance, light)
+        return self._reader(depth, light_xy, max_distance, light)
 
 
 class ShadowSamples(_Reading):
@@ -77,9 +76,11 @@ class ShadowSamples(_Reading):
     def __check_init__(self):
         _check_count(self.count, "the shadow samples' count", 1)
 
-    def _read(self, depth, light_xy, pixel_xy, segments, max_distance, light):
-        _, _, middles = segments
-        return segment_visibility(depth, light_xy, pixel_xy, middles, num_shadow_samples=self.count, **light)
+    def _reader(self, depth, light_xy, max_distance, light):
+        def visibility(pixel_xy, lower, upper, middles):
+            return segment_visibility(depth, light_xy, pixel_xy, middles, num_shadow_samples=self.count, **light)
+
+        return visibility
 
 
 class ShadowLines(_Reading):
@@ -94,12 +95,16 @@ class ShadowLines(_Reading):
         _check_count(self.num_lines, "num_lines", 2)
         _check_count(self.num_bins, "num_bins", 2)
 
-    def _read(self, depth, light_xy, pixel_xy, segments, max_distance, light):
-        lower, upper, _ = segments
-        return segment_visibility_by_lines(
-            depth, light_xy, pixel_xy, lower, upper, max_distance=max_distance, num_lines=self.num_lines,
-            num_bins=self.num_bins, **light,
+    def _reader(self, depth, light_xy, max_distance, light):
+        read = lines_reader(
+            depth, light_xy, max_distance=max_distance, num_lines=self.num_lines, num_bins=self.num_bins,
+            cell_px=default_cell_px(*depth.shape), **light,
         )  # fmt: skip
+
+        def visibility(pixel_xy, lower, upper, middles):
+            return read(pixel_xy, lower, upper)
+
+        return visibility
 
 
 ShadowReading = ShadowSamples | ShadowLines

@@ -22,6 +22,8 @@ _FILTER_SPILL = 0.15
 _UNMIX_CONTRAST, _UNMIX_RAMP, _UNMIX_FLOOR = 3.0, 3.0, 0.002
 # Depths within this fraction of a surface's depth belong to that surface (silhouette_mix).
 _SAME_SURFACE = 0.05
+# The pixels mixed at once on a large frame (`silhouette_mix`: whole rows).
+_BAND_PIXELS = 1 << 17
 # Two surfaces meet at a silhouette where a neighbour's depth is this many times the pixel's, or less than 1 / it.
 _SILHOUETTE_RATIO = 1.1
 
@@ -116,21 +118,56 @@ def silhouette_mix(
     """
     hard = jnp.all(coverage == jnp.isfinite(depth).astype(coverage.dtype))
     height, width = coverage.shape
+    band = max(_BAND_PIXELS // width, 1)
+    if band >= height:
+        return _mix(coverage, depth, color, hard)
+    # Band by band, each with the rows around it: every pixel reads only its eight neighbours, and the planes of a
+    # whole frame at once (each neighbour's, for every step of the medians) outweighed the fog itself. The frame's
+    # first and last rows repeated above and below it are what the whole frame's edge padding reads; the rows that
+    # fill the last band repeat its last and are cut off again.
+    bands = -(-height // band)
+    pad = [(1, bands * band - height + 1)]
+
+    def padded(plane):
+        return jnp.pad(plane, pad + [(0, 0)] * (plane.ndim - 1), mode="edge")
+
+    planes = [padded(plane) for plane in (coverage, depth, color)]
+
+    def one_band(first_row):
+        rows = [jax.lax.dynamic_slice_in_dim(plane, first_row, band + 2) for plane in planes]
+        return [term[1:-1] for term in _mix(*rows, hard)]
+
+    mixed, uncovered = jax.lax.map(one_band, jnp.arange(bands) * band)
+    return mixed.reshape(bands * band, width)[:height], uncovered.reshape(bands * band, width)[:height]
+
+
+def _mix(coverage, depth, color, hard):
+    """`silhouette_mix` of a whole frame or of a band of rows with the rows around it, `hard` the frame's."""
+    height, width = coverage.shape
     padded = jnp.pad(coverage, 1, mode="edge")
     taps = (_FILTER_SPILL, 1.0 - 2.0 * _FILTER_SPILL, _FILTER_SPILL)
     spread = sum(
         wy * wx * padded[dy : dy + height, dx : dx + width] for dy, wy in enumerate(taps) for dx, wx in enumerate(taps)
     )  # fmt: skip
     at_sky = jnp.where(hard, spread, coverage)
-    around = jnp.stack(_neighbours(depth))
+    # The neighbours one plane at a time, never stacked: on a large frame eight planes at once outweighed the rest.
+    around = _neighbours(depth)
     finite = jnp.isfinite(depth)
-    surface_depth = jnp.where(finite, depth, jnp.min(around, axis=0))
-    beside_sky = ~finite | ~jnp.all(jnp.isfinite(around), axis=0)
-    both = finite & jnp.isfinite(around)
-    ratio = jax.lax.stop_gradient(jnp.where(both, around, 1.0) / jnp.where(finite, depth, 1.0))
-    unlike = jnp.where(both, jnp.abs(jnp.log(ratio)), 0.0)
-    other = jnp.take_along_axis(around, jnp.argmax(unlike, axis=0)[None], axis=0)[0]
-    between_surfaces = ~beside_sky & (jnp.max(unlike, axis=0) > math.log(_SILHOUETTE_RATIO))
+    surface_depth = jnp.where(finite, depth, functools.reduce(jnp.minimum, around))
+    beside_sky = ~finite | ~functools.reduce(jnp.logical_and, [jnp.isfinite(a) for a in around])
+    own = jnp.where(finite, depth, 1.0)
+    # The neighbour most unlike the pixel (the first of equals), by the log of their depths' ratio.
+    most_unlike, other = None, None
+    for neighbour in around:
+        both = finite & jnp.isfinite(neighbour)
+        ratio = jax.lax.stop_gradient(jnp.where(both, neighbour, 1.0) / own)
+        unlike = jnp.where(both, jnp.abs(jnp.log(ratio)), 0.0)
+        if most_unlike is None:
+            most_unlike, other = unlike, neighbour
+        else:
+            further = unlike > most_unlike
+            most_unlike, other = jnp.where(further, unlike, most_unlike), jnp.where(further, neighbour, other)
+    between_surfaces = ~beside_sky & (most_unlike > math.log(_SILHOUETTE_RATIO))
     uncovered_depth = jnp.where(between_surfaces, other, jnp.inf)
     # The shares are read off the frame, not fitted: no gradient flows through them into the colour or the depth.
     brightness = jnp.mean(color[..., :3].astype(coverage.dtype), axis=-1)

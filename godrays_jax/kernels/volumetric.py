@@ -80,11 +80,11 @@ from godrays_jax.kernels.bounded_medium import (
     optical_depth,
     scattering_height,
 )
-from godrays_jax.kernels.fog_march import march_grid, scattered_pieces
+from godrays_jax.kernels.fog_march import MarchedPieces, march_grid, scattered_pieces
 from godrays_jax.kernels.fog_reading import upsample_by_depth
 from godrays_jax.kernels.lens import rays_through, view_directions
 from godrays_jax.kernels.shadow_reading import ShadowReading, ShadowSamples, Slabs
-from godrays_jax.primitives.camera import focal_length_px
+from godrays_jax.primitives.camera import focal_length_px, unit_vectors
 from godrays_jax.primitives.checks import (
     check_image,
     check_light,
@@ -108,6 +108,43 @@ def _covering_depth(depth):
         jnp.minimum, [padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3)]
     )  # fmt: skip
     return jnp.where(jnp.isfinite(depth), depth, nearest)
+
+
+def _march_in_bands(depth, xs, ys, spacing, focal, band, medium, march_options):
+    """The march rays at `(xs, ys)` (`march_grid`), `band` rows of them at a time (their segments' arrays held for a
+    band instead of the grid), each marched through to the medium's end in two pieces split at its own surface:
+    `MarchedPieces` of the whole grid. The rows that fill the last band continue the grid and are cut off again."""
+    height, width = depth.shape
+    dtype = depth.dtype
+    rows = ys.shape[0]
+    bands = -(-rows // band)
+
+    def march_band(first):
+        y = ys[0] + spacing * (first + jnp.arange(band)).astype(dtype)
+        x, y = jnp.meshgrid(xs, y)
+        # Each march ray's own depth: the texel it lies in (clamped to the frame: the margin's rays).
+        texel_rows = jnp.clip(jnp.floor(y), 0, height - 1).astype(jnp.int32)
+        texel_cols = jnp.clip(jnp.floor(x), 0, width - 1).astype(jnp.int32)
+        ray_depth = depth[texel_rows, texel_cols]
+        rays = unit_vectors(rays_through(x, y, height, width, focal))
+        # Each ray through to the medium's end in two pieces split at its own surface, so its segments are fine
+        # up to there; a pixel reads every nearby ray up to its own depth, whatever surface the ray met (sky in a
+        # gap narrower than the spacing, a trunk's edge sliding under the ray). A sky ray's split, halfway, moves
+        # with the medium's extent as every segment bound does, so derivatives agree with the frame's change.
+        sky = jnp.full_like(ray_depth, jnp.inf)
+        start, end = medium_interval(jnp.zeros_like(rays), rays, sky, **medium.extent)
+        split = jnp.where(ray_depth < end, ray_depth, 0.5 * (start + end))
+        return scattered_pieces(rays, (split, sky), jnp.stack([x, y], axis=-1), **march_options)
+
+    marched = jax.lax.map(march_band, jnp.arange(bands) * band)
+
+    def whole(values, row_axis):  # (bands, ..., band, ...) -> (..., rows, ...)
+        values = jnp.moveaxis(values, 0, row_axis - 1)
+        values = values.reshape(*values.shape[: row_axis - 1], bands * band, *values.shape[row_axis + 1 :])
+        return jax.lax.slice_in_dim(values, 0, rows, axis=row_axis - 1)
+
+    per_piece = [whole(values, 2) for values in marched[:6]]
+    return MarchedPieces(*per_piece, whole(marched.along, 1), whole(marched.miss, 1), marched.inverse[0])
 
 
 def volumetric_fog_terms(
@@ -201,8 +238,7 @@ def volumetric_fog_terms(
     # reach through every use of the light's distance, the shadows' table among them, in a fit's Jacobian).
     nearest = jax.lax.stop_gradient(_NEAREST_LIGHT * jnp.asarray(medium.max_distance, dtype))
     light_depth = jnp.maximum(jnp.asarray(light_depth, dtype), nearest)
-    view = view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype)
-    toward, _ = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
+    toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     share = jnp.asarray(direct_fraction, dtype)
     rise = jnp.asarray(ambient_rise, dtype)
 
@@ -217,48 +253,40 @@ def volumetric_fog_terms(
         ambient = jnp.maximum(opacity + rise * scattering_height(view, start, end, tau), 0.0)
         return (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0), ambient
 
-    march_options = dict(
-        fov_x_deg=fov_x_deg, light_depth=light_depth, light_in_front=light_in_front, medium=medium, slabs=slabs,
-        shadows=shadows, num_view_steps=num_view_steps,
+    visibility = shadows.reader(
+        depth, jnp.asarray(light_xy, dtype), fov_x_deg=fov_x_deg, light_depth=light_depth,
+        light_in_front=light_in_front, slabs=slabs, max_distance=medium.max_distance,
     )  # fmt: skip
+    march_options = dict(
+        toward=toward, inverse=inverse, light_depth=light_depth, medium=medium, visibility=visibility,
+        num_view_steps=num_view_steps,
+    )  # fmt: skip
+    focal = focal_length_px(width, fov_x_deg, dtype)
     spacing = resolution_factor
+    band = max(_BAND_PIXELS // width, 1)
     if spacing == 1:
         x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, jnp.arange(height, dtype=dtype) + 0.5)
 
-        def march(ray_end, first_row):  # the whole frame: every pixel's own ray
-            marched = scattered_pieces(view, (ray_end,), depth, light_xy, jnp.stack([x, y], axis=-1), **march_options)
+        def march(view, ray_end, first_row):  # the whole frame: every pixel's own ray
+            marched = scattered_pieces(view, (ray_end,), jnp.stack([x, y], axis=-1), **march_options)
             return jnp.sum(marched.lit[0], axis=-1)
 
     else:
         xs, ys = march_grid(light_xy, height, width, spacing, dtype)
-        x, y = jnp.meshgrid(xs, ys)
-        # Each march ray's own depth: the texel it lies in (clamped to the frame: the margin's rays).
-        rows = jnp.clip(jnp.floor(y), 0, height - 1).astype(jnp.int32)
-        cols = jnp.clip(jnp.floor(x), 0, width - 1).astype(jnp.int32)
-        coarse_depth = depth[rows, cols]
-        rays = rays_through(x, y, height, width, focal_length_px(width, fov_x_deg, dtype))
-        rays = rays / jnp.linalg.norm(rays, axis=-1, keepdims=True)
-        # Each ray through to the medium's end in two pieces split at its own surface, so its segments are fine
-        # up to there; a pixel reads every nearby ray up to its own depth, whatever surface the ray met (sky in a
-        # gap narrower than the spacing, a trunk's edge sliding under the ray). A sky ray's split, halfway, moves with the
-        # medium's extent as every segment bound does, so derivatives agree with the frame's change.
-        sky = jnp.full_like(coarse_depth, jnp.inf)
-        start, end = medium_interval(jnp.zeros_like(rays), rays, sky, **medium.extent)
-        split = jnp.where(coarse_depth < end, coarse_depth, 0.5 * (start + end))
-        marched = scattered_pieces(rays, (split, sky), depth, light_xy, jnp.stack([x, y], axis=-1), **march_options)
+        marched = _march_in_bands(depth, xs, ys, spacing, focal, max(_BAND_PIXELS // xs.shape[0], 1), medium, march_options)
 
-        def march(ray_end, first_row):
+        def march(view, ray_end, first_row):
             return upsample_by_depth(marched, ray_end, xs, ys, spacing, first_row)
 
     def pixel_terms(view, first_row, surface_depth, covered, uncovered):
         """The three terms at the rows of `view` from `first_row` on."""
         surface, ambient = surface_and_ambient(view, surface_depth)
-        on_surface = (surface, march(surface_depth, first_row), ambient)
+        on_surface = (surface, march(view, surface_depth, first_row), ambient)
         if covered is None:
             return on_surface
         # A silhouette's pixel is partly the surface (on sky: its nearest neighbour's) and partly what lies beside it.
         surface, ambient = surface_and_ambient(view, uncovered)
-        on_sky = (surface, march(uncovered, first_row), ambient)
+        on_sky = (surface, march(view, uncovered, first_row), ambient)
         return tuple(covered * one + (1.0 - covered) * other for one, other in zip(on_surface, on_sky))
 
     if coverage is None:
@@ -266,20 +294,25 @@ def volumetric_fog_terms(
     else:
         uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
         planes = (_covering_depth(depth), jnp.asarray(coverage, dtype), uncovered)
-    band = max(_BAND_PIXELS // width, 1)
     if spacing == 1 or band >= height:
-        return pixel_terms(view, 0, *planes)
+        return pixel_terms(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), 0, *planes)
     # Band by band: every pixel's reads of its rays (in a fit's Jacobian, in every lane) held for a band of rows at
-    # a time instead of the frame. The rows that fill the last band repeat the frame's last (pixels like its own,
-    # whose derivatives are finite: reverse mode multiplies theirs by zero) and are cut off again.
+    # a time instead of the frame. The rows that fill the last band repeat the frame's last planes on rays below it
+    # (pixels like its own, whose derivatives are finite: reverse mode multiplies theirs by zero) and are cut off.
     bands = -(-height // band)
 
     def in_bands(plane):
         padded = jnp.pad(plane, [(0, bands * band - height)] + [(0, 0)] * (plane.ndim - 1), mode="edge")
         return padded.reshape(bands, band, *plane.shape[1:])
 
-    inputs = [in_bands(view), jnp.arange(bands) * band, *[None if plane is None else in_bands(plane) for plane in planes]]
-    terms = jax.lax.map(lambda rows: pixel_terms(*rows), inputs)
+    def band_terms(inputs):
+        first_row, *band_planes = inputs
+        x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, (first_row + jnp.arange(band)).astype(dtype) + 0.5)
+        view = unit_vectors(rays_through(x, y, height, width, focal))
+        return pixel_terms(view, first_row, *band_planes)
+
+    inputs = [jnp.arange(bands) * band, *[None if plane is None else in_bands(plane) for plane in planes]]
+    terms = jax.lax.map(band_terms, inputs)
     return tuple(term.reshape(bands * band, width)[:height] for term in terms)
 
 

@@ -297,6 +297,10 @@ def frames_function(
     def apply(buffers: Buffers, lights: Float[Array, "G 2"], in_front: Bool[Array, " G"]) -> Float[Array, "G H W C"]:
         if traces is not None:
             traces["frames"] += 1
+        if lights.shape[0] == 1:
+            # A group of one frame (one device): its program without the group's axis, whose batched gathers and
+            # loops XLA runs about half as fast on the CPU (benchmarks/README.md, "The fit as users run it").
+            return one_frame(jax.tree.map(lambda leaf: leaf[0], buffers), lights[0], in_front[0])[None]
         return jax.vmap(one_frame)(buffers, lights, in_front)
 
     if not stored:

@@ -567,29 +567,35 @@ def test_reduced_resolution_matches_loop(x64):
     np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
 
 
-@pytest.mark.parametrize("band_pixels", [40, 64])
+@pytest.mark.parametrize("band_pixels", [20, 40])
 def test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives(x64, monkeypatch, band_pixels):
-    """On a larger frame the pixels read the march rays a band of rows at a time (`_BAND_PIXELS`): the same terms
-    and derivatives as the whole frame at once, with a last band the frame's rows fill only partly (13 rows in
-    bands of 3 or 5) and a partly covered frame."""
+    """On a larger frame the rays are marched and the pixels read them a band of rows at a time (`_BAND_PIXELS`):
+    the same terms and derivatives as the whole frame at once, with last bands the rows fill only partly (12 rows in
+    bands of 1 or 3 pixel rows, 7 rays' rows in bands of 2 or 5) and a partly covered frame."""
     light_xy, light_depth, in_front = CASES["point light off screen"]
     depth = np.repeat(np.repeat(np.asarray(_depth()), 3, axis=0), 2, axis=1)[:13]  # 13 x 12
     coverage = jnp.asarray(np.isfinite(depth) * 0.75 + 0.25)
     fields = jnp.asarray([MEDIUM["extinction"], MEDIUM["max_distance"]])
 
-    def terms(values):
-        options = {**MEDIUM, "extinction": values[0], "max_distance": values[1]}
-        return jnp.stack(volumetric_fog_terms(
-            jnp.asarray(depth), light_xy, light_depth=light_depth, light_in_front=in_front, resolution_factor=2.5,
-            coverage=coverage, **kernel_options(options),
-        ))  # fmt: skip
+    def evaluated():
+        """The terms and their derivatives, traced afresh (a function jitted before would keep its first trace)."""
 
-    def derivatives(values):  # forward and reverse mode, as a fit and a user's grad take them
-        return jax.jacfwd(terms)(values), jax.jacrev(terms)(values)
+        def terms(values):
+            options = {**MEDIUM, "extinction": values[0], "max_distance": values[1]}
+            return jnp.stack(volumetric_fog_terms(
+                jnp.asarray(depth), light_xy, light_depth=light_depth, light_in_front=in_front, resolution_factor=2.5,
+                coverage=coverage, **kernel_options(options),
+            ))  # fmt: skip
 
-    whole = *jax.jit(derivatives)(fields), jax.jit(terms)(fields)
-    monkeypatch.setattr(volumetric, "_BAND_PIXELS", band_pixels)  # bands of 3 or 5 rows of 12 pixels
-    banded = *jax.jit(derivatives)(fields), jax.jit(terms)(fields)
+        def derivatives(values):  # forward and reverse mode, as a fit and a user's grad take them
+            return jax.jacfwd(terms)(values), jax.jacrev(terms)(values)
+
+        return *jax.jit(derivatives)(fields), jax.jit(terms)(fields)
+
+    whole = evaluated()
+    # Bands of 1 or 3 rows of 12 pixels, the march's of 2 or 5 rows of its 7 rays.
+    monkeypatch.setattr(volumetric, "_BAND_PIXELS", band_pixels)
+    banded = evaluated()
     for got, expected in zip(banded, whole):
         np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-10, atol=1e-12)
     assert np.all(np.isfinite(np.asarray(banded[0]))) and float(jnp.max(jnp.abs(banded[0]))) > 0

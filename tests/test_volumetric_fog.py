@@ -186,15 +186,16 @@ def test_silhouette_mix_matches_a_loop(rng, with_pass):
 
 def test_march_spacing_is_a_fraction_of_the_frame():
     """`resolution_factor` pixels up to 320 on the frame's larger side, beyond it as large a fraction of that side (at
-    most 4 x), on any frame size; 1 too (every pixel's own ray up to 320)."""
+    most 6 x: 1920 pixels), on any frame size; 1 too (every pixel's own ray up to 320)."""
     assert march_factor(180, 320, 4) == march_factor(90, 160, 4) == 4
     assert march_factor(270, 480, 4) == 6
     assert march_factor(360, 640, 4) == 8
     assert march_factor(181, 321, 8) == pytest.approx(8 * 321 / 320)
-    assert march_factor(1080, 1920, 4) == 16
+    assert march_factor(1080, 1920, 4) == 24
+    assert march_factor(2160, 3840, 4) == 24
     assert march_factor(180, 320, 1) == march_factor(90, 160, 1) == 1
     assert march_factor(270, 480, 1) == 1.5
-    assert march_factor(1080, 1920, 1) == 4
+    assert march_factor(1080, 1920, 1) == 6
 
 
 def test_gradients_reach_every_medium_field_with_surfaces_beyond_the_medium(rng):

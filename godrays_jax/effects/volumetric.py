@@ -26,8 +26,8 @@ from godrays_jax.kernels.volumetric import (
 from godrays_jax.primitives.checks import check_light
 
 # On frames larger than `REFERENCE_SIDE` the march rays keep their fraction of the frame, so a preset looks and costs
-# the same, up to this many times farther apart.
-_MAX_SPACING_SCALE = 4.0
+# the same, up to this many times farther apart: a 1920-pixel frame samples as a 320-pixel one, a larger one finer.
+_MAX_SPACING_SCALE = 6.0
 # The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines, and
 # the share of the lines it reads (all the bins: with half, thin slats' shadows fit worse).
 _STAND_IN_FACTOR = 4
@@ -38,7 +38,7 @@ def march_factor(height: int, width: int, resolution_factor: int) -> float:
     """The march rays' spacing in pixels on a `height x width` frame (`kernels.volumetric`'s `resolution_factor`).
 
     `resolution_factor` pixels on a frame up to 320 pixels on its larger side; on a larger frame the same
-    fraction of that side, at most 4 x `resolution_factor` pixels. 1 is no exception: every pixel's own ray up
+    fraction of that side, at most 6 x `resolution_factor` pixels. 1 is no exception: every pixel's own ray up
     to 320 pixels, as far apart as a pixel of such a frame beyond (`volumetric_haze`'s shadows read along
     lines need rays that close to hold still, and look the same at any size).
     """
@@ -117,6 +117,9 @@ class VolumetricFog(Effect):
     FIELD_STAGES: ClassVar[dict[str, str]] = {
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
+        # Of the march's fields only the field of view reaches the shadows' table: in a stage of its own, the
+        # medium's lanes skip the table where a frame without its camera has it fitted.
+        "fov_x_deg": "camera",
     }  # fmt: skip
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
 

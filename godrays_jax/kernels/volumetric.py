@@ -117,6 +117,7 @@ def _march_in_bands(depth, xs, ys, spacing, focal, band, medium, march_options):
     height, width = depth.shape
     dtype = depth.dtype
     rows = ys.shape[0]
+    band = min(band, rows)
     bands = -(-rows // band)
 
     def march_band(first):

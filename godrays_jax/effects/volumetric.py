@@ -117,9 +117,6 @@ class VolumetricFog(Effect):
     FIELD_STAGES: ClassVar[dict[str, str]] = {
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
-        # Of the march's fields only the field of view reaches the shadows' table: in a stage of its own, the
-        # medium's lanes skip the table where a frame without its camera has it fitted.
-        "fov_x_deg": "camera",
     }  # fmt: skip
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
 

@@ -43,8 +43,7 @@ _DEEPEST_PLACEMENT = 12.0
 
 class MarchedPieces(NamedTuple):
     """March rays' pieces (`scattered_pieces`), L pieces of M segments on `(h, w)` rays: each segment's light
-    `lit` and the light of the ray's segments before it `lit_before` (`(L, h, w, M)`: the earlier pieces' and its
-    own piece's); each piece's first and
+    `lit` and the light of the piece's segments before it `lit_before` (`(L, h, w, M)`); each piece's first and
     last bound `firsts`, `lasts` (scene units) and its optical depth `opticals` (which places its bounds,
     `bound_fraction`), each `(L, h, w)`; each segment bound in a coordinate even in the light's irradiance
     `light_bounds` (`(L, h, w, M + 1)`, `irradiance_coordinate`), and the rays' `light_approach` (`along`, `miss`,
@@ -157,10 +156,7 @@ def scattered_pieces(
     lit = attenuated * visible * dimmed * phase * irradiance
     pieces = jnp.moveaxis(lit.reshape(*lit.shape[:-1], len(ray_ends), num_view_steps), -2, 0)
     light_bounds = irradiance_coordinate(jnp.stack(all_bounds), along[..., None], miss[..., None], inverse)
-    # The light of every segment before each one along its ray: the earlier pieces' whole, then its own piece's.
-    whole = jnp.sum(pieces, axis=-1)
-    before = jnp.cumsum(pieces, axis=-1) - pieces + (jnp.cumsum(whole, axis=0) - whole)[..., None]
     return MarchedPieces(
-        pieces, before, jnp.stack(firsts), jnp.stack(lasts), jnp.stack(opticals),
+        pieces, jnp.cumsum(pieces, axis=-1) - pieces, jnp.stack(firsts), jnp.stack(lasts), jnp.stack(opticals),
         light_bounds, along, miss, jnp.asarray(inverse, dtype),
     )  # fmt: skip

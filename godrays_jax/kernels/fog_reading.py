@@ -15,13 +15,12 @@ from godrays_jax.kernels.fog_march import MarchedPieces, segment_fraction
 from godrays_jax.primitives.sampling import bilinear_corners
 
 
-def read_at_depth(marched: MarchedPieces, row, col, ray_end):
-    """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to the rays' pieces) from
-    `marched`: the segments before it whole, the segment holding it taken in proportion to the light it receives
-    up to there (in the coordinate even in the light's irradiance: a point light's falls off within a segment
-    near it). Each ray's pieces follow one another, so one piece holds `ray_end` (the last one beyond them)."""
-    pieces, _, _, count = marched.lit.shape
-    piece = sum((ray_end > marched.lasts[k, row, col]).astype(jnp.int32) for k in range(pieces - 1))
+def read_at_depth(marched: MarchedPieces, piece: int, row, col, ray_end):
+    """The in-scattering along the march rays `(row, col)` up to `ray_end` (clamped to the piece's bounds) from
+    the segments of piece `piece` of `marched`, the segment holding `ray_end` taken in proportion to the light it
+    receives up to there (in the coordinate even in the light's irradiance: a point light's falls off within a
+    segment near it)."""
+    count = marched.lit.shape[-1]
     first, last, optical = (values[piece, row, col] for values in (marched.firsts, marched.lasts, marched.opticals))
     distance = jnp.clip(ray_end, first, last)
     # `last >= first`; an empty piece reads 0 at its start. Not `safe_divide`: its select on `|last - first|`
@@ -44,9 +43,10 @@ def upsample_by_depth(marched: MarchedPieces, ray_end, xs, ys, spacing, first_ro
     piece's end takes the piece whole with the piece's own derivatives), by bilinear weights at the rays' true
     positions."""
     height, width = ray_end.shape
-    _, small_h, small_w, _ = marched.lit.shape
+    pieces, small_h, small_w, _ = marched.lit.shape
     dtype = marched.lit.dtype
     x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
     y = (jnp.arange(height, dtype=dtype) + first_row + 0.5 - ys[0]) / spacing
     row, col, tent = bilinear_corners(x[None, :], y[:, None], small_h, small_w)
-    return jnp.sum(tent * read_at_depth(marched, row, col, ray_end), axis=0)
+    read = sum(read_at_depth(marched, piece, row, col, ray_end) for piece in range(pieces))
+    return jnp.sum(tent * read, axis=0)

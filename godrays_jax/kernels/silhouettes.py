@@ -95,6 +95,7 @@ def _unmixed_share(brightness, depth, first, second):
     return jnp.clip(share, 0.0, 1.0), trust
 
 
+@jax.jit
 def silhouette_mix(
     coverage: Float[Array, "H W"], depth: Float[Array, "H W"], color: Float[Array, "H W C"]
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:

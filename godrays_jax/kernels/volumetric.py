@@ -231,6 +231,28 @@ def volumetric_fog_terms(
         if coverage is None:
             raise ValueError("uncovered_depth needs coverage (the share of each pixel its own surface covers)")
         check_plane(uncovered_depth, "uncovered_depth", height, width)
+    static_front = light_in_front if isinstance(light_in_front, bool) else None
+    arguments = (
+        depth, light_xy, fov_x_deg, light_depth, None if static_front is not None else jnp.asarray(light_in_front),
+        medium, slabs, direct_fraction, ambient_rise, coverage, uncovered_depth,
+    )  # fmt: skip
+    # Called eagerly, the terms run compiled once per shape and count: their loops over functions defined in the call
+    # would be traced and compiled again on every call. Traced (an effect, a fit), they are part of the caller's trace.
+    traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(arguments))
+    terms = _fog_terms if traced else _compiled_fog_terms
+    return terms(
+        *arguments, shadows=shadows, num_view_steps=num_view_steps, resolution_factor=resolution_factor,
+        static_front=static_front,
+    )  # fmt: skip
+
+
+def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, slabs, direct_fraction, ambient_rise,
+               coverage, uncovered_depth, *, shadows, num_view_steps, resolution_factor, static_front):  # fmt: skip
+    """`volumetric_fog_terms` after its checks; `static_front`: the light's side when the caller gave it as a
+    Python bool, else None (`light_in_front` traced)."""
+    if static_front is not None:
+        light_in_front = static_front
+    height, width = depth.shape
     dtype = jnp.result_type(depth, jnp.float32)
     depth = jnp.asarray(depth, dtype)
     # A point light within a thousandth of the medium's reach of the camera is taken at that distance: nearer, its
@@ -315,6 +337,11 @@ def volumetric_fog_terms(
     inputs = [jnp.arange(bands) * band, *[None if plane is None else in_bands(plane) for plane in planes]]
     terms = jax.lax.map(band_terms, inputs)
     return tuple(term.reshape(bands * band, width)[:height] for term in terms)
+
+
+_compiled_fog_terms = jax.jit(
+    _fog_terms, static_argnames=("shadows", "num_view_steps", "resolution_factor", "static_front")
+)
 
 
 def fog_light(

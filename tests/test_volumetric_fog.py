@@ -86,18 +86,23 @@ def _filtered_edge(far_depth, covered):
     return tuple(jnp.asarray(a, jnp.float32) for a in (coverage, depth, color))
 
 
+@pytest.mark.parametrize("read_pixels", [3, 1 << 16])
 @pytest.mark.parametrize("band_pixels", [16, 24, 40])
-def test_silhouettes_mixed_by_bands_of_rows_are_the_frames(rng, monkeypatch, band_pixels):
-    """On a larger frame the silhouettes are mixed a band of rows at a time, each with the rows around it: the same
-    shares and depths as the whole frame at once (bands of 2, 3 and 5 rows of 8, the last one partly filled, on a
-    frame whose every row has a silhouette between two surfaces or the sky)."""
+def test_silhouettes_mixed_by_bands_of_rows_are_the_frames(rng, monkeypatch, band_pixels, read_pixels):
+    """On a larger frame the silhouettes' sides are found a band of rows at a time, each with the rows around it,
+    and their colours read a few silhouette pixels at a time: the same shares and depths as the whole frame at once
+    (bands of 2, 3 and 5 rows of 8, the last one partly filled, and reads of 3 pixels, on a frame whose every row
+    has a silhouette between two surfaces or the sky)."""
     covered = rng.uniform(0.1, 0.9, 13)
     coverage, depth, color = _filtered_edge(30.0, covered)
     depth = depth.at[2:5, 6].set(jnp.inf).at[9, 1].set(9.0)
     coverage = coverage.at[11, 2].set(0.4)
+    # `silhouette_mix` is compiled once per shape: traced afresh for the whole frame and again with the bands patched in.
+    jax.clear_caches()
     whole = silhouette_mix(coverage, depth, color)
     monkeypatch.setattr(silhouettes, "_BAND_PIXELS", band_pixels)
-    jax.clear_caches()  # `silhouette_mix` is compiled once per shape: traced again with the bands patched in
+    monkeypatch.setattr(silhouettes, "_READ_PIXELS", read_pixels)
+    jax.clear_caches()
     banded = silhouette_mix(coverage, depth, color)
     for got, expected in zip(banded, whole):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(expected))

@@ -22,8 +22,10 @@ _FILTER_SPILL = 0.15
 _UNMIX_CONTRAST, _UNMIX_RAMP, _UNMIX_FLOOR = 3.0, 3.0, 0.002
 # Depths within this fraction of a surface's depth belong to that surface (silhouette_mix).
 _SAME_SURFACE = 0.05
-# The pixels mixed at once on a large frame (`silhouette_mix`: whole rows).
+# The pixels whose sides are found at once on a large frame (`silhouette_mix`: whole rows).
 _BAND_PIXELS = 1 << 17
+# The silhouette pixels whose colour is read at once (`silhouette_mix`); a frame with more reads them in turns.
+_READ_PIXELS = 1 << 16
 # Two surfaces meet at a silhouette where a neighbour's depth is this many times the pixel's, or less than 1 / it.
 _SILHOUETTE_RATIO = 1.1
 
@@ -61,9 +63,10 @@ def _median_of_members(values, members):
     return 0.5 * (low + high), count
 
 
-def _unmixed_share(brightness, depth, first, second):
+def _unmixed_share(brightness, depth, first, second, depths, values):
     """`(share, trust)`: how much of each pixel the surface at `first` covers against the one at `second`
-    (depths; `inf`: the sky), read from its brightness (the mean of its colour channels), and how far to trust that.
+    (depths; `inf`: the sky), read from its brightness (the mean of its colour channels), and how far to trust that;
+    `depths` and `values` its eight neighbours' depths and brightnesses. Any shape, pixel by pixel.
 
     The pixel's brightness is taken as a mix of each side's (the median of its
     neighbours on that side): the share is where it lies between them, clipped
@@ -71,7 +74,6 @@ def _unmixed_share(brightness, depth, first, second):
     it. Medians, so that a bright emitter beside the pixel does not stand for
     the sky.
     """
-    depths, values = _neighbours(depth), _neighbours(brightness)
     display = lambda c: c / (1 + jnp.abs(c))
 
     def side(side_depth):
@@ -118,32 +120,38 @@ def silhouette_mix(
     `benchmarks/references/blender` blend across a silhouette, on average).
     """
     hard = jnp.all(coverage == jnp.isfinite(depth).astype(coverage.dtype))
+    fallback, surface_depth, uncovered_depth, told = _sides_in_bands(coverage, depth, hard)
+    # The shares are read off the frame, not fitted: no gradient flows through them into the colour or the depth.
+    brightness = jnp.mean(color[..., :3].astype(coverage.dtype), axis=-1)
+    read_off = jax.lax.stop_gradient((brightness, depth, surface_depth, uncovered_depth))
+    trust, weighted = _read_where(told, *read_off)
+    return weighted + (1.0 - trust) * fallback, uncovered_depth
+
+
+def _sides_in_bands(coverage, depth, hard):
+    """`_sides` of a large frame a band of rows at a time, each with the rows around it: every pixel reads only its
+    eight neighbours, and a whole frame's at once (each neighbour's plane for each of its uses) weighed more than the
+    fog itself. The frame's first and last rows repeated above and below it are what the whole frame's edge padding
+    reads; the rows that fill the last band repeat its last and are cut off again."""
     height, width = coverage.shape
     band = max(_BAND_PIXELS // width, 1)
     if band >= height:
-        return _mix(coverage, depth, color, hard)
-    # Band by band, each with the rows around it: every pixel reads only its eight neighbours, and the planes of a
-    # whole frame at once (each neighbour's, for every step of the medians) outweighed the fog itself. The frame's
-    # first and last rows repeated above and below it are what the whole frame's edge padding reads; the rows that
-    # fill the last band repeat its last and are cut off again.
+        return _sides(coverage, depth, hard)
     bands = -(-height // band)
-    pad = [(1, bands * band - height + 1)]
-
-    def padded(plane):
-        return jnp.pad(plane, pad + [(0, 0)] * (plane.ndim - 1), mode="edge")
-
-    planes = [padded(plane) for plane in (coverage, depth, color)]
+    planes = [jnp.pad(plane, [(1, bands * band - height + 1), (0, 0)], mode="edge") for plane in (coverage, depth)]
 
     def one_band(first_row):
         rows = [jax.lax.dynamic_slice_in_dim(plane, first_row, band + 2) for plane in planes]
-        return [term[1:-1] for term in _mix(*rows, hard)]
+        return [term[1:-1] for term in _sides(*rows, hard)]
 
-    mixed, uncovered = jax.lax.map(one_band, jnp.arange(bands) * band)
-    return mixed.reshape(bands * band, width)[:height], uncovered.reshape(bands * band, width)[:height]
+    sides = jax.lax.map(one_band, jnp.arange(bands) * band)
+    return [side.reshape(bands * band, width)[:height] for side in sides]
 
 
-def _mix(coverage, depth, color, hard):
-    """`silhouette_mix` of a whole frame or of a band of rows with the rows around it, `hard` the frame's."""
+def _sides(coverage, depth, hard):
+    """`(fallback, surface_depth, uncovered_depth, told)` of every pixel (`silhouette_mix`): its coverage where the
+    colour cannot tell, its surface's depth, what the rest of it sees, and whether its colour can tell (a surface
+    with the other side among its neighbours: elsewhere the trust in the colour is 0)."""
     height, width = coverage.shape
     padded = jnp.pad(coverage, 1, mode="edge")
     taps = (_FILTER_SPILL, 1.0 - 2.0 * _FILTER_SPILL, _FILTER_SPILL)
@@ -151,7 +159,6 @@ def _mix(coverage, depth, color, hard):
         wy * wx * padded[dy : dy + height, dx : dx + width] for dy, wy in enumerate(taps) for dx, wx in enumerate(taps)
     )  # fmt: skip
     at_sky = jnp.where(hard, spread, coverage)
-    # The neighbours one plane at a time, never stacked: on a large frame eight planes at once outweighed the rest.
     around = _neighbours(depth)
     finite = jnp.isfinite(depth)
     surface_depth = jnp.where(finite, depth, functools.reduce(jnp.minimum, around))
@@ -170,11 +177,37 @@ def _mix(coverage, depth, color, hard):
             most_unlike, other = jnp.where(further, unlike, most_unlike), jnp.where(further, neighbour, other)
     between_surfaces = ~beside_sky & (most_unlike > math.log(_SILHOUETTE_RATIO))
     uncovered_depth = jnp.where(between_surfaces, other, jnp.inf)
-    # The shares are read off the frame, not fitted: no gradient flows through them into the colour or the depth.
-    brightness = jnp.mean(color[..., :3].astype(coverage.dtype), axis=-1)
-    read_off = jax.lax.stop_gradient((brightness, depth, surface_depth, uncovered_depth))
-    share, trust = _unmixed_share(*read_off)
-    # Between two surfaces the colour decides on every frame; at the sky, a coverage pass where the frame has one.
-    trust = jnp.where(jnp.isfinite(surface_depth) & (hard | between_surfaces), trust, 0.0)
-    fallback = jnp.where(between_surfaces, 1.0, at_sky)
-    return trust * share + (1.0 - trust) * fallback, uncovered_depth
+    # Between two surfaces the colour decides on every frame; at the sky, where the frame has no coverage pass.
+    told = jnp.isfinite(surface_depth) & (hard | between_surfaces) & (between_surfaces | beside_sky)
+    return jnp.where(between_surfaces, 1.0, at_sky), surface_depth, uncovered_depth, told
+
+
+def _read_where(told, brightness, depth, surface_depth, uncovered_depth):
+    """`(trust, trust * share)` planes of `_unmixed_share`, read only at the pixels `told` picks (0 elsewhere),
+    `_READ_PIXELS` of them at a time: a silhouette is a thin share of a frame, and its reads (each side's median of
+    eight neighbours) are most of the mix's work and memory."""
+    height, width = depth.shape
+    count = height * width
+    chunk = min(_READ_PIXELS, count)
+    total = jnp.sum(told, dtype=jnp.int32)
+    # The told pixels in order, then the frame's size: past the frame, so that their reads are dropped.
+    told_pixels = jnp.nonzero(told.reshape(count), size=count, fill_value=count)[0].astype(jnp.int32)
+    planes = [plane.reshape(count) for plane in (brightness, depth, surface_depth, uncovered_depth)]
+    # The eight neighbours of each pixel in the frame padded by its edges (`_neighbours`), by their flat offsets.
+    padded = [jnp.pad(plane, 1, mode="edge").reshape(-1) for plane in (depth, brightness)]
+    offsets = [dy * (width + 2) + dx for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)]
+
+    def read_chunk(state):
+        first, trust, weighted = state
+        pixels = jax.lax.dynamic_slice_in_dim(told_pixels, first, chunk)
+        at = jnp.minimum(pixels, count - 1)
+        corner = (at // width) * (width + 2) + at % width
+        depths, values = ([plane[corner + offset] for offset in offsets] for plane in padded)
+        share, chunk_trust = _unmixed_share(*[plane[at] for plane in planes], depths, values)
+        trust = trust.at[pixels].set(chunk_trust, mode="drop")
+        weighted = weighted.at[pixels].set(chunk_trust * share, mode="drop")
+        return first + chunk, trust, weighted
+
+    zeros = jnp.zeros(count, brightness.dtype)
+    _, trust, weighted = jax.lax.while_loop(lambda state: state[0] < total, read_chunk, (jnp.int32(0), zeros, zeros))
+    return trust.reshape(height, width), weighted.reshape(height, width)

@@ -46,9 +46,10 @@ def main() -> None:
     cases = {
         "apply kbengine_flares": [*cli, "apply", str(SAMPLE), "--preset", "kbengine_flares", "-o", f"{out}/a.png"],
         "apply xna_crepuscular": [*cli, "apply", str(SAMPLE), "--preset", "xna_crepuscular", "-o", f"{out}/b.png"],
-        "fit (ScatteringFog, 10 steps)": [*cli, "fit", str(COLONNADE), str(COLONNADE), "--light", "142.84,84.85",
-                                          "--max-steps", "10", "-o", f"{out}/p.json"],  # fmt: skip
-        "fit sample frame (ScatteringFog, to convergence)": [*cli, "fit", str(SAMPLE), target, "-o", f"{out}/q.json"],
+        "fit (ScatteringFog, 10 steps)": [*cli, "fit", str(COLONNADE), str(COLONNADE), "--preset", "participating_media",
+                                          "--light", "142.84,84.85", "--max-steps", "10", "-o", f"{out}/p.json"],
+        "fit sample frame (ScatteringFog, to convergence)": [*cli, "fit", str(SAMPLE), target, "--preset",
+                                                             "participating_media", "-o", f"{out}/q.json"],
     }
     print(f"load average {os.getloadavg()[0]:.2f}; {args.repeats} runs each, medians (wall s / cpu s)")
     print(f"| command | no cache | cold cache (first run) | warm cache |\n|---|---|---|---|")

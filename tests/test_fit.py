@@ -88,8 +88,8 @@ def test_the_fits_jacobian_by_stages_is_reverse_modes_on_volumetric_fog():
     shadows, here read along lines), the medium's ends, the final sum), each stage's lanes with the other stages' unknowns held constant. Its gradient is reverse mode's: a column
     taken from another unknown, or a stage's columns missing, changes it. On VolumetricFog's chained read XLA once
     mixed the lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64), and again on
-    a read of both pieces by flat-index gathers (fine at 36x64, wrong at 90x160: benchmarks/README.md,
-    "VolumetricFog: speed and memory"), so the frame is that large."""
+    a read of both pieces by flat-index gathers (fine at 36x64, wrong at 90x160: docs/findings.md,
+    "XLA and the vmapped forward-mode Jacobian"), so the frame is that large."""
     height, width = 90, 160
     depth = np.full((height, width), np.inf, np.float32)
     rows = np.arange(height - height // 2) + 0.5

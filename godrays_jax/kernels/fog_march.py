@@ -80,8 +80,8 @@ def placement_depth(origin, view, first, end, medium: BoundedMedium):
     """The optical depth of each piece from `first` to `end` that places its segments (`bound_fraction`), held
     under differentiation. Where the segments lie is a sampling choice: its derivative is the sampling error's
     (large where a shadow's edge crosses a segment's middle), not the medium's, and in the fit's Jacobian it made
-    every Levenberg-Marquardt step fail from a fog layer's start (benchmarks/README.md, "Segments even in
-    transmittance"). The bounds still move with the piece's ends, as before."""
+    every Levenberg-Marquardt step fail from a fog layer's start (docs/findings.md, "The placement is held under
+    differentiation"). The bounds still move with the piece's ends, as before."""
     return jax.lax.stop_gradient(
         optical_depth(origin, view, first, end, **medium.density)
     )

@@ -21,7 +21,7 @@ intervals of the texels between it and the light cover its `s`: the test
 `segment_visibility` makes at a few samples, here made for every texel on the
 line and every distance along the view ray at once. Reading it this way
 removes the three samplings whose crawl under a camera pan makes the samples'
-reading shimmer (benchmarks/README.md, "shadows read per screen line through
+reading shimmer (benchmarks/README.md, "Shadows read per screen line through
 the light").
 
 Discretised: `num_lines` lines through the hub, each cut into cells `cell_px`

@@ -5,7 +5,8 @@ spares compiling a program twice, but every process still traces each program
 in Python before it can look it up. For a fit that tracing (the loss, the
 solver's first state and step, the Jacobian of `determination`, the render)
 costs more than the solver's steps on a small frame, and it is a good part of
-an `apply`; `benchmarks/README.md` ("Command start-up") has the figures.
+an `apply`; `benchmarks/README.md` ("Command start-up and the compilation cache")
+has the figures.
 
 `call(name, function, *args)` runs `function(*args)` (an `equinox.filter_jit`
 function: arrays are traced, everything else is static) from an exported

@@ -30,7 +30,7 @@ How the parameters are fitted:
   from a frame that may lose thin surfaces, only starts the full resolution's
   descent). Not the race's own descent: with that
   scaling from the start, the race keeps worse starts on some frames
-  (`benchmarks/README.md`, "Marquardt's scaling"); as a polish it can only
+  (`docs/findings.md`, "Marquardt's scaling only as a polish"); as a polish it can only
   lower the loss.
 - Derivatives are forward-mode: the Jacobian of the residuals (millions of
   them, a handful of parameters, which reverse mode would build one residual

@@ -45,7 +45,7 @@ FOLD_ROUNDING = 0.02
 A fold with a corner (the triangle wave) has no derivative on the bound: a field whose best value is its bound
 (`height_falloff` 0 for a haze that does not thin with height) then jumps from side to side of the corner every
 step, and Levenberg-Marquardt's trust region shrinks to that zig-zag for every other unknown too, so the fit
-crawls (`benchmarks/README.md`, "A fold without a corner"). Rounded, the map is smooth and its slope goes to 0 on
+crawls (`docs/findings.md`, "A fold without a corner"). Rounded, the map is smooth and its slope goes to 0 on
 the bound, where the loss is then quadratic in the unknown, as the solver's model assumes."""
 
 START_INSET = FOLD_ROUNDING / 4

@@ -199,6 +199,8 @@ def _read_where(told, brightness, depth, surface_depth, uncovered_depth):
 
     def read_chunk(state):
         first, trust, weighted = state
+        # A last chunk that would run past the list starts earlier instead (`dynamic_slice` clamps): it reads some
+        # pixels again and writes the same values.
         pixels = jax.lax.dynamic_slice_in_dim(told_pixels, first, chunk)
         at = jnp.minimum(pixels, count - 1)
         corner = (at // width) * (width + 2) + at % width

@@ -78,3 +78,52 @@ def test_the_command_line_entry_points_keep_freed_memory(monkeypatch):
     monkeypatch.setattr(cli, "main", lambda argv=None, **options: chosen.append(options) or 0)
     assert cli.console_main() == 0
     assert chosen == [{"keep_freed_memory": True}]
+
+
+# In a fresh process: fill the heap with small blocks (as a compiler does), keep one block above them so the freed
+# ones are not the heap's top, free the rest, record a compile of the given seconds, and print the MiB still
+# resident beyond what the process had before.
+_COMPILE_PROBE = """
+import ctypes, ctypes.util, os, sys
+import jax.monitoring
+from godrays_jax.app import allocator
+assert allocator.hand_back_after_compiling()
+libc = ctypes.CDLL(ctypes.util.find_library("c"))
+libc.malloc.restype, libc.malloc.argtypes, libc.free.argtypes = ctypes.c_void_p, [ctypes.c_size_t], [ctypes.c_void_p]
+def resident_mib():
+    return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+before = resident_mib()
+blocks = [libc.malloc(1024) for _ in range(200_000)]
+for block in blocks:
+    ctypes.memset(block, 1, 1024)
+above = libc.malloc(1024)
+for block in blocks:
+    libc.free(block)
+jax.monitoring.record_event_duration_secs(allocator.COMPILE_EVENT, float(sys.argv[1]))
+print(resident_mib() - before)
+"""
+
+
+@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
+                    reason="the heap is trimmed by glibc's malloc_trim; off glibc nothing is registered")  # fmt: skip
+def test_a_long_compile_hands_the_memory_it_freed_back():
+    """What a compile of at least `TRIMMED_COMPILE_SECONDS` freed leaves the process; after a short one it stays."""
+
+    def resident_after(seconds):
+        done = subprocess.run([sys.executable, "-c", _COMPILE_PROBE, str(seconds)], capture_output=True, text=True,
+                              check=True)  # fmt: skip
+        return float(done.stdout)
+
+    assert resident_after(0.1 * allocator.TRIMMED_COMPILE_SECONDS) > 150  # 200 MiB of small blocks, still resident
+    assert resident_after(allocator.TRIMMED_COMPILE_SECONDS) < 50
+
+
+def test_the_command_hands_back_what_compiling_frees(monkeypatch, tmp_path):
+    """`godrays-jax` (`main(keep_freed_memory=True)`) trims after long compiles for every command; a call of `main`
+    from a user's process leaves the allocator alone."""
+    calls = []
+    monkeypatch.setattr(allocator, "hand_back_after_compiling", lambda: calls.append("trim") or True)
+    cli.main(["apply", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "out.exr")])
+    assert calls == []
+    cli.main(["apply", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "out.exr")], keep_freed_memory=True)
+    assert calls == ["trim"]

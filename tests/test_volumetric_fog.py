@@ -224,6 +224,53 @@ def test_gradients_reach_every_medium_field_with_surfaces_beyond_the_medium(rng)
         np.testing.assert_allclose(float(reverse[index]), float(forward), rtol=1e-4, err_msg=name)
 
 
+@pytest.mark.parametrize("preset", ["volumetric_haze", "physically_based"])  # shadows read along lines, by samples
+def test_a_frame_at_the_eye_gives_finite_values_and_gradients(preset):
+    """Depth 0 everywhere (a cleared depth buffer, a surface at the eye): the fog and its derivatives in every
+    fittable field are finite. They were NaN where depths were divided by depths (the silhouettes' ratios), by a
+    slab face's width or by a slab's softness, each 0 there; such a surface is a slab of no depth and casts nothing."""
+    buffers = gr.Buffers(color=jnp.full((18, 32, 3), 0.2, jnp.float32), depth=jnp.zeros((18, 32), jnp.float32),
+                         coverage=jnp.ones((18, 32), jnp.float32))  # fmt: skip
+    effect = gr.preset(preset)
+    names = tuple(gr.parameter_bounds(effect))
+
+    def total(values):
+        return jnp.sum(gr.replace_fields(effect, dict(zip(names, values)))(buffers, jnp.asarray([16.0, 4.0])))
+
+    values = tuple(jnp.asarray(gr.field_value(effect, name), jnp.float32) for name in names)
+    value, gradients = jax.jit(jax.value_and_grad(total))(values)
+    assert np.isfinite(float(value))
+    for name, gradient in zip(names, gradients):
+        assert np.all(np.isfinite(np.asarray(gradient))), name
+
+
+@pytest.mark.parametrize("preset", ["volumetric_haze", "physically_based"])  # shadows read along lines, by samples
+def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(preset):
+    """`same_on` frames all sky reads one shadow sample a segment, which draws them as the effect does (values and
+    derivatives, the light on screen, off it and behind the camera); on a frame with a surface it is the effect
+    itself. `fit` fits it in the effect's place and returns the effect's own statics."""
+    sky = gr.Buffers(color=jnp.full((HEIGHT, WIDTH, 3), 0.3, jnp.float32), depth=jnp.full((HEIGHT, WIDTH), jnp.inf),
+                     coverage=jnp.zeros((HEIGHT, WIDTH), jnp.float32))  # fmt: skip
+    effect = gr.preset(preset)
+    cheaper = effect.same_on([sky])
+    assert (cheaper.shadows, cheaper.num_shadow_samples) == ("samples", 1)
+    assert effect.same_on([sky, _frame(np.random.default_rng(0))]) is effect
+
+    def total(candidate, fov_x_deg, light, front):
+        return jnp.sum(gr.replace_fields(candidate, {"fov_x_deg": fov_x_deg})(sky, light, light_in_front=front))
+
+    for light, front in [((7.3, 1.6), True), ((900.0, -400.0), True), ((7.3, 1.6), False)]:
+        light = jnp.asarray(light, jnp.float32)
+        np.testing.assert_allclose(cheaper(sky, light, light_in_front=front), effect(sky, light, light_in_front=front),
+                                   atol=1e-5)  # fmt: skip
+        gradients = [jax.grad(total, argnums=1)(e, effect.fov_x_deg, light, front) for e in (cheaper, effect)]
+        np.testing.assert_allclose(*gradients, rtol=1e-4)
+    target = np.asarray(effect(sky, jnp.asarray(LIGHT)))[..., :3] * 1.1
+    fitted = fit(effect, sky, jnp.asarray(LIGHT), target, max_steps=1, fixed=["fov_x_deg"]).effect
+    assert (fitted.shadows, fitted.num_shadow_samples, fitted.num_shadow_lines) == (
+        effect.shadows, effect.num_shadow_samples, effect.num_shadow_lines)  # fmt: skip
+
+
 def test_params_file_round_trip(tmp_path):
     effect = gr.preset("volumetric_haze")
     save_effect(tmp_path / "fog.json", effect)

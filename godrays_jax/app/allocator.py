@@ -22,6 +22,13 @@ fit up to `KEPT_FIT_PIXELS`), not for one `apply` (nothing to reuse);
 `GODRAYS_JAX_KEEP_FREED_MEMORY=0` leaves the allocator as it is, for a
 machine where memory is tighter than time.
 
+Compiling is the other large user of the heap: LLVM's many small blocks,
+freed when a program is compiled, stay resident in the arenas (their free
+pages are not at a heap's top, so no trimming reaches them), and the peak of
+a first run was then the compiler's and the program's buffers together. So
+the command hands the free pages back to the kernel (`malloc_trim`) after
+every compile long enough to have used much (`hand_back_after_compiling`).
+
 Applied by the `godrays-jax` command (`cli.console_main`) only: a library
 must not retune the allocator of the process that imports it. Research code
 with the same calling pattern gets the same effect from the environment,
@@ -32,6 +39,8 @@ import ctypes
 import ctypes.util
 import os
 import platform
+
+import jax.monitoring
 
 # mallopt's parameter numbers (glibc's malloc.h).
 _M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
@@ -50,13 +59,47 @@ OPT_OUT = "GODRAYS_JAX_KEEP_FREED_MEMORY"
 def keep_freed_memory() -> bool:
     """Tune glibc's allocator as the module's docstring says; returns whether it was (False off glibc, or with
     `GODRAYS_JAX_KEEP_FREED_MEMORY=0`)."""
-    if os.environ.get(OPT_OUT, "1") == "0":
-        return False
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
-    except (OSError, AttributeError):
+    mallopt = _glibc_function("mallopt")
+    if os.environ.get(OPT_OUT, "1") == "0" or mallopt is None:
         return False
     settings = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, _LARGEST_INT))
     return all(mallopt(parameter, value) == 1 for parameter, value in settings)
+
+
+def _glibc_function(name: str):
+    """glibc's function `name` (ctypes), or None off glibc."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        return getattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6"), name)
+    except (OSError, AttributeError):
+        return None
+
+
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+"""The `jax.monitoring` event JAX records after every compile by XLA, with its duration."""
+
+TRIMMED_COMPILE_SECONDS = 0.5
+"""Compiles at least this long are followed by a `malloc_trim`: the fit's and the fog's programs (seconds each), not
+the many small ones a command compiles in a fraction of a second each, whose memory is small."""
+
+_trimming = []  # the listener, once registered: one per process
+
+
+def hand_back_after_compiling() -> bool:
+    """After every compile of at least `TRIMMED_COMPILE_SECONDS`, hand the heap's free pages back to the kernel
+    (glibc's `malloc_trim(0)`), as the module's docstring says; returns whether it will (False off glibc). Once per
+    process: later calls change nothing."""
+    if _trimming:
+        return True
+    trim = _glibc_function("malloc_trim")
+    if trim is None:
+        return False
+
+    def after_compile(event: str, duration: float, **_) -> None:
+        if event == COMPILE_EVENT and duration >= TRIMMED_COMPILE_SECONDS:
+            trim(0)
+
+    jax.monitoring.register_event_duration_secs_listener(after_compile)
+    _trimming.append(after_compile)
+    return True

@@ -385,12 +385,15 @@ def repeats_programs(args: argparse.Namespace) -> bool:
 
 def main(argv: list[str] | None = None, *, keep_freed_memory: bool = False) -> int:
     """Run the CLI; returns the exit status (0 success, 1 error, 2 usage, 130 interrupted). `keep_freed_memory`:
-    tune the process's allocator for the commands that repeat their programs (`repeats_programs`); the
+    tune the process's allocator for the commands that repeat their programs (`repeats_programs`), and hand
+    what the compiler frees back to the kernel after every long compile (`allocator.hand_back_after_compiling`); the
     `godrays-jax` command does, a call from your own process by default does not."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if keep_freed_memory and repeats_programs(args):
-        allocator.keep_freed_memory()
+    if keep_freed_memory:
+        allocator.hand_back_after_compiling()
+        if repeats_programs(args):
+            allocator.keep_freed_memory()
     try:
         with warnings.catch_warnings():
             # The library's warnings (a params file's old field name) as one line each, like every other message.

@@ -89,8 +89,12 @@ def run(args) -> int:
         depths.append(resolve_light_depth(args.light_depth, buffers_path))
         targets.append(target)
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
-    if fov is not None and "fov_x_deg" in effect.CAMERA_FIELDS and "fov_x_deg" not in fixed:
-        fixed += ("fov_x_deg",)  # the frame's camera says it: not a parameter to fit
+    if "fov_x_deg" in effect.CAMERA_FIELDS and "fov_x_deg" not in fixed:
+        if fov is not None:
+            fixed += ("fov_x_deg",)  # the frame's camera says it: not a parameter to fit
+        else:  # its derivatives reach everything, the shadows' table among them (docs/fitting.md)
+            warn("fit", f"{args.buffers} carries no field of view, so the fit fits fov_x_deg as well, which takes "
+                        "more time and memory; --fov-x-deg gives it")  # fmt: skip
     # Checked before the progress bar is drawn: an error is then the command's one line.
     if args.max_steps < 0:
         raise CommandError(f"--max-steps must be an integer >= 0, got {args.max_steps}")
@@ -239,10 +243,13 @@ def _metrics_line(start_images, fitted_images, targets) -> str:
 def _determination_lines(result, frames, lights, targets, in_front, depths, space, coarse_factor) -> list[str]:
     """Which fitted parameters the frames leave poorly determined, and what offsets them (`determination`, its
     Jacobian as the fit's polish took it)."""
-    found = determination(
-        result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front,
-        light_depth=depths, coarse_factor=coarse_factor,
-    )
+    try:
+        found = determination(
+            result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front,
+            light_depth=depths, coarse_factor=coarse_factor,
+        )
+    except ValueError as error:  # the fit stands; only what it can say of it is less
+        return [f"cannot tell which fitted parameters the frames determine: {error}"]
     lines = []
     if found.on_bound:
         at = ", ".join(f"{name} at {value:.6g}" for name, value in found.on_bound.items())

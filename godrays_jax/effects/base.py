@@ -143,6 +143,12 @@ class Effect(Part):
         that draws no flare."""
         raise ValueError(f"{type(self).__name__} draws no flare (use a GodRays or FlareOuts effect)")
 
+    def same_on(self, frames: typing.Sequence[Buffers]) -> "Effect":
+        """An effect that draws `frames` exactly as this one does, more cheaply where those frames allow it (a
+        `VolumetricFog` on frames where nothing casts a shadow reads no shadows); this effect itself by default.
+        `fit` fits it in this one's place and returns the fields it fitted in this one."""
+        return self
+
     def fit_stand_in(self) -> "Effect":
         """The effect `fit` fits in this one's place (`pipeline.fit.fit`'s `stand_in`): the same fields, read
         more cheaply where a cheaper reading gives nearly the same frame; this effect itself by default."""

@@ -2,8 +2,10 @@
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from typing import ClassVar, Literal
 
+import numpy as np
 from jaxtyping import Array, Float
 
 from godrays_jax.effects.base import Effect, frame_ray_depth
@@ -23,6 +25,7 @@ from godrays_jax.kernels.volumetric import (
     fog_light,
     volumetric_fog_terms,
 )
+from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import check_light
 
 # On frames larger than `REFERENCE_SIDE` the march rays keep their fraction of the frame, so a preset looks and costs
@@ -119,6 +122,15 @@ class VolumetricFog(Effect):
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
     }  # fmt: skip
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
+
+    def same_on(self, frames: Sequence[Buffers]) -> "VolumetricFog":
+        """On frames with no finite depth (all sky) nothing casts a shadow: every reading sees the light
+        everywhere, and one sample a segment reads that exactly, with no shadows' table to build."""
+        if self.shadows == "samples" and self.num_shadow_samples == 1:
+            return self
+        if any(np.isfinite(np.asarray(frame.depth)).any() for frame in frames):
+            return self
+        return dataclasses.replace(self, shadows="samples", num_shadow_samples=1)
 
     def fit_stand_in(self) -> "VolumetricFog":
         """Read along lines, the shadows' table and every pixel's own ray are most of a fit's work, and a fit

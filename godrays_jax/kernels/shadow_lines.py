@@ -200,7 +200,9 @@ def _face_deltas(start, width, s_min, log_step, num_bins):
     first = jnp.clip(first, 0, num_bins).astype(jnp.int32)
     index = first[..., None] + jnp.arange(_FACE_BINS)
     centre = s_min * jnp.exp(index.astype(start.dtype) * log_step)
-    value = jnp.clip((centre - start[..., None]) / jnp.maximum(width, 1e-30)[..., None], 0.0, 1.0)
+    # A face narrower than a thousandth of the first bin (a surface at the eye: none at all) rises as a step: a
+    # ramp that steep falls between the bins' centres all the same, and its derivatives stay finite.
+    value = jnp.clip((centre - start[..., None]) / jnp.maximum(width, s_min * 1e-3)[..., None], 0.0, 1.0)
     value = value.at[..., -1].set(1.0)
     return index, jnp.diff(value, axis=-1, prepend=0.0)
 
@@ -215,7 +217,8 @@ def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s
     row, col, weight = bilinear_corners(x - 0.5, y - 0.5, height, width)
     front = depth[row, col]  # (4, lines, cells)
     on_screen = (x >= 0) & (x <= width) & (y >= 0) & (y <= height)
-    blocks = jnp.isfinite(front) & on_screen & (front * (1 + thickness) * inverse < 1.0)
+    # A surface at the eye (depth 0) is a slab of no depth: it blocks nothing, as the sky does not.
+    blocks = jnp.isfinite(front) & (front > 0) & on_screen & (front * (1 + thickness) * inverse < 1.0)
     front = jnp.where(blocks, front, 1.0)
     ends = [_off_axis(*lines.positions(shift), toward, height, width, focal) for shift in (-0.5, 0.5)]
     near = [line_coordinate(front, sine, cosine, inverse) for sine, cosine in ends]

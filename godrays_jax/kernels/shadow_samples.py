@@ -68,8 +68,9 @@ def _shadow_march(depth, pixel_xy, distances, step, reach, view_cross_light, vie
         # as q moves under the pixel grid (a pan, a light moved by a fraction of a pixel).
         row, col, weight = bilinear_corners(q[..., 0] - 0.5, q[..., 1] - 0.5, height, width)
         front = depth[row, col][..., None]
-        # Sky, the emitter (a slab reaching the light) and the pixel's own start block nothing.
-        blocks = jnp.isfinite(front) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
+        # Sky, the emitter (a slab reaching the light), a surface at the eye (a slab of no depth) and the pixel's
+        # own start block nothing.
+        blocks = jnp.isfinite(front) & (front > 0) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
         front = jnp.where(blocks, front, 1.0)
         soft = softness * front
         inside_slab = _ramp((farthest - front) / soft) * _ramp((front * (1 + thickness) - nearest) / soft)

@@ -163,11 +163,13 @@ def _sides(coverage, depth, hard):
     finite = jnp.isfinite(depth)
     surface_depth = jnp.where(finite, depth, functools.reduce(jnp.minimum, around))
     beside_sky = ~finite | ~functools.reduce(jnp.logical_and, [jnp.isfinite(a) for a in around])
-    own = jnp.where(finite, depth, 1.0)
+    # Depths of 0 (a surface at the eye) have no ratio: such a pixel and its neighbours are not told apart.
+    positive = finite & (depth > 0)
+    own = jnp.where(positive, depth, 1.0)
     # The neighbour most unlike the pixel (the first of equals), by the log of their depths' ratio.
     most_unlike, other = None, None
     for neighbour in around:
-        both = finite & jnp.isfinite(neighbour)
+        both = positive & jnp.isfinite(neighbour) & (neighbour > 0)
         ratio = jax.lax.stop_gradient(jnp.where(both, neighbour, 1.0) / own)
         unlike = jnp.where(both, jnp.abs(jnp.log(ratio)), 0.0)
         if most_unlike is None:

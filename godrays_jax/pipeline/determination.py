@@ -106,8 +106,9 @@ def determination(
             names no sharp stages or a field in pixels is examined.
 
     Raises:
-        ValueError: an unknown or static field in `fitted`, bad frames, or a
-            non-positive `change` / `threshold`.
+        ValueError: an unknown or static field in `fitted`, bad frames, a
+            non-positive `change` / `threshold`, or derivatives that are not
+            finite at the effect's values (naming their fields).
     """
     if not (change > 0 and threshold > 0):
         raise ValueError(f"change and threshold must be > 0, got {change!r} and {threshold!r}")
@@ -122,9 +123,9 @@ def determination(
     check_inside_bounds(effect)
     bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
     names = tuple(bounds)
-    # Through the effect's stand-in (`Effect.fit_stand_in`), as `fit` differentiates it: the same program as a fit's
-    # steps, which after a fit is compiled already.
-    problem = FitProblem.of(effect.fit_stand_in(), bounds, frames, loss="mse", space=space)
+    # Through the effect's stand-in (`Effect.same_on`, `Effect.fit_stand_in`), as `fit` differentiates it: the
+    # same program as a fit's steps, which after a fit is compiled already.
+    problem = FitProblem.of(effect.fit_stand_in().same_on(frames), bounds, frames, loss="mse", space=space)
     # The positions are the effect's own values, checked inside their bounds above: no run-time range check, so the
     # cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
@@ -134,6 +135,7 @@ def determination(
         if coarse is None:
             residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
             rows = jacobian.shape[0]
+            _check_finite(np.sum(np.abs(np.asarray(jacobian)), axis=0), names, problem.shapes)
             # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares
             # offset below are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
             jacobian = _triangular(np.asarray(jacobian))
@@ -141,6 +143,7 @@ def determination(
             residuals = fit_programs.effect_residuals(problem, problem.effect, frame_data)
             normal, _ = coarse.normal_equations(positions, np.asarray(residuals), problem, frame_data)
             rows = len(residuals)
+            _check_finite(np.diag(normal), names, problem.shapes)
             # R with R^T R = J^T J: |R v| = |J v| for every v, as the QR decomposition's.
             values, vectors = np.linalg.eigh(normal)
             jacobian = np.sqrt(np.maximum(values, 0.0))[:, None] * vectors.T
@@ -194,6 +197,14 @@ def determination(
         on_bound=on_bound,
         condition=float(singular.max() / smallest) if smallest > 0 else math.inf,
     )
+
+
+def _check_finite(columns, names, shapes) -> None:
+    """A `ValueError` naming the fields whose Jacobian `columns` (one number per unknown) are not finite."""
+    owners = [name for name, shape in zip(names, shapes) for _ in range(math.prod(shape))]
+    broken = list(dict.fromkeys(name for name, column in zip(owners, np.asarray(columns)) if not np.isfinite(column)))
+    if broken:
+        raise ValueError(f"the frames' derivatives in {', '.join(broken)} are not finite at these values")
 
 
 def _polish_linearisation(problem: FitProblem, frame_data, factor: int) -> CoarseLinearisation | None:

@@ -362,8 +362,8 @@ def fit(
     """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
 
     Args:
-        effect: the starting effect; its type and static fields are kept. Its
-            values must lie inside their bounds.
+        effect: the starting effect; its type and static fields are kept (drawn as `Effect.same_on` the frames
+            meanwhile: alike, more cheaply where they allow). Its values must lie inside their bounds.
         buffers: one frame, or a sequence of frames sharing one parameter set.
         light_xy: the light in pixels, `(2,)`, or one per frame.
         target: the reference image(s), linear `(H, W, C)` of each frame's
@@ -435,9 +435,8 @@ def fit(
             (`Effect.fit_stand_in`: the same fields read more cheaply, where
             the effect names one; for `VolumetricFog` with its shadows read
             along lines, read along fewer lines on rays farther apart), and
-            the polish (Levenberg-Marquardt's polish phase) takes the
-            effect's own residuals with
-            the stand-in's Jacobian: the result is the effect given with its
+            the polish (Levenberg-Marquardt's polish phase) takes the effect's
+            own residuals with the stand-in's Jacobian: the result is the effect given with its
             static fields, its losses the effect's own (`loss_history`: the
             stand-in's until the polish). Without a polish phase (another
             loss or solver) the stand-in's fitted fields are returned in the
@@ -454,9 +453,11 @@ def fit(
     )  # fmt: skip
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
-    given = jax.tree.map(strongly_typed, effect)
-    effect = given.fit_stand_in() if stand_in else given
+    requested = jax.tree.map(strongly_typed, effect)
     frame_data = tuple(as_frames(buffers, light_xy, target, light_in_front, light_depth))
+    given = requested.same_on(frame_data[0])  # drawn alike, more cheaply where the frames allow (`Effect.same_on`)
+    chosen = requested.fit_stand_in() if stand_in else requested
+    effect = given if chosen is requested else chosen.same_on(frame_data[0])
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
     check_inside_bounds(effect)
@@ -489,8 +490,8 @@ def fit(
         same = _same_values(fitted_effect, rounded, names)
         loss_rounded, images_rounded = (loss_after, images_after) if same else effect_loss(problem, rounded, frame_data)
     return FitResult(
-        effect=fitted_effect,
-        rounded=rounded,
+        effect=_as_given(requested, given, fitted_effect, names),
+        rounded=_as_given(requested, given, rounded, names),
         loss_history=np.asarray(history),
         loss_before=loss_before,
         loss_after=loss_after,

@@ -250,7 +250,7 @@ def find_light(
 
     def drawn_of(candidate):
         candidate = jax.tree.map(strongly_typed, candidate)
-        return _reduced(candidate.fit_stand_in() if stand_in else candidate, factor)
+        return _reduced((candidate.fit_stand_in() if stand_in else candidate).same_on([buffers]), factor)
 
     drawn = drawn_of(effect)
     candidates = [drawn, *(_fields_of(drawn, drawn_of(other), bounds) for other in starts)]

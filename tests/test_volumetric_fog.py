@@ -246,7 +246,7 @@ def test_a_frame_at_the_eye_gives_finite_values_and_gradients(preset):
 
 @pytest.mark.parametrize("preset", ["volumetric_haze", "physically_based"])  # shadows read along lines, by samples
 def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(preset):
-    """`same_on` frames all sky reads one shadow sample a segment, which draws them as the effect does (values and
+    """`same_on` frames all sky (or at the eye) reads one shadow sample a segment, which draws them as the effect does (values and
     derivatives, the light on screen, off it and behind the camera); on a frame with a surface it is the effect
     itself. `fit` fits it in the effect's place and returns the effect's own statics."""
     sky = gr.Buffers(color=jnp.full((HEIGHT, WIDTH, 3), 0.3, jnp.float32), depth=jnp.full((HEIGHT, WIDTH), jnp.inf),
@@ -255,6 +255,9 @@ def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(
     cheaper = effect.same_on([sky])
     assert (cheaper.shadows, cheaper.num_shadow_samples) == ("samples", 1)
     assert effect.same_on([sky, _frame(np.random.default_rng(0))]) is effect
+    at_eye = gr.Buffers(color=sky.color, depth=jnp.zeros((HEIGHT, WIDTH)), coverage=jnp.ones((HEIGHT, WIDTH)))
+    at_eye_too = effect.same_on([sky, at_eye])  # surfaces at the eye cast nothing either
+    assert (at_eye_too.shadows, at_eye_too.num_shadow_samples) == ("samples", 1)
 
     def total(candidate, fov_x_deg, light, front):
         return jnp.sum(gr.replace_fields(candidate, {"fov_x_deg": fov_x_deg})(sky, light, light_in_front=front))

@@ -124,11 +124,13 @@ class VolumetricFog(Effect):
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
 
     def same_on(self, frames: Sequence[Buffers]) -> "VolumetricFog":
-        """On frames with no finite depth (all sky) nothing casts a shadow: every reading sees the light
-        everywhere, and one sample a segment reads that exactly, with no shadows' table to build."""
+        """On frames with no finite depth above 0 (all sky; surfaces at the eye are slabs of no depth) nothing
+        casts a shadow: every reading sees the light everywhere, and one sample a segment reads that exactly, with
+        no shadows' table to build."""
         if self.shadows == "samples" and self.num_shadow_samples == 1:
             return self
-        if any(np.isfinite(np.asarray(frame.depth)).any() for frame in frames):
+        depths = [np.asarray(frame.depth) for frame in frames]
+        if any(np.any(np.isfinite(depth) & (depth > 0)) for depth in depths):
             return self
         return dataclasses.replace(self, shadows="samples", num_shadow_samples=1)
 

@@ -352,8 +352,12 @@ def _fog_grad(effect_and_light, buffers, in_front, light_depth):
 @given(st.data())
 def test_fog_presets_finite_values_and_gradients_for_any_light_and_distance(name, data):
     """Every fog preset, any light position (on screen, far off it), in front or behind, at any distance from the
-    camera (a point light at the camera once gave every pixel NaN): finite frames and gradients."""
+    camera (a point light at the camera once gave every pixel NaN), on frames with surfaces at the eye (depth 0,
+    whose gradients were NaN) or not: finite frames and gradients."""
     buffers = data.draw(frames())
+    if data.draw(st.booleans()):  # some surfaces at the eye
+        at_eye = np.random.default_rng(data.draw(st.integers(0, 2**31 - 1))).random(buffers.depth.shape) < 0.5
+        buffers = dataclasses.replace(buffers, depth=jnp.where(jnp.asarray(at_eye), 0.0, buffers.depth))
     light = data.draw(st.one_of(lights(buffers.height, buffers.width), any_finite_lights(buffers.height, buffers.width)))
     in_front = jnp.asarray(data.draw(st.booleans()))
     light_depth = jnp.float32(data.draw(st.sampled_from(LIGHT_DEPTHS)))

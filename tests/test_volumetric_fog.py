@@ -268,6 +268,8 @@ def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(
                                    atol=1e-5)  # fmt: skip
         gradients = [jax.grad(total, argnums=1)(e, effect.fov_x_deg, light, front) for e in (cheaper, effect)]
         np.testing.assert_allclose(*gradients, rtol=1e-4)
+    if preset != "volumetric_haze":
+        return  # the fit below restores any effect's statics alike; one compiles its programs
     target = np.asarray(effect(sky, jnp.asarray(LIGHT)))[..., :3] * 1.1
     fitted = fit(effect, sky, jnp.asarray(LIGHT), target, max_steps=1, fixed=["fov_x_deg"]).effect
     assert (fitted.shadows, fitted.num_shadow_samples, fitted.num_shadow_lines) == (

@@ -257,6 +257,10 @@ def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(
     assert effect.same_on([sky, _frame(np.random.default_rng(0))]) is effect
     at_eye = gr.Buffers(color=sky.color, depth=jnp.zeros((HEIGHT, WIDTH)), coverage=jnp.ones((HEIGHT, WIDTH)))
     at_eye_too = effect.same_on([sky, at_eye])  # surfaces at the eye cast nothing either
+    without_depth = gr.Buffers(color=sky.color, depth=None, coverage=sky.coverage)
+    assert effect.same_on([sky, without_depth]) is effect  # which then says that it needs depth
+    with pytest.raises(ValueError, match="depth"):
+        fit(effect, without_depth, jnp.asarray(LIGHT), np.asarray(sky.color), max_steps=1)
     assert (at_eye_too.shadows, at_eye_too.num_shadow_samples) == ("samples", 1)
 
     def total(candidate, fov_x_deg, light, front):

@@ -129,6 +129,8 @@ class VolumetricFog(Effect):
         no shadows' table to build."""
         if self.shadows == "samples" and self.num_shadow_samples == 1:
             return self
+        if any(frame.depth is None for frame in frames):
+            return self  # which says that it needs depth when it draws them
         depths = [np.asarray(frame.depth) for frame in frames]
         if any(np.any(np.isfinite(depth) & (depth > 0)) for depth in depths):
             return self

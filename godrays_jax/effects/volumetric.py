@@ -128,7 +128,7 @@ class VolumetricFog(Effect):
         casts a shadow: every reading sees the light everywhere, and one sample a segment reads that exactly, with
         no shadows' table to build."""
         if self.shadows == "samples" and self.num_shadow_samples == 1:
-            return self
+            return self  # already that effect: `fit` then sees no other one to polish with
         if any(frame.depth is None for frame in frames):
             return self  # which says that it needs depth when it draws them
         depths = [np.asarray(frame.depth) for frame in frames]

@@ -362,8 +362,9 @@ def fit(
     """Fit `effect`'s parameters so `effect(buffers, light_xy)` matches `target`.
 
     Args:
-        effect: the starting effect; its type and static fields are kept (drawn as `Effect.same_on` the frames
-            meanwhile: alike, more cheaply where they allow). Its values must lie inside their bounds.
+        effect: the starting effect; its type and static fields are kept (the fit draws the frames as
+            `effect.same_on(buffers)`: the same frames, more cheaply where they allow). Its values must lie
+            inside their bounds.
         buffers: one frame, or a sequence of frames sharing one parameter set.
         light_xy: the light in pixels, `(2,)`, or one per frame.
         target: the reference image(s), linear `(H, W, C)` of each frame's
@@ -436,11 +437,10 @@ def fit(
             the effect names one; for `VolumetricFog` with its shadows read
             along lines, read along fewer lines on rays farther apart), and
             the polish (Levenberg-Marquardt's polish phase) takes the effect's
-            own residuals with the stand-in's Jacobian: the result is the effect given with its
-            static fields, its losses the effect's own (`loss_history`: the
-            stand-in's until the polish). Without a polish phase (another
-            loss or solver) the stand-in's fitted fields are returned in the
-            effect given. False: every phase fits the effect itself.
+            own residuals with the stand-in's Jacobian: the result is the effect given with its static fields,
+            its losses the effect's own (`loss_history`: the stand-in's until the polish). Without a polish
+            phase (another loss or solver) the stand-in's fitted fields are returned in the effect given.
+            False: every phase fits the effect itself.
 
     Returns:
         A `FitResult`: fitted effect, rounded-count effect, loss history and

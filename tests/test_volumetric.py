@@ -250,13 +250,13 @@ class _Loop:
         surface, beside = self.pixel(row, col, depth), self.pixel(row, col, rest)
         return tuple(c * a + (1 - c) * b for a, b in zip(surface, beside))
 
-    def reduced_scattered(self, spacing):
+    def reduced_scattered(self, spacing, reading=None):
         """The in-scattering marched on rays at the light's position plus `spacing` times integers (the screen and
         one spacing around it), each through to the medium's end in two pieces of `steps` segments (even in
         transmittance) split at
         the depth of the texel it lies in (sky, or a surface beyond the medium: halfway); at every pixel, its four
         nearest rays' in-scattering up to the pixel's own depth (the segment holding it taken in proportion to the
-        light it receives up to there), by bilinear weights."""
+        light it receives up to there), by bilinear weights; `reading`: the depth each pixel reads up to instead."""
         anchor = self.light_xy % spacing - spacing
         xs = anchor[0] + spacing * np.arange(math.ceil(self.width / spacing) + 2)
         ys = anchor[1] + spacing * np.arange(math.ceil(self.height / spacing) + 2)
@@ -290,7 +290,7 @@ class _Loop:
         out = np.zeros((self.height, self.width))
         for row in range(self.height):
             for col in range(self.width):
-                own = min(self.depth[row, col], self.radius)
+                own = min((self.depth if reading is None else reading)[row, col], self.radius)
                 for (i, j), (view, bounds, lit) in rays.items():
                     tent = max(1 - abs(col + 0.5 - xs[j]) / spacing, 0) * max(1 - abs(row + 0.5 - ys[i]) / spacing, 0)
                     if tent > 0:
@@ -565,6 +565,44 @@ def test_reduced_resolution_matches_loop(x64):
     expected = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM).reduced_scattered(2.5)
     _, got, _ = _terms(depth, light_xy, light_depth=light_depth, light_in_front=in_front, resolution_factor=2.5, **MEDIUM)
     np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["beside the sky", "beside surfaces", "every pixel"])
+def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
+    """With march rays between the pixels, a partly covered pixel reads them up to its surface's depth and up to
+    what its uncovered part sees, and blends the two; the kernel reads the second side at those pixels alone, in
+    chunks of five (`fog_reading.blend_where_partly_covered`), and its derivatives through every pixel's both sides
+    agree with those values. Every pixel partly covered: the last chunk starts earlier and reads some again."""
+    light_xy, light_depth, in_front = CASES["point light in the medium"]
+    depth = _depth()
+    coverage = np.isfinite(depth).astype(float)
+    coverage[1, 1], coverage[1, 2], coverage[0, 3], coverage[3, 4], coverage[2, 3] = 0.3, 0.6, 0.45, 0.8, 0.7
+    if case == "every pixel":
+        coverage = np.clip(coverage, 0.2, 0.9)
+        assert depth.size % 5, "the chunks of five must not divide the frame"
+    uncovered = np.full(depth.shape, np.inf)
+    if case != "beside the sky":
+        uncovered[2, 3], uncovered[3, 4] = 11.0, 20.0  # the far ground's pixel partly the near one, and the reverse
+    loop = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM)
+    padded = np.pad(depth, 1, constant_values=np.inf)
+    nearest = np.min([padded[dy : dy + depth.shape[0], dx : dx + depth.shape[1]] for dy in range(3) for dx in range(3)], 0)
+    covering = np.where(np.isfinite(depth), depth, nearest)
+    expected = coverage * loop.reduced_scattered(2.5, covering) + (1 - coverage) * loop.reduced_scattered(2.5, uncovered)
+
+    def scattered(extinction):
+        options = kernel_options({**MEDIUM, "extinction": extinction})
+        return volumetric_fog_terms(
+            jnp.asarray(depth), jnp.asarray(light_xy), light_depth=light_depth, light_in_front=in_front,
+            resolution_factor=2.5, coverage=jnp.asarray(coverage), uncovered_depth=jnp.asarray(uncovered), **options,
+        )[1]  # fmt: skip
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(volumetric, "_BAND_PIXELS", 5)
+        got = jax.jit(scattered)(MEDIUM["extinction"])
+        along, derivative = jax.jit(lambda e: jax.jvp(scattered, (e,), (1.0,)))(MEDIUM["extinction"])
+    np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(along), np.asarray(got), rtol=1e-12, atol=1e-15)
+    assert np.all(np.isfinite(np.asarray(derivative))) and float(jnp.max(jnp.abs(derivative))) > 0
 
 
 @pytest.mark.parametrize("band_pixels", [20, 40])

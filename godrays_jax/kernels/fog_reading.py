@@ -38,15 +38,56 @@ def read_at_depth(marched: MarchedPieces, piece: int, row, col, ray_end):
 
 def upsample_by_depth(marched: MarchedPieces, ray_end, xs, ys, spacing, first_row=0):
     """The in-scattering of the march rays at `(xs, ys)` (`spacing` pixels apart; their pieces `marched`) at
-    every pixel of the rows from `first_row` on: each of its four nearest rays read up
-    to the pixel's own `ray_end` (`(rows, W)`, scene units, `inf` on sky: read as it is, so that a read beyond a
-    piece's end takes the piece whole with the piece's own derivatives), by bilinear weights at the rays' true
-    positions."""
+    every pixel of the rows from `first_row` on: `read_by_depth` at the pixels' centres, `ray_end` `(rows, W)`."""
     height, width = ray_end.shape
-    pieces, small_h, small_w, _ = marched.lit.shape
     dtype = marched.lit.dtype
-    x = (jnp.arange(width, dtype=dtype) + 0.5 - xs[0]) / spacing
-    y = (jnp.arange(height, dtype=dtype) + first_row + 0.5 - ys[0]) / spacing
-    row, col, tent = bilinear_corners(x[None, :], y[:, None], small_h, small_w)
+    x = jnp.arange(width, dtype=dtype) + 0.5
+    y = jnp.arange(height, dtype=dtype) + first_row + 0.5
+    return read_by_depth(marched, ray_end, x[None, :], y[:, None], xs, ys, spacing)
+
+
+def read_by_depth(marched: MarchedPieces, ray_end, x, y, xs, ys, spacing):
+    """The in-scattering of the march rays at `(xs, ys)` (`spacing` pixels apart; their pieces `marched`) at the
+    pixel positions `(x, y)` (pixels, broadcast with `ray_end`): each of its four nearest rays read up to its own
+    `ray_end` (scene units, `inf` on sky: read as it is, so that a read beyond a piece's end takes the piece whole
+    with the piece's own derivatives), by bilinear weights at the rays' true positions."""
+    pieces, small_h, small_w, _ = marched.lit.shape
+    row, col, tent = bilinear_corners((x - xs[0]) / spacing, (y - ys[0]) / spacing, small_h, small_w)
     read = sum(read_at_depth(marched, piece, row, col, ray_end) for piece in range(pieces))
     return jnp.sum(tent * read, axis=0)
+
+
+def blend_where_partly_covered(terms, covered, uncovered_depth, other_side, *, chunk: int):
+    """The planes `terms` (`(H, W)` each: every pixel's own side), blended at the pixels partly covered
+    (`0 < covered < 1`) with what their uncovered part sees, `covered * own + (1 - covered) * other`, where
+    `other_side(x, y, ray_end)` gives `other`'s planes at pixel centres `(x, y)` up to `uncovered_depth`; read
+    `chunk` pixels at a time. A silhouette is a thin share of a frame: reading its other side everywhere was a
+    third of the fog's forward (benchmarks/README.md)."""
+    height, width = covered.shape
+    count = height * width
+    chunk = min(chunk, count)
+    dtype = terms[0].dtype
+    partly = ((covered > 0) & (covered < 1)).reshape(count)
+    total = jnp.sum(partly, dtype=jnp.int32)
+    # The partly covered pixels in order, then the frame's size: past the frame, so that their writes are dropped.
+    pixels = jnp.nonzero(partly, size=count, fill_value=count)[0].astype(jnp.int32)
+    own = [plane.reshape(count) for plane in terms]
+    shares, depths = covered.reshape(count), uncovered_depth.reshape(count)
+
+    def read_chunk(state):
+        first, planes = state
+        # A last chunk that would run past the list starts earlier instead (`dynamic_slice` clamps): it reads some
+        # pixels again and writes the same values (blended from `own`, not from what is written).
+        chosen = jax.lax.dynamic_slice_in_dim(pixels, first, chunk)
+        at = jnp.minimum(chosen, count - 1)
+        x, y = (at % width).astype(dtype) + 0.5, (at // width).astype(dtype) + 0.5
+        share = shares[at]
+        others = other_side(x, y, depths[at])
+        planes = tuple(
+            plane.at[chosen].set(share * mine[at] + (1.0 - share) * other, mode="drop")
+            for plane, mine, other in zip(planes, own, others)
+        )  # fmt: skip
+        return first + chunk, planes
+
+    _, planes = jax.lax.while_loop(lambda state: state[0] < total, read_chunk, (jnp.int32(0), tuple(own)))
+    return tuple(plane.reshape(height, width) for plane in planes)

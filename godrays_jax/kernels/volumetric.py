@@ -81,7 +81,11 @@ from godrays_jax.kernels.bounded_medium import (
     scattering_height,
 )
 from godrays_jax.kernels.fog_march import MarchedPieces, march_grid, scattered_pieces
-from godrays_jax.kernels.fog_reading import upsample_by_depth
+from godrays_jax.kernels.fog_reading import (
+    blend_where_partly_covered,
+    read_by_depth,
+    upsample_by_depth,
+)
 from godrays_jax.kernels.lens import rays_through, view_directions
 from godrays_jax.kernels.shadow_reading import ShadowReading, ShadowSamples, Slabs
 from godrays_jax.primitives.camera import focal_length_px, unit_vectors
@@ -92,6 +96,7 @@ from godrays_jax.primitives.checks import (
     check_scalar,
     is_static_int,
 )
+from godrays_jax.primitives.derivatives import with_derivatives_of
 
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
 _NEAREST_LIGHT = 1e-3
@@ -317,26 +322,47 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
     else:
         uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
         planes = (_covering_depth(depth), jnp.asarray(coverage, dtype), uncovered)
-    if spacing == 1 or band >= height:
-        return pixel_terms(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), 0, *planes)
-    # Band by band: every pixel's reads of its rays (in a fit's Jacobian, in every lane) held for a band of rows at
-    # a time instead of the frame. The rows that fill the last band repeat the frame's last planes on rays below it
-    # (pixels like its own, whose derivatives are finite: reverse mode multiplies theirs by zero) and are cut off.
-    bands = -(-height // band)
+    def terms_of(planes):
+        if spacing == 1 or band >= height:
+            return pixel_terms(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), 0, *planes)
+        # Band by band: every pixel's reads of its rays (in a fit's Jacobian, in every lane) held for a band of rows
+        # at a time instead of the frame. The rows that fill the last band repeat the frame's last planes on rays
+        # below it (pixels like its own, whose derivatives are finite: reverse mode multiplies theirs by zero) and
+        # are cut off.
+        bands = -(-height // band)
 
-    def in_bands(plane):
-        padded = jnp.pad(plane, [(0, bands * band - height)] + [(0, 0)] * (plane.ndim - 1), mode="edge")
-        return padded.reshape(bands, band, *plane.shape[1:])
+        def in_bands(plane):
+            padded = jnp.pad(plane, [(0, bands * band - height)] + [(0, 0)] * (plane.ndim - 1), mode="edge")
+            return padded.reshape(bands, band, *plane.shape[1:])
 
-    def band_terms(inputs):
-        first_row, *band_planes = inputs
-        x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, (first_row + jnp.arange(band)).astype(dtype) + 0.5)
-        view = unit_vectors(rays_through(x, y, height, width, focal))
-        return pixel_terms(view, first_row, *band_planes)
+        def band_terms(inputs):
+            first_row, *band_planes = inputs
+            x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, (first_row + jnp.arange(band)).astype(dtype) + 0.5)
+            view = unit_vectors(rays_through(x, y, height, width, focal))
+            return pixel_terms(view, first_row, *band_planes)
 
-    inputs = [jnp.arange(bands) * band, *[None if plane is None else in_bands(plane) for plane in planes]]
-    terms = jax.lax.map(band_terms, inputs)
-    return tuple(term.reshape(bands * band, width)[:height] for term in terms)
+        inputs = [jnp.arange(bands) * band, *[None if plane is None else in_bands(plane) for plane in planes]]
+        terms = jax.lax.map(band_terms, inputs)
+        return tuple(term.reshape(bands * band, width)[:height] for term in terms)
+
+    if coverage is None or spacing == 1:
+        return terms_of(planes)
+
+    def one_side_then_silhouettes(planes):
+        # Every pixel's one side (its surface where it has any, else what its uncovered part sees: the blend's
+        # other weight is 0), then the other side at the few pixels partly covered. The same values as `terms_of`;
+        # its derivatives are taken through `terms_of`, whose lanes a compaction would not serve.
+        covering, covered, uncovered = planes
+        terms = terms_of((jnp.where(covered > 0, covering, uncovered), None, None))
+
+        def other_side(x, y, ray_end):
+            view = unit_vectors(rays_through(x, y, height, width, focal))
+            surface, ambient = surface_and_ambient(view, ray_end)
+            return surface, read_by_depth(marched, ray_end, x, y, xs, ys, spacing), ambient
+
+        return blend_where_partly_covered(terms, covered, uncovered, other_side, chunk=_BAND_PIXELS)
+
+    return with_derivatives_of(terms_of, one_side_then_silhouettes, planes)
 
 
 _compiled_fog_terms = jax.jit(

@@ -585,9 +585,11 @@ def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
         uncovered[2, 3], uncovered[3, 4] = 11.0, 20.0  # the far ground's pixel partly the near one, and the reverse
     loop = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM)
     padded = np.pad(depth, 1, constant_values=np.inf)
-    nearest = np.min([padded[dy : dy + depth.shape[0], dx : dx + depth.shape[1]] for dy in range(3) for dx in range(3)], 0)
-    covering = np.where(np.isfinite(depth), depth, nearest)
-    expected = coverage * loop.reduced_scattered(2.5, covering) + (1 - coverage) * loop.reduced_scattered(2.5, uncovered)
+    height, width = depth.shape
+    nearest = np.min([padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3)], axis=0)
+    covering = np.where(np.isfinite(depth), depth, nearest)  # a sky pixel's surface: its nearest neighbour's
+    surface, beside = (loop.reduced_scattered(2.5, reading) for reading in (covering, uncovered))
+    expected = coverage * surface + (1 - coverage) * beside
 
     def scattered(extinction):
         options = kernel_options({**MEDIUM, "extinction": extinction})

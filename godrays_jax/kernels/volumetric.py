@@ -84,6 +84,8 @@ from godrays_jax.kernels.fog_march import MarchedPieces, march_grid, scattered_p
 from godrays_jax.kernels.fog_reading import (
     blend_where_partly_covered,
     read_by_depth,
+    read_every_piece,
+    read_holding_piece,
     upsample_by_depth,
 )
 from godrays_jax.kernels.lens import rays_through, view_directions
@@ -295,7 +297,7 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
     if spacing == 1:
         x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, jnp.arange(height, dtype=dtype) + 0.5)
 
-        def march(view, ray_end, first_row):  # the whole frame: every pixel's own ray
+        def march(view, ray_end, first_row, pieces=read_every_piece):  # the whole frame: every pixel's own ray
             marched = scattered_pieces(view, (ray_end,), jnp.stack([x, y], axis=-1), **march_options)
             return jnp.sum(marched.lit[0], axis=-1)
 
@@ -303,8 +305,8 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         xs, ys = march_grid(light_xy, height, width, spacing, dtype)
         marched = _march_in_bands(depth, xs, ys, spacing, focal, max(_BAND_PIXELS // xs.shape[0], 1), medium, march_options)
 
-        def march(view, ray_end, first_row):
-            return upsample_by_depth(marched, ray_end, xs, ys, spacing, first_row)
+        def march(view, ray_end, first_row, pieces=read_every_piece):
+            return upsample_by_depth(marched, ray_end, xs, ys, spacing, first_row, pieces=pieces)
 
     def pixel_terms(view, first_row, surface_depth, covered, uncovered):
         """The three terms at the rows of `view` from `first_row` on."""
@@ -322,43 +324,58 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
     else:
         uncovered = jnp.full_like(depth, jnp.inf) if uncovered_depth is None else jnp.asarray(uncovered_depth, dtype)
         planes = (_covering_depth(depth), jnp.asarray(coverage, dtype), uncovered)
-    def terms_of(planes):
-        if spacing == 1 or band >= height:
-            return pixel_terms(view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype), 0, *planes)
-        # Band by band: every pixel's reads of its rays (in a fit's Jacobian, in every lane) held for a band of rows
-        # at a time instead of the frame. The rows that fill the last band repeat the frame's last planes on rays
-        # below it (pixels like its own, whose derivatives are finite: reverse mode multiplies theirs by zero) and
-        # are cut off.
-        bands = -(-height // band)
+    whole_frame = spacing == 1 or band >= height
+    bands = -(-height // band)
 
-        def in_bands(plane):
+    def in_bands(function, planes):
+        """`function(first_row, *band_planes)` (a tuple of planes of the band's rows) for each band of rows of the
+        planes `(H, W)` (or None), put together. The rows that fill the last band repeat the frame's last planes on
+        rays below it (pixels like its own, whose derivatives are finite: reverse mode multiplies theirs by zero)
+        and are cut off."""
+
+        def in_band(plane):
             padded = jnp.pad(plane, [(0, bands * band - height)] + [(0, 0)] * (plane.ndim - 1), mode="edge")
             return padded.reshape(bands, band, *plane.shape[1:])
 
-        def band_terms(inputs):
-            first_row, *band_planes = inputs
-            x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, (first_row + jnp.arange(band)).astype(dtype) + 0.5)
-            view = unit_vectors(rays_through(x, y, height, width, focal))
-            return pixel_terms(view, first_row, *band_planes)
+        inputs = [jnp.arange(bands) * band, *[None if plane is None else in_band(plane) for plane in planes]]
+        outputs = jax.lax.map(lambda inputs: function(*inputs), inputs)
+        return tuple(output.reshape(bands * band, width)[:height] for output in outputs)
 
-        inputs = [jnp.arange(bands) * band, *[None if plane is None else in_bands(plane) for plane in planes]]
-        terms = jax.lax.map(band_terms, inputs)
-        return tuple(term.reshape(bands * band, width)[:height] for term in terms)
+    def rows_view(first_row):  # the unit view rays through the pixels of a band's rows (of the frame, whole)
+        if whole_frame:
+            return view_directions(height, width, fov_x_deg=fov_x_deg, dtype=dtype)
+        x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, (first_row + jnp.arange(band)).astype(dtype) + 0.5)
+        return unit_vectors(rays_through(x, y, height, width, focal))
+
+    def terms_of(planes):
+        if whole_frame:
+            return pixel_terms(rows_view(0), 0, *planes)
+        # Band by band: every pixel's reads of its rays (in a fit's Jacobian, in every lane) held for a band of rows
+        # at a time instead of the frame.
+        return in_bands(lambda first_row, *rows: pixel_terms(rows_view(first_row), first_row, *rows), planes)
 
     if coverage is None or spacing == 1:
         return terms_of(planes)
 
     def one_side_then_silhouettes(planes):
         # Every pixel's one side (its surface where it has any, else what its uncovered part sees: the blend's
-        # other weight is 0), then the other side at the few pixels partly covered. The same values as `terms_of`;
-        # its derivatives are taken through `terms_of`, whose lanes a compaction would not serve.
+        # other weight is 0), then the other side at the few pixels partly covered, each ray read through the piece
+        # holding the depth alone: `terms_of`'s values to float rounding. Derivatives are taken through `terms_of`,
+        # whose lanes a compaction would not serve (XLA's vectorised Jacobian; reverse mode through a while loop).
         covering, covered, uncovered = planes
-        terms = terms_of((jnp.where(covered > 0, covering, uncovered), None, None))
+
+        def one_side(first_row, seen):
+            view = rows_view(first_row)
+            surface, ambient = surface_and_ambient(view, seen)
+            return surface, march(view, seen, first_row, read_holding_piece), ambient
+
+        seen = jnp.where(covered > 0, covering, uncovered)
+        terms = one_side(0, seen) if whole_frame else in_bands(one_side, [seen])
 
         def other_side(x, y, ray_end):
             view = unit_vectors(rays_through(x, y, height, width, focal))
             surface, ambient = surface_and_ambient(view, ray_end)
-            return surface, read_by_depth(marched, ray_end, x, y, xs, ys, spacing), ambient
+            return surface, read_by_depth(marched, ray_end, x, y, xs, ys, spacing, pieces=read_holding_piece), ambient
 
         return blend_where_partly_covered(terms, covered, uncovered, other_side, chunk=_BAND_PIXELS)
 

@@ -354,7 +354,7 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         # at a time instead of the frame.
         return in_bands(lambda first_row, *rows: pixel_terms(rows_view(first_row), first_row, *rows), planes)
 
-    if coverage is None or spacing == 1:
+    if spacing == 1:
         return terms_of(planes)
 
     def one_side_then_silhouettes(planes):
@@ -369,8 +369,10 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
             surface, ambient = surface_and_ambient(view, seen)
             return surface, march(view, seen, first_row, read_holding_piece), ambient
 
-        seen = jnp.where(covered > 0, covering, uncovered)
+        seen = covering if covered is None else jnp.where(covered > 0, covering, uncovered)
         terms = one_side(0, seen) if whole_frame else in_bands(one_side, [seen])
+        if covered is None:
+            return terms
 
         def other_side(x, y, ray_end):
             view = unit_vectors(rays_through(x, y, height, width, focal))

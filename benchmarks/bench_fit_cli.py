@@ -13,7 +13,7 @@ the fit's steps, and the child's peak RSS (`resource.getrusage(RUSAGE_CHILDREN)`
 Frames: the `hidden_sun` reference at its own 320x180, and pairs made from it at other sizes (each pixel repeated,
 the light's position scaled, its field of view kept in the header). `--apply`: `godrays-jax apply` of the default
 fog (`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 5 after one that
-compiles). `--tests`: the README's test command's wall time. `uptime` first: the machine may be shared.
+compiles): `apply`'s render, and the effect jitted as a caller who differentiates it traces it. `--tests`: the README's test command's wall time. `uptime` first: the machine may be shared.
 """
 
 import argparse
@@ -148,6 +148,7 @@ def apply_rows(folder: Path) -> list[dict]:
     import jax
 
     import godrays_jax as gr
+    from godrays_jax.pipeline.compiled import render_compiled
     from godrays_jax.primitives.light_metadata import read_light
 
     case = folder / "apply_1920x1080"
@@ -161,18 +162,26 @@ def apply_rows(folder: Path) -> list[dict]:
                          peak_rss_mib=record["peak_rss_mib"], loss=""))  # fmt: skip
         print(_row(rows[-1]), flush=True)
     buffers = gr.read_buffers(frame)
-    (x, y), _ = read_light(frame)
+    (x, y), in_front = read_light(frame)
     effect = gr.preset("volumetric_haze")
-    forward = jax.jit(lambda b: effect(b, jax.numpy.asarray([x, y], jax.numpy.float32)))
-    jax.block_until_ready(forward(buffers))
-    seconds = []
-    for _ in range(5):
-        start = time.perf_counter()
+    light = jax.numpy.asarray([x, y], jax.numpy.float32)
+    # What `apply` runs (`render_compiled`: no derivatives taken, `values_only`), and the effect as a caller who
+    # differentiates it traces it.
+    programs = {
+        "apply's render": lambda b: render_compiled(effect, b, light, in_front),
+        "the differentiable effect, jitted": jax.jit(lambda b: effect(b, light, light_in_front=in_front)),
+    }
+    for name, forward in programs.items():
         jax.block_until_ready(forward(buffers))
-        seconds.append(time.perf_counter() - start)
-    print(f"forward in-process, volumetric_haze 1920x1080: median {np.median(seconds):.3f} s of 5", flush=True)
-    rows.append(dict(case="forward volumetric_haze 1920x1080 (in-process)", cache="", wall=float(np.median(seconds)),
-                     compiling=None, fit=None, after_fit=None, steps="", peak_rss_mib=None, loss=""))  # fmt: skip
+        seconds = []
+        for _ in range(5):
+            start = time.perf_counter()
+            jax.block_until_ready(forward(buffers))
+            seconds.append(time.perf_counter() - start)
+        print(f"forward in-process, volumetric_haze 1920x1080, {name}: median {np.median(seconds):.3f} s of 5", flush=True)
+        rows.append(dict(case=f"forward volumetric_haze 1920x1080 (in-process, {name})", cache="",
+                         wall=float(np.median(seconds)), compiling=None, fit=None, after_fit=None, steps="",
+                         peak_rss_mib=None, loss=""))  # fmt: skip
     return rows
 
 

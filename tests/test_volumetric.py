@@ -16,6 +16,7 @@ from godrays_jax.kernels.fog_march import march_grid
 from godrays_jax.kernels.shadow_reading import ShadowLines, ShadowSamples, Slabs
 from godrays_jax.kernels.shadow_samples import segment_visibility
 from godrays_jax.kernels.volumetric import apply_volumetric_fog, volumetric_fog_terms
+from godrays_jax.primitives.derivatives import values_only
 
 HEIGHT, WIDTH = 4, 6
 MEDIUM = dict(
@@ -567,12 +568,14 @@ def test_reduced_resolution_matches_loop(x64):
     np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
 
 
-@pytest.mark.parametrize("case", ["beside the sky", "beside surfaces", "every pixel"])
+@pytest.mark.parametrize("case", ["no coverage", "beside the sky", "beside surfaces", "every pixel"])
 def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
     """With march rays between the pixels, a partly covered pixel reads them up to its surface's depth and up to
-    what its uncovered part sees, and blends the two; the kernel reads the second side at those pixels alone, in
-    chunks of five (`fog_reading.blend_where_partly_covered`), and its derivatives through every pixel's both sides
-    agree with those values. Every pixel partly covered: the last chunk starts earlier and reads some again."""
+    what its uncovered part sees, and blends the two. A render that takes no derivatives (`values_only`) reads
+    the second side at those pixels alone, in chunks of five (`fog_reading.blend_where_partly_covered`), and each
+    ray through the piece holding the depth (`fog_reading.read_holding_piece`): the same values as the render
+    that does, whose derivatives go through both sides and every piece. Every pixel partly covered: the last
+    chunk starts earlier and reads some again."""
     light_xy, light_depth, in_front = CASES["point light in the medium"]
     depth = _depth()
     coverage = np.isfinite(depth).astype(float)
@@ -581,29 +584,39 @@ def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
         coverage = np.clip(coverage, 0.2, 0.9)
         assert depth.size % 5, "the chunks of five must not divide the frame"
     uncovered = np.full(depth.shape, np.inf)
-    if case != "beside the sky":
+    if case in ("beside surfaces", "every pixel"):
         uncovered[2, 3], uncovered[3, 4] = 11.0, 20.0  # the far ground's pixel partly the near one, and the reverse
     loop = _Loop(depth, light_xy, light_depth=light_depth, in_front=in_front, **MEDIUM)
-    padded = np.pad(depth, 1, constant_values=np.inf)
-    height, width = depth.shape
-    nearest = np.min([padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3)], axis=0)
-    covering = np.where(np.isfinite(depth), depth, nearest)  # a sky pixel's surface: its nearest neighbour's
-    surface, beside = (loop.reduced_scattered(2.5, reading) for reading in (covering, uncovered))
-    expected = coverage * surface + (1 - coverage) * beside
+    if case == "no coverage":
+        expected = loop.reduced_scattered(2.5)
+    else:
+        padded = np.pad(depth, 1, constant_values=np.inf)
+        height, width = depth.shape
+        nearest = np.min([padded[dy : dy + height, dx : dx + width] for dy in range(3) for dx in range(3)], axis=0)
+        covering = np.where(np.isfinite(depth), depth, nearest)  # a sky pixel's surface: its nearest neighbour's
+        surface, beside = (loop.reduced_scattered(2.5, reading) for reading in (covering, uncovered))
+        expected = coverage * surface + (1 - coverage) * beside
 
     def scattered(extinction):
         options = kernel_options({**MEDIUM, "extinction": extinction})
+        covered = {"coverage": jnp.asarray(coverage), "uncovered_depth": jnp.asarray(uncovered)}
+        covered = {} if case == "no coverage" else covered
         return volumetric_fog_terms(
             jnp.asarray(depth), jnp.asarray(light_xy), light_depth=light_depth, light_in_front=in_front,
-            resolution_factor=2.5, coverage=jnp.asarray(coverage), uncovered_depth=jnp.asarray(uncovered), **options,
+            resolution_factor=2.5, **covered, **options,
         )[1]  # fmt: skip
+
+    def values_alone(extinction):
+        with values_only():
+            return scattered(extinction)
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(volumetric, "_BAND_PIXELS", 5)
-        got = jax.jit(scattered)(MEDIUM["extinction"])
+        cheaper = jax.jit(values_alone)(MEDIUM["extinction"])
         along, derivative = jax.jit(lambda e: jax.jvp(scattered, (e,), (1.0,)))(MEDIUM["extinction"])
-    np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
-    np.testing.assert_allclose(np.asarray(along), np.asarray(got), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(cheaper), expected, rtol=2e-3, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(along), expected, rtol=2e-3, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(cheaper), np.asarray(along), rtol=1e-12, atol=1e-15)
     assert np.all(np.isfinite(np.asarray(derivative))) and float(jnp.max(jnp.abs(derivative))) > 0
 
 

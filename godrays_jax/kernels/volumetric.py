@@ -98,7 +98,7 @@ from godrays_jax.primitives.checks import (
     check_scalar,
     is_static_int,
 )
-from godrays_jax.primitives.derivatives import with_derivatives_of
+from godrays_jax.primitives.derivatives import values_are_only_needed
 
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
 _NEAREST_LIGHT = 1e-3
@@ -249,14 +249,15 @@ def volumetric_fog_terms(
     terms = _fog_terms if traced else _compiled_fog_terms
     return terms(
         *arguments, shadows=shadows, num_view_steps=num_view_steps, resolution_factor=resolution_factor,
-        static_front=static_front,
+        static_front=static_front, values_only=values_are_only_needed(),
     )  # fmt: skip
 
 
 def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, slabs, direct_fraction, ambient_rise,
-               coverage, uncovered_depth, *, shadows, num_view_steps, resolution_factor, static_front):  # fmt: skip
+               coverage, uncovered_depth, *, shadows, num_view_steps, resolution_factor, static_front,
+               values_only):  # fmt: skip
     """`volumetric_fog_terms` after its checks; `static_front`: the light's side when the caller gave it as a
-    Python bool, else None (`light_in_front` traced)."""
+    Python bool, else None (`light_in_front` traced); `values_only`: traced inside `derivatives.values_only()`."""
     if static_front is not None:
         light_in_front = static_front
     height, width = depth.shape
@@ -354,14 +355,15 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         # at a time instead of the frame.
         return in_bands(lambda first_row, *rows: pixel_terms(rows_view(first_row), first_row, *rows), planes)
 
-    if spacing == 1:
+    if spacing == 1 or not values_only:
         return terms_of(planes)
 
     def one_side_then_silhouettes(planes):
         # Every pixel's one side (its surface where it has any, else what its uncovered part sees: the blend's
         # other weight is 0), then the other side at the few pixels partly covered, each ray read through the piece
-        # holding the depth alone: `terms_of`'s values to float rounding. Derivatives are taken through `terms_of`,
-        # whose lanes a compaction would not serve (XLA's vectorised Jacobian; reverse mode through a while loop).
+        # holding the depth alone: `terms_of`'s values to float rounding, for renders whose derivatives nobody takes
+        # (`primitives.derivatives.values_only`): a compaction serves no derivative's lanes, reverse mode cannot
+        # go through its while loop, and XLA compiled the fit's vectorised Jacobian through it wrong.
         covering, covered, uncovered = planes
 
         def one_side(first_row, seen):
@@ -381,11 +383,11 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
 
         return blend_where_partly_covered(terms, covered, uncovered, other_side, chunk=_BAND_PIXELS)
 
-    return with_derivatives_of(terms_of, one_side_then_silhouettes, planes)
+    return one_side_then_silhouettes(planes)
 
 
 _compiled_fog_terms = jax.jit(
-    _fog_terms, static_argnames=("shadows", "num_view_steps", "resolution_factor", "static_front")
+    _fog_terms, static_argnames=("shadows", "num_view_steps", "resolution_factor", "static_front", "values_only")
 )
 
 

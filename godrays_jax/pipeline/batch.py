@@ -33,6 +33,7 @@ from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.sequences import Light, LightSource, frame_number, light_for
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import error_line
+from godrays_jax.primitives.derivatives import values_only
 from godrays_jax.primitives.files import Claim, claim, release, remove_stale, temporaries_of
 from godrays_jax.primitives.frame_files import FrameFile, read_frame, write_frame_like
 from godrays_jax.primitives.frame_reading import SKY_DEPTH, DepthKindOption
@@ -286,12 +287,14 @@ def frames_function(
     a later process does not trace it either; for arrays on one device (a
     batch spreads its groups over devices and runs the program as traced).
     `traces`: counts each trace (compilation) under `"frames"` (a run's
-    `BatchReport.compilations`).
+    `BatchReport.compilations`). Frames rendered to be written: it takes no
+    derivatives (`derivatives.values_only`).
     """
 
     def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
         call = effect.layer if layer_only else effect
-        return call(frame, light_xy, light_in_front=visible, light_depth=light_depth)
+        with values_only():
+            return call(frame, light_xy, light_in_front=visible, light_depth=light_depth)
 
     @jax.jit
     def apply(buffers: Buffers, lights: Float[Array, "G 2"], in_front: Bool[Array, " G"]) -> Float[Array, "G H W C"]:

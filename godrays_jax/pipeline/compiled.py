@@ -13,6 +13,7 @@ from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import check_inside_bounds, strongly_typed
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
+from godrays_jax.primitives.derivatives import values_only
 
 
 def render_compiled(
@@ -26,11 +27,12 @@ def render_compiled(
 
     Known fields are checked against their bounds here, so that the compiled
     render carries no run-time range check and can be stored (`exported`):
-    `ValueError` naming a field outside them. Traced fields (a call inside
-    `jit`) are checked by the kernels when the program runs.
+    `ValueError` naming a field outside them; that render takes no derivatives
+    (`derivatives.values_only`). Traced arguments (a call inside `jit` or a
+    derivative) are checked by the kernels when the program runs.
     """
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(effect)):
-        return _render(effect, buffers, light_xy, light_in_front, light_depth, True)  # traced fields: checked when run
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((effect, buffers, light_xy, light_depth))):
+        return _render(effect, buffers, light_xy, light_in_front, light_depth, True)  # traced: checked when run
     check_inside_bounds(effect)
     # Every field an argument of the program: a NumPy value or a weakly typed one would make another program.
     effect = jax.tree.map(strongly_typed, effect)
@@ -43,8 +45,9 @@ def render_compiled(
 
 @eqx.filter_jit
 def _render(effect, buffers, light_xy, light_in_front, light_depth, checked):
-    """`checked` is static: a render traced without range checks is never reused for one that needs them."""
+    """`checked` is static: a render traced without range checks (nor derivatives) is never reused for one that
+    needs them."""
     if checked:
         return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
-    with ranges_guaranteed():
+    with ranges_guaranteed(), values_only():
         return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)

@@ -1,25 +1,26 @@
-"""Values computed one way, derivatives taken through another that computes the same values."""
+"""Renders whose derivatives are never taken, which kernels may compute a cheaper way."""
 
-from collections.abc import Callable
+import contextlib
+import contextvars
+from collections.abc import Iterator
 
-import jax
+_VALUES_ONLY = contextvars.ContextVar("values_only", default=False)
 
 
-def with_derivatives_of(full: Callable, cheap: Callable, args):
-    """`cheap(args)`, with the derivatives (forward and reverse mode) of `full(args)`, which must give the same
-    values: `cheap` may skip work that a derivative's lanes cannot (a mask's compaction, a loop whose trip count
-    the values set) or that reverse mode cannot transpose (a `while_loop`). Both may close over traced values
-    (`jax.closure_convert`); the derivatives flow through `full`'s closure alone."""
-    full_converted, full_consts = jax.closure_convert(full, args)
-    cheap_converted, cheap_consts = jax.closure_convert(cheap, args)
+@contextlib.contextmanager
+def values_only() -> Iterator[None]:
+    """Trace renders whose derivatives nobody takes (`apply`, `batch`, a fit's residuals and losses): a kernel may
+    then compute the same values a way no derivative goes through, or none as cheaply (a mask's pixels compacted
+    and read in a `while_loop`, which reverse mode cannot transpose and XLA compiled wrong in the fit's vectorised
+    forward-mode Jacobian). Read when a function is traced: set it inside the traced function, so that its
+    program depends on its own arguments alone."""
+    token = _VALUES_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _VALUES_ONLY.reset(token)
 
-    @jax.custom_jvp
-    def values(args, full_consts, cheap_consts):
-        return cheap_converted(args, *cheap_consts)
 
-    @values.defjvp
-    def derivatives(primals, tangents):
-        (args, full_consts, _), (args_tangent, full_consts_tangent, _) = primals, tangents
-        return jax.jvp(lambda a, c: full_converted(a, *c), (args, full_consts), (args_tangent, full_consts_tangent))
-
-    return values(args, full_consts, cheap_consts)
+def values_are_only_needed() -> bool:
+    """Whether the caller traces inside `values_only()`."""
+    return _VALUES_ONLY.get()

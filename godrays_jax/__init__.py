@@ -19,6 +19,7 @@ from godrays_jax.primitives.camera import project_point as project_point
 from godrays_jax.primitives.color import display_map as display_map
 from godrays_jax.primitives.color import srgb_decode as srgb_decode
 from godrays_jax.primitives.color import srgb_encode as srgb_encode
+from godrays_jax.primitives.derivatives import values_only as values_only
 from godrays_jax.primitives.resample import box_pool as box_pool
 from godrays_jax.primitives.resample import downsample_box as downsample_box
 from godrays_jax.primitives.resample import upsample_bilinear as upsample_bilinear

@@ -5,6 +5,7 @@ import platform
 import subprocess
 import sys
 
+import jax.monitoring
 import numpy as np
 import pytest
 
@@ -127,3 +128,15 @@ def test_the_command_hands_back_what_compiling_frees(monkeypatch, tmp_path):
     assert calls == []
     cli.main(["apply", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "out.exr")], keep_freed_memory=True)
     assert calls == ["trim"]
+
+
+def test_off_glibc_the_allocator_is_left_as_it_is(monkeypatch):
+    """Where glibc's functions are missing (macOS, musl: the two tests above skip there), neither tuning nor
+    trimming happens, each says so, and no compile listener is registered."""
+    monkeypatch.setattr(allocator, "_glibc_function", lambda name: None)
+    monkeypatch.setattr(allocator, "_trimming", [])
+    registered = []
+    monkeypatch.setattr(jax.monitoring, "register_event_duration_secs_listener", registered.append)
+    assert allocator.keep_freed_memory() is False
+    assert allocator.hand_back_after_compiling() is False
+    assert registered == [] and allocator._trimming == []

@@ -81,8 +81,8 @@ def blend_where_partly_covered(terms, covered, uncovered_depth, other_side, *, c
     """The planes `terms` (`(H, W)` each: every pixel's own side), blended at the pixels partly covered
     (`0 < covered < 1`) with what their uncovered part sees, `covered * own + (1 - covered) * other`, where
     `other_side(x, y, ray_end)` gives `other`'s planes at pixel centres `(x, y)` up to `uncovered_depth`; read
-    `chunk` pixels at a time. A silhouette is a thin share of a frame: reading its other side everywhere was a
-    third of the fog's forward (benchmarks/README.md)."""
+    `chunk` pixels at a time. A silhouette is a thin share of a frame, and reading its other side at every pixel
+    was a large part of the fog's forward (benchmarks/README.md, "The fit as users run it")."""
     height, width = covered.shape
     count = height * width
     chunk = min(chunk, count)

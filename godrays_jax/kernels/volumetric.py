@@ -298,7 +298,7 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
     if spacing == 1:
         x, y = jnp.meshgrid(jnp.arange(width, dtype=dtype) + 0.5, jnp.arange(height, dtype=dtype) + 0.5)
 
-        def march(view, ray_end, first_row, pieces=read_every_piece):  # the whole frame: every pixel's own ray
+        def march(view, ray_end, first_row):  # the whole frame: every pixel's own ray
             marched = scattered_pieces(view, (ray_end,), jnp.stack([x, y], axis=-1), **march_options)
             return jnp.sum(marched.lit[0], axis=-1)
 

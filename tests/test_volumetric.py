@@ -620,6 +620,40 @@ def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
     assert np.all(np.isfinite(np.asarray(derivative))) and float(jnp.max(jnp.abs(derivative))) > 0
 
 
+@pytest.mark.parametrize("shadows", ["samples", "lines"])
+@pytest.mark.parametrize("resolution_factor", [1, 2.5])
+def test_a_sun_known_when_traced_gives_the_traced_suns_terms_and_derivatives(x64, shadows, resolution_factor):
+    """A sun given as a Python `inf` drops the point light's branches from the program (`light_geometry`): the
+    terms and their derivatives are those of the sun given as a traced `inf`, in a render that takes derivatives
+    and in one that does not (`values_only`), on a partly covered frame."""
+    light_xy, _, _ = CASES["sun in front"]
+    depth = _depth()
+    coverage = jnp.asarray(np.isfinite(depth) * 0.75 + 0.25)
+    fields = jnp.asarray([MEDIUM["extinction"], MEDIUM["fov_x_deg"]])
+
+    def terms(values, light_depth):
+        options = {**MEDIUM, "extinction": values[0], "fov_x_deg": values[1], "shadows": shadows}
+        return jnp.stack(volumetric_fog_terms(
+            jnp.asarray(depth), light_xy, light_depth=light_depth, light_in_front=True, coverage=coverage,
+            resolution_factor=resolution_factor, **kernel_options(options),
+        ))  # fmt: skip
+
+    def with_derivatives(light_depth):
+        return jax.jit(lambda values: (terms(values, light_depth), jax.jacfwd(terms)(values, light_depth)))
+
+    def values_alone(values, light_depth):
+        with values_only():
+            return terms(values, light_depth)
+
+    known, traced = with_derivatives(math.inf)(fields), with_derivatives(jnp.asarray(math.inf))(fields)
+    cheap = jax.jit(lambda values: values_alone(values, math.inf))(fields)
+    cheap_traced = jax.jit(values_alone)(fields, jnp.asarray(math.inf))
+    for got, expected in zip((*known, cheap), (*traced, cheap_traced)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(cheap), np.asarray(known[0]), rtol=1e-12, atol=1e-15)
+    assert float(jnp.max(jnp.abs(known[1]))) > 0 and np.all(np.isfinite(np.asarray(known[1])))
+
+
 @pytest.mark.parametrize("band_pixels", [20, 40])
 def test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives(x64, monkeypatch, band_pixels):
     """On a larger frame the rays are marched and the pixels read them a band of rows at a time (`_BAND_PIXELS`):

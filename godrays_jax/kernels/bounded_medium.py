@@ -11,6 +11,7 @@ on sky (`inf`), for the sun and for a light at the camera.
 """
 
 import math
+import numbers
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -164,9 +165,17 @@ def scattering_height(
     return direction[..., 1] * (start * -jnp.expm1(-tau) + length * mean)
 
 
+def is_static_sun(light_depth) -> bool:
+    """Whether `light_depth` is the sun (`+inf`) known when the program is traced (a Python or NumPy number)."""
+    return isinstance(light_depth, numbers.Real) and light_depth == math.inf
+
+
 def light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype):
-    """The unit direction toward the light and `1 / light_depth` (0 for the sun)."""
+    """The unit direction toward the light and `1 / light_depth` (0 for the sun). A sun given as a Python number
+    (`math.inf`) gives a Python 0: every point light's branch then drops out of the compiled program."""
     toward = light_direction(light_xy, height, width, fov_x_deg=fov_x_deg, light_in_front=light_in_front, dtype=dtype)
+    if is_static_sun(light_depth):
+        return toward, 0.0
     light_depth = jnp.asarray(light_depth, dtype)
     inverse = jnp.where(jnp.isfinite(light_depth), 1.0 / jnp.where(jnp.isfinite(light_depth), light_depth, 1.0), 0.0)
     return toward, inverse

@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.kernels.bounded_medium import (
     BoundedMedium,
@@ -57,7 +57,7 @@ class MarchedPieces(NamedTuple):
     light_bounds: Float[Array, "L h w M+1"]
     along: Float[Array, "h w"]
     miss: Float[Array, "h w"]
-    inverse: Float[Array, ""]
+    inverse: Float[ArrayLike, ""]
 
     def even_in_light(self, distance, row, col):
         """`irradiance_coordinate` of distances along the rays `(row, col)`."""
@@ -158,5 +158,5 @@ def scattered_pieces(
     light_bounds = irradiance_coordinate(jnp.stack(all_bounds), along[..., None], miss[..., None], inverse)
     return MarchedPieces(
         pieces, jnp.cumsum(pieces, axis=-1) - pieces, jnp.stack(firsts), jnp.stack(lasts), jnp.stack(opticals),
-        light_bounds, along, miss, jnp.asarray(inverse, dtype),
+        light_bounds, along, miss, inverse,
     )  # fmt: skip

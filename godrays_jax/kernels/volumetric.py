@@ -74,6 +74,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.kernels.bounded_medium import (
     BoundedMedium,
+    is_static_sun,
     light_geometry,
     light_transmittance,
     medium_interval,
@@ -83,8 +84,8 @@ from godrays_jax.kernels.bounded_medium import (
 from godrays_jax.kernels.fog_march import MarchedPieces, march_grid, scattered_pieces
 from godrays_jax.kernels.fog_reading import (
     blend_where_partly_covered,
+    pack_pieces,
     read_by_depth,
-    read_every_piece,
     read_holding_piece,
     upsample_by_depth,
 )
@@ -144,7 +145,8 @@ def _march_in_bands(depth, xs, ys, spacing, focal, band, medium, march_options):
         split = jnp.where(ray_depth < end, ray_depth, 0.5 * (start + end))
         return scattered_pieces(rays, (split, sky), jnp.stack([x, y], axis=-1), **march_options)
 
-    marched = jax.lax.map(march_band, jnp.arange(bands) * band)
+    # The light's inverse distance is set apart from the loop's outputs: a Python 0 (the sun) stays one.
+    marched = jax.lax.map(lambda first: march_band(first)._replace(inverse=0.0), jnp.arange(bands) * band)
 
     def whole(values, row_axis):  # (bands, ..., band, ...) -> (..., rows, ...)
         values = jnp.moveaxis(values, 0, row_axis - 1)
@@ -152,7 +154,7 @@ def _march_in_bands(depth, xs, ys, spacing, focal, band, medium, march_options):
         return jax.lax.slice_in_dim(values, 0, rows, axis=row_axis - 1)
 
     per_piece = [whole(values, 2) for values in marched[:6]]
-    return MarchedPieces(*per_piece, whole(marched.along, 1), whole(marched.miss, 1), marched.inverse[0])
+    return MarchedPieces(*per_piece, whole(marched.along, 1), whole(marched.miss, 1), march_options["inverse"])
 
 
 def volumetric_fog_terms(
@@ -239,8 +241,10 @@ def volumetric_fog_terms(
             raise ValueError("uncovered_depth needs coverage (the share of each pixel its own surface covers)")
         check_plane(uncovered_depth, "uncovered_depth", height, width)
     static_front = light_in_front if isinstance(light_in_front, bool) else None
+    static_sun = is_static_sun(light_depth)
     arguments = (
-        depth, light_xy, fov_x_deg, light_depth, None if static_front is not None else jnp.asarray(light_in_front),
+        depth, light_xy, fov_x_deg, None if static_sun else light_depth,
+        None if static_front is not None else jnp.asarray(light_in_front),
         medium, slabs, direct_fraction, ambient_rise, coverage, uncovered_depth,
     )  # fmt: skip
     # Called eagerly, the terms run compiled once per shape and count: their loops over functions defined in the call
@@ -249,15 +253,17 @@ def volumetric_fog_terms(
     terms = _fog_terms if traced else _compiled_fog_terms
     return terms(
         *arguments, shadows=shadows, num_view_steps=num_view_steps, resolution_factor=resolution_factor,
-        static_front=static_front, values_only=values_are_only_needed(),
+        static_front=static_front, static_sun=static_sun, values_only=values_are_only_needed(),
     )  # fmt: skip
 
 
 def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, slabs, direct_fraction, ambient_rise,
-               coverage, uncovered_depth, *, shadows, num_view_steps, resolution_factor, static_front,
+               coverage, uncovered_depth, *, shadows, num_view_steps, resolution_factor, static_front, static_sun,
                values_only):  # fmt: skip
     """`volumetric_fog_terms` after its checks; `static_front`: the light's side when the caller gave it as a
-    Python bool, else None (`light_in_front` traced); `values_only`: traced inside `derivatives.values_only()`."""
+    Python bool, else None (`light_in_front` traced); `static_sun`: the caller gave the sun as a Python number
+    (`light_depth` None), which drops the point light's branches (`light_geometry`); `values_only`: traced inside
+    `derivatives.values_only()`."""
     if static_front is not None:
         light_in_front = static_front
     height, width = depth.shape
@@ -267,8 +273,11 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
     # inverse distance overflows float32 in the irradiance around it and its shadows read along lines lose their angles.
     # The floor is a guard, not a model: no gradient reaches `max_distance` through it (one would carry the medium's
     # reach through every use of the light's distance, the shadows' table among them, in a fit's Jacobian).
-    nearest = jax.lax.stop_gradient(_NEAREST_LIGHT * jnp.asarray(medium.max_distance, dtype))
-    light_depth = jnp.maximum(jnp.asarray(light_depth, dtype), nearest)
+    if static_sun:
+        light_depth = math.inf
+    else:
+        nearest = jax.lax.stop_gradient(_NEAREST_LIGHT * jnp.asarray(medium.max_distance, dtype))
+        light_depth = jnp.maximum(jnp.asarray(light_depth, dtype), nearest)
     toward, inverse = light_geometry(light_xy, height, width, fov_x_deg, light_depth, light_in_front, dtype)
     share = jnp.asarray(direct_fraction, dtype)
     rise = jnp.asarray(ambient_rise, dtype)
@@ -306,8 +315,8 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         xs, ys = march_grid(light_xy, height, width, spacing, dtype)
         marched = _march_in_bands(depth, xs, ys, spacing, focal, max(_BAND_PIXELS // xs.shape[0], 1), medium, march_options)
 
-        def march(view, ray_end, first_row, pieces=read_every_piece):
-            return upsample_by_depth(marched, ray_end, xs, ys, spacing, first_row, pieces=pieces)
+        def march(view, ray_end, first_row):
+            return upsample_by_depth(marched, ray_end, xs, ys, spacing, first_row)
 
     def pixel_terms(view, first_row, surface_depth, covered, uncovered):
         """The three terms at the rows of `view` from `first_row` on."""
@@ -366,10 +375,12 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         # go through its while loop, and XLA compiled the fit's vectorised Jacobian through it wrong.
         covering, covered, uncovered = planes
 
+        packed = pack_pieces(marched)
+
         def one_side(first_row, seen):
             view = rows_view(first_row)
             surface, ambient = surface_and_ambient(view, seen)
-            return surface, march(view, seen, first_row, read_holding_piece), ambient
+            return surface, upsample_by_depth(packed, seen, xs, ys, spacing, first_row, pieces=read_holding_piece), ambient
 
         seen = covering if covered is None else jnp.where(covered > 0, covering, uncovered)
         terms = one_side(0, seen) if whole_frame else in_bands(one_side, [seen])
@@ -379,7 +390,7 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         def other_side(x, y, ray_end):
             view = unit_vectors(rays_through(x, y, height, width, focal))
             surface, ambient = surface_and_ambient(view, ray_end)
-            return surface, read_by_depth(marched, ray_end, x, y, xs, ys, spacing, pieces=read_holding_piece), ambient
+            return surface, read_by_depth(packed, ray_end, x, y, xs, ys, spacing, pieces=read_holding_piece), ambient
 
         return blend_where_partly_covered(terms, covered, uncovered, other_side, chunk=_BAND_PIXELS)
 
@@ -387,7 +398,8 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
 
 
 _compiled_fog_terms = jax.jit(
-    _fog_terms, static_argnames=("shadows", "num_view_steps", "resolution_factor", "static_front", "values_only")
+    _fog_terms,
+    static_argnames=("shadows", "num_view_steps", "resolution_factor", "static_front", "static_sun", "values_only"),
 )
 
 

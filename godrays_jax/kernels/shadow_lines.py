@@ -249,11 +249,17 @@ def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s
     start = jnp.zeros((num_lines, num_bins), dtype)
     if isinstance(in_front, bool):
         return jax.lax.scan(along_line, start, (index, change), reverse=not in_front)[1], False
-    # A light whose side is traced (a batch's frames, each its own): one scan outward over the cells taken in the
-    # light's order, inward ones reversed, instead of a scan each way and a choice between two tables.
+    # A light whose side is traced (a batch's frames, each its own): one scan over the cells in the light's order,
+    # each step taking its cell from the light's side (not a choice between the cells' changes and their reverse:
+    # two copies of them), instead of a scan each way and a choice between two tables.
     inward = jnp.logical_not(in_front)
-    index, change = (jnp.where(inward, values[::-1], values) for values in (index, change))
-    return jax.lax.scan(along_line, start, (index, change))[1], inward
+    last = index.shape[0] - 1
+
+    def from_the_light(covered, step):
+        cell = jnp.where(inward, last - step, step)
+        return along_line(covered, (index[cell], change[cell]))
+
+    return jax.lax.scan(from_the_light, start, jnp.arange(last + 1))[1], inward
 
 
 def _prefix_integral(covered, s_min, log_step):

@@ -8,7 +8,6 @@ these shares. Planes are `(H, W)`, depth in scene units along each ray
 """
 
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -166,18 +165,19 @@ def _sides(coverage, depth, hard):
     # Depths of 0 (a surface at the eye) have no ratio: such a pixel and its neighbours are not told apart.
     positive = finite & (depth > 0)
     own = jnp.where(positive, depth, 1.0)
-    # The neighbour most unlike the pixel (the first of equals), by the log of their depths' ratio.
+    # The neighbour most unlike the pixel (the first of equals), by their depths' ratio, the larger over the smaller
+    # (the order of the log of their ratio's size, without a log per neighbour).
     most_unlike, other = None, None
     for neighbour in around:
         both = positive & jnp.isfinite(neighbour) & (neighbour > 0)
         ratio = jax.lax.stop_gradient(jnp.where(both, neighbour, 1.0) / own)
-        unlike = jnp.where(both, jnp.abs(jnp.log(ratio)), 0.0)
+        unlike = jnp.where(both, jnp.maximum(ratio, 1.0 / ratio), 1.0)
         if most_unlike is None:
             most_unlike, other = unlike, neighbour
         else:
             further = unlike > most_unlike
             most_unlike, other = jnp.where(further, unlike, most_unlike), jnp.where(further, neighbour, other)
-    between_surfaces = ~beside_sky & (most_unlike > math.log(_SILHOUETTE_RATIO))
+    between_surfaces = ~beside_sky & (most_unlike > _SILHOUETTE_RATIO)
     uncovered_depth = jnp.where(between_surfaces, other, jnp.inf)
     # Between two surfaces the colour decides on every frame; at the sky, where the frame has no coverage pass.
     told = jnp.isfinite(surface_depth) & (hard | between_surfaces) & (between_surfaces | beside_sky)

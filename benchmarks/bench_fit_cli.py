@@ -13,8 +13,9 @@ the fit's steps, and the child's peak RSS (`resource.getrusage(RUSAGE_CHILDREN)`
 Frames: the `hidden_sun` reference at its own 320x180, and pairs made from it at other sizes (each pixel repeated,
 the light's position scaled, its field of view kept in the header). `--apply`: `godrays-jax apply` of the default
 fog (`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 5 after one that
-compiles): the effect jitted inside `values_only()` (its fields constants), `apply`'s program (the fields its
-arguments), and the effect jitted as a caller who differentiates it traces it. `--tests`: the README's test command's wall time. `uptime` first: the machine may be shared.
+compiles): the effect jitted inside `values_only()` (its fields constants), `apply`'s program (`frames_function`
+on a group of one frame), a fit's render (`render_compiled`: the fields and the light's distance its arguments),
+and the effect jitted as a caller who differentiates it traces it. `--tests`: the README's test command's wall time. `uptime` first: the machine may be shared.
 """
 
 import argparse
@@ -149,6 +150,7 @@ def apply_rows(folder: Path) -> list[dict]:
     import jax
 
     import godrays_jax as gr
+    from godrays_jax.pipeline.batch import frames_function
     from godrays_jax.pipeline.compiled import render_compiled
     from godrays_jax.primitives.light_metadata import read_light
 
@@ -166,17 +168,21 @@ def apply_rows(folder: Path) -> list[dict]:
     (x, y), in_front = read_light(frame)
     effect = gr.preset("volumetric_haze")
     light = jax.numpy.asarray([x, y], jax.numpy.float32)
-    # The effect jitted for a render (`values_only`, its fields constants), what `apply` runs (`render_compiled`: the
-    # fields arguments of one program for any values, the fit's too), and the effect as a caller who differentiates
-    # it traces it.
+    # The effect jitted for a render (`values_only`, its fields constants), what `apply` runs (`frames_function`: a
+    # group of one frame, the light's side an argument), a fit's render (`render_compiled`: the fields and the light's
+    # distance arguments of one program for any values), and the effect as a caller who differentiates it traces it.
 
     def render(frame):
         with gr.values_only():
             return effect(frame, light, light_in_front=in_front)
 
+    apply = frames_function(effect)
     programs = {
         "jitted, values_only": jax.jit(render),
-        "apply's program": lambda frame: render_compiled(effect, frame, light, in_front),
+        "apply's program": lambda frame: apply(
+            jax.tree.map(lambda plane: plane[None], frame), light[None], jax.numpy.asarray([in_front])
+        ),
+        "a fit's render": lambda frame: render_compiled(effect, frame, light, in_front),
         "jitted, differentiable": jax.jit(lambda frame: effect(frame, light, light_in_front=in_front)),
     }
     for name, forward in programs.items():

@@ -81,9 +81,9 @@ def test_the_command_line_entry_points_keep_freed_memory(monkeypatch):
     assert chosen == [{"keep_freed_memory": True}]
 
 
-# In a fresh process: fill the heap with small blocks (as a compiler does), keep one block above them so the freed
-# ones are not the heap's top, free the rest, record a compile of the given seconds, and print the MiB still
-# resident beyond what the process had before.
+# In a fresh process: fill the heap with small blocks (as a compiler or a program's temporaries do), keep one block
+# above them so the freed ones are not the heap's top, free the rest, record a compile of the given seconds (or the
+# request for a new program, "request"), and print the MiB still resident beyond what the process had before.
 _COMPILE_PROBE = """
 import ctypes, ctypes.util, os, sys
 import jax.monitoring
@@ -100,7 +100,10 @@ for block in blocks:
 above = libc.malloc(1024)
 for block in blocks:
     libc.free(block)
-jax.monitoring.record_event_duration_secs(allocator.COMPILE_EVENT, float(sys.argv[1]))
+if sys.argv[1] == "request":
+    jax.monitoring.record_event(allocator.COMPILE_REQUEST_EVENT)
+else:
+    jax.monitoring.record_event_duration_secs(allocator.COMPILE_EVENT, float(sys.argv[1]))
 print(resident_mib() - before)
 """
 
@@ -108,7 +111,8 @@ print(resident_mib() - before)
 @pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
                     reason="the heap is trimmed by glibc's malloc_trim; off glibc nothing is registered")  # fmt: skip
 def test_a_long_compile_hands_the_memory_it_freed_back():
-    """What a compile of at least `TRIMMED_COMPILE_SECONDS` freed leaves the process; after a short one it stays."""
+    """What a compile of at least `TRIMMED_COMPILE_SECONDS` freed leaves the process, and what the process kept
+    leaves it before a new program is compiled; after a short compile it stays."""
 
     def resident_after(seconds):
         done = subprocess.run([sys.executable, "-c", _COMPILE_PROBE, str(seconds)], capture_output=True, text=True,
@@ -117,6 +121,9 @@ def test_a_long_compile_hands_the_memory_it_freed_back():
 
     assert resident_after(0.1 * allocator.TRIMMED_COMPILE_SECONDS) > 150  # 200 MiB of small blocks, still resident
     assert resident_after(allocator.TRIMMED_COMPILE_SECONDS) < 50
+    # Before a new program is compiled (or read from the cache), what the process kept is handed back as well: the
+    # compiler's peak does not come on top of it.
+    assert resident_after("request") < 50
 
 
 def test_the_command_hands_back_what_compiling_frees(monkeypatch, tmp_path):
@@ -137,6 +144,7 @@ def test_off_glibc_the_allocator_is_left_as_it_is(monkeypatch):
     monkeypatch.setattr(allocator, "_trimming", [])
     registered = []
     monkeypatch.setattr(jax.monitoring, "register_event_duration_secs_listener", registered.append)
+    monkeypatch.setattr(jax.monitoring, "register_event_listener", registered.append)
     assert allocator.keep_freed_memory() is False
     assert allocator.hand_back_after_compiling() is False
     assert registered == [] and allocator._trimming == []

@@ -27,7 +27,10 @@ freed when a program is compiled, stay resident in the arenas (their free
 pages are not at a heap's top, so no trimming reaches them), and the peak of
 a first run was then the compiler's and the program's buffers together. So
 the command hands the free pages back to the kernel (`malloc_trim`) after
-every compile long enough to have used much (`hand_back_after_compiling`).
+every compile long enough to have used much, and before every new program it
+compiles or reads from the cache, so that the compiler's peak comes on top of
+the live buffers alone, not of the temporaries the programs before it freed
+and the process kept (`hand_back_after_compiling`).
 
 Applied by the `godrays-jax` command (`cli.console_main`) only: a library
 must not retune the allocator of the process that imports it. Research code
@@ -79,6 +82,10 @@ def _glibc_function(name: str):
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 """The `jax.monitoring` event JAX records after every compile by XLA, with its duration."""
 
+COMPILE_REQUEST_EVENT = "/jax/compilation_cache/compile_requests_use_cache"
+"""The `jax.monitoring` event JAX records before it looks a new program up in the compilation cache (which the
+command enables), then compiles it if it is not there."""
+
 TRIMMED_COMPILE_SECONDS = 0.5
 """Compiles at least this long are followed by a `malloc_trim`: the fit's and the fog's programs (seconds each), not
 the many small ones a command compiles in a fraction of a second each, whose memory is small."""
@@ -87,9 +94,10 @@ _trimming = []  # the listener, once registered: one per process
 
 
 def hand_back_after_compiling() -> bool:
-    """After every compile of at least `TRIMMED_COMPILE_SECONDS`, hand the heap's free pages back to the kernel
-    (glibc's `malloc_trim(0)`), as the module's docstring says; returns whether it will (False off glibc). Once per
-    process: later calls change nothing."""
+    """After every compile of at least `TRIMMED_COMPILE_SECONDS` and before every new program (`jax.monitoring`'s
+    `COMPILE_REQUEST_EVENT`), hand the heap's free pages back to the kernel (glibc's `malloc_trim(0)`), as the
+    module's docstring says; returns whether it will (False off glibc). Once per process: later calls change
+    nothing."""
     if _trimming:
         return True
     trim = _glibc_function("malloc_trim")
@@ -100,6 +108,13 @@ def hand_back_after_compiling() -> bool:
         if event == COMPILE_EVENT and duration >= TRIMMED_COMPILE_SECONDS:
             trim(0)
 
+    def before_compile(event: str, **_) -> None:
+        # What the programs before it freed and the process kept (`keep_freed_memory`), handed back before the
+        # compiler's own peak comes on top of it: a first run's peak was theirs and the compiler's together.
+        if event == COMPILE_REQUEST_EVENT:
+            trim(0)
+
     jax.monitoring.register_event_duration_secs_listener(after_compile)
-    _trimming.append(after_compile)
+    jax.monitoring.register_event_listener(before_compile)
+    _trimming.append((after_compile, before_compile))
     return True

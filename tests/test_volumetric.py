@@ -333,7 +333,8 @@ def test_terms_match_loop(x64, case):
 @pytest.mark.parametrize("beside_surfaces", [False, True])
 def test_partly_covered_pixels_match_loop(x64, beside_surfaces):
     """A silhouette's pixels blend the surface's terms (a sky pixel: its neighbour's surface) with the sky's, or
-    with the terms at the depth the rest of the pixel sees (a surface beside its own)."""
+    with the terms at the depth the rest of the pixel sees (a surface beside its own); the same where no derivative
+    is taken (`values_only`)."""
     depth = _depth()
     coverage = np.isfinite(depth).astype(float)
     coverage[1, 1], coverage[1, 2], coverage[0, 3], coverage[3, 4], coverage[2, 3] = 0.3, 0.6, 0.45, 0.8, 0.7
@@ -346,6 +347,19 @@ def test_partly_covered_pixels_match_loop(x64, beside_surfaces):
                  uncovered_depth=None if uncovered is None else jnp.asarray(uncovered))  # fmt: skip
     for name, want, have in zip(("surface", "scattered", "ambient"), expected, got):
         np.testing.assert_allclose(np.asarray(have), want, rtol=2e-3, atol=1e-6, err_msg=name)
+
+    def values_alone(depth, coverage, uncovered):
+        with values_only():
+            return _terms(depth, [2.3, 0.7], light_depth=12.0, coverage=coverage, uncovered_depth=uncovered, **MEDIUM)
+
+    # A render that takes no derivatives marches every pixel's one side, then the other side's own rays at the
+    # partly covered pixels alone, two at a time: the last pair starts earlier and marches one again.
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(volumetric, "_MARCHED_PIXELS", 2)
+        cheaper = jax.jit(values_alone)(jnp.asarray(depth), jnp.asarray(coverage),
+                                        None if uncovered is None else jnp.asarray(uncovered))  # fmt: skip
+    for name, want, have in zip(("surface", "scattered", "ambient"), got, cheaper):
+        np.testing.assert_allclose(np.asarray(have), np.asarray(want), rtol=1e-12, atol=1e-15, err_msg=name)
     plain = _terms(depth, [2.3, 0.7], light_depth=12.0, **MEDIUM)
     assert not np.allclose(np.asarray(got[1]), np.asarray(plain[1]))
 

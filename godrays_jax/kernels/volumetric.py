@@ -107,6 +107,9 @@ _NEAREST_LIGHT = 1e-3
 # The pixels' reads of the march rays are made this many pixels (whole rows) at a time on larger frames: memory
 # O(band x lanes) in a fit's Jacobian instead of O(frame x lanes), the same values.
 _BAND_PIXELS = 1 << 14
+# The partly covered pixels whose own rays are marched at once, where every pixel has its own: a march costs far more
+# than a read of the rays around a pixel, and a frame's silhouettes are a few thousand pixels.
+_MARCHED_PIXELS = 1 << 10
 
 def _covering_depth(depth):
     """Each pixel's depth, or on sky the nearest depth among its eight neighbours (`inf` where they are all sky)."""
@@ -364,23 +367,37 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         # at a time instead of the frame.
         return in_bands(lambda first_row, *rows: pixel_terms(rows_view(first_row), first_row, *rows), planes)
 
-    if spacing == 1 or not values_only:
+    if not values_only:
         return terms_of(planes)
 
     def one_side_then_silhouettes(planes):
         # Every pixel's one side (its surface where it has any, else what its uncovered part sees: the blend's
-        # other weight is 0), then the other side at the few pixels partly covered, each ray read through the piece
-        # holding the depth alone: `terms_of`'s values to float rounding, for renders whose derivatives nobody takes
-        # (`primitives.derivatives.values_only`): a compaction serves no derivative's lanes, reverse mode cannot
-        # go through its while loop, and XLA compiled the fit's vectorised Jacobian through it wrong.
+        # other weight is 0), then the other side at the few pixels partly covered (each its own ray, or each ray
+        # read through the piece holding the depth alone): `terms_of`'s values to float rounding, for renders whose
+        # derivatives nobody takes (`primitives.derivatives.values_only`): a compaction serves no derivative's
+        # lanes, reverse mode cannot go through its while loop, and XLA compiled the fit's vectorised Jacobian
+        # through it wrong.
         covering, covered, uncovered = planes
+        if spacing == 1:
+            seen_by_rays = march
 
-        packed = pack_pieces(marched)
+            def seen_at(view, x, y, ray_end):  # pixels' own rays, `(n,)` of them
+                pixels = jnp.stack([x, y], axis=-1)[None]
+                return jnp.sum(scattered_pieces(view[None], (ray_end[None],), pixels, **march_options).lit[0], -1)[0]
+
+        else:
+            packed = pack_pieces(marched)
+
+            def seen_by_rays(view, seen, first_row):
+                return upsample_by_depth(packed, seen, xs, ys, spacing, first_row, pieces=read_holding_piece)
+
+            def seen_at(view, x, y, ray_end):
+                return read_by_depth(packed, ray_end, x, y, xs, ys, spacing, pieces=read_holding_piece)
 
         def one_side(first_row, seen):
             view = rows_view(first_row)
             surface, ambient = surface_and_ambient(view, seen)
-            return surface, upsample_by_depth(packed, seen, xs, ys, spacing, first_row, pieces=read_holding_piece), ambient
+            return surface, seen_by_rays(view, seen, first_row), ambient
 
         seen = covering if covered is None else jnp.where(covered > 0, covering, uncovered)
         terms = one_side(0, seen) if whole_frame else in_bands(one_side, [seen])
@@ -390,9 +407,10 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         def other_side(x, y, ray_end):
             view = unit_vectors(rays_through(x, y, height, width, focal))
             surface, ambient = surface_and_ambient(view, ray_end)
-            return surface, read_by_depth(packed, ray_end, x, y, xs, ys, spacing, pieces=read_holding_piece), ambient
+            return surface, seen_at(view, x, y, ray_end), ambient
 
-        return blend_where_partly_covered(terms, covered, uncovered, other_side, chunk=_BAND_PIXELS)
+        chunk = _MARCHED_PIXELS if spacing == 1 else _BAND_PIXELS
+        return blend_where_partly_covered(terms, covered, uncovered, other_side, chunk=chunk)
 
     return one_side_then_silhouettes(planes)
 

@@ -36,7 +36,9 @@ def render_compiled(
     check_inside_bounds(effect)
     # Every field an argument of the program: a NumPy value or a weakly typed one would make another program.
     effect = jax.tree.map(strongly_typed, effect)
-    light_depth = jnp.asarray(np.asarray(light_depth, buffers.color.dtype))
+    # The sun as a Python number: its program drops the point light's branches (`bounded_medium.light_geometry`).
+    at_infinity = float(np.asarray(light_depth)) == math.inf
+    light_depth = math.inf if at_infinity else jnp.asarray(np.asarray(light_depth, buffers.color.dtype))
     # Checked here, so the program is the same whether or not the caller guarantees ranges, and at the default
     # matmul precision whatever the caller's (a fit sets both for its solver): one stored program for every caller.
     with ranges_guaranteed(), jax.default_matmul_precision(None):

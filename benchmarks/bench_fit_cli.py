@@ -201,11 +201,12 @@ def apply_rows(folder: Path) -> list[dict]:
 
 def test_row() -> dict:
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "auto"], cwd=HERE.parent, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "auto", "-m", "not slow"], cwd=HERE.parent,
+                          capture_output=True, text=True)  # fmt: skip
     wall = time.perf_counter() - start
     summary = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""
     print(f"test suite: {wall:.0f} s ({summary})", flush=True)
-    return dict(case="python -m pytest -q -n auto", cache="", wall=wall, compiling=None, fit=None, after_fit=None,
+    return dict(case='python -m pytest -q -n auto -m "not slow"', cache="", wall=wall, compiling=None, fit=None, after_fit=None,
                 steps=summary, peak_rss_mib=None, loss="")  # fmt: skip
 
 

@@ -99,7 +99,7 @@ def test_the_shell_commands_run_in_order(scratch):
     # The main job installs without the test extras; the tests install them.
     main_job = next(line for block in blocks("bash") for line in block.splitlines() if "forest_rays.png" in line)
     assert "pip install -e . &&" in main_job and "[test]" not in main_job
-    assert 'pip install -e ".[test]"' in README and "python -m pytest -q -n auto\n" in README
+    assert 'pip install -e ".[test]"' in README and 'python -m pytest -q -n auto -m "not slow"\n' in README
 
 
 def test_the_presets_table_names_every_preset():

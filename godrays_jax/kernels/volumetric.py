@@ -148,16 +148,17 @@ def _march_in_bands(depth, xs, ys, spacing, focal, band, medium, march_options):
         split = jnp.where(ray_depth < end, ray_depth, 0.5 * (start + end))
         return scattered_pieces(rays, (split, sky), jnp.stack([x, y], axis=-1), **march_options)
 
-    # The light's inverse distance is set apart from the loop's outputs: a Python 0 (the sun) stays one.
-    marched = jax.lax.map(lambda first: march_band(first)._replace(inverse=0.0), jnp.arange(bands) * band)
+    # Every field but the light's inverse distance, which is the march's own: out of the loop a sun's Python 0 stays one.
+    marched = jax.lax.map(lambda first: tuple(march_band(first))[:-1], jnp.arange(bands) * band)
 
     def whole(values, row_axis):  # (bands, ..., band, ...) -> (..., rows, ...)
         values = jnp.moveaxis(values, 0, row_axis - 1)
         values = values.reshape(*values.shape[: row_axis - 1], bands * band, *values.shape[row_axis + 1 :])
         return jax.lax.slice_in_dim(values, 0, rows, axis=row_axis - 1)
 
-    per_piece = [whole(values, 2) for values in marched[:6]]
-    return MarchedPieces(*per_piece, whole(marched.along, 1), whole(marched.miss, 1), march_options["inverse"])
+    *per_piece, along, miss = marched
+    per_piece = [whole(values, 2) for values in per_piece]
+    return MarchedPieces(*per_piece, whole(along, 1), whole(miss, 1), march_options["inverse"])
 
 
 def volumetric_fog_terms(

@@ -4,6 +4,7 @@ import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import godrays_jax as gr
 
@@ -47,3 +48,13 @@ def small(effect):
     replacements = {"max_samples": 8, "num_samples": 8.0, "max_iters": 5, "num_iters": 5.0}
     fields = {f.name: getattr(effect, f.name) for f in dataclasses.fields(effect)}
     return at_fit_counts(type(effect)(**{**fields, **{k: v for k, v in replacements.items() if k in fields}}))
+
+
+SLOW_PRESETS = frozenset({"volumetric_haze", "physically_based"})
+"""The presets whose tests each compile their fog's lines at fit counts from an empty cache for ten seconds or more."""
+
+
+def slow_where(values, slow=SLOW_PRESETS) -> list:
+    """`values` as `pytest.mark.parametrize` takes them, those in `slow` marked `slow` (run apart, README), under their
+    own ids."""
+    return [pytest.param(value, marks=pytest.mark.slow) if value in slow else value for value in values]

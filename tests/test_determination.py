@@ -114,6 +114,7 @@ def test_every_offset_keeps_every_field_inside_its_range_and_fields_on_a_bound_a
     assert found.offsets["num_samples"]["num_samples"] < 0
 
 
+@pytest.mark.slow
 def test_after_a_coarse_phase_the_jacobian_is_the_polishs(case):
     """`coarse_factor`: the Jacobian as a fit's polish after a coarse phase takes it (the sharp stages at full
     resolution, the rest at the coarse one): for `VolumetricFog` the sensitivities stay near the full resolution's;

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from frames import slow_where
 
 import godrays_jax as gr
 from godrays_jax.primitives.camera_metadata import read_frame_camera
@@ -139,7 +140,7 @@ def scratch_folder(tmp_path: Path) -> Path:
 PYTHON_PAGES = [page for page in nav_pages() if (DOCS / page).is_file() and fenced(DOCS / page, "python")]
 
 
-@pytest.mark.parametrize("page", PYTHON_PAGES)
+@pytest.mark.parametrize("page", slow_where(PYTHON_PAGES, {"research.md", "fitting.md"}))
 def test_the_python_blocks_of_a_page_run_in_order(page, tmp_path, monkeypatch):
     monkeypatch.chdir(scratch_folder(tmp_path))
     namespace = {}

@@ -13,10 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from closeness import assert_trees_close
+from frames import at_fit_counts, slow_where
 
 import godrays_jax as gr
-from closeness import assert_trees_close
-from frames import at_fit_counts
 
 HEIGHT, WIDTH = 24, 36
 BATCH = 2
@@ -63,7 +63,7 @@ def _assert_close(actual, expected, rtol=1e-3):
     assert_trees_close(actual, expected, rtol=rtol)
 
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 def test_jit_and_vmap_equal_eager_frames(name):
     effect = at_fit_counts(gr.preset(name))
     compiled = eqx.filter_jit(effect)
@@ -72,7 +72,7 @@ def test_jit_and_vmap_equal_eager_frames(name):
     _assert_close(eqx.filter_vmap(effect)(STACKED, LIGHTS), looped)
 
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 def test_grad_of_vmap_and_vmap_of_grad_equal_per_frame_gradients(name):
     """Under `jit`, as a training step runs them (the kernels' checklist also takes the eager path): the gradient of
     a batched loss, and the per-frame gradient mapped over the batch. One test for both, so that the per-frame

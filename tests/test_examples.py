@@ -7,12 +7,14 @@ from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
+import pytest
 
 import godrays_jax as gr
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_gallery_runs_from_another_folder_and_labels_every_preset(tmp_path):
     """On the sample frame every preset gets a tile: without a light pass `apply` draws the light-pass preset's disc."""
     frame = ROOT / "examples" / "data" / "sample_frame.exr"

@@ -13,10 +13,13 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
-from godrays_jax.pipeline.fit import plateaued, fit, round_counts
 from godrays_jax.pipeline import fit_programs
-from godrays_jax.pipeline.fit_programs import CoarseLinearisation, objective_function, residuals_and_jacobian
-from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
+from godrays_jax.pipeline.fit import fit, plateaued, round_counts
+from godrays_jax.pipeline.fit_programs import (
+    CoarseLinearisation,
+    objective_function,
+    residuals_and_jacobian,
+)
 from godrays_jax.pipeline.problem import (
     FOLD_ROUNDING,
     START_INSET,
@@ -27,6 +30,7 @@ from godrays_jax.pipeline.problem import (
     start_point,
     to_unit,
 )
+from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
 
 HEIGHT, WIDTH = 24, 32
 
@@ -82,6 +86,7 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
     assert float(result.effect.num_samples) == 8.0
 
 
+@pytest.mark.slow
 def test_the_fits_jacobian_by_stages_is_reverse_modes_on_volumetric_fog():
     """The fit linearises by a vmapped forward-mode Jacobian, one vectorised JVP per stage of the effect's fields
     (`fit_programs.forward_mode` by `FitProblem.lane_groups`; VolumetricFog's in four: the march, the slabs' fields (the
@@ -296,6 +301,7 @@ def test_the_coarse_linearisation_is_the_full_resolutions_on_a_frame_of_blocks()
     assert CoarseLinearisation.of(with_pixels, reduced, 2) is None  # a size in pixels is another value at each
 
 
+@pytest.mark.slow
 def test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolution():
     """The polish's normal equations after a coarse phase are those of the Jacobian whose `SHARP_STAGES` columns
     are the full resolution's own and whose other columns are the coarse ones spread over their blocks (built here
@@ -513,6 +519,7 @@ def test_fit_command_errors_are_one_line(tmp_path, capsys):
     assert not output.exists()
 
 
+@pytest.mark.slow
 def test_volumetric_fog_read_along_lines_descends_as_its_stand_in_and_polishes_as_itself(monkeypatch):
     """`fit` races and descends `VolumetricFog` read along lines as its stand-in (the same reading, coarser: rays 4
     pixels apart, half the lines and bins), polishes it with the effect's own residuals (the stand-in's Jacobian)

@@ -16,12 +16,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from frames import at_fit_counts, slow_where
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from frames import at_fit_counts
 
 SETTINGS = settings(
     max_examples=5, deadline=None, database=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
@@ -108,6 +108,7 @@ def _jitted_rays(static_items):
 # ------------------------------------------------------------------------------ radial rays
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(ray_cases())
 def test_radial_rays_finite_jit_eager_and_gradients(case):
@@ -313,7 +314,7 @@ def any_finite_lights(draw, height: int, width: int):
     return jnp.asarray((coordinate(), coordinate()), jnp.float32)
 
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 @settings(SETTINGS, max_examples=6)
 @given(st.data())
 def test_every_preset_finite_values_and_gradients_for_any_finite_light(name, data):
@@ -347,7 +348,7 @@ def _fog_grad(effect_and_light, buffers, in_front, light_depth):
     return jnp.sum(effect(buffers, light, light_in_front=in_front, light_depth=light_depth) ** 2)
 
 
-@pytest.mark.parametrize("name", FOGS)
+@pytest.mark.parametrize("name", slow_where(FOGS))
 @settings(SETTINGS, max_examples=6)
 @given(st.data())
 def test_fog_presets_finite_values_and_gradients_for_any_light_and_distance(name, data):

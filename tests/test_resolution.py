@@ -13,6 +13,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from frames import slow_where
 
 import godrays_jax as gr
 
@@ -96,7 +97,7 @@ def _apply(effect, buffers, light):
     return effect(buffers, light, light_depth=LIGHT_DEPTH), effect.layer(buffers, light, light_depth=LIGHT_DEPTH)
 
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 def test_every_preset_gives_the_same_picture_at_three_times_the_resolution(frames, name):
     small, large = frames
     effect = gr.preset(name)

@@ -17,7 +17,10 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from godrays_jax.kernels.shadow_lines import line_coordinate, segment_visibility_by_lines
+from godrays_jax.kernels.shadow_lines import (
+    line_coordinate,
+    segment_visibility_by_lines,
+)
 from godrays_jax.kernels.shadow_samples import segment_visibility
 
 HEIGHT, WIDTH, FOV = 12, 16, 60.0
@@ -130,6 +133,7 @@ def test_matches_shadow_rays_traced_in_3d(name):
         assert np.mean(np.abs(kernel(True) - expected)) > 0.04
 
 
+@pytest.mark.slow
 def test_many_pixels_read_at_once_as_each_alone():
     """A frame's worth of pixels (more than the kernel reads in one chunk, and not a multiple of it) reads as the
     same pixels read a row at a time: the chunks hold each pixel's own reads, in place."""

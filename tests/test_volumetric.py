@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from frames import slow_where
 from jax.test_util import check_grads
 
 from godrays_jax.kernels import fog_march, volumetric
@@ -634,7 +635,7 @@ def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
     assert np.all(np.isfinite(np.asarray(derivative))) and float(jnp.max(jnp.abs(derivative))) > 0
 
 
-@pytest.mark.parametrize("shadows", ["samples", "lines"])
+@pytest.mark.parametrize("shadows", slow_where(["samples", "lines"], {"lines"}))
 @pytest.mark.parametrize("resolution_factor", [1, 2.5])
 def test_a_sun_known_when_traced_gives_the_traced_suns_terms_and_derivatives(x64, shadows, resolution_factor):
     """A sun given as a Python `inf` drops the point light's branches from the program (`light_geometry`): the
@@ -668,6 +669,7 @@ def test_a_sun_known_when_traced_gives_the_traced_suns_terms_and_derivatives(x64
     assert float(jnp.max(jnp.abs(known[1]))) > 0 and np.all(np.isfinite(np.asarray(known[1])))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("band_pixels", [20, 40])
 def test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives(x64, monkeypatch, band_pixels):
     """On a larger frame the rays are marched and the pixels read them a band of rows at a time (`_BAND_PIXELS`):

@@ -245,6 +245,7 @@ def test_a_frame_at_the_eye_gives_finite_values_and_gradients(preset):
 
 
 @pytest.mark.parametrize("preset", ["volumetric_haze", "physically_based"])  # shadows read along lines, by samples
+@pytest.mark.slow
 def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(preset):
     """`same_on` frames all sky (or at the eye) reads one shadow sample a segment, which draws them as the effect does (values and
     derivatives, the light on screen, off it and behind the camera); on a frame with a surface it is the effect

@@ -111,6 +111,10 @@ class Effect(Part):
     derivatives blur: a fit's polish after a coarse phase takes theirs at the frame's own resolution and the other
     fields' at the coarse one (`fit(..., coarse_jacobian=True)`). None: the effect does not say, and the polish takes
     every field's at the frame's own."""
+    DIFFERENCED_STAGES: typing.ClassVar[tuple[str, ...]] = ()
+    """The stages (of `FIELD_STAGES`) whose columns of `fit`'s Jacobian are central differences of two renders
+    without derivatives (`values_only`) instead of forward-mode lanes: fields that reach a large intermediate the
+    other fields of their stage do not, whose tangent would hold a copy of it per lane."""
     CAMERA_FIELDS: typing.ClassVar[tuple[str, ...]] = ()
     """The fields in which the effect reads its frame's camera (`with_camera`): `"fov_x_deg"`, and `"near_plane"`
     with `"far_plane"`."""

@@ -120,7 +120,13 @@ class VolumetricFog(Effect):
     FIELD_STAGES: ClassVar[dict[str, str]] = {
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
+        "fov_x_deg": "camera",
     }  # fmt: skip
+    # The field of view moves every shadow's line, as the slabs' fields do, and every ray of the march: in the march's
+    # stage its lanes carried the lines' table, a copy per lane of the stage (a fit of frames without a camera in
+    # its header), and in a stage of its own XLA mixed the march's lanes ("XLA and the vmapped forward-mode Jacobian",
+    # docs/findings.md). Its column by differences costs two renders and a frame's memory.
+    DIFFERENCED_STAGES: ClassVar[tuple[str, ...]] = ("camera",)
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
 
     def same_on(self, frames: Sequence[Buffers]) -> "VolumetricFog":

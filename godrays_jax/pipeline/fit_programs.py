@@ -20,9 +20,14 @@ from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.marquardt import normal_equations
 from godrays_jax.pipeline.problem import FitProblem, folded_positions
 from godrays_jax.pipeline.reduced import pixel_fields
+from godrays_jax.primitives.derivatives import values_only
+
+DIFFERENCE_STEP = 1e-3
+"""The step of a column by central differences (`Effect.DIFFERENCED_STAGES`), in its field's range: a thousandth of
+it, which float32 renders still resolve."""
 
 
-def forward_mode(function, groups=None):
+def forward_mode(function, groups=None, differenced=()):
     """`function(y)` (flat `y`) whose JVP is a precomputed forward-mode Jacobian times the tangent.
 
     optimistix linearises the objective; linearising the kernels' sample loops
@@ -33,7 +38,8 @@ def forward_mode(function, groups=None):
     `groups`, a partition of `y`'s indices (`FitProblem.lane_groups`): `function` then takes one vector per group
     (`y` at its indices) and each group's columns are a vectorised JVP of their own, in which the other groups'
     unknowns are constants. A group's lanes then run only through the operations its unknowns reach, where one
-    vectorised JVP of all carries every lane through every operation that any of them reaches.
+    vectorised JVP of all carries every lane through every operation that any of them reaches. The groups at the
+    positions `differenced` take their columns by central differences instead (`differenced_columns`).
     """
     indices = None if groups is None else [np.asarray(group) for group in groups]
 
@@ -53,32 +59,48 @@ def forward_mode(function, groups=None):
             def along(own, position=position):
                 return function(*vectors[:position], own, *vectors[position + 1 :])
 
-            basis = jnp.eye(vector.shape[0], dtype=y.dtype)
-            value, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
+            if position in differenced:
+                jacobian = differenced_columns(along, vector)
+            else:
+                basis = jnp.eye(vector.shape[0], dtype=y.dtype)
+                value, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
             own_tangent = tangent if indices is None else tangent[indices[position]]
             product = product + jnp.matmul(jacobian, own_tangent, precision="highest")
+        if len(differenced) == len(vectors):  # every column differenced
+            with values_only():
+                value = function(*vectors)
         return value, product
 
     return wrapped
 
 
+def differenced_columns(function, vector):
+    """The columns of `function`'s Jacobian in `vector` by central differences (`DIFFERENCE_STEP`), of renders traced
+    without derivatives (`values_only`): two renders a column, each in a frame's memory."""
+    with values_only():
+        columns = [function(vector + DIFFERENCE_STEP * direction) - function(vector - DIFFERENCE_STEP * direction)
+                   for direction in jnp.eye(vector.shape[0], dtype=vector.dtype)]  # fmt: skip
+    return jnp.stack(columns, axis=-1) / (2 * DIFFERENCE_STEP)
+
+
 def residual_function(y, data):
     problem, frame_data = data
     residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
-    return forward_mode(residuals, problem.lane_groups)(y), None
+    return forward_mode(residuals, problem.lane_groups, problem.differenced_groups)(y), None
 
 
 def objective_function(y, data):
     problem, frame_data = data
     objective = lambda *vectors: problem.objective(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
-    return forward_mode(objective, problem.lane_groups)(y), None
+    return forward_mode(objective, problem.lane_groups, problem.differenced_groups)(y), None
 
 
 @eqx.filter_jit
 def residuals_and_jacobian(problem: FitProblem, positions, frame_data, stages: tuple[str, ...] | None = None):
     """The residuals at the fitted fields' `positions` in their ranges (`FitProblem.effect_at_positions`) and their
     Jacobian in those positions, `(residuals, unknowns)`: one vectorised JVP per stage of the effect
-    (`FitProblem.lane_groups`), so that a stage's lanes run only through the operations its fields reach.
+    (`FitProblem.lane_groups`), so that a stage's lanes run only through the operations its fields reach, and the
+    columns of `Effect.DIFFERENCED_STAGES` by central differences (`DIFFERENCE_STEP`) of renders without derivatives.
     `stages`: only these stages' columns (`FitProblem.stage_unknowns`), in the unknowns' order.
 
     The one compiled program of a fit by Levenberg-Marquardt (`marquardt`) and of `determination`.
@@ -86,7 +108,7 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data, stages: t
     groups = [np.asarray(group) for group in problem.lane_groups]
     vectors = [positions[group] for group in groups]
     kept = [index for index, stage in enumerate(problem.group_stages) if stages is None or stage in stages]
-    columns = []
+    residuals, columns = None, []
     for index in kept:
         vector = vectors[index]
 
@@ -94,9 +116,15 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data, stages: t
             groups_now = [*vectors[:index], own, *vectors[index + 1 :]]
             return problem.residuals_of(problem.effect_of_groups(groups_now, positions=True), frame_data)
 
+        if index in problem.differenced_groups:
+            columns.append(differenced_columns(along, vector))
+            continue
         basis = jnp.eye(vector.shape[0], dtype=vector.dtype)
         residuals, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
         columns.append(jacobian)
+    if residuals is None:  # every column differenced
+        with values_only():
+            residuals = problem.residuals_of(problem.effect_of_groups(vectors, positions=True), frame_data)
     order = np.argsort(np.concatenate([groups[index] for index in kept]))
     return residuals, jnp.concatenate(columns, axis=-1)[:, order]
 

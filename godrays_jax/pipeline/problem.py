@@ -200,6 +200,12 @@ class FitProblem(eqx.Module):
         """The stage of each of `lane_groups`, in its order."""
         return tuple(dict.fromkeys(self.stages))
 
+    @property
+    def differenced_groups(self) -> tuple[int, ...]:
+        """The positions in `lane_groups` of the groups whose columns are differences (`Effect.DIFFERENCED_STAGES`)."""
+        differenced = type(self.effect).DIFFERENCED_STAGES
+        return tuple(index for index, stage in enumerate(self.group_stages) if stage in differenced)
+
     def stage_unknowns(self, stages) -> tuple[int, ...]:
         """The indices of the unknowns whose fields belong to `stages`, in order."""
         chosen = (group for group, stage in zip(self.lane_groups, self.group_stages) if stage in stages)

@@ -167,7 +167,7 @@ def test_the_field_of_views_column_is_a_central_difference_of_renders_without_de
     forward mode takes their slope); every other column is forward mode's own."""
     problem, frame_data, fov, others = _field_of_view_problem()
     positions = problem.positions(jnp.float64)
-    residuals, jacobian = residuals_and_jacobian(problem, positions, frame_data)
+    _, jacobian = residuals_and_jacobian(problem, positions, frame_data)
     exact = jax.jacfwd(lambda at: problem.residuals_of(problem.effect_at_positions(at), frame_data))(positions)
     np.testing.assert_allclose(jacobian[:, others], exact[:, others], rtol=1e-9, atol=1e-12)
     assert np.linalg.norm(jacobian[:, fov] - exact[:, fov]) < 2e-2 * np.linalg.norm(exact[:, fov]) != 0

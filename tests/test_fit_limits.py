@@ -80,7 +80,7 @@ def test_a_default_fit_of_a_frame_without_a_camera_stays_within_two_gigabytes(ca
     gr.write_image(target, np.full((180, 320, 3), 0.3, np.float32))
     done = _command("fit", str(frame), str(target), "--light", light, "-o", str(params), "--max-steps", "2",
                     env=environment, limit=MEMORY_LIMIT)  # fmt: skip
-    out, err = done.communicate(timeout=900)
+    _, err = done.communicate(timeout=900)
     assert done.returncode == 0, err
     values = json.loads(params.read_text())  # the effect's name and its fields, as `apply --params` reads them
     flat = [v for value in values.values() for v in np.ravel(value).tolist() if isinstance(v, (int, float))]

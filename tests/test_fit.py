@@ -17,8 +17,10 @@ from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.pipeline import fit_programs
 from godrays_jax.pipeline.fit import fit, plateaued, round_counts
 from godrays_jax.pipeline.fit_programs import (
+    DIFFERENCE_STEP,
     CoarseLinearisation,
     objective_function,
+    rendered_differences,
     residuals_and_jacobian,
 )
 from godrays_jax.pipeline.problem import (
@@ -91,7 +93,8 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
 def test_the_fits_jacobian_by_stages_is_reverse_modes_on_volumetric_fog():
     """The fit linearises by a vmapped forward-mode Jacobian, one vectorised JVP per stage of the effect's fields
     (`fit_programs.forward_mode` by `FitProblem.lane_groups`; VolumetricFog's in four: the march, the slabs' fields (the
-    shadows, here read along lines), the medium's ends, the final sum), each stage's lanes with the other stages' unknowns held constant, and the field of view's column by central differences. Its gradient is reverse mode's: a column
+    shadows, here read along lines), the medium's ends, the final sum), each stage's lanes with the other stages' unknowns held constant,
+    and the field of view's column by central differences. Its gradient is reverse mode's: a column
     taken from another unknown, or a stage's columns missing, changes it. On VolumetricFog's chained read XLA once
     mixed the lanes (the display loss's `abs` with a select in the read; fine at 18x32, wrong at 36x64), and again on
     a read of both pieces by flat-index gathers (fine at 36x64, wrong at 90x160: docs/findings.md,
@@ -349,20 +352,42 @@ def test_the_coarse_linearisation_is_the_full_resolutions_on_a_frame_of_blocks()
     np.testing.assert_allclose(np.diag(normal), np.diag(fine_normal), rtol=0.2)
     np.testing.assert_allclose(gradient, fine_gradient, rtol=0.2, atol=0.05 * np.abs(fine_gradient).max())
     assert np.linalg.norm(normal - fine_normal) < 0.1 * np.linalg.norm(fine_normal)
-    # Every stage sharp: the full resolution's own normal equations.
+    # Every stage sharp: the full resolution's own normal equations, to within its differences' error in float32.
     every = dataclasses.replace(linearisation, sharp=problem.group_stages)
     own_normal, own_gradient = every.normal_equations(positions, np.asarray(residuals), problem, frame_data)
-    np.testing.assert_allclose(own_normal, fine_normal, rtol=1e-5, atol=1e-9 * np.abs(fine_normal).max())
-    np.testing.assert_allclose(own_gradient, fine_gradient, rtol=1e-5, atol=1e-9 * np.abs(fine_gradient).max())
+    np.testing.assert_allclose(own_normal, fine_normal, rtol=2e-3, atol=1e-6 * np.abs(fine_normal).max())
+    np.testing.assert_allclose(own_gradient, fine_gradient, rtol=2e-3, atol=1e-6 * np.abs(fine_gradient).max())
     with_pixels = FitProblem.of(effect, fitted_bounds(effect, fixed=[n for n in FIXED_RAYS if n != "flare_size"]),
                                 frame_data[0], loss="mse", space="display")  # fmt: skip
     assert CoarseLinearisation.of(with_pixels, reduced, 2) is None  # a size in pixels is another value at each
 
 
+def test_differences_on_a_bound_are_one_sided_and_render_only_values_in_range():
+    """`rendered_differences` renders each field a step either side of its position, and only one side of it on a
+    bound of its range (a value beyond one, such as a negative thickness, is refused): every column, central or
+    one-sided, is forward mode's to within the step's error, the density's within the secant's across the samples'
+    interpolation (a few percent), which forward mode takes the slope of."""
+    frame = _frame()
+    target = _rays(**TRUTH)(frame, LIGHT)
+    frame_data = as_frames(frame, LIGHT, target, True)
+    problem = FitProblem.of(_rays(**START), fitted_bounds(_rays(), fixed=FIXED_RAYS), frame_data[0], loss="mse",
+                            space="display")  # fmt: skip
+    positions = np.array(problem.positions(jnp.float32))
+    positions[1:] = (0.0, 1.0)  # density inside, decay and exposure on their bounds
+    columns = rendered_differences(problem, jnp.asarray(positions), frame_data, range(len(positions)))
+    exact = np.asarray(jax.jacfwd(lambda at: problem.residuals_of(problem.effect_at_positions(at), frame_data))(
+        jnp.asarray(positions)))  # fmt: skip
+    for index in range(len(positions)):
+        error = np.linalg.norm(columns[:, index] - exact[:, index]) / np.linalg.norm(exact[:, index])
+        assert error < (0.1 if index == 0 else 1e-2), (index, error)
+    assert problem.names == ("density", "decay", "exposure")
+
+
 @pytest.mark.slow
 def test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolution():
     """The polish's normal equations after a coarse phase are those of the Jacobian whose `SHARP_STAGES` columns
-    are the full resolution's own and whose other columns are the coarse ones spread over their blocks (built here
+    are the full resolution's own, central differences of its renders (`rendered_differences`: no Jacobian of the
+    full resolution to compile), and whose other columns are the coarse ones spread over their blocks (built here
     explicitly, on `VolumetricFog`, whose slabs' fields are its sharp stage)."""
     height, width = 12, 20
     depth = np.full((height, width), np.inf, np.float32)
@@ -386,11 +411,18 @@ def test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolutio
     spread = np.repeat(np.repeat(np.asarray(coarse, np.float64).reshape(height // 2, width // 2, 3, -1), 2, 0), 2, 1)
     mixed = 0.5 * spread.reshape(fine.shape)  # a fine residual's scale over a coarse one's: sqrt(1 / 4)
     sharp = list(problem.stage_unknowns(("shadows",)))
-    mixed[:, sharp] = fine[:, sharp]
+    for index in sharp:  # differences of the differentiable render's residuals, which the fit's own renders equal
+        step = DIFFERENCE_STEP * np.eye(len(positions), dtype=np.float32)[index]
+        above, below = (
+            np.asarray(problem.residuals_of(problem.effect_at_positions(positions + sign * step), frame_data), np.float64)
+            for sign in (1, -1)
+        )  # fmt: skip
+        mixed[:, index] = (above - below) / (2 * DIFFERENCE_STEP)
+    assert np.linalg.norm(mixed[:, sharp] - fine[:, sharp]) < 0.5 * np.linalg.norm(fine[:, sharp])  # forward mode's
     linearisation = dataclasses.replace(CoarseLinearisation.of(coarse_problem, reduced, 2), sharp=("shadows",))
     normal, gradient = linearisation.normal_equations(positions, residuals, problem, frame_data)
-    np.testing.assert_allclose(normal, mixed.T @ mixed, rtol=1e-4, atol=1e-7 * np.abs(mixed.T @ mixed).max())
-    np.testing.assert_allclose(gradient, mixed.T @ residuals, rtol=1e-4, atol=1e-7 * np.abs(mixed.T @ residuals).max())
+    np.testing.assert_allclose(normal, mixed.T @ mixed, rtol=2e-3, atol=1e-6 * np.abs(mixed.T @ mixed).max())
+    np.testing.assert_allclose(gradient, mixed.T @ residuals, rtol=2e-3, atol=1e-6 * np.abs(mixed.T @ residuals).max())
 
 
 def test_the_fit_begins_from_the_start_with_the_lowest_loss():

@@ -40,11 +40,10 @@ How the parameters are fitted:
   kernels' sample loops have custom JVPs that differentiate the parameters
   inside the loop that sums the copies, so the Jacobian costs about a
   reverse-mode gradient and stores no iteration (`benchmarks/bench_fit.py`).
-- Levenberg-Marquardt (the default for MSE) runs on the host (`marquardt`)
-  around compiled programs of the residuals and their Jacobian
-  (`residuals_and_jacobian`), shared by the race, the descents, the polish
-  and `determination`, kept by the persistent cache (`app.compile_cache`);
-  with `coarse_jacobian` the full resolution linearises at the coarse one.
+- Levenberg-Marquardt (the default for MSE) runs on the host (`marquardt`) around compiled programs of the
+  residuals and their Jacobian (`residuals_and_jacobian`), shared by the race, the descents, the polish and
+  `determination`, kept by the persistent cache (`app.compile_cache`); with `coarse_jacobian` the full resolution
+  linearises at the coarse one, its sharp fields by differences of its renders (`fit_programs.rendered_differences`).
 """
 
 import dataclasses

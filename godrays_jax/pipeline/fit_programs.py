@@ -1,6 +1,7 @@
 """The compiled programs a fit runs, each stored traced (`exported`): the residuals and their Jacobian by stages
 (`residuals_and_jacobian`, all that Levenberg-Marquardt on the host and `determination` run), an effect's own
-residuals and loss from its frames rendered as `apply` renders them, and optimistix's first state and step for the
+residuals and loss from its frames rendered as `apply` renders them (whose central differences give the polish its
+sharp fields' columns at full resolution, `rendered_differences`), and optimistix's first state and step for the
 other solvers (the objective's Jacobian by forward mode, `forward_mode`)."""
 
 import dataclasses
@@ -22,9 +23,11 @@ from godrays_jax.pipeline.problem import FitProblem, folded_positions
 from godrays_jax.pipeline.reduced import pixel_fields
 from godrays_jax.primitives.derivatives import values_only
 
-DIFFERENCE_STEP = 1e-3
-"""The step of a column by central differences (`Effect.DIFFERENCED_STAGES`), in its field's range: a thousandth of
-it, which float32 renders still resolve."""
+DIFFERENCE_STEP = 3e-4
+"""The step of a column by central differences (`differenced_columns`, `rendered_differences`), in its field's range:
+small against the fields' effects, which float32 renders still resolve (benchmarks/README.md, "VolumetricFog against
+the path-traced references"). Within a step of a bound the difference is one-sided there, so that no render is asked
+for a value outside the range."""
 
 
 def forward_mode(function, groups=None, differenced=()):
@@ -74,13 +77,19 @@ def forward_mode(function, groups=None, differenced=()):
     return wrapped
 
 
-def differenced_columns(function, vector):
+def differenced_columns(function, vector, *, positions: bool = False):
     """The columns of `function`'s Jacobian in `vector` by central differences (`DIFFERENCE_STEP`), of renders traced
-    without derivatives (`values_only`): two renders a column, each in a frame's memory."""
-    with values_only():
-        columns = [function(vector + DIFFERENCE_STEP * direction) - function(vector - DIFFERENCE_STEP * direction)
-                   for direction in jnp.eye(vector.shape[0], dtype=vector.dtype)]  # fmt: skip
-    return jnp.stack(columns, axis=-1) / (2 * DIFFERENCE_STEP)
+    without derivatives (`values_only`): two renders a column, each in a frame's memory. `positions`: `vector` holds
+    positions in the fields' ranges, [0, 1], kept there; else unknowns that the fit's fold maps into them."""
+    columns = []
+    for direction in jnp.eye(vector.shape[0], dtype=vector.dtype):
+        upper, lower = vector + DIFFERENCE_STEP * direction, vector - DIFFERENCE_STEP * direction
+        if positions:
+            upper, lower = jnp.minimum(upper, 1.0), jnp.maximum(lower, 0.0)
+        with values_only():
+            change = function(upper) - function(lower)
+        columns.append(change / jnp.sum((upper - lower) * direction))
+    return jnp.stack(columns, axis=-1)
 
 
 def residual_function(y, data):
@@ -96,20 +105,18 @@ def objective_function(y, data):
 
 
 @eqx.filter_jit
-def residuals_and_jacobian(problem: FitProblem, positions, frame_data, stages: tuple[str, ...] | None = None):
+def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
     """The residuals at the fitted fields' `positions` in their ranges (`FitProblem.effect_at_positions`) and their
     Jacobian in those positions, `(residuals, unknowns)`: one vectorised JVP per stage of the effect
     (`FitProblem.lane_groups`), so that a stage's lanes run only through the operations its fields reach, and the
     columns of `Effect.DIFFERENCED_STAGES` by central differences (`DIFFERENCE_STEP`) of renders without derivatives.
-    `stages`: only these stages' columns (`FitProblem.stage_unknowns`), in the unknowns' order.
 
     The one compiled program of a fit by Levenberg-Marquardt (`marquardt`) and of `determination`.
     """
     groups = [np.asarray(group) for group in problem.lane_groups]
     vectors = [positions[group] for group in groups]
-    kept = [index for index, stage in enumerate(problem.group_stages) if stages is None or stage in stages]
     residuals, columns = None, []
-    for index in kept:
+    for index in range(len(groups)):
         vector = vectors[index]
 
         def along(own, index=index):
@@ -117,7 +124,7 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data, stages: t
             return problem.residuals_of(problem.effect_of_groups(groups_now, positions=True), frame_data)
 
         if index in problem.differenced_groups:
-            columns.append(differenced_columns(along, vector))
+            columns.append(differenced_columns(along, vector, positions=True))
             continue
         basis = jnp.eye(vector.shape[0], dtype=vector.dtype)
         residuals, jacobian = jax.vmap(lambda direction: jax.jvp(along, (vector,), (direction,)), out_axes=(None, -1))(basis)
@@ -125,7 +132,7 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data, stages: t
     if residuals is None:  # every column differenced
         with values_only():
             residuals = problem.residuals_of(problem.effect_of_groups(vectors, positions=True), frame_data)
-    order = np.argsort(np.concatenate([groups[index] for index in kept]))
+    order = np.argsort(np.concatenate(groups))
     return residuals, jnp.concatenate(columns, axis=-1)[:, order]
 
 
@@ -167,8 +174,8 @@ class CoarseLinearisation:
     ) -> tuple[np.ndarray, np.ndarray]:
         """`(J^T J, J^T r)` of the fine `residuals` (of `fine_problem` on `fine_frame_data`): `J` is `jacobian`'s
         rows, whose product with the residuals is each block's row times the sum of the block's residuals; the
-        `sharp` stages' columns are `fine_problem`'s own, their products with a block's row each column's sum over
-        the block."""
+        `sharp` stages' columns are `fine_problem`'s own (`rendered_differences`: the fit's renders, no Jacobian
+        of the fine resolution to compile), their products with a block's row each column's sum over the block."""
         blocks = self._blocks(fine_frame_data[0])
         if sum(block.fine_size for block in blocks) != len(residuals):
             raise ValueError(f"expected the residuals of {len(fine_frame_data[0])} fine frames, got {len(residuals)}")
@@ -177,10 +184,7 @@ class CoarseLinearisation:
             return normal_equations(rows, _folded(blocks, residuals))
         sharp = np.asarray(fine_problem.stage_unknowns(self.sharp))
         rest = np.setdiff1d(np.arange(rows.shape[1]), sharp)
-        _, fine = exported.call(
-            "fit_jacobian", residuals_and_jacobian, fine_problem, positions, fine_frame_data, self.sharp
-        )  # fmt: skip
-        fine = np.asarray(fine, np.float64)
+        fine = rendered_differences(fine_problem, positions, fine_frame_data, sharp)
         normal, gradient = np.zeros((rows.shape[1],) * 2), np.zeros(rows.shape[1])
         coarse_rows, fine_folded = np.asarray(rows[:, rest], np.float64), _folded(blocks, fine)
         normal[np.ix_(rest, rest)] = coarse_rows.T @ coarse_rows
@@ -220,6 +224,24 @@ def _folded(blocks: list["_Blocks"], values) -> np.ndarray:
         folded.append(block.sums(part) / np.sqrt(block.count).reshape(-1, *[1] * (part.ndim - 1)))
         start += block.fine_size
     return np.concatenate(folded)
+
+
+def rendered_differences(problem: FitProblem, positions, frame_data, unknowns) -> np.ndarray:
+    """The Jacobian's columns of `unknowns` (indices into `positions`) by central differences (`DIFFERENCE_STEP`) of
+    `effect_residuals`: the frames rendered as a fit renders them (`render_compiled`, one compiled program for any
+    values of the fields), two renders a column."""
+    positions = np.asarray(positions)
+    columns = []
+    for index in unknowns:
+        upper, lower = positions.copy(), positions.copy()
+        upper[index] = min(upper[index] + DIFFERENCE_STEP, 1.0)
+        lower[index] = max(lower[index] - DIFFERENCE_STEP, 0.0)
+        above, below = (
+            np.asarray(effect_residuals(problem, problem.effect_at_positions(jnp.asarray(at)), frame_data), np.float64)
+            for at in (upper, lower)
+        )  # fmt: skip
+        columns.append((above - below) / (float(upper[index]) - float(lower[index])))
+    return np.stack(columns, axis=-1)
 
 
 class _Blocks(NamedTuple):

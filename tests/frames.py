@@ -51,7 +51,8 @@ def small(effect):
 
 
 SLOW_PRESETS = frozenset({"volumetric_haze", "physically_based"})
-"""The presets whose tests each compile their fog's lines at fit counts from an empty cache for ten seconds or more."""
+"""The presets whose tests compile their fog's lines at fit counts, about ten seconds or more each from an empty
+cache."""
 
 
 def slow_where(values, slow=SLOW_PRESETS) -> list:

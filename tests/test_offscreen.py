@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from frames import slow_where
 
 import godrays_jax as gr
 from godrays_jax.primitives.checks import MAX_LIGHT_PX, check_light
@@ -83,7 +84,7 @@ FAR_LIGHTS = [(1e38, 5.0), (-3.4e38, 5.0), (3.4e38, -3.4e38), (5.0, 1e39), (2e9,
 """Beyond what float32 arithmetic on pixel distances keeps finite; the last, past `MAX_LIGHT_PX` without overflow."""
 
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 @pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")  # 1e39 becomes inf, on purpose
 def test_lights_beyond_float32_reach_are_drawn_as_at_the_bound(name):
     """A light past `MAX_LIGHT_PX` is moved along its direction to it: finite values and gradients, faded out."""

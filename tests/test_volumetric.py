@@ -395,6 +395,7 @@ def _fog(image, depth, light_xy, **overrides):
     return apply_volumetric_fog(image, depth, light_xy, **kernel_options(options))
 
 
+@pytest.mark.slow
 def test_composite_eager_jit_vmap(x64, rng):
     image, depth, light = jnp.asarray(_image(rng)), jnp.asarray(_depth()), jnp.asarray([2.3, 0.7])
     surface, scattered, ambient = volumetric_fog_terms(depth, light, light_depth=12.0, **kernel_options(MEDIUM))
@@ -430,6 +431,7 @@ def test_grad_of_vmap_matches_per_example(x64, rng):
     np.testing.assert_allclose(grads[0], total, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_compiled_forward_mode_jacobian_keeps_its_lanes_on_a_partly_covered_frame():
     """A vmapped forward-mode Jacobian (as `jax.jacfwd` and the fit's `forward_mode` take it) of the three terms,
     compiled, against reverse mode, compiled, on a frame of 90 x 160 pixels with coverage and a direct share of the
@@ -530,7 +532,10 @@ DEGENERATE = {
 }
 
 
-@pytest.mark.parametrize("resolution_factor", sorted({case.get("resolution_factor", 1) for case in DEGENERATE.values()}))
+RESOLUTION_FACTORS = sorted({case.get("resolution_factor", 1) for case in DEGENERATE.values()})
+
+
+@pytest.mark.parametrize("resolution_factor", slow_where(RESOLUTION_FACTORS, {1.5, 2}))
 def test_degenerate_lights_finite_values_and_gradients(rng, resolution_factor):
     """Every case of `DEGENERATE` at this march spacing, through one compiled loss (the light's distance and side
     traced), on a frame with surfaces and on one all sky."""

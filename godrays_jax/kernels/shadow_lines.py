@@ -233,17 +233,19 @@ def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s
     index = jnp.moveaxis(jnp.concatenate([rise_at, fall_at], axis=-1), 2, 0)  # (cells, 4, lines, 2 * _FACE_BINS)
     change = jnp.moveaxis(jnp.concatenate([rise, -fall], axis=-1) * amount, 2, 0)
     num_lines = x.shape[0]
-    line_index = jnp.arange(num_lines)[None, :, None]
+    bins = jnp.arange(num_bins, dtype=jnp.int32)
 
     def along_line(covered, cell):
-        # The blend's coverage at the bins (its changes summed into the bins they fall in, then their running sum:
-        # per cell, where a table of every cell's changes would be the size of the coverage's); its maximum from
-        # the light out to this cell.
-        cell_index, cell_change = cell
-        rises = jnp.zeros((num_lines, num_bins), dtype).at[jnp.broadcast_to(line_index, cell_index.shape), cell_index].add(
-            cell_change, mode="drop"
+        # The blend's coverage at the bins: the running sum of its changes, each counted at every bin from its own
+        # on (per cell, where a table of every cell's changes would be the size of the coverage's); its maximum from
+        # the light out to this cell. A sum of the few changes as steps, in one fused pass over the bins: a scatter
+        # of them and a cumulative sum cost a pass each and more (benchmarks/README.md, "The fit as users run it").
+        cell_index, cell_change = cell  # (4, lines, 2 * _FACE_BINS)
+        steps = (
+            jnp.where(bins >= cell_index[corner, :, k, None], cell_change[corner, :, k, None], 0.0)
+            for corner in range(cell_index.shape[0]) for k in range(cell_index.shape[-1])
         )  # fmt: skip
-        covered = jnp.maximum(covered, jnp.cumsum(rises, axis=-1))
+        covered = jnp.maximum(covered, functools.reduce(jnp.add, steps))
         return covered, covered
 
     start = jnp.zeros((num_lines, num_bins), dtype)

@@ -96,6 +96,8 @@ from godrays_jax.effects.fields import parameter_bounds as parameter_bounds
 from godrays_jax.effects.fields import replace_fields as replace_fields
 from godrays_jax.effects.fields import size_fields as size_fields
 from godrays_jax.effects.fog import ScatteringFog as ScatteringFog
+from godrays_jax.effects.lights import Light as Light
+from godrays_jax.effects.lights import lit_by as lit_by
 from godrays_jax.effects.medium import Medium as Medium
 from godrays_jax.effects.volumetric import VolumetricFog as VolumetricFog
 from godrays_jax.effects.glow import Bloom as Bloom

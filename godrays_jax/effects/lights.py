@@ -1,0 +1,115 @@
+"""Several lights in one frame: `Light`, and `lit_by`, an effect drawn for each light where their light adds.
+
+An effect is called with one light (`effect(buffers, light_xy, ...)`). A
+scene often has more (two street lamps, the sun and a lamp): the light each
+scatters toward the camera adds, so the frame under several lights is the
+frame as the effect leaves it plus every light's own contribution, each
+scaled by that light's `color`. `lit_by(effect, buffers, lights)` draws it,
+and with one light of colour 1 it is `effect(buffers, ...)` itself.
+
+What each kind of effect adds:
+
+- an effect blended `"add"` or `"screen"` (rays, flare-outs, the glows, the
+  lens dirt, bloom): the sum of its layers, one per light, each times its
+  light's colour, blended once; `Bloom` reads no light and is drawn once;
+- `VolumetricFog`: every light's in-scattering times its colour, the
+  ambient light once, and the surfaces dimmed by the medium toward each
+  light in proportion to that light's share of the lights' colour (the
+  frame's direct light is split among them so);
+- `ScatteringFog`: the first light draws the fogged frame with the medium's
+  ambient light, every other light adds its in-scattering alone.
+
+Effects blended `"multiply"` or `"alpha_over"` have no such sum and are
+refused (`ValueError` naming `lights`).
+"""
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from godrays_jax.effects.base import Effect
+from godrays_jax.effects.fog import ScatteringFog
+from godrays_jax.effects.glow import Bloom
+from godrays_jax.effects.volumetric import VolumetricFog
+from godrays_jax.kernels.composite import blend
+from godrays_jax.kernels.volumetric import composite_fog, fog_light
+from godrays_jax.primitives.buffers import Buffers
+
+
+class Light(eqx.Module):
+    """One light of a frame, as an effect takes it: `xy` its position on screen in pixels (`(x, y)`, the origin at
+    the top-left corner; off screen allowed, as for one light), `in_front` whether it is in front of the camera (its
+    position then the projection of a point behind it, mirrored through the camera plane, as
+    `light_in_front=False` means for one light), `depth` its distance from the camera in scene units (`inf`, the
+    default, for the sun), and `color` its linear RGB colour and intensity, which multiplies the effect's own light
+    colour (1, the default: the effect's colour as it is)."""
+
+    xy: Float[ArrayLike, "2"]
+    in_front: Bool[ArrayLike, ""] | bool = True
+    depth: Float[ArrayLike, ""] = math.inf
+    color: Float[ArrayLike, "3"] = (1.0, 1.0, 1.0)
+
+
+def lit_by(effect: Effect, buffers: Buffers, lights: Sequence[Light]) -> Float[Array, "H W C"]:
+    """The frame `buffers.color` with `effect` drawn for every light of `lights` (at least one), their light
+    added as the module's docstring says. One light of colour 1 gives `effect(buffers, light.xy, ...)`."""
+    lights = list(lights)
+    if not lights or not all(isinstance(light, Light) for light in lights):
+        raise ValueError(f"lights must be a non-empty sequence of Light, got {lights!r}")
+    dtype = buffers.color.dtype
+    colors = [jnp.broadcast_to(jnp.asarray(light.color, dtype), (3,)) for light in lights]
+    if isinstance(effect, VolumetricFog):
+        return _volumetric_fog(effect, buffers, lights, colors)
+    if isinstance(effect, ScatteringFog):
+        return _scattering_fog(effect, buffers, lights, colors)
+    if isinstance(effect, Bloom):
+        return effect(buffers, lights[0].xy)
+    if effect.blend_mode not in ("add", "screen"):
+        raise ValueError(
+            f"lights: {type(effect).__name__} blends {effect.blend_mode!r}, whose layers do not add; "
+            "several lights take effects blended 'add' or 'screen'"
+        )
+    layer = sum(_colored(effect.layer(buffers, light.xy, **_side(light)), color) for light, color in zip(lights, colors))
+    return blend(buffers.color, layer, mode=effect.blend_mode)
+
+
+def _side(light: Light) -> dict:
+    return dict(light_in_front=light.in_front, light_depth=light.depth)
+
+
+def _colored(layer: Float[Array, "H W L"], color: Float[Array, "3"]) -> Float[Array, "H W L"]:
+    """`layer`'s colour channels times `color` (a 1-channel layer by the colour's mean), its alpha as it is."""
+    channels = min(layer.shape[-1], 3)
+    scale = jnp.mean(color, keepdims=True) if channels == 1 else color[:channels]
+    return jnp.concatenate([layer[..., :channels] * scale, layer[..., channels:]], axis=-1)
+
+
+def _volumetric_fog(effect: VolumetricFog, buffers, lights, colors):
+    terms = [effect.terms(buffers, light.xy, **_side(light)) for light in lights]
+    # The surfaces' direct light, dimmed toward each light, split among the lights by their colours' means.
+    means = jnp.stack([jnp.mean(color) for color in colors])
+    total = jnp.sum(means)
+    shares = jnp.where(total > 0, means / jnp.where(total > 0, total, 1.0), 1.0 / len(lights))
+    surface = sum(share * surface for share, (surface, _, _) in zip(shares, terms))
+    ambient = terms[0][2]  # the ambient light reaches every point whatever the lights: counted once
+    medium = effect.medium
+    light = fog_light(terms[0][1], ambient, light_color=medium.light_color * colors[0], ambient_color=medium.ambient_color)
+    for (_, scattered, _), color in zip(terms[1:], colors[1:]):
+        light = light + fog_light(
+            scattered, jnp.zeros_like(ambient), light_color=medium.light_color * color, ambient_color=medium.ambient_color
+        )  # fmt: skip
+    return composite_fog(buffers.color, surface, light)
+
+
+def _scattering_fog(effect: ScatteringFog, buffers, lights, colors):
+    # The fogged frame lit by the ambient light alone, then each light's in-scattering without the ambient's: a
+    # light's colour scales its layer, not the medium's field (whose range a product could leave).
+    medium = effect.medium
+    dark = dataclasses.replace(effect, medium=dataclasses.replace(medium, light_color=jnp.zeros_like(medium.light_color)))
+    unlit = dataclasses.replace(effect, medium=dataclasses.replace(medium, ambient_color=jnp.zeros_like(medium.ambient_color)))
+    layer = sum(_colored(unlit.layer(buffers, light.xy, **_side(light)), color) for light, color in zip(lights, colors))
+    return blend(dark(buffers, lights[0].xy, **_side(lights[0])), layer, mode="add")

@@ -1,0 +1,113 @@
+"""Several lights in one frame (`effects.lights`): one light is the effect itself, several add as the physics does,
+against sums of the single-light layers and terms taken apart in NumPy."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import godrays_jax as gr
+from frames import LIGHT, make_frame, small
+
+SECOND = jnp.asarray([3.2, 14.7], jnp.float32)  # on the ground, left of the occluder
+RED = (1.5, 0.4, 0.2)
+
+
+def cheap_volumetric():
+    """A `VolumetricFog` with shadows from a few samples: the lights' sums, not the shadows, are under test."""
+    effect = gr.preset("physically_based")
+    return dataclasses.replace(effect, num_view_steps=4, num_shadow_samples=4, resolution_factor=2)
+
+
+ADDITIVE = ["xna_crepuscular", "kbengine_flares", "sun_overcast", "vbex_lens_dirt", "vbex_sun_spot"]
+
+
+@pytest.mark.parametrize("name", ADDITIVE)
+def test_an_additive_effect_under_two_lights_adds_their_coloured_layers(name):
+    effect, frame = small(gr.preset(name)), make_frame()
+    both = gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, color=RED)])
+    layers = [np.asarray(effect.layer(frame, xy), np.float64) for xy in (LIGHT, SECOND)]
+    colour = np.asarray(frame.color, np.float64)
+    expected = colour + layers[0][..., :3] + layers[1][..., :3] * np.asarray(RED)
+    np.testing.assert_allclose(np.asarray(both), expected, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", [*ADDITIVE, "vbex_bloom", "participating_media"])
+def test_one_light_of_colour_one_is_the_effect_itself(name):
+    effect, frame = small(gr.preset(name)), make_frame()
+    for in_front in (True, False):
+        alone = gr.lit_by(effect, frame, [gr.Light(LIGHT, in_front=in_front)])
+        np.testing.assert_allclose(np.asarray(alone), np.asarray(effect(frame, LIGHT, light_in_front=in_front)),
+                                   rtol=1e-5, atol=1e-6)  # fmt: skip
+
+
+def test_one_light_of_colour_one_is_the_volumetric_fog_itself():
+    effect, frame = cheap_volumetric(), make_frame()
+    alone = gr.lit_by(effect, frame, [gr.Light(LIGHT, depth=30.0)])
+    np.testing.assert_allclose(np.asarray(alone), np.asarray(effect(frame, LIGHT, light_depth=30.0)), rtol=1e-5, atol=1e-6)
+
+
+def test_the_volumetric_fog_under_two_lights_from_its_terms():
+    """Each light's in-scattering times its colour, the ambient once, the surfaces dimmed toward each light by its
+    share of the colours' means."""
+    effect, frame = cheap_volumetric(), make_frame()
+    lights = [gr.Light(LIGHT), gr.Light(SECOND, depth=20.0, color=RED)]
+    both = np.asarray(gr.lit_by(effect, frame, lights), np.float64)
+    terms = [[np.asarray(t, np.float64) for t in effect.terms(frame, light.xy, light_depth=light.depth)] for light in lights]
+    np.testing.assert_allclose(terms[0][2], terms[1][2], rtol=1e-6)  # the ambient does not depend on the light
+    shares = np.asarray([1.0, np.mean(RED)]) / (1.0 + np.mean(RED))
+    surface = shares[0] * terms[0][0] + shares[1] * terms[1][0]
+    light_color = np.asarray(effect.medium.light_color, np.float64)
+    added = (terms[0][1][..., None] * light_color + terms[1][1][..., None] * light_color * np.asarray(RED)
+             + terms[0][2][..., None] * np.asarray(effect.medium.ambient_color, np.float64))  # fmt: skip
+    expected = np.asarray(frame.color, np.float64) * surface[..., None] + added
+    np.testing.assert_allclose(both, expected, rtol=1e-5, atol=1e-6)
+    # The order of the lights changes nothing.
+    swapped = np.asarray(gr.lit_by(effect, frame, lights[::-1]), np.float64)
+    np.testing.assert_allclose(swapped, both, rtol=1e-5, atol=1e-6)
+
+
+def test_the_scattering_fog_counts_its_ambient_light_once():
+    effect, frame = small(gr.preset("participating_media")), make_frame()
+    both = np.asarray(gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, color=RED)]), np.float64)
+    first = np.asarray(effect(frame, LIGHT), np.float64)
+    medium = dataclasses.replace(effect.medium, ambient_color=jnp.zeros(3))
+    second = np.asarray(dataclasses.replace(effect, medium=medium).layer(frame, SECOND), np.float64)
+    np.testing.assert_allclose(both, first + second * np.asarray(RED), rtol=1e-5, atol=1e-6)
+
+
+def test_a_light_behind_the_camera_adds_nothing_to_an_effect_that_hides_it():
+    effect, frame = small(gr.preset("xna_crepuscular")), make_frame()
+    one = gr.lit_by(effect, frame, [gr.Light(LIGHT)])
+    with_hidden = gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, in_front=False)])
+    np.testing.assert_allclose(np.asarray(with_hidden), np.asarray(one), rtol=1e-6, atol=1e-7)
+
+
+def test_lights_are_refused_where_they_do_not_add():
+    frame = make_frame()
+    with pytest.raises(ValueError, match="lights"):
+        gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [])
+    with pytest.raises(ValueError, match="lights"):
+        gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [LIGHT])
+    multiply = dataclasses.replace(small(gr.preset("xna_crepuscular")), blend_mode="multiply")
+    with pytest.raises(ValueError, match="lights: GodRays blends 'multiply'"):
+        gr.lit_by(multiply, frame, [gr.Light(LIGHT), gr.Light(SECOND)])
+
+
+def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_colours():
+    effect, frame = cheap_volumetric(), make_frame()
+
+    def loss(first, second, color):
+        lights = [gr.Light(first), gr.Light(second, depth=20.0, color=color)]
+        return jnp.mean(gr.lit_by(effect, frame, lights) ** 2)
+
+    eager = loss(LIGHT, SECOND, jnp.asarray(RED))
+    np.testing.assert_allclose(jax.jit(loss)(LIGHT, SECOND, jnp.asarray(RED)), eager, rtol=1e-5)
+    seconds = jnp.stack([SECOND, SECOND + 1.0])
+    batched = jax.vmap(loss, in_axes=(None, 0, None))(LIGHT, seconds, jnp.asarray(RED))
+    np.testing.assert_allclose(batched[0], eager, rtol=1e-5)
+    gradients = jax.grad(loss, argnums=(0, 1, 2))(LIGHT, SECOND, jnp.asarray(RED))
+    assert all(np.isfinite(np.asarray(g)).all() for g in gradients)
+    assert np.abs(np.asarray(gradients[2])).sum() > 0  # the second light's colour reaches the frame

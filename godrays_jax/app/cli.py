@@ -23,7 +23,10 @@ from godrays_jax.app.options import (
     parse_fit_light,
     parse_fov,
     parse_light,
+    parse_light_colors,
     parse_light_depth,
+    parse_light_depths,
+    parse_lights,
     parse_sky_depth,
     warn,
 )
@@ -132,18 +135,27 @@ def _add_apply(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, help="output image (.exr, .png, .tif, .jpg)")
     parser.add_argument(
         "--light",
-        type=parse_light,
-        metavar="X,Y[,behind]",
+        type=parse_lights,
+        metavar="X,Y[,behind][;X,Y...]",
         help="the light's pixel position (x right, y down; may be negative: --light -5,10), ',behind' for a light "
-        "behind the camera; default: the light `fit --light auto` found for this frame, written beside --params "
+        "behind the camera; several lights separated by ';' (--light '160,40;300,90,behind'), their light added; "
+        "default: the light `fit --light auto` found for this frame, written beside --params "
         "(PARAMS.light.json), else the frame's godrays:light_px metadata",
     )
     parser.add_argument(
         "--light-depth",
-        type=parse_light_depth,
-        metavar="D",
-        help="the light's distance from the camera in scene units, or inf (read by the XNA preset's depth test and "
-        "step clamp); default: the frame's godrays:light_depth metadata, else inf",
+        type=parse_light_depths,
+        metavar="D[;D...]",
+        help="the light's distance from the camera in scene units, or inf (read by the fogs and the XNA preset's "
+        "depth test and step clamp), one for every light or one per light; default: the frame's "
+        "godrays:light_depth metadata, else inf",
+    )
+    parser.add_argument(
+        "--light-color",
+        type=parse_light_colors,
+        metavar="R,G,B[;R,G,B...]",
+        help="each light's linear colour, which multiplies the effect's own (one per light given by --light); "
+        "default 1,1,1",
     )
     _add_effect_options(parser)
     _add_frame_options(parser)

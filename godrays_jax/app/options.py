@@ -88,6 +88,37 @@ def parse_light(text: str) -> tuple[tuple[float, float], bool]:
     return (float(x), float(y)), LIGHT_SIDES[side]
 
 
+LIGHTS_SEPARATOR = ";"
+"""What separates the lights of one frame in `apply --light`, `--light-depth` and `--light-color`."""
+
+
+def parse_lights(text: str) -> list[tuple[tuple[float, float], bool]]:
+    """`apply --light`: one light as `parse_light` reads it, or several separated by `;`
+    (`"160,40;300,90,behind"`), each drawn by `effects.lights.lit_by`."""
+    return [parse_light(part) for part in text.split(LIGHTS_SEPARATOR)]
+
+
+def parse_light_depths(text: str) -> list[float]:
+    """`apply --light-depth`: one distance as `parse_light_depth` reads it, or one per light separated by `;`."""
+    return [parse_light_depth(part) for part in text.split(LIGHTS_SEPARATOR)]
+
+
+def parse_light_colors(text: str) -> list[tuple[float, float, float]]:
+    """`apply --light-color`: one light's linear colour `"R,G,B"` (finite numbers >= 0; one number for a grey), or
+    one per light separated by `;`."""
+    colors = []
+    for part in text.split(LIGHTS_SEPARATOR):
+        usage = f"--light-color must be R,G,B (finite numbers >= 0; ';' between lights), got {text!r}"
+        try:
+            values = [float(value) for value in part.replace(" ", "").split(",")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(usage) from None
+        if len(values) not in (1, 3) or not all(math.isfinite(value) and value >= 0 for value in values):
+            raise argparse.ArgumentTypeError(usage)
+        colors.append(tuple(values * 3 if len(values) == 1 else values))
+    return colors
+
+
 def resolve_light(light: tuple[tuple[float, float], bool] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:
     """The `--light` value (`parse_light`'s), or the position and side stored in the frame's metadata."""
     if light is not None:

@@ -91,6 +91,8 @@ def test_lights_are_refused_where_they_do_not_add():
         gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [])
     with pytest.raises(ValueError, match="lights"):
         gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [LIGHT])
+    with pytest.raises(ValueError, match=r"lights\[1\]\.color must be finite and >= 0"):
+        gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [gr.Light(LIGHT), gr.Light(SECOND, color=(1.0, -0.5, 1.0))])
     multiply = dataclasses.replace(small(gr.preset("xna_crepuscular")), blend_mode="multiply")
     with pytest.raises(ValueError, match="lights: GodRays blends 'multiply'"):
         gr.lit_by(multiply, frame, [gr.Light(LIGHT), gr.Light(SECOND)])

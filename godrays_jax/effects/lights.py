@@ -28,7 +28,9 @@ import math
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect
@@ -45,7 +47,7 @@ class Light(eqx.Module):
     the top-left corner; off screen allowed, as for one light), `in_front` whether it is in front of the camera (its
     position then the projection of a point behind it, mirrored through the camera plane, as
     `light_in_front=False` means for one light), `depth` its distance from the camera in scene units (`inf`, the
-    default, for the sun), and `color` its linear RGB colour and intensity, which multiplies the effect's own light
+    default, for the sun), and `color` its linear RGB colour and intensity (>= 0), which multiplies the effect's own light
     colour (1, the default: the effect's colour as it is)."""
 
     xy: Float[ArrayLike, "2"]
@@ -60,6 +62,10 @@ def lit_by(effect: Effect, buffers: Buffers, lights: Sequence[Light]) -> Float[A
     lights = list(lights)
     if not lights or not all(isinstance(light, Light) for light in lights):
         raise ValueError(f"lights must be a non-empty sequence of Light, got {lights!r}")
+    for index, light in enumerate(lights):
+        color = light.color
+        if not isinstance(color, jax.core.Tracer) and not (np.isfinite(color).all() and (np.asarray(color) >= 0).all()):
+            raise ValueError(f"lights[{index}].color must be finite and >= 0 (linear RGB), got {color!r}")
     dtype = buffers.color.dtype
     colors = [jnp.broadcast_to(jnp.asarray(light.color, dtype), (3,)) for light in lights]
     if isinstance(effect, VolumetricFog):

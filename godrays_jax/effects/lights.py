@@ -43,12 +43,14 @@ from godrays_jax.primitives.buffers import Buffers
 
 
 class Light(eqx.Module):
-    """One light of a frame, as an effect takes it: `xy` its position on screen in pixels (`(x, y)`, the origin at
-    the top-left corner; off screen allowed, as for one light), `in_front` whether it is in front of the camera (its
-    position then the projection of a point behind it, mirrored through the camera plane, as
-    `light_in_front=False` means for one light), `depth` its distance from the camera in scene units (`inf`, the
-    default, for the sun), and `color` its linear RGB colour and intensity (>= 0), which multiplies the effect's own light
-    colour (1, the default: the effect's colour as it is)."""
+    """One light of a frame, as an effect takes it.
+
+    `xy`: its position in pixels (x right, y down, pixel centres at `i + 0.5`; off screen allowed, as for one
+    light). `in_front`: False for a light behind the camera, `xy` then the projection of the light mirrored
+    through the camera plane (as `light_in_front=False` means for one light). `depth`: its distance from the
+    camera in scene units (`inf`, the default, for the sun). `color`: its linear RGB colour and intensity
+    (>= 0), which multiplies the effect's own light colour (1, the default: the effect's colour as it is).
+    """
 
     xy: Float[ArrayLike, "2"]
     in_front: Bool[ArrayLike, ""] | bool = True
@@ -84,7 +86,7 @@ def lit_by(effect: Effect, buffers: Buffers, lights: Sequence[Light]) -> Float[A
 
 
 def _side(light: Light) -> dict:
-    return dict(light_in_front=light.in_front, light_depth=light.depth)
+    return {"light_in_front": light.in_front, "light_depth": light.depth}
 
 
 def _colored(layer: Float[Array, "H W L"], color: Float[Array, "3"]) -> Float[Array, "H W L"]:

@@ -162,6 +162,19 @@ def test_every_command_has_help(capsys):
         assert exit_info.value.code == 0
 
 
+@pytest.mark.parametrize("command", ["fit", "batch"])
+def test_commands_of_one_light_say_that_several_are_applys(tmp_path, command, capsys):
+    frame = small_frame(tmp_path / "frame.exr")
+    arguments = [command, str(frame), str(frame), "-o", str(tmp_path / "out"), "--light", "3,2;5,1"]
+    if command == "batch":
+        del arguments[2]
+    with pytest.raises(SystemExit) as exit_info:
+        main(arguments)
+    assert exit_info.value.code == 2
+    assert "--light takes one light here" in capsys.readouterr().err
+    assert sorted(os.listdir(tmp_path)) == ["frame.exr"]
+
+
 def test_apply_adds_several_lights_each_with_its_side_distance_and_colour(tmp_path):
     """`--light 'A;B,behind'` with a distance and a colour per light is `lit_by` of those lights; one colour and
     one distance are every light's."""

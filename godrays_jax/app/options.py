@@ -70,9 +70,17 @@ LIGHT_SIDES = {"front": True, "behind": False}
 the projection `camera.project_point` gives, mirrored through the camera plane)."""
 
 
+LIGHTS_SEPARATOR = ";"
+"""What separates the lights of one frame in `apply --light`, `--light-depth` and `--light-color`."""
+
+
 def parse_light(text: str) -> tuple[tuple[float, float], bool]:
     """`"X,Y"` or `"X,Y,front"` or `"X,Y,behind"` -> `((x, y), in_front)`: pixels, both finite numbers, a far light
     moved along its direction to `MAX_LIGHT_PX`; `behind` a light behind the camera (`LIGHT_SIDES`)."""
+    if LIGHTS_SEPARATOR in text:
+        raise argparse.ArgumentTypeError(
+            f"--light takes one light here, got {text!r}; several lights, separated by ';', are apply's"
+        )
     parts = text.replace(" ", "").split(",")
     side = parts.pop().lower() if len(parts) == 3 else "front"
     usage = f"--light must be X,Y in pixels, or X,Y,behind for a light behind the camera (e.g. 160.5,42), got {text!r}"
@@ -86,10 +94,6 @@ def parse_light(text: str) -> tuple[tuple[float, float], bool]:
         raise argparse.ArgumentTypeError(f"--light must be finite, got {text!r}")
     x, y = check_light((x, y))  # as the library bounds it, before a float32 cast could overflow
     return (float(x), float(y)), LIGHT_SIDES[side]
-
-
-LIGHTS_SEPARATOR = ";"
-"""What separates the lights of one frame in `apply --light`, `--light-depth` and `--light-color`."""
 
 
 def parse_lights(text: str) -> list[tuple[tuple[float, float], bool]]:

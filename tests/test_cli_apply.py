@@ -112,7 +112,7 @@ def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
     elif case == "several_layer_only":
         args[3] = "3,2;5,1"
         args += ["--layer-only"]
-        expected = "--layer-only draws one light"
+        expected = "--layer-only draws one light in the effect's own colour"
     before = sorted(os.listdir(tmp_path))
     result = run_cli(*args)
     assert result.returncode != 0

@@ -64,7 +64,10 @@ def _several_lights(effect: Effect, buffers: Buffers, lights: list, depths: list
         if len(values) not in (1, count):
             raise CommandError(f"{name} gives {len(values)} values for {count} lights: give one, or one per light")
     if args.layer_only:
-        raise CommandError("--layer-only draws one light: the fogs' layer under several lights is not their sum")
+        raise CommandError(
+            "--layer-only draws one light in the effect's own colour: a fog's layer under several or coloured "
+            "lights is not a sum of layers"
+        )
     chosen = [
         Light(np.asarray(xy, np.float32), in_front=bool(front), depth=depth, color=np.asarray(color, np.float32))
         for (xy, front), depth, color in zip(lights, depths * count if len(depths) == 1 else depths,

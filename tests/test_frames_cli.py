@@ -262,3 +262,29 @@ def test_batch_says_when_frames_store_other_light_distances(tmp_path, capsys):
     assert "f.0003.exr stores the light's distance 12.5, the first frame 10" in err
     assert main(["batch", pattern, "-o", str(tmp_path / "again"), "--preset", "gpu_gems", "-q", "--light-depth", "11"]) == 0
     assert "light's distance" not in capsys.readouterr().err
+
+
+def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path):
+    """`batch --light 'A;B' --light-color ...`: every frame is `lit_by` of those lights; the light's colour alone
+    (one light) scales its rays."""
+    height, width = 9, 16
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[6:] = 3.0
+    depth[:, 7:9] = 2.0
+    folder = tmp_path / "in"
+    folder.mkdir()
+    frames = [_flat_frame(depth, grey) for grey in (0.2, 0.3)]
+    for number, frame in enumerate(frames, 1):
+        gr.write_buffers(folder / f"f.{number:04d}.exr", frame, light_xy=(8.0, 2.0))
+    pattern = str(folder / "f.####.exr")
+    arguments = ["batch", pattern, "-o", str(tmp_path / "out"), "--preset", "gpu_gems", "-q",
+                 "--light", "8,2;3,4,behind", "--light-color", "1,0.5,0.25;2"]  # fmt: skip
+    assert main(arguments) == 0
+    effect = gr.preset("gpu_gems")
+    lights = [gr.Light(jnp.asarray([8.0, 2.0]), color=(1.0, 0.5, 0.25)),
+              gr.Light(jnp.asarray([3.0, 4.0]), in_front=False, color=(2.0, 2.0, 2.0))]  # fmt: skip
+    for number, frame in enumerate(frames, 1):
+        written = np.asarray(gr.read_buffers(tmp_path / "out" / f"f.{number:04d}.exr").color)
+        expected = np.asarray(gr.lit_by(effect, gr.read_buffers(folder / f"f.{number:04d}.exr"), lights))
+        np.testing.assert_allclose(written, expected, rtol=1e-3, atol=1e-5)
+    assert not np.allclose(expected, np.asarray(effect(frames[-1], jnp.asarray([8.0, 2.0]))), atol=1e-3)

@@ -11,6 +11,7 @@ from godrays_jax.app.options import (
     effect_option,
     frame_reading,
     resolve_light_depth,
+    split_lights,
     warn,
     with_frame_camera,
 )
@@ -60,9 +61,7 @@ def _other_light_depth(inputs: list[str], first: float) -> tuple[str, float] | N
 def run(args) -> int:
     """`godrays-jax batch` (arguments from `cli`): plan, then run or list the frames; exit status 1 if any frame failed."""
     light: LightSource = METADATA
-    if args.light is not None:
-        light = args.light
-    elif args.light_track is not None:
+    if args.light_track is not None:
         light = read_light_track(args.light_track)
     shard = parse_shard(args.shard) if args.shard else None
     explicit = (args.coordinator, args.num_processes, args.process_id)
@@ -83,7 +82,11 @@ def run(args) -> int:
     inputs = expand_frames(args.pattern)
     # The camera and the light's distance come from the first frame: one compiled program for the shot.
     effect = with_frame_camera(effect, args, inputs[0])
-    light_depth = resolve_light_depth(args.light_depth, inputs[0])
+    first, light_depth, light_color, beside = split_lights(
+        args.light, args.light_depth, args.light_color, lambda: resolve_light_depth(None, inputs[0])
+    )
+    if first is not None:
+        light = first
     if args.light_depth is None and (moved := _other_light_depth(inputs, light_depth)) is not None:
         warn("batch", f"{moved[0]} stores the light's distance {moved[1]:g}, the first frame {light_depth:g}: every "
              "frame takes the first frame's (one compiled program); pass --light-depth D to choose")  # fmt: skip
@@ -109,6 +112,8 @@ def run(args) -> int:
         light,
         layer_only=args.layer_only,
         light_depth=light_depth,
+        light_color=light_color,
+        beside=beside,
         dither=not args.no_dither,
         **{key: value for key, value in frame_reading(args).items() if key != "without_depth"},  # run_batch reads both
         progress=None if args.quiet else sys.stderr,

@@ -183,8 +183,9 @@ def _add_batch(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, metavar="OUT_DIR", help="output folder (created if missing)")
     lights = parser.add_mutually_exclusive_group()
     lights.add_argument(
-        "--light", type=parse_light, metavar="X,Y[,behind]",
-        help="the same light pixel position for every frame (',behind': behind the camera)",
+        "--light", type=parse_lights, metavar="X,Y[,behind][;X,Y...]",
+        help="the same light pixel position for every frame (',behind': behind the camera); several lights "
+        "separated by ';', their light added",
     )  # fmt: skip
     lights.add_argument(
         "--light-from-metadata", action="store_true", help="each frame's godrays:light_px metadata (the default)"
@@ -193,9 +194,14 @@ def _add_batch(subparsers) -> None:
         "--light-track", metavar="FILE", help="per-frame lights: CSV rows 'frame,x,y[,in_front]' or JSON; frames between keys are interpolated linearly"
     )
     parser.add_argument(
-        "--light-depth", type=parse_light_depth, metavar="D",
-        help="the light's distance from the camera in scene units, or inf, for every frame; default: the first "
-        "frame's godrays:light_depth metadata, else inf",
+        "--light-depth", type=parse_light_depths, metavar="D[;D...]",
+        help="the light's distance from the camera in scene units, or inf, for every frame (one for every light or "
+        "one per light); default: the first frame's godrays:light_depth metadata, else inf",
+    )  # fmt: skip
+    parser.add_argument(
+        "--light-color", type=parse_light_colors, metavar="R,G,B[;R,G,B...]",
+        help="each light's linear colour, which multiplies the effect's own (one for every light or one per light); "
+        "default 1,1,1",
     )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)

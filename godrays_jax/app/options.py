@@ -11,6 +11,7 @@ import numpy as np
 
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import MAX_TEXTURE_SIDE
+from godrays_jax.effects.lights import Light
 from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import MAX_EFFECT_FILE_BYTES, load_effect, parse_json_object
 from godrays_jax.pipeline.batch import ready_frame
@@ -79,7 +80,7 @@ def parse_light(text: str) -> tuple[tuple[float, float], bool]:
     moved along its direction to `MAX_LIGHT_PX`; `behind` a light behind the camera (`LIGHT_SIDES`)."""
     if LIGHTS_SEPARATOR in text:
         raise argparse.ArgumentTypeError(
-            f"--light takes one light here, got {text!r}; several lights, separated by ';', are apply's"
+            f"--light takes one light here, got {text!r}; several lights, separated by ';', are apply's and batch's"
         )
     parts = text.replace(" ", "").split(",")
     side = parts.pop().lower() if len(parts) == 3 else "front"
@@ -121,6 +122,28 @@ def parse_light_colors(text: str) -> list[tuple[float, float, float]]:
             raise argparse.ArgumentTypeError(usage)
         colors.append(tuple(values * 3 if len(values) == 1 else values))
     return colors
+
+
+def split_lights(
+    lights: list | None, depths: list[float] | None, colors: list | None, default_depth: Callable[[], float]
+) -> tuple[tuple[tuple[float, float], bool] | None, float, tuple[float, float, float] | None, list[Light]]:
+    """`apply`'s or `batch`'s `--light`, `--light-depth` and `--light-color` (`parse_lights`' lists, or None):
+    the first light (None: the frame's), its distance (`default_depth()` when none is given: the frame's), its
+    colour (None: the effect's own), and the lights beside it as `effects.lights.Light`s. A distance or a colour
+    given once is every light's. `CommandError` for counts that match neither."""
+    count = len(lights) if lights else 1
+    for name, values in (("--light-depth", depths), ("--light-color", colors)):
+        if values is not None and len(values) not in (1, count):
+            raise CommandError(f"{name} gives {len(values)} values for {count} lights: give one, or one per light")
+    depths = depths or [default_depth()]
+    depths = depths * count if len(depths) == 1 else depths
+    every = colors * count if colors is not None and len(colors) == 1 else colors
+    beside = [
+        Light(np.asarray(xy, np.float32), in_front=front, depth=depth,
+              color=np.asarray((1.0, 1.0, 1.0) if every is None else every[index], np.float32))
+        for index, ((xy, front), depth) in enumerate(zip(lights or [], depths)) if index > 0
+    ]  # fmt: skip
+    return (lights[0] if lights else None), depths[0], (None if every is None else every[0]), beside
 
 
 def resolve_light(light: tuple[tuple[float, float], bool] | None, buffers_path: str) -> tuple[tuple[float, float], bool]:

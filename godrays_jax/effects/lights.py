@@ -81,7 +81,9 @@ def lit_by(effect: Effect, buffers: Buffers, lights: Sequence[Light]) -> Float[A
             f"lights: {type(effect).__name__} blends {effect.blend_mode!r}, whose layers do not add; "
             "several lights take effects blended 'add' or 'screen'"
         )
-    layer = sum(_colored(effect.layer(buffers, light.xy, **_side(light)), color) for light, color in zip(lights, colors))
+    layer = sum(
+        _colored(effect.layer(buffers, light.xy, **_side(light)), color) for light, color in zip(lights, colors)
+    )
     return blend(buffers.color, layer, mode=effect.blend_mode)
 
 
@@ -105,10 +107,11 @@ def _volumetric_fog(effect: VolumetricFog, buffers, lights, colors):
     surface = sum(share * surface for share, (surface, _, _) in zip(shares, terms))
     ambient = terms[0][2]  # the ambient light reaches every point whatever the lights: counted once
     medium = effect.medium
-    light = fog_light(terms[0][1], ambient, light_color=medium.light_color * colors[0], ambient_color=medium.ambient_color)
+    ambient_color = medium.ambient_color
+    light = fog_light(terms[0][1], ambient, light_color=medium.light_color * colors[0], ambient_color=ambient_color)
     for (_, scattered, _), color in zip(terms[1:], colors[1:]):
         light = light + fog_light(
-            scattered, jnp.zeros_like(ambient), light_color=medium.light_color * color, ambient_color=medium.ambient_color
+            scattered, jnp.zeros_like(ambient), light_color=medium.light_color * color, ambient_color=ambient_color
         )  # fmt: skip
     return composite_fog(buffers.color, surface, light)
 
@@ -117,7 +120,8 @@ def _scattering_fog(effect: ScatteringFog, buffers, lights, colors):
     # The fogged frame lit by the ambient light alone, then each light's in-scattering without the ambient's: a
     # light's colour scales its layer, not the medium's field (whose range a product could leave).
     medium = effect.medium
-    dark = dataclasses.replace(effect, medium=dataclasses.replace(medium, light_color=jnp.zeros_like(medium.light_color)))
-    unlit = dataclasses.replace(effect, medium=dataclasses.replace(medium, ambient_color=jnp.zeros_like(medium.ambient_color)))
+    dark = dataclasses.replace(medium, light_color=jnp.zeros_like(medium.light_color))
+    unlit = dataclasses.replace(medium, ambient_color=jnp.zeros_like(medium.ambient_color))
+    dark, unlit = (dataclasses.replace(effect, medium=part) for part in (dark, unlit))
     layer = sum(_colored(unlit.layer(buffers, light.xy, **_side(light)), color) for light, color in zip(lights, colors))
     return blend(dark(buffers, lights[0].xy, **_side(lights[0])), layer, mode="add")

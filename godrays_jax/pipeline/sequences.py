@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from godrays_jax.primitives.checks import check_light
 from godrays_jax.primitives.light_metadata import read_light
 
-Light = tuple[tuple[float, float], bool]
+ScreenLight = tuple[tuple[float, float], bool]
 """A light for one frame: `((x, y) pixels, in front of the camera)`."""
 
 
@@ -145,7 +145,7 @@ def expand_frames(pattern: str) -> list[str]:
     return paths
 
 
-def read_light_track(path: str | os.PathLike) -> dict[int, Light]:
+def read_light_track(path: str | os.PathLike) -> dict[int, ScreenLight]:
     """A light track: the light's pixel position for each frame number.
 
     CSV: one row per frame, columns `frame, x, y` and optionally `in_front`
@@ -194,7 +194,7 @@ def read_light_track(path: str | os.PathLike) -> dict[int, Light]:
             if len(cells) not in (3, 4):
                 raise ValueError(f"light track {path}: row {row!r} must be frame, x, y[, in_front]")
             entries.append((cells[0], cells[1], cells[2], cells[3] if len(cells) == 4 else True))
-    track: dict[int, Light] = {}
+    track: dict[int, ScreenLight] = {}
     for frame, x, y, in_front in entries:
         try:
             number, x, y = int(frame), float(x), float(y)
@@ -220,12 +220,12 @@ def _parse_bool(value: object, path: str, number: int) -> bool:
     raise ValueError(f"light track {path}: frame {number} has in_front {value!r} (use 1/0 or true/false)")
 
 
-LightSource = tuple[float, float] | Light | str | Mapping[int, Light]
-"""Where each frame's light comes from: a fixed `(x, y)` in front of the camera or a fixed `Light`, `METADATA`, or a
-track `{frame: Light}`."""
+LightSource = tuple[float, float] | ScreenLight | str | Mapping[int, ScreenLight]
+"""Where each frame's light comes from: a fixed `(x, y)` in front of the camera or a fixed `ScreenLight`, `METADATA`, or a
+track `{frame: ScreenLight}`."""
 
 
-def light_for(path: str, light: LightSource) -> Light:
+def light_for(path: str, light: LightSource) -> ScreenLight:
     """The light for one frame from a `LightSource`; `ValueError` if it has none."""
     if isinstance(light, str):
         if light != METADATA:
@@ -239,14 +239,14 @@ def light_for(path: str, light: LightSource) -> Light:
         if number is None:
             raise ValueError("no frame number in its name to look up in the light track")
         return _track_light(light, number)
-    if isinstance(light[0], (tuple, list)):  # a `Light`: the position and its side
+    if isinstance(light[0], (tuple, list)):  # a `ScreenLight`: the position and its side
         (x, y), in_front = light
         return (float(x), float(y)), bool(in_front)
     x, y = light
     return (float(x), float(y)), True
 
 
-def _track_light(track: Mapping[int, Light], number: int) -> Light:
+def _track_light(track: Mapping[int, ScreenLight], number: int) -> ScreenLight:
     """The track's light at frame `number`: its own entry, else linear between the keyed frames around it.
 
     Positions are interpolated only between two keys on the same side of the

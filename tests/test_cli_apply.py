@@ -67,7 +67,7 @@ def test_apply_with_params_file_and_layer_only(tmp_path):
     "case",
     [
         "missing_file", "not_an_image", "no_depth", "bad_light", "bad_light_side", "nan_colour", "bad_params",
-        "overwrite_input", "no_light", "light_colors_for_other_lights", "bad_light_color", "several_layer_only",
+        "overwrite_input", "no_light", "light_tints_for_other_lights", "bad_light_tint", "several_layer_only",
     ],
 )
 def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
@@ -102,17 +102,17 @@ def test_apply_bad_input_is_one_line_and_leaves_no_output(tmp_path, case):
     elif case == "no_light":
         del args[2:4]
         expected = "--light"
-    elif case == "light_colors_for_other_lights":
+    elif case == "light_tints_for_other_lights":
         args[3] = "3,2;5,1"
-        args += ["--light-color", "1,1,1;1,1,1;1,1,1"]
-        expected = "--light-color gives 3 values for 2 lights"
-    elif case == "bad_light_color":
-        args += ["--light-color", "1,x,1"]
-        expected = "--light-color must be R,G,B"
+        args += ["--light-tint", "1,1,1;1,1,1;1,1,1"]
+        expected = "--light-tint gives 3 values for 2 lights"
+    elif case == "bad_light_tint":
+        args += ["--light-tint", "1,x,1"]
+        expected = "--light-tint must be R,G,B"
     elif case == "several_layer_only":
         args[3] = "3,2;5,1"
         args += ["--layer-only"]
-        expected = "--layer-only draws one light in the effect's own colour"
+        expected = "--layer-only draws one light as the effect has it"
     before = sorted(os.listdir(tmp_path))
     result = run_cli(*args)
     assert result.returncode != 0
@@ -175,23 +175,23 @@ def test_commands_of_one_light_say_where_several_are_taken(tmp_path, command, ca
     assert sorted(os.listdir(tmp_path)) == ["frame.exr"]
 
 
-def test_apply_adds_several_lights_each_with_its_side_distance_and_colour(tmp_path):
-    """`--light 'A;B,behind'` with a distance and a colour per light is `lit_by` of those lights; one colour and
-    one distance are every light's."""
+def test_apply_adds_several_lights_each_with_its_side_distance_and_tint(tmp_path):
+    """`--light 'A;B,behind'` with a distance and a tint per light is `lit_by` of those lights; one tint and one
+    distance are every light's."""
     frame_path, output = small_frame(tmp_path / "frame.exr"), tmp_path / "out.exr"
     arguments = ["apply", str(frame_path), "--preset", "physically_based", "--light", "3,2;6.5,1,behind",
-                 "--light-depth", "inf;12", "--light-color", "1,0.5,0.25;2", "-o", str(output)]  # fmt: skip
+                 "--light-depth", "inf;12", "--light-tint", "1,0.5,0.25;2", "-o", str(output)]  # fmt: skip
     assert main(arguments) == 0
     frame, effect = gr.read_buffers(frame_path), gr.preset("physically_based")
-    lights = [gr.Light(np.asarray([3.0, 2.0], np.float32), color=(1.0, 0.5, 0.25)),
-              gr.Light(np.asarray([6.5, 1.0], np.float32), in_front=False, depth=12.0, color=(2.0, 2.0, 2.0))]  # fmt: skip
+    lights = [gr.Light(np.asarray([3.0, 2.0], np.float32), tint=(1.0, 0.5, 0.25)),
+              gr.Light(np.asarray([6.5, 1.0], np.float32), in_front=False, depth=12.0, tint=(2.0, 2.0, 2.0))]  # fmt: skip
     expected = np.asarray(gr.lit_by(effect, frame, lights))
     assert not np.allclose(expected, effect(frame, lights[0].xy))  # the second light shows
     at_infinity = [lights[0], dataclasses.replace(lights[1], depth=np.inf)]
     assert not np.allclose(expected, gr.lit_by(effect, frame, at_infinity))  # and its distance
     np.testing.assert_allclose(gr.read_image(output)[..., :3], expected[..., :3], rtol=1e-3, atol=1e-5)
     shared = tmp_path / "shared.exr"
-    assert main([*arguments[:-6], "--light-color", "2", "-o", str(shared)]) == 0
-    every = [gr.Light(light.xy, in_front=light.in_front, color=(2.0, 2.0, 2.0)) for light in lights]
+    assert main([*arguments[:-6], "--light-tint", "2", "-o", str(shared)]) == 0
+    every = [gr.Light(light.xy, in_front=light.in_front, tint=(2.0, 2.0, 2.0)) for light in lights]
     np.testing.assert_allclose(gr.read_image(shared)[..., :3], np.asarray(gr.lit_by(effect, frame, every))[..., :3],
                                rtol=1e-3, atol=1e-5)  # fmt: skip

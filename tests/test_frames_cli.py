@@ -265,8 +265,7 @@ def test_batch_says_when_frames_store_other_light_distances(tmp_path, capsys):
 
 
 def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path):
-    """`batch --light 'A;B' --light-color ...`: every frame is `lit_by` of those lights; the light's colour alone
-    (one light) scales its rays."""
+    """`batch --light 'A;B' --light-tint ...`: every frame is `lit_by` of those lights."""
     height, width = 9, 16
     depth = np.full((height, width), np.inf, np.float32)
     depth[6:] = 3.0
@@ -278,11 +277,11 @@ def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path):
         gr.write_buffers(folder / f"f.{number:04d}.exr", frame, light_xy=(8.0, 2.0))
     pattern = str(folder / "f.####.exr")
     arguments = ["batch", pattern, "-o", str(tmp_path / "out"), "--preset", "gpu_gems", "-q",
-                 "--light", "8,2;3,4,behind", "--light-color", "1,0.5,0.25;2"]  # fmt: skip
+                 "--light", "8,2;3,4,behind", "--light-tint", "1,0.5,0.25;2"]  # fmt: skip
     assert main(arguments) == 0
     effect = gr.preset("gpu_gems")
-    lights = [gr.Light(jnp.asarray([8.0, 2.0]), color=(1.0, 0.5, 0.25)),
-              gr.Light(jnp.asarray([3.0, 4.0]), in_front=False, color=(2.0, 2.0, 2.0))]  # fmt: skip
+    lights = [gr.Light(jnp.asarray([8.0, 2.0]), tint=(1.0, 0.5, 0.25)),
+              gr.Light(jnp.asarray([3.0, 4.0]), in_front=False, tint=(2.0, 2.0, 2.0))]  # fmt: skip
     for number, frame in enumerate(frames, 1):
         written = np.asarray(gr.read_buffers(tmp_path / "out" / f"f.{number:04d}.exr").color)
         expected = np.asarray(gr.lit_by(effect, gr.read_buffers(folder / f"f.{number:04d}.exr"), lights))

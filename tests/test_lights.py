@@ -25,9 +25,9 @@ ADDITIVE = ["xna_crepuscular", "kbengine_flares", "sun_overcast", "vbex_lens_dir
 
 
 @pytest.mark.parametrize("name", ADDITIVE)
-def test_an_additive_effect_under_two_lights_adds_their_coloured_layers(name):
+def test_an_additive_effect_under_two_lights_adds_their_tinted_layers(name):
     effect, frame = small(gr.preset(name)), make_frame()
-    both = gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, color=RED)])
+    both = gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, tint=RED)])
     layers = [np.asarray(effect.layer(frame, xy), np.float64) for xy in (LIGHT, SECOND)]
     colour = np.asarray(frame.color, np.float64)
     expected = colour + layers[0][..., :3] + layers[1][..., :3] * np.asarray(RED)
@@ -35,7 +35,7 @@ def test_an_additive_effect_under_two_lights_adds_their_coloured_layers(name):
 
 
 @pytest.mark.parametrize("name", [*ADDITIVE, "vbex_bloom", "participating_media"])
-def test_one_light_of_colour_one_is_the_effect_itself(name):
+def test_one_light_of_tint_one_is_the_effect_itself(name):
     effect, frame = small(gr.preset(name)), make_frame()
     for in_front in (True, False):
         alone = gr.lit_by(effect, frame, [gr.Light(LIGHT, in_front=in_front)])
@@ -43,19 +43,21 @@ def test_one_light_of_colour_one_is_the_effect_itself(name):
                                    rtol=1e-5, atol=1e-6)  # fmt: skip
 
 
-def test_one_light_of_colour_one_is_the_volumetric_fog_itself():
+def test_one_light_of_tint_one_is_the_volumetric_fog_itself():
     effect, frame = cheap_volumetric(), make_frame()
     alone = gr.lit_by(effect, frame, [gr.Light(LIGHT, depth=30.0)])
-    np.testing.assert_allclose(np.asarray(alone), np.asarray(effect(frame, LIGHT, light_depth=30.0)), rtol=1e-5, atol=1e-6)
+    expected = effect(frame, LIGHT, light_depth=30.0)
+    np.testing.assert_allclose(np.asarray(alone), np.asarray(expected), rtol=1e-5, atol=1e-6)
 
 
 def test_the_volumetric_fog_under_two_lights_from_its_terms():
-    """Each light's in-scattering times its colour, the ambient once, the surfaces dimmed toward each light by its
-    share of the colours' means."""
+    """Each light's in-scattering times its tint, the ambient once, the surfaces dimmed toward each light by its
+    share of the tints' means."""
     effect, frame = cheap_volumetric(), make_frame()
-    lights = [gr.Light(LIGHT), gr.Light(SECOND, depth=20.0, color=RED)]
+    lights = [gr.Light(LIGHT), gr.Light(SECOND, depth=20.0, tint=RED)]
     both = np.asarray(gr.lit_by(effect, frame, lights), np.float64)
-    terms = [[np.asarray(t, np.float64) for t in effect.terms(frame, light.xy, light_depth=light.depth)] for light in lights]
+    terms = [[np.asarray(term, np.float64) for term in effect.terms(frame, light.xy, light_depth=light.depth)]
+             for light in lights]  # fmt: skip
     np.testing.assert_allclose(terms[0][2], terms[1][2], rtol=1e-6)  # the ambient does not depend on the light
     shares = np.asarray([1.0, np.mean(RED)]) / (1.0 + np.mean(RED))
     surface = shares[0] * terms[0][0] + shares[1] * terms[1][0]
@@ -71,7 +73,7 @@ def test_the_volumetric_fog_under_two_lights_from_its_terms():
 
 def test_the_scattering_fog_counts_its_ambient_light_once():
     effect, frame = small(gr.preset("participating_media")), make_frame()
-    both = np.asarray(gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, color=RED)]), np.float64)
+    both = np.asarray(gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, tint=RED)]), np.float64)
     first = np.asarray(effect(frame, LIGHT), np.float64)
     medium = dataclasses.replace(effect.medium, ambient_color=jnp.zeros(3))
     second = np.asarray(dataclasses.replace(effect, medium=medium).layer(frame, SECOND), np.float64)
@@ -91,18 +93,19 @@ def test_lights_are_refused_where_they_do_not_add():
         gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [])
     with pytest.raises(ValueError, match="lights"):
         gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [LIGHT])
-    with pytest.raises(ValueError, match=r"lights\[1\]\.color must be finite and >= 0"):
-        gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [gr.Light(LIGHT), gr.Light(SECOND, color=(1.0, -0.5, 1.0))])
+    with pytest.raises(ValueError, match=r"lights\[1\]\.tint must be finite and >= 0"):
+        negative = gr.Light(SECOND, tint=(1.0, -0.5, 1.0))
+        gr.lit_by(small(gr.preset("xna_crepuscular")), frame, [gr.Light(LIGHT), negative])
     multiply = dataclasses.replace(small(gr.preset("xna_crepuscular")), blend_mode="multiply")
     with pytest.raises(ValueError, match="lights: GodRays blends 'multiply'"):
         gr.lit_by(multiply, frame, [gr.Light(LIGHT), gr.Light(SECOND)])
 
 
-def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_colours():
+def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_tints():
     effect, frame = cheap_volumetric(), make_frame()
 
-    def loss(first, second, color):
-        lights = [gr.Light(first), gr.Light(second, depth=20.0, color=color)]
+    def loss(first, second, tint):
+        lights = [gr.Light(first), gr.Light(second, depth=20.0, tint=tint)]
         return jnp.mean(gr.lit_by(effect, frame, lights) ** 2)
 
     eager = loss(LIGHT, SECOND, jnp.asarray(RED))
@@ -112,4 +115,4 @@ def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_
     np.testing.assert_allclose(batched[0], eager, rtol=1e-5)
     gradients = jax.grad(loss, argnums=(0, 1, 2))(LIGHT, SECOND, jnp.asarray(RED))
     assert all(np.isfinite(np.asarray(g)).all() for g in gradients)
-    assert np.abs(np.asarray(gradients[2])).sum() > 0  # the second light's colour reaches the frame
+    assert np.abs(np.asarray(gradients[2])).sum() > 0  # the second light's tint reaches the frame

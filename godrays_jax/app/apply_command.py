@@ -31,20 +31,20 @@ def run(args) -> int:
     effect = with_flare_texture(effect_option(args.preset, args.params), args.flare_texture)
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
     effect = with_frame_camera(effect, args, args.buffers)
-    first, light_depth, light_color, beside = split_lights(
-        args.light, args.light_depth, args.light_color, lambda: resolve_light_depth(None, args.buffers)
+    first, light_depth, light_tint, beside = split_lights(
+        args.light, args.light_depth, args.light_tint, lambda: resolve_light_depth(None, args.buffers)
     )
     light = light_of_params(first, args.params, args.buffers, buffers)
     effect, buffers, light_xy, in_front = frame_for_command("apply", effect, buffers, args.buffers, light)
-    several = bool(beside) or light_color is not None
+    several = bool(beside) or light_tint is not None
     if several and args.layer_only:
         raise CommandError(
-            "--layer-only draws one light in the effect's own colour: a fog's layer under several or coloured "
-            "lights is not a sum of layers"
+            "--layer-only draws one light as the effect has it: a fog's layer under several or tinted lights is "
+            "not a sum of layers"
         )
     # The program `batch` runs, on a group of one frame, stored traced: a later `apply` neither traces nor compiles it.
     apply = frames_function(
-        effect, layer_only=args.layer_only, light_depth=light_depth, light_color=light_color, beside=beside, stored=True
+        effect, layer_only=args.layer_only, light_depth=light_depth, light_tint=light_tint, beside=beside, stored=True
     )
     one_frame = jax.tree.map(lambda leaf: leaf[None], buffers)
     try:

@@ -82,8 +82,8 @@ def run(args) -> int:
     inputs = expand_frames(args.pattern)
     # The camera and the light's distance come from the first frame: one compiled program for the shot.
     effect = with_frame_camera(effect, args, inputs[0])
-    first, light_depth, light_color, beside = split_lights(
-        args.light, args.light_depth, args.light_color, lambda: resolve_light_depth(None, inputs[0])
+    first, light_depth, light_tint, beside = split_lights(
+        args.light, args.light_depth, args.light_tint, lambda: resolve_light_depth(None, inputs[0])
     )
     if first is not None:
         light = first
@@ -112,7 +112,7 @@ def run(args) -> int:
         light,
         layer_only=args.layer_only,
         light_depth=light_depth,
-        light_color=light_color,
+        light_tint=light_tint,
         beside=beside,
         dither=not args.no_dither,
         **{key: value for key, value in frame_reading(args).items() if key != "without_depth"},  # run_batch reads both

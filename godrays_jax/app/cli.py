@@ -23,9 +23,9 @@ from godrays_jax.app.options import (
     parse_fit_light,
     parse_fov,
     parse_light,
-    parse_light_colors,
     parse_light_depth,
     parse_light_depths,
+    parse_light_tints,
     parse_lights,
     parse_sky_depth,
     warn,
@@ -151,11 +151,11 @@ def _add_apply(subparsers) -> None:
         "godrays:light_depth metadata, else inf",
     )
     parser.add_argument(
-        "--light-color",
-        type=parse_light_colors,
+        "--light-tint",
+        type=parse_light_tints,
         metavar="R,G,B[;R,G,B...]",
-        help="each light's linear colour, which multiplies the effect's own (one per light given by --light); "
-        "default 1,1,1",
+        help="each light's tint, the linear RGB its light is multiplied by: its colour and intensity beside the "
+        "others' (one for every light or one per light); default 1,1,1",
     )
     _add_effect_options(parser)
     _add_frame_options(parser)
@@ -199,9 +199,9 @@ def _add_batch(subparsers) -> None:
         "one per light); default: the first frame's godrays:light_depth metadata, else inf",
     )  # fmt: skip
     parser.add_argument(
-        "--light-color", type=parse_light_colors, metavar="R,G,B[;R,G,B...]",
-        help="each light's linear colour, which multiplies the effect's own (one for every light or one per light); "
-        "default 1,1,1",
+        "--light-tint", type=parse_light_tints, metavar="R,G,B[;R,G,B...]",
+        help="each light's tint, the linear RGB its light is multiplied by: its colour and intensity beside the "
+        "others' (one for every light or one per light); default 1,1,1",
     )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)

@@ -72,7 +72,7 @@ the projection `camera.project_point` gives, mirrored through the camera plane).
 
 
 LIGHTS_SEPARATOR = ";"
-"""What separates the lights of one frame in `apply --light`, `--light-depth` and `--light-color`."""
+"""What separates the lights of one frame in `apply --light`, `--light-depth` and `--light-tint`."""
 
 
 def parse_light(text: str) -> tuple[tuple[float, float], bool]:
@@ -108,39 +108,39 @@ def parse_light_depths(text: str) -> list[float]:
     return [parse_light_depth(part) for part in text.split(LIGHTS_SEPARATOR)]
 
 
-def parse_light_colors(text: str) -> list[tuple[float, float, float]]:
-    """`apply --light-color`: one light's linear colour `"R,G,B"` (finite numbers >= 0; one number for a grey), or
-    one per light separated by `;`."""
-    colors = []
+def parse_light_tints(text: str) -> list[tuple[float, float, float]]:
+    """`apply --light-tint`: one light's tint, the linear `"R,G,B"` its light is multiplied by (finite numbers >= 0;
+    one number for a grey), or one per light separated by `;`."""
+    tints = []
     for part in text.split(LIGHTS_SEPARATOR):
-        usage = f"--light-color must be R,G,B (finite numbers >= 0; ';' between lights), got {text!r}"
+        usage = f"--light-tint must be R,G,B (finite numbers >= 0; ';' between lights), got {text!r}"
         try:
             values = [float(value) for value in part.replace(" ", "").split(",")]
         except ValueError:
             raise argparse.ArgumentTypeError(usage) from None
         if len(values) not in (1, 3) or not all(math.isfinite(value) and value >= 0 for value in values):
             raise argparse.ArgumentTypeError(usage)
-        colors.append(tuple(values * 3 if len(values) == 1 else values))
-    return colors
+        tints.append(tuple(values * 3 if len(values) == 1 else values))
+    return tints
 
 
 def split_lights(
-    lights: list | None, depths: list[float] | None, colors: list | None, default_depth: Callable[[], float]
+    lights: list | None, depths: list[float] | None, tints: list | None, default_depth: Callable[[], float]
 ) -> tuple[tuple[tuple[float, float], bool] | None, float, tuple[float, float, float] | None, list[Light]]:
-    """`apply`'s or `batch`'s `--light`, `--light-depth` and `--light-color` (`parse_lights`' lists, or None):
+    """`apply`'s or `batch`'s `--light`, `--light-depth` and `--light-tint` (`parse_lights`' lists, or None):
     the first light (None: the frame's), its distance (`default_depth()` when none is given: the frame's), its
-    colour (None: the effect's own), and the lights beside it as `effects.lights.Light`s. A distance or a colour
-    given once is every light's. `CommandError` for counts that match neither."""
+    tint (None: 1), and the lights beside it as `effects.lights.Light`s. A distance or a tint given once is
+    every light's. `CommandError` for counts that match neither."""
     count = len(lights) if lights else 1
-    for name, values in (("--light-depth", depths), ("--light-color", colors)):
+    for name, values in (("--light-depth", depths), ("--light-tint", tints)):
         if values is not None and len(values) not in (1, count):
             raise CommandError(f"{name} gives {len(values)} values for {count} lights: give one, or one per light")
     depths = depths or [default_depth()]
     depths = depths * count if len(depths) == 1 else depths
-    every = colors * count if colors is not None and len(colors) == 1 else colors
+    every = tints * count if tints is not None and len(tints) == 1 else tints
     beside = [
         Light(np.asarray(xy, np.float32), in_front=front, depth=depth,
-              color=np.asarray((1.0, 1.0, 1.0) if every is None else every[index], np.float32))
+              tint=np.asarray((1.0, 1.0, 1.0) if every is None else every[index], np.float32))
         for index, ((xy, front), depth) in enumerate(zip(lights or [], depths)) if index > 0
     ]  # fmt: skip
     return (lights[0] if lights else None), depths[0], (None if every is None else every[0]), beside

@@ -4,17 +4,17 @@ An effect is called with one light (`effect(buffers, light_xy, ...)`). A
 scene often has more (two street lamps, the sun and a lamp): the light each
 scatters toward the camera adds, so the frame under several lights is the
 frame as the effect leaves it plus every light's own contribution, each
-scaled by that light's `color`. `lit_by(effect, buffers, lights)` draws it,
-and with one light of colour 1 it is `effect(buffers, ...)` itself.
+multiplied by that light's `tint`. `lit_by(effect, buffers, lights)` draws it,
+and with one light of tint 1 it is `effect(buffers, ...)` itself.
 
 What each kind of effect adds:
 
 - an effect blended `"add"` or `"screen"` (rays, flare-outs, the glows, the
   lens dirt, bloom): the sum of its layers, one per light, each times its
-  light's colour, blended once; `Bloom` reads no light and is drawn once;
-- `VolumetricFog`: every light's in-scattering times its colour, the
+  light's tint, blended once; `Bloom` reads no light and is drawn once;
+- `VolumetricFog`: every light's in-scattering times its tint, the
   ambient light once, and the surfaces dimmed by the medium toward each
-  light in proportion to that light's share of the lights' colour (the
+  light in proportion to that light's share of the lights' tints (the
   frame's direct light is split among them so);
 - `ScatteringFog`: the first light draws the fogged frame with the medium's
   ambient light, every other light adds its in-scattering alone.
@@ -48,32 +48,32 @@ class Light(eqx.Module):
     `xy`: its position in pixels (x right, y down, pixel centres at `i + 0.5`; off screen allowed, as for one
     light). `in_front`: False for a light behind the camera, `xy` then the projection of the light mirrored
     through the camera plane (as `light_in_front=False` means for one light). `depth`: its distance from the
-    camera in scene units (`inf`, the default, for the sun). `color`: its linear RGB colour and intensity
-    (>= 0), which multiplies the effect's own light colour (1, the default: the effect's colour as it is).
+    camera in scene units (`inf`, the default, for the sun). `tint`: the linear RGB its light is multiplied by,
+    its colour and intensity beside the others' (>= 0; 1, the default: the effect's own light as it is).
     """
 
     xy: Float[ArrayLike, "2"]
     in_front: Bool[ArrayLike, ""] | bool = True
     depth: Float[ArrayLike, ""] = math.inf
-    color: Float[ArrayLike, "3"] = (1.0, 1.0, 1.0)
+    tint: Float[ArrayLike, "3"] = (1.0, 1.0, 1.0)
 
 
 def lit_by(effect: Effect, buffers: Buffers, lights: Sequence[Light]) -> Float[Array, "H W C"]:
     """The frame `buffers.color` with `effect` drawn for every light of `lights` (at least one), their light
-    added as the module's docstring says. One light of colour 1 gives `effect(buffers, light.xy, ...)`."""
+    added as the module's docstring says. One light of tint 1 gives `effect(buffers, light.xy, ...)`."""
     lights = list(lights)
     if not lights or not all(isinstance(light, Light) for light in lights):
         raise ValueError(f"lights must be a non-empty sequence of Light, got {lights!r}")
     for index, light in enumerate(lights):
-        color = light.color
-        if not isinstance(color, jax.core.Tracer) and not (np.isfinite(color).all() and (np.asarray(color) >= 0).all()):
-            raise ValueError(f"lights[{index}].color must be finite and >= 0 (linear RGB), got {color!r}")
+        tint = light.tint
+        if not isinstance(tint, jax.core.Tracer) and not (np.isfinite(tint).all() and (np.asarray(tint) >= 0).all()):
+            raise ValueError(f"lights[{index}].tint must be finite and >= 0 (linear RGB), got {tint!r}")
     dtype = buffers.color.dtype
-    colors = [jnp.broadcast_to(jnp.asarray(light.color, dtype), (3,)) for light in lights]
+    tints = [jnp.broadcast_to(jnp.asarray(light.tint, dtype), (3,)) for light in lights]
     if isinstance(effect, VolumetricFog):
-        return _volumetric_fog(effect, buffers, lights, colors)
+        return _volumetric_fog(effect, buffers, lights, tints)
     if isinstance(effect, ScatteringFog):
-        return _scattering_fog(effect, buffers, lights, colors)
+        return _scattering_fog(effect, buffers, lights, tints)
     if isinstance(effect, Bloom):
         return effect(buffers, lights[0].xy)
     if effect.blend_mode not in ("add", "screen"):
@@ -82,7 +82,7 @@ def lit_by(effect: Effect, buffers: Buffers, lights: Sequence[Light]) -> Float[A
             "several lights take effects blended 'add' or 'screen'"
         )
     layer = sum(
-        _colored(effect.layer(buffers, light.xy, **_side(light)), color) for light, color in zip(lights, colors)
+        _tinted(effect.layer(buffers, light.xy, **_side(light)), tint) for light, tint in zip(lights, tints)
     )
     return blend(buffers.color, layer, mode=effect.blend_mode)
 
@@ -91,37 +91,37 @@ def _side(light: Light) -> dict:
     return {"light_in_front": light.in_front, "light_depth": light.depth}
 
 
-def _colored(layer: Float[Array, "H W L"], color: Float[Array, "3"]) -> Float[Array, "H W L"]:
-    """`layer`'s colour channels times `color` (a 1-channel layer by the colour's mean), its alpha as it is."""
+def _tinted(layer: Float[Array, "H W L"], tint: Float[Array, "3"]) -> Float[Array, "H W L"]:
+    """`layer`'s colour channels times `tint` (a 1-channel layer by the tint's mean), its alpha as it is."""
     channels = min(layer.shape[-1], 3)
-    scale = jnp.mean(color, keepdims=True) if channels == 1 else color[:channels]
+    scale = jnp.mean(tint, keepdims=True) if channels == 1 else tint[:channels]
     return jnp.concatenate([layer[..., :channels] * scale, layer[..., channels:]], axis=-1)
 
 
-def _volumetric_fog(effect: VolumetricFog, buffers, lights, colors):
+def _volumetric_fog(effect: VolumetricFog, buffers, lights, tints):
     terms = [effect.terms(buffers, light.xy, **_side(light)) for light in lights]
-    # The surfaces' direct light, dimmed toward each light, split among the lights by their colours' means.
-    means = jnp.stack([jnp.mean(color) for color in colors])
+    # The surfaces' direct light, dimmed toward each light, split among the lights by their tints' means.
+    means = jnp.stack([jnp.mean(tint) for tint in tints])
     total = jnp.sum(means)
     shares = jnp.where(total > 0, means / jnp.where(total > 0, total, 1.0), 1.0 / len(lights))
     surface = sum(share * surface for share, (surface, _, _) in zip(shares, terms))
     ambient = terms[0][2]  # the ambient light reaches every point whatever the lights: counted once
     medium = effect.medium
     ambient_color = medium.ambient_color
-    light = fog_light(terms[0][1], ambient, light_color=medium.light_color * colors[0], ambient_color=ambient_color)
-    for (_, scattered, _), color in zip(terms[1:], colors[1:]):
+    light = fog_light(terms[0][1], ambient, light_color=medium.light_color * tints[0], ambient_color=ambient_color)
+    for (_, scattered, _), tint in zip(terms[1:], tints[1:]):
         light = light + fog_light(
-            scattered, jnp.zeros_like(ambient), light_color=medium.light_color * color, ambient_color=ambient_color
+            scattered, jnp.zeros_like(ambient), light_color=medium.light_color * tint, ambient_color=ambient_color
         )  # fmt: skip
     return composite_fog(buffers.color, surface, light)
 
 
-def _scattering_fog(effect: ScatteringFog, buffers, lights, colors):
+def _scattering_fog(effect: ScatteringFog, buffers, lights, tints):
     # The fogged frame lit by the ambient light alone, then each light's in-scattering without the ambient's: a
-    # light's colour scales its layer, not the medium's field (whose range a product could leave).
+    # light's tint scales its layer, not the medium's field (whose range a product could leave).
     medium = effect.medium
     dark = dataclasses.replace(medium, light_color=jnp.zeros_like(medium.light_color))
     unlit = dataclasses.replace(medium, ambient_color=jnp.zeros_like(medium.ambient_color))
     dark, unlit = (dataclasses.replace(effect, medium=part) for part in (dark, unlit))
-    layer = sum(_colored(unlit.layer(buffers, light.xy, **_side(light)), color) for light, color in zip(lights, colors))
+    layer = sum(_tinted(unlit.layer(buffers, light.xy, **_side(light)), tint) for light, tint in zip(lights, tints))
     return blend(dark(buffers, lights[0].xy, **_side(lights[0])), layer, mode="add")

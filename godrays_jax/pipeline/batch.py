@@ -272,15 +272,15 @@ def _structure_text(buffers: Buffers) -> str:
 
 
 def frames_function(
-    effect: Effect, *, layer_only: bool = False, light_depth: float = math.inf, light_color=None,
+    effect: Effect, *, layer_only: bool = False, light_depth: float = math.inf, light_tint=None,
     beside: Sequence[Light] = (), stored: bool = False, traces: collections.Counter | None = None,
 ):  # fmt: skip
     """The effect on a group of stacked frames `(G, H, W, ...)`, jitted with the effect's fields as constants.
 
     `light_depth` is the light's distance (scene units) for every frame of the group (`Effect.layer`).
-    `light_color` (linear RGB; None: 1) is that light's colour and `beside` the lights drawn beside it in every
-    frame (`effects.lights.lit_by`, their light added); with either, `layer_only` is refused (`ValueError`): a
-    fog's layer under several or coloured lights is not a sum of layers.
+    `light_tint` (linear RGB; None: 1) is that light's tint (`effects.lights.Light`) and `beside` the lights drawn
+    beside it in every frame (`effects.lights.lit_by`, their light added); with either, `layer_only` is refused
+    (`ValueError`): a fog's layer under several or tinted lights is not a sum of layers.
 
     Known at trace time, the fields let kernels specialise (GodRays' disc
     emitter runs its rays only on the window around the light that can hold
@@ -295,18 +295,18 @@ def frames_function(
     derivatives (`derivatives.values_only`).
     """
 
-    several = light_color is not None or len(beside) > 0
+    several = light_tint is not None or len(beside) > 0
     if several and layer_only:
         raise ValueError(
-            "layer_only draws one light in the effect's own colour: a fog's layer under several or coloured lights "
-            "is not a sum of layers"
+            "layer_only draws one light as the effect has it: a fog's layer under several or tinted lights is not "
+            "a sum of layers"
         )
 
     def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
         with values_only():
             if several:
-                color = (1.0, 1.0, 1.0) if light_color is None else light_color
-                own = Light(light_xy, in_front=visible, depth=light_depth, color=color)
+                tint = (1.0, 1.0, 1.0) if light_tint is None else light_tint
+                own = Light(light_xy, in_front=visible, depth=light_depth, tint=tint)
                 return lit_by(effect, frame, [own, *beside])
             call = effect.layer if layer_only else effect
             return call(frame, light_xy, light_in_front=visible, light_depth=light_depth)
@@ -323,7 +323,7 @@ def frames_function(
 
     if not stored:
         return apply
-    closed_over = (effect, layer_only, light_depth, light_color, tuple(beside))
+    closed_over = (effect, layer_only, light_depth, light_tint, tuple(beside))
     return lambda *args: exported.call("frames", apply, *args, closed_over=closed_over)
 
 
@@ -334,7 +334,7 @@ def run_batch(
     *,
     layer_only: bool = False,
     light_depth: float = math.inf,
-    light_color=None,
+    light_tint=None,
     beside: Sequence[Light] = (),
     depth_channel: str | None = None,
     color_layer: str | None = None,
@@ -355,7 +355,7 @@ def run_batch(
         light: each frame's light (`LightSource`).
         layer_only: write the effect alone instead of the composited frame.
         light_depth: the light's distance (scene units, `inf`: at infinity) for every frame.
-        light_color, beside: that light's colour and the lights beside it in every frame (`frames_function`).
+        light_tint, beside: that light's tint and the lights beside it in every frame (`frames_function`).
         depth_channel, color_layer, sky_depth, depth_kind, fov_x_deg: how
             frames are read (`read_frame`; frames without depth are read too,
             and get their open sky from `plates.buffers_without_depth`).
@@ -383,7 +383,7 @@ def run_batch(
         report=BatchReport(devices=len(devices), skipped=[job.input for job in jobs if job.done]),
         bar=tqdm.tqdm(total=len(todo), unit="frame", file=progress, disable=progress is None, dynamic_ncols=True),
         apply=frames_function(
-            effect, layer_only=layer_only, light_depth=light_depth, light_color=light_color, beside=beside,
+            effect, layer_only=layer_only, light_depth=light_depth, light_tint=light_tint, beside=beside,
             traces=traces,
         ),
         sharding=jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("frames",)), jax.sharding.PartitionSpec("frames")),

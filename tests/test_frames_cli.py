@@ -264,7 +264,7 @@ def test_batch_says_when_frames_store_other_light_distances(tmp_path, capsys):
     assert "light's distance" not in capsys.readouterr().err
 
 
-def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path):
+def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path, capsys):
     """`batch --light 'A;B' --light-tint ...`: every frame is `lit_by` of those lights."""
     height, width = 9, 16
     depth = np.full((height, width), np.inf, np.float32)
@@ -278,6 +278,8 @@ def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path):
     pattern = str(folder / "f.####.exr")
     arguments = ["batch", pattern, "-o", str(tmp_path / "out"), "--preset", "gpu_gems", "-q",
                  "--light", "8,2;3,4,behind", "--light-tint", "1,0.5,0.25;2"]  # fmt: skip
+    assert main([*arguments, "--dry-run"]) == 0
+    assert "every frame also lit by the light at (3, 4), behind the camera, distance inf" in capsys.readouterr().out
     assert main(arguments) == 0
     effect = gr.preset("gpu_gems")
     lights = [gr.Light(jnp.asarray([8.0, 2.0]), tint=(1.0, 0.5, 0.25)),

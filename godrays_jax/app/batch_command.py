@@ -103,6 +103,10 @@ def run(args) -> int:
     )
     if args.dry_run:
         print("\n".join(describe_plan(jobs, light)))
+        for light_beside in beside:
+            x, y = (float(value) for value in light_beside.xy)
+            side = "" if light_beside.in_front else ", behind the camera"
+            print(f"every frame also lit by the light at ({x:g}, {y:g}){side}, distance {float(light_beside.depth):g}")
         todo = sum(not job.done for job in jobs)
         print(f"{todo} frame(s) to run, {len(jobs) - todo} done, on {len(jax.local_devices())} device(s); nothing written")
         return 0

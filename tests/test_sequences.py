@@ -93,13 +93,15 @@ def test_version(capsys):
 )
 def test_negative_light_coordinates_with_or_without_equals(argv, light):
     args = build_parser().parse_args(["apply", "frame.exr", *argv, "-o", os.devnull])
-    assert args.light == (light, True)
+    assert args.light == [(light, True)]  # apply's lights: one here
 
 
 @pytest.mark.parametrize("text, side", [("-5,10,behind", False), ("-5,10,front", True), ("-5, 10, Behind", False)])
 def test_a_light_behind_the_camera_is_its_position_and_behind(text, side):
     args = build_parser().parse_args(["apply", "frame.exr", "--light", text, "-o", os.devnull])
-    assert args.light == ((-5.0, 10.0), side)
+    assert args.light == [((-5.0, 10.0), side)]
+    several = build_parser().parse_args(["apply", "frame.exr", "--light", f"{text};1,2", "-o", os.devnull])
+    assert several.light == [((-5.0, 10.0), side), ((1.0, 2.0), True)]
 
 
 def test_a_light_option_missing_its_value_is_still_a_usage_error(capsys):

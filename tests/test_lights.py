@@ -113,6 +113,6 @@ def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_
     seconds = jnp.stack([SECOND, SECOND + 1.0])
     batched = jax.vmap(loss, in_axes=(None, 0, None))(LIGHT, seconds, jnp.asarray(RED))
     np.testing.assert_allclose(batched[0], eager, rtol=1e-5)
-    gradients = jax.grad(loss, argnums=(0, 1, 2))(LIGHT, SECOND, jnp.asarray(RED))
+    gradients = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(LIGHT, SECOND, jnp.asarray(RED))
     assert all(np.isfinite(np.asarray(g)).all() for g in gradients)
     assert np.abs(np.asarray(gradients[2])).sum() > 0  # the second light's tint reaches the frame

@@ -278,6 +278,9 @@ def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path, capsys):
     pattern = str(folder / "f.####.exr")
     arguments = ["batch", pattern, "-o", str(tmp_path / "out"), "--preset", "gpu_gems", "-q",
                  "--light", "8,2;3,4,behind", "--light-tint", "1,0.5,0.25;2"]  # fmt: skip
+    assert main([*arguments, "--layer-only"]) != 0  # one line, as apply says it
+    assert "--layer-only draws one light as the effect has it" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
     assert main([*arguments, "--dry-run"]) == 0
     assert "every frame also lit by the light at (3, 4), behind the camera, distance inf" in capsys.readouterr().out
     assert main(arguments) == 0

@@ -32,16 +32,12 @@ def run(args) -> int:
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
     effect = with_frame_camera(effect, args, args.buffers)
     first, light_depth, light_tint, beside = split_lights(
-        args.light, args.light_depth, args.light_tint, lambda: resolve_light_depth(None, args.buffers)
+        args.light, args.light_depth, args.light_tint, lambda: resolve_light_depth(None, args.buffers),
+        layer_only=args.layer_only,
     )
     light = light_of_params(first, args.params, args.buffers, buffers)
     effect, buffers, light_xy, in_front = frame_for_command("apply", effect, buffers, args.buffers, light)
     several = bool(beside) or light_tint is not None
-    if several and args.layer_only:
-        raise CommandError(
-            "--layer-only draws one light as the effect has it: a fog's layer under several or tinted lights is "
-            "not a sum of layers"
-        )
     # The program `batch` runs, on a group of one frame, stored traced: a later `apply` neither traces nor compiles it.
     apply = frames_function(
         effect, layer_only=args.layer_only, light_depth=light_depth, light_tint=light_tint, beside=beside, stored=True

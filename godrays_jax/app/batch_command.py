@@ -83,7 +83,8 @@ def run(args) -> int:
     # The camera and the light's distance come from the first frame: one compiled program for the shot.
     effect = with_frame_camera(effect, args, inputs[0])
     first, light_depth, light_tint, beside = split_lights(
-        args.light, args.light_depth, args.light_tint, lambda: resolve_light_depth(None, inputs[0])
+        args.light, args.light_depth, args.light_tint, lambda: resolve_light_depth(None, inputs[0]),
+        layer_only=args.layer_only,
     )
     if first is not None:
         light = first

@@ -98,18 +98,18 @@ def parse_light(text: str) -> tuple[tuple[float, float], bool]:
 
 
 def parse_lights(text: str) -> list[tuple[tuple[float, float], bool]]:
-    """`apply --light`: one light as `parse_light` reads it, or several separated by `;`
+    """`apply --light` and `batch --light`: one light as `parse_light` reads it, or several separated by `;`
     (`"160,40;300,90,behind"`), each drawn by `effects.lights.lit_by`."""
     return [parse_light(part) for part in text.split(LIGHTS_SEPARATOR)]
 
 
 def parse_light_depths(text: str) -> list[float]:
-    """`apply --light-depth`: one distance as `parse_light_depth` reads it, or one per light separated by `;`."""
+    """`apply --light-depth` and `batch --light-depth`: one distance as `parse_light_depth` reads it, or one per light separated by `;`."""
     return [parse_light_depth(part) for part in text.split(LIGHTS_SEPARATOR)]
 
 
 def parse_light_tints(text: str) -> list[tuple[float, float, float]]:
-    """`apply --light-tint`: one light's tint, the linear `"R,G,B"` its light is multiplied by (finite numbers >= 0;
+    """`apply --light-tint` and `batch --light-tint`: one light's tint, the linear `"R,G,B"` its light is multiplied by (finite numbers >= 0;
     one number for a grey), or one per light separated by `;`."""
     tints = []
     for part in text.split(LIGHTS_SEPARATOR):
@@ -125,13 +125,20 @@ def parse_light_tints(text: str) -> list[tuple[float, float, float]]:
 
 
 def split_lights(
-    lights: list | None, depths: list[float] | None, tints: list | None, default_depth: Callable[[], float]
+    lights: list | None, depths: list[float] | None, tints: list | None, default_depth: Callable[[], float], *,
+    layer_only: bool = False,
 ) -> tuple[tuple[tuple[float, float], bool] | None, float, tuple[float, float, float] | None, list[Light]]:
     """`apply`'s or `batch`'s `--light`, `--light-depth` and `--light-tint` (`parse_lights`' lists, or None):
     the first light (None: the frame's), its distance (`default_depth()` when none is given: the frame's), its
     tint (None: 1), and the lights beside it as `effects.lights.Light`s. A distance or a tint given once is
-    every light's. `CommandError` for counts that match neither."""
+    every light's. `CommandError` for counts that match neither, and for `--layer-only` with several or tinted
+    lights (`pipeline.batch.frames_function` refuses it too)."""
     count = len(lights) if lights else 1
+    if layer_only and (count > 1 or tints is not None):
+        raise CommandError(
+            "--layer-only draws one light as the effect has it: a fog's layer under several or tinted lights is not "
+            "a sum of layers"
+        )
     for name, values in (("--light-depth", depths), ("--light-tint", tints)):
         if values is not None and len(values) not in (1, count):
             raise CommandError(f"{name} gives {len(values)} values for {count} lights: give one, or one per light")

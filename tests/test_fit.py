@@ -171,7 +171,10 @@ def test_the_field_of_views_column_is_a_central_difference_of_renders_without_de
     problem, frame_data, fov, others = _field_of_view_problem()
     positions = problem.positions(jnp.float64)
     _, jacobian = residuals_and_jacobian(problem, positions, frame_data)
-    exact = jax.jacfwd(lambda at: problem.residuals_of(problem.effect_at_positions(at), frame_data))(positions)
+    # Compiled (eager, the effect would compile op by op), with the command's fusion emitters (the older ones mix a
+    # vmapped march's lanes: docs/findings.md, "XLA and the vmapped forward-mode Jacobian").
+    residuals = lambda at: problem.residuals_of(problem.effect_at_positions(at), frame_data)  # noqa: E731
+    exact = jax.jit(jax.jacfwd(residuals), compiler_options={"xla_cpu_use_fusion_emitters": True})(positions)
     np.testing.assert_allclose(jacobian[:, others], exact[:, others], rtol=1e-9, atol=1e-12)
     assert np.linalg.norm(jacobian[:, fov] - exact[:, fov]) < 2e-2 * np.linalg.norm(exact[:, fov]) != 0
 

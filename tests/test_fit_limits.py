@@ -36,8 +36,12 @@ def _command(*arguments, env, limit=None, **options):
 
 @pytest.fixture(scope="module")
 def environment(tmp_path_factory):
-    """The commands' environment: one compilation cache for the module's commands, as a user's shell has."""
-    return {**os.environ, "GODRAYS_JAX_CACHE_DIR": str(tmp_path_factory.mktemp("cache"))}
+    """The commands' environment: one compilation cache for the module's commands, as a user's shell has, shared by
+    the suite's workers (the folder above each worker's own), empty when the suite starts."""
+    run = tmp_path_factory.getbasetemp()  # a worker's own folder is in the run's (pytest-xdist)
+    cache = (run.parent if "PYTEST_XDIST_WORKER" in os.environ else run) / "fit_limits_cache"
+    cache.mkdir(mode=0o700, exist_ok=True)
+    return {**os.environ, "GODRAYS_JAX_CACHE_DIR": str(cache)}
 
 
 def _frame(depth: np.ndarray) -> gr.Buffers:
@@ -70,7 +74,8 @@ WITHOUT_A_CAMERA = {  # the frame's depth and the light
 @pytest.mark.parametrize("case", list(WITHOUT_A_CAMERA))
 def test_a_default_fit_of_a_frame_without_a_camera_stays_within_two_gigabytes(case, tmp_path, environment):
     """The default fit (`volumetric_haze`) of a 320x180 frame without a field of view (which the fit then fits too)
-    under a 2 GB data limit, from an empty cache: frames whose depth is all sky or all zero (nothing casts a
+    under a 2 GB data limit, the first of the frames with shadows and the first without from an empty cache (those
+    after them read the programs back, as a user's second fit does): frames whose depth is all sky or all zero (nothing casts a
     shadow: `Effect.same_on`, no shadows' table), a ground lit from far off screen, and a pillar casting its shadow
     across the ground. Each fits, to finite parameters: the field of view's column is a difference of two renders
     (`Effect.DIFFERENCED_STAGES`), where its forward-mode lanes held the lines' table once per lane."""

@@ -281,6 +281,11 @@ def test_batch_adds_the_same_several_lights_to_every_frame(tmp_path, capsys):
     assert main([*arguments, "--layer-only"]) != 0  # one line, as apply says it
     assert "--layer-only draws one light as the effect has it" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+    multiply = tmp_path / "multiply.json"
+    gr.save_effect(multiply, dataclasses.replace(gr.preset("gpu_gems"), blend_mode="multiply"))
+    assert main([*arguments[:4], "--params", str(multiply), *arguments[6:]]) == 1  # refused before any frame
+    assert capsys.readouterr().err.strip().endswith("several or tinted lights take effects blended 'add' or 'screen'")
+    assert not (tmp_path / "out").exists()
     assert main([*arguments, "--dry-run"]) == 0
     assert "every frame also lit by the light at (3, 4), behind the camera, distance inf" in capsys.readouterr().out
     assert main(arguments) == 0

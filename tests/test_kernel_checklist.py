@@ -316,12 +316,6 @@ def test_vmap_equals_a_loop(name):
     _assert_close(jax.vmap(CASES[name].call)(*batched), looped)
 
 
-WITH_OWN_PRIMITIVE = ("radial_rays", "scale_iterated_flares", "scaled_copies")
-"""The kernels that call the scaled copies' own primitive (`kernels/copy_sums`), whose eager implementation differs from
-its compiled one; every other kernel is JAX's own operations, the same eager or under `jit` once traced (as the
-issue's `grad` of `vmap` crash was, at trace time, with or without `jit`). Their gradient of `vmap` runs eager too."""
-
-
 def _batched_gradients(name):
     """A batch of examples, their cotangents, the gradient of one example's loss in its inputs, and the gradient of
     the batch's summed loss (a training loop's step)."""

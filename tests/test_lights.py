@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from godrays_jax.pipeline.batch import frames_function
+
 from frames import LIGHT, make_frame, small
 
 SECOND = jnp.asarray([3.2, 14.7], jnp.float32)  # on the ground, left of the occluder
@@ -99,6 +101,11 @@ def test_lights_are_refused_where_they_do_not_add():
     multiply = dataclasses.replace(small(gr.preset("xna_crepuscular")), blend_mode="multiply")
     with pytest.raises(ValueError, match="lights: GodRays blends 'multiply'"):
         gr.lit_by(multiply, frame, [gr.Light(LIGHT), gr.Light(SECOND)])
+    with pytest.raises(ValueError, match="lights: GodRays blends 'multiply'"):  # a batch's, before any frame
+        frames_function(multiply, beside=[gr.Light(SECOND)])
+    with pytest.raises(ValueError, match="lights: GodRays blends 'multiply'"):
+        frames_function(multiply, light_tint=(1.0, 0.5, 0.5))
+    frames_function(multiply)  # one light of its own: the effect as it is
 
 
 def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_tints():

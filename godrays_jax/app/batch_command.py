@@ -15,6 +15,7 @@ from godrays_jax.app.options import (
     warn,
     with_frame_camera,
 )
+from godrays_jax.effects.lights import check_lights_add
 from godrays_jax.pipeline.batch import BatchError, describe_plan, plan_batch, run_batch
 from godrays_jax.pipeline.sequences import (
     METADATA,
@@ -86,6 +87,8 @@ def run(args) -> int:
         args.light, args.light_depth, args.light_tint, lambda: resolve_light_depth(None, inputs[0]),
         layer_only=args.layer_only,
     )
+    if beside or light_tint is not None:
+        check_lights_add(effect)  # before any folder or frame (`frames_function` refuses it too)
     if first is not None:
         light = first
     if args.light_depth is None and (moved := _other_light_depth(inputs, light_depth)) is not None:

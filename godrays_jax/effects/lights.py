@@ -76,15 +76,22 @@ def lit_by(effect: Effect, buffers: Buffers, lights: Sequence[Light]) -> Float[A
         return _scattering_fog(effect, buffers, lights, tints)
     if isinstance(effect, Bloom):
         return effect(buffers, lights[0].xy)
-    if effect.blend_mode not in ("add", "screen"):
-        raise ValueError(
-            f"lights: {type(effect).__name__} blends {effect.blend_mode!r}, whose layers do not add; "
-            "several lights take effects blended 'add' or 'screen'"
-        )
+    check_lights_add(effect)
     layer = sum(
         _tinted(effect.layer(buffers, light.xy, **_side(light)), tint) for light, tint in zip(lights, tints)
     )
     return blend(buffers.color, layer, mode=effect.blend_mode)
+
+
+def check_lights_add(effect: Effect) -> None:
+    """`ValueError` naming `lights` where `effect`'s light does not add over lights (`lit_by`: blended `"multiply"`
+    or `"alpha_over"`), so that a caller drawing many frames refuses before the first."""
+    if isinstance(effect, (VolumetricFog, ScatteringFog, Bloom)) or effect.blend_mode in ("add", "screen"):
+        return
+    raise ValueError(
+        f"lights: {type(effect).__name__} blends {effect.blend_mode!r}, whose layers do not add; "
+        "several or tinted lights take effects blended 'add' or 'screen'"
+    )
 
 
 def _side(light: Light) -> dict:

@@ -27,7 +27,7 @@ import tqdm
 from jaxtyping import Array, Bool, Float
 
 from godrays_jax.effects.base import Effect, needs_depth
-from godrays_jax.effects.lights import Light, lit_by
+from godrays_jax.effects.lights import Light, check_lights_add, lit_by
 from godrays_jax.effects.plates import buffers_without_depth
 from godrays_jax.effects.presets import presets_without_depth
 from godrays_jax.pipeline import exported
@@ -280,7 +280,8 @@ def frames_function(
     `light_depth` is the light's distance (scene units) for every frame of the group (`Effect.layer`).
     `light_tint` (linear RGB; None: 1) is that light's tint (`effects.lights.Light`) and `beside` the lights drawn
     beside it in every frame (`effects.lights.lit_by`, their light added); with either, `layer_only` is refused
-    (`ValueError`): a fog's layer under several or tinted lights is not a sum of layers.
+    (`ValueError`): a fog's layer under several or tinted lights is not a sum of layers; so is an effect whose
+    light does not add (`effects.lights.check_lights_add`), here, before any frame.
 
     Known at trace time, the fields let kernels specialise (GodRays' disc
     emitter runs its rays only on the window around the light that can hold
@@ -301,6 +302,8 @@ def frames_function(
             "layer_only draws one light as the effect has it: a fog's layer under several or tinted lights is not "
             "a sum of layers"
         )
+    if several:
+        check_lights_add(effect)
 
     def one_frame(frame: Buffers, light_xy: Float[Array, "2"], visible: Bool[Array, ""]):
         with values_only():

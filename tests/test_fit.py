@@ -189,8 +189,10 @@ def test_optimistixs_linearisation_differences_the_field_of_view_too(x64):
         return problem.objective(problem.effect_at(flat), frame_data)
 
     y = start_point(problem, jnp.float64)
-    reverse = jax.grad(objective)(y)
-    forward = jax.grad(lambda flat: objective_function(flat, (problem, frame_data))[0])(y)
+    # Compiled (eager, the effect would compile op by op), with the command's fusion emitters (as above).
+    compiled = functools.partial(jax.jit, compiler_options={"xla_cpu_use_fusion_emitters": True})
+    reverse = compiled(jax.grad(objective))(y)
+    forward = compiled(jax.grad(lambda flat: objective_function(flat, (problem, frame_data))[0]))(y)
     np.testing.assert_allclose(forward[others], reverse[others], rtol=1e-9)
     assert abs(forward[fov] - reverse[fov]) < 2e-2 * abs(reverse[fov]) != 0
 

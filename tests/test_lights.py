@@ -3,6 +3,7 @@ against sums of the single-light layers and terms taken apart in NumPy."""
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,6 +72,8 @@ def test_the_volumetric_fog_under_two_lights_from_its_terms():
     # The order of the lights changes nothing.
     swapped = np.asarray(gr.lit_by(effect, frame, lights[::-1]), np.float64)
     np.testing.assert_allclose(swapped, both, rtol=1e-5, atol=1e-6)
+    # Compiled, the same frame (the jit, vmap and gradient test below starts from a compiled one).
+    np.testing.assert_allclose(eqx.filter_jit(gr.lit_by)(effect, frame, lights), both, rtol=1e-5, atol=1e-6)
 
 
 def test_the_scattering_fog_counts_its_ambient_light_once():
@@ -115,8 +118,8 @@ def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_
         lights = [gr.Light(first), gr.Light(second, depth=20.0, tint=tint)]
         return jnp.mean(gr.lit_by(effect, frame, lights) ** 2)
 
-    # These lights' eager frame is checked from its terms (`test_the_volumetric_fog_under_two_lights_from_its_terms`);
-    # eager again here it would compile op by op.
+    # These lights' eager frame, and the same compiled, are checked in
+    # `test_the_volumetric_fog_under_two_lights_from_its_terms`; eager again here it would compile op by op.
     jitted = jax.jit(loss)(LIGHT, SECOND, jnp.asarray(RED))
     seconds = jnp.stack([SECOND, SECOND + 1.0])
     batched = jax.jit(jax.vmap(loss, in_axes=(None, 0, None)))(LIGHT, seconds, jnp.asarray(RED))

@@ -77,8 +77,9 @@ def test_a_default_fit_of_a_frame_without_a_camera_stays_within_two_gigabytes(ca
     under a 2 GB data limit, the first of the frames with shadows and the first without from an empty cache (those
     after them read the programs back, as a user's second fit does): frames whose depth is all sky or all zero
     (nothing casts a shadow: `Effect.same_on`, no shadows' table), a ground lit from far off screen, and a pillar
-    casting its shadow across the ground. Each fits, to finite parameters: the field of view's column is a difference of two renders
-    (`Effect.DIFFERENCED_STAGES`), where its forward-mode lanes held the lines' table once per lane."""
+    casting its shadow across the ground. Each fits, to finite parameters: the field of view's column is a
+    difference of two renders (`Effect.DIFFERENCED_STAGES`), where its forward-mode lanes held the lines' table once
+    per lane."""
     make_depth, light = WITHOUT_A_CAMERA[case]
     frame, target, params = tmp_path / "frame.exr", tmp_path / "target.exr", tmp_path / "params.json"
     gr.write_buffers(frame, _frame(make_depth(180, 320)))

@@ -41,7 +41,7 @@ WITHOUT_DOCSTRING: set[str] = set()
 # What a page's shell commands leave in its scratch folder.
 WRITES = {
     "index.md": ["out/sample_rays.exr", "out/left_of_frame.png"],
-    "rasterizer.md": ["out/crepuscular.exr", "out/crepuscular.png"],
+    "rasterizer.md": ["out/crepuscular.exr", "out/crepuscular.png", "out/two_lamps.exr", "out/two_lamps.png"],
     "pipelines.md": ["out/photo.png", "out/photo_rays.png"]
     + [f"out/{folder}/frame.{n}.exr" for folder in ("shot_rays", "shot_hosts", "shot_farm") for n in range(1001, 1005)],
 }

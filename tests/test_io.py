@@ -8,6 +8,7 @@ import OpenImageIO as oiio
 import pytest
 
 from godrays_jax import Buffers, check_buffers, read_buffers, read_image, read_light, srgb_decode, srgb_encode, write_buffers, write_image
+from godrays_jax import StoredLight, lights_metadata, read_lights
 
 COLONNADE = Path(__file__).resolve().parent / "data" / "colonnade_buffers.exr"  # tests/data/README.md
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
@@ -206,6 +207,35 @@ def test_light_metadata_round_trip(tmp_path):
     assert spec.getattribute("compression") == "zip"
     write_buffers(path, _frame())
     assert read_light(path) is None
+
+
+def test_several_lights_round_trip(tmp_path):
+    """`lights_metadata` beside the first light's `light_xy` is what `read_lights` reads back, each light whole; a
+    frame of one light stores no `godrays:lights`."""
+    lights = [StoredLight((12.25, -3.5)), StoredLight((300.5, 40.0), False, 12.0, (2.0, 1.0, 0.5))]
+    path = tmp_path / "l.exr"
+    write_buffers(path, _frame(), light_xy=lights[0].xy, metadata=lights_metadata(lights))
+    assert read_lights(path) == lights and read_light(path) == ((12.25, -3.5), True)
+    write_buffers(path, _frame(), light_xy=(1.0, 2.0))
+    assert read_lights(path) is None
+    with pytest.raises(ValueError, match=r"lights\[1\] must have a distance > 0"):
+        lights_metadata([lights[0], lights[1]._replace(depth=0.0)])
+
+
+@pytest.mark.parametrize(
+    "attributes, message",
+    [
+        ({"godrays:lights": "1,2;3"}, r"godrays:lights holds '3' where 2 numbers go"),
+        ({"godrays:lights": "1,2,above"}, r"godrays:lights: a side is front or behind"),
+        ({"godrays:lights": "1,2;3,4", "godrays:lights_depth": "inf"}, r"godrays:lights_depth gives 1 lights"),
+        ({"godrays:lights": "1,2", "godrays:lights_tint": "1,-1,1"}, r"godrays:lights_tint must hold .* tints >= 0"),
+        ({"godrays:lights": "1,2", "godrays:lights_depth": "0"}, r"godrays:lights_depth must hold distances > 0"),
+    ],
+)
+def test_malformed_lights_name_the_attribute(tmp_path, attributes, message):
+    _write_exr(tmp_path / "m.exr", _rgb_depth("Z"), attributes)
+    with pytest.raises(ValueError, match=r"m\.exr.*" + message):
+        read_lights(tmp_path / "m.exr")
 
 
 def test_light_as_string(tmp_path):

@@ -5,6 +5,7 @@ structure (two spheres and a one-triangle mesh), one image size and one tile
 capacity: moving objects changes values, not the compiled program.
 """
 
+import dataclasses
 import json
 import math
 
@@ -15,7 +16,8 @@ import numpy as np
 import pytest
 
 from godrays_jax.primitives.camera import Camera, project_point
-from godrays_jax.raster import DirectionalLight, Material, Mesh, Scene, Sky, Sphere, load_obj, load_scene, render
+from godrays_jax.raster import DirectionalLight, Material, Mesh, PointLight, Scene, Sky, Sphere
+from godrays_jax.raster import load_obj, load_scene, render
 from godrays_jax.raster import geometry, glow_pass, shading, tile_loop, visibility
 
 WIDTH, HEIGHT, FOV = 32, 24, 60.0
@@ -178,6 +180,34 @@ def test_gradients_with_respect_to_sphere_center_point_the_right_way():
     assert float(coverage_gradient[0]) == pytest.approx(float(finite_difference), rel=0.1)
 
 
+def test_several_lights_each_shade_as_alone_and_add():
+    """A scene's lights shade its surfaces each as it would alone, their light added: under the sun and a point
+    light, the frame is the sun's frame plus the point light's own part (its frame beside a black first light, less
+    that black light's frame), which is Lambert's `albedo * colour * max(N . L, 0)` on the blue sphere (a NumPy
+    ray cast at the pixels it covers whole), and nothing on its side turned away."""
+    import dataclasses
+
+    base = _scene(other_center=(-1.2, -0.3, -5.0))
+    sun, black = base.light, DirectionalLight(direction=(0.0, 0.0, 1.0), color=(0.0, 0.0, 0.0))
+    lamp = PointLight(position=(-4.0, 0.5, -4.0), color=(0.5, 0.8, 1.0))
+    colour = lambda *lights: np.asarray(_render(dataclasses.replace(  # noqa: E731
+        base, light=lights[0], other_lights=lights[1:])).color, np.float64)  # fmt: skip
+    lamp_alone = colour(black, lamp) - colour(black)
+    np.testing.assert_allclose(colour(sun, lamp) - colour(sun), lamp_alone, atol=1e-5)
+
+    rays = _pixel_rays()[:, :, 0]
+    center, radius = np.asarray(base.objects[1].center, np.float64), 0.5
+    hits = _sphere_hits(center, radius, rays)
+    whole = np.isfinite(_sphere_hits(center, radius, _pixel_rays(4))).all(-1)
+    points = hits[whole][:, None] * rays[whole]
+    normals = (points - center) / radius
+    to_lamp = np.asarray(lamp.position, np.float64) - points
+    n_dot_l = np.sum(normals * to_lamp, -1) / np.linalg.norm(to_lamp, axis=-1)
+    expected = np.asarray((0.2, 0.4, 0.9)) * np.asarray(lamp.color) * np.maximum(n_dot_l, 0.0)[:, None]
+    assert len(points) > 10 and (n_dot_l > 0.2).any() and (n_dot_l < 0).any()
+    np.testing.assert_allclose(lamp_alone[whole], expected, rtol=2e-3, atol=2e-4)
+
+
 @pytest.mark.slow
 def test_glow_pass_enlarges_source_and_shrinks_occluders():
     scene = _scene(sun_center=(0.0, 0.0, -8.0), sun_radius=1.0, other_center=(0.0, 0.0, -4.0))
@@ -299,6 +329,11 @@ def test_scene_file_loads(tmp_path):
     scene, camera = load_scene(path)
     assert camera.width == WIDTH and scene.sun == 0 and len(scene.objects) == 3
     assert scene.objects[1].normals is not None
+    assert scene.lights == (scene.light,) and isinstance(scene.light, DirectionalLight)
+    lamp = {"type": "point", "position": [1, 2, -3], "color": [1, 0.5, 0]}
+    scene, _ = load_scene(_scene_file(tmp_path, lights=[{"type": "directional", "direction": [0, 1, 0]}, lamp]))
+    assert isinstance(scene.light, DirectionalLight) and len(scene.other_lights) == 1
+    np.testing.assert_array_equal(scene.other_lights[0].position, [1, 2, -3])
 
 
 @pytest.mark.parametrize(
@@ -310,6 +345,10 @@ def test_scene_file_loads(tmp_path):
         ({"objects": [{"type": "mesh", "vertices": [[0, 0, 0], [1, 1, 1], [2, 2, 2]], "faces": [[0, 1, 2]]}]}, r"faces\[0\] is a degenerate"),
         ({"objects": [{"type": "mesh", "obj": "missing.obj"}]}, r"missing\.obj.*cannot read"),
         ({"sun": "moon"}, r"sun: no object named 'moon'"),
+        ({"lights": []}, r"lights: must be a non-empty list"),
+        ({"lights": [{"type": "point", "position": [0, 0, 0]}, {"type": "spot"}]}, r"lights\[1\]\.type: must be"),
+        ({"lights": [{"type": "point", "positon": [0, 0, 0]}]}, r"lights\[0\]\.positon: unknown key"),
+        ({"light": {"type": "point", "position": [0, 0, 0]}, "lights": []}, r"lights: give light or lights"),
     ],
 )
 def test_bad_scene_file_names_the_problem(tmp_path, changes, message):

@@ -140,7 +140,8 @@ def _add_apply(subparsers) -> None:
         help="the light's pixel position (x right, y down; may be negative: --light -5,10), ',behind' for a light "
         "behind the camera; several lights separated by ';' (--light '160,40;300,90,behind'), their light added; "
         "default: the light `fit --light auto` found for this frame, written beside --params "
-        "(PARAMS.light.json), else the frame's godrays:light_px metadata",
+        "(PARAMS.light.json), else every light of the frame's godrays:lights metadata (a render of several), else "
+        "its godrays:light_px",
     )
     parser.add_argument(
         "--light-depth",
@@ -148,14 +149,15 @@ def _add_apply(subparsers) -> None:
         metavar="D[;D...]",
         help="the light's distance from the camera in scene units, or inf (read by the fogs and the XNA preset's "
         "depth test and step clamp), one for every light or one per light; default: the frame's "
-        "godrays:light_depth metadata, else inf",
+        "godrays:lights_depth or godrays:light_depth metadata, else inf",
     )
     parser.add_argument(
         "--light-tint",
         type=parse_light_tints,
         metavar="R,G,B[;R,G,B...]",
         help="each light's tint, the linear RGB its light is multiplied by: its colour and intensity beside the "
-        "others' (one for every light or one per light); default 1,1,1",
+        "others' (one for every light or one per light); default: the frame's godrays:lights_tint metadata "
+        "when it stores several lights, else 1,1,1",
     )
     _add_effect_options(parser)
     _add_frame_options(parser)
@@ -201,7 +203,8 @@ def _add_batch(subparsers) -> None:
     parser.add_argument(
         "--light-tint", type=parse_light_tints, metavar="R,G,B[;R,G,B...]",
         help="each light's tint, the linear RGB its light is multiplied by: its colour and intensity beside the "
-        "others' (one for every light or one per light); default 1,1,1",
+        "others' (one for every light or one per light); default: the frame's godrays:lights_tint metadata "
+        "when it stores several lights, else 1,1,1",
     )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)

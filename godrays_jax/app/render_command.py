@@ -1,19 +1,39 @@
 """`godrays-jax render`: a scene file through the built-in rasterizer to an EXR frame."""
 
+import numpy as np
+
 from godrays_jax.app.options import check_output_path
 from godrays_jax.primitives.camera_metadata import CLIP_PLANES_ATTR, FOV_X_ATTR
 from godrays_jax.primitives.frame_files import write_buffers
-from godrays_jax.primitives.light_metadata import LIGHT_DEPTH_ATTR
+from godrays_jax.primitives.light_metadata import LIGHT_DEPTH_ATTR, StoredLight, lights_metadata
 from godrays_jax.raster import light_distance, light_pixel, load_scene, render
+
+
+def frame_lights(scene, camera) -> list[StoredLight]:
+    """Every light of the scene as the frame's header stores it: its pixel, side and distance; its tint the light's
+    colour over the first light's mean (the first's tint 1, the effect's own light, as for a scene of one light)."""
+    first = float(np.mean(np.asarray(scene.light.color)))
+    lights = []
+    for index, light in enumerate(scene.lights):
+        xy, _, in_front = light_pixel(scene, camera, index=index)
+        color = np.asarray(light.color, np.float64) / (first if first > 0 else 1.0)
+        lights.append(StoredLight(
+            (float(xy[0]), float(xy[1])), bool(in_front), light_distance(scene, camera, index=index),
+            (1.0, 1.0, 1.0) if index == 0 else tuple(float(value) for value in color),
+        ))  # fmt: skip
+    return lights
 
 
 def frame_metadata(scene, camera) -> dict:
     """The header `render` writes beside the light's pixel: the light's distance, the camera's field of view and
-    clip planes (effects that measure directions or hardware depth read them)."""
+    clip planes (effects that measure directions or hardware depth read them); for a scene of several lights, every
+    light (`lights_metadata` of `frame_lights`), which `apply` draws."""
+    lights = frame_lights(scene, camera)
     return {
-        LIGHT_DEPTH_ATTR: light_distance(scene, camera),
+        LIGHT_DEPTH_ATTR: lights[0].depth,
         FOV_X_ATTR: float(camera.fov_x_deg),
         CLIP_PLANES_ATTR: (float(camera.near), float(camera.far)),
+        **(lights_metadata(lights) if len(lights) > 1 else {}),
     }
 
 
@@ -21,13 +41,12 @@ def run(args) -> int:
     check_output_path(args.output, args.scene)
     scene, camera = load_scene(args.scene)
     buffers = render(scene, camera, with_glow_pass=not args.no_glow)
-    xy, _, in_front = light_pixel(scene, camera)
-    light_xy = (float(xy[0]), float(xy[1]))
-    metadata = frame_metadata(scene, camera)
-    depth = metadata[LIGHT_DEPTH_ATTR]
-    write_buffers(args.output, buffers, light_xy=light_xy, light_in_front=bool(in_front), metadata=metadata)
+    lights = frame_lights(scene, camera)
+    write_buffers(args.output, buffers, light_xy=lights[0].xy, light_in_front=lights[0].in_front,
+                  metadata=frame_metadata(scene, camera))  # fmt: skip
     if args.light:
-        side = "in front" if in_front else "behind the camera"
-        print(f"light {light_xy[0]:.4f},{light_xy[1]:.4f} {side}, at distance {depth:.4f}")
+        for light in lights:
+            side = "in front" if light.in_front else "behind the camera"
+            print(f"light {light.xy[0]:.4f},{light.xy[1]:.4f} {side}, at distance {light.depth:.4f}")
     print(f"wrote {args.output}")
     return 0

@@ -4,6 +4,7 @@ A scene file holds one table (all keys optional unless marked):
 
     camera:  {position, target, up, fov_x_deg, width, height, near, far}   (required)
     light:   {type: "directional", direction, color} | {type: "point", position, color}
+    lights:  [light, ...]   (instead of `light`: several, the first as `light`, the others beside it)
     sky:     {zenith_color, horizon_color, sun_color, sun_distance, sun_sharpness}
     ambient: [r, g, b]
     materials: {name: {albedo, emission, atmosphere_color, atmosphere_sharpness,
@@ -46,7 +47,7 @@ _OBJECT_KEYS = {
     "mesh": {"type", "name", "obj", "vertices", "faces", "normals", "material"} | _TRANSFORM_KEYS,
     "uv_sphere": {"type", "name", "segments", "rings", "material"} | _TRANSFORM_KEYS,
 }
-_SCENE_KEYS = {"camera", "light", "sky", "ambient", "materials", "objects", "sun"}
+_SCENE_KEYS = {"camera", "light", "lights", "sky", "ambient", "materials", "objects", "sun"}
 
 
 def _check_keys(where: str, table: object, allowed: set[str], required: set[str] = frozenset()) -> dict:
@@ -189,14 +190,14 @@ def scene_from_dict(table: dict, *, base_dir: str | os.PathLike = ".") -> tuple[
     objects = tuple(_object(f"objects[{i}]", entry, materials, Path(base_dir)) for i, entry in enumerate(table["objects"]))
     names = [entry.get("name") for entry in table["objects"]]
 
-    light_table = table.get("light", {"type": "directional", "direction": [0.0, 0.0, 1.0]})
-    kind = light_table.get("type") if isinstance(light_table, dict) else None
-    if kind == "directional":
-        light = _build("light", DirectionalLight, **{k: v for k, v in _check_keys("light", light_table, {"type", "direction", "color"}, {"direction"}).items() if k != "type"})
-    elif kind == "point":
-        light = _build("light", PointLight, **{k: v for k, v in _check_keys("light", light_table, {"type", "position", "color"}, {"position"}).items() if k != "type"})
+    if "light" in table and "lights" in table:
+        raise ValueError("lights: give light or lights, not both")
+    if "lights" in table:
+        if not isinstance(table["lights"], list) or not table["lights"]:
+            raise ValueError("lights: must be a non-empty list")
+        light, *other_lights = (_light(f"lights[{i}]", entry) for i, entry in enumerate(table["lights"]))
     else:
-        raise ValueError("light.type: must be 'directional' or 'point'")
+        light, other_lights = _light("light", table.get("light", {"type": "directional", "direction": [0, 0, 1]})), []
 
     sun = table.get("sun")
     if isinstance(sun, str):
@@ -204,8 +205,20 @@ def scene_from_dict(table: dict, *, base_dir: str | os.PathLike = ".") -> tuple[
             raise ValueError(f"sun: no object named {sun!r}")
         sun = names.index(sun)
     sky = _build("sky", Sky, **_check_keys("sky", table.get("sky", {}), _SKY_KEYS))
-    scene = _build("scene", Scene, objects=objects, light=light, sky=sky, ambient=table.get("ambient", (0.0, 0.0, 0.0)), sun=sun)
+    scene = _build("scene", Scene, objects=objects, light=light, sky=sky, ambient=table.get("ambient", (0.0, 0.0, 0.0)),
+                   sun=sun, other_lights=tuple(other_lights))  # fmt: skip
     return scene, camera
+
+
+def _light(where: str, light_table: object) -> DirectionalLight | PointLight:
+    """A light's table (`light`, or an entry of `lights`) as a `DirectionalLight` or `PointLight`."""
+    kind = light_table.get("type") if isinstance(light_table, dict) else None
+    kinds = {"directional": (DirectionalLight, "direction"), "point": (PointLight, "position")}
+    if kind not in kinds:
+        raise ValueError(f"{where}.type: must be 'directional' or 'point'")
+    make, place = kinds[kind]
+    fields = _check_keys(where, light_table, {"type", place, "color"}, {place})
+    return _build(where, make, **{key: value for key, value in fields.items() if key != "type"})
 
 
 def load_scene(path: str | os.PathLike) -> tuple[Scene, Camera]:

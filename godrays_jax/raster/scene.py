@@ -221,16 +221,19 @@ class Sky(eqx.Module):
 
 
 class Scene(eqx.Module):
-    """Objects, one light, the sky and ambient light.
+    """Objects, their lights, the sky and ambient light.
 
     Attributes:
         objects: spheres and meshes; an object's id is its index here.
-        light: a `DirectionalLight` or `PointLight` (Lambert shading).
+        light: a `DirectionalLight` or `PointLight` (Lambert shading), the scene's first light: the one the sky's
+            sun spot, the sun object and the night lights' dark side belong to.
         sky: the background.
         ambient: linear RGB light added everywhere, multiplied by albedo.
         sun: index of the object that is the visible light source (drawn white
             in the light pass, enlarged and tinted in the glow pass), or `None`
             (then the sky's sun spot plays that role). Static.
+        other_lights: the lights beside it (`DirectionalLight`s or `PointLight`s), each shading the surfaces as
+            `light` does, their light added (`lights`: all of them, `light` first).
     """
 
     objects: tuple[Sphere | Mesh, ...]
@@ -238,12 +241,22 @@ class Scene(eqx.Module):
     sky: Sky = eqx.field(default_factory=Sky)
     ambient: Float[Array, "3"] = eqx.field(converter=_float, default=(0.0, 0.0, 0.0))
     sun: int | None = eqx.field(static=True, default=None)
+    other_lights: tuple[DirectionalLight | PointLight, ...] = ()
+
+    @property
+    def lights(self) -> tuple[DirectionalLight | PointLight, ...]:
+        """Every light of the scene, `light` first."""
+        return (self.light, *self.other_lights)
 
     def __check_init__(self):
         if not isinstance(self.objects, tuple) or not all(isinstance(o, (Sphere, Mesh)) for o in self.objects):
             raise ValueError("Scene.objects must be a tuple of Sphere and Mesh")
         if not isinstance(self.light, (DirectionalLight, PointLight)):
             raise ValueError("Scene.light must be a DirectionalLight or a PointLight")
+        if not isinstance(self.other_lights, tuple) or not all(
+            isinstance(light, (DirectionalLight, PointLight)) for light in self.other_lights
+        ):
+            raise ValueError("Scene.other_lights must be a tuple of DirectionalLight and PointLight")
         _check_shape("Scene", "ambient", self.ambient, (3,))
         if self.sun is not None and not (isinstance(self.sun, int) and 0 <= self.sun < len(self.objects)):
             raise ValueError(f"Scene.sun must be None or an object index in [0, {len(self.objects) - 1}], got {self.sun!r}")

@@ -7,7 +7,7 @@ from jaxtyping import Array, Float
 
 from godrays_jax.kernels.lens import sun_spot_intensity
 from godrays_jax.primitives.camera import Camera
-from godrays_jax.raster.scene import DirectionalLight, Scene
+from godrays_jax.raster.scene import DirectionalLight, PointLight, Scene
 from godrays_jax.raster.vectors import dot, times, unit_first
 from godrays_jax.raster.visibility import Layer, Layers, object_weight
 
@@ -81,10 +81,10 @@ def _stack_materials(scene: Scene):
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves, axis=-1), *materials)
 
 
-def _light_direction(scene: Scene, world_position: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
-    if isinstance(scene.light, DirectionalLight):
-        return jnp.broadcast_to(unit_first(scene.light.direction)[:, None], world_position.shape)
-    return unit_first(scene.light.position[:, None] - world_position)
+def _light_direction(light: DirectionalLight | PointLight, world_position: Float[Array, "3 P"]) -> Float[Array, "3 P"]:
+    if isinstance(light, DirectionalLight):
+        return jnp.broadcast_to(unit_first(light.direction)[:, None], world_position.shape)
+    return unit_first(light.position[:, None] - world_position)
 
 
 def shade(scene: Scene, camera: Camera, surface: Layer, world_rays: Float[Array, "3 P"]):
@@ -98,22 +98,27 @@ def shade(scene: Scene, camera: Camera, surface: Layer, world_rays: Float[Array,
     sharpened rim, lit by `saturate(N . L)` in the shader (the article's glow
     is not lit by the deferred pass). The emissive part (emission and night
     lights: the engine's emissive light) also goes to the glow target.
+    Every light of `scene.lights` lights the albedo, the rim and the shell
+    alike, their light added; the night lights take the first light's dark
+    side (the sun's).
     """
     materials = _stack_materials(scene)
     obj = jnp.maximum(surface.object_id, 0)
     to_world = jnp.stack(camera.basis())
     normal = times(surface.normal, to_world)
-    to_light = _light_direction(scene, camera.position[:, None] + times(surface.position, to_world))
-    n_dot_l = dot(normal, to_light)
-    lit = jnp.clip(n_dot_l, 0.0, 1.0)
+    world_position = camera.position[:, None] + times(surface.position, to_world)
+    n_dot_ls = [dot(normal, _light_direction(light, world_position)) for light in scene.lights]
+    lits = [jnp.clip(n_dot_l, 0.0, 1.0) for n_dot_l in n_dot_ls]
+    lit = sum(lits)
+    lit_color = sum(light.color[:, None] * light_lit for light, light_lit in zip(scene.lights, lits))
     # Kept off 0 so that rim ** p has finite gradients for any p > 0.
     rim = 1.0 - jnp.clip(-dot(unit_first(world_rays), normal), 0.0, 1.0 - 1e-6)
     sharpened_rim = jnp.minimum(1.0, 10.0 * rim ** (30.0 * materials.atmosphere_sharpness[obj]))
-    dark_side = jnp.clip(-n_dot_l * materials.night_sharpness[obj], 0.0, 1.0)
+    dark_side = jnp.clip(-n_dot_ls[0] * materials.night_sharpness[obj], 0.0, 1.0)
     atmosphere = materials.atmosphere_color[:, obj]
     emissive = materials.emission[:, obj] + materials.night_color[:, obj] * (city_lights(normal) * dark_side)
     opaque_colour = (
-        materials.albedo[:, obj] * (scene.ambient[:, None] + scene.light.color[:, None] * lit)
+        materials.albedo[:, obj] * (scene.ambient[:, None] + lit_color)
         + atmosphere * (rim * lit)
         + emissive
     )

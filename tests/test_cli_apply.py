@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from godrays_jax.app import fit_command
 from godrays_jax.app.cli import main
+from godrays_jax.app.options import CommandError
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "data" / "sample_frame.exr"
 
@@ -176,10 +178,11 @@ def test_commands_of_one_light_say_where_several_are_taken(tmp_path, command, ca
     assert sorted(os.listdir(tmp_path)) == ["frame.exr"]
 
 
-def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys):
+def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, monkeypatch):
     """`render` of a scene with `lights` writes each one's pixel, side, distance and tint (its colour over the first
     light's mean) into the frame's header; `apply` without `--light` draws them all, as `--light` with the same
-    lights, distances and tints does; `--layer-only` (one light) and `batch` (each frame's first) say what they draw."""
+    lights, distances and tints does; `--layer-only` (one light), `batch` and `fit` (each frame's first) say what they
+    draw."""
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps({
         "camera": {"position": [0, 0, 0], "target": [0, 0, -1], "up": [0, 1, 0], "fov_x_deg": 60, "width": 16,
@@ -209,6 +212,13 @@ def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys):
     assert "stores 2 lights (godrays:lights) and --layer-only draws one" in capsys.readouterr().err
     assert main(["batch", str(frame), "-o", str(tmp_path / "out"), "--preset", "xna_crepuscular", "--dry-run"]) == 0
     assert "batch draws each frame's first (godrays:light_px)" in capsys.readouterr().err
+
+    def stop(*_, **__):
+        raise CommandError("stopped where the fit starts")
+
+    monkeypatch.setattr(fit_command, "fit", stop)  # what it says of the lights comes before
+    assert main(["fit", str(frame), str(drawn), "--preset", "xna_crepuscular", "-o", str(tmp_path / "p.json")]) == 1
+    assert "the fit draws one, its first (godrays:light_px); apply draws them all" in capsys.readouterr().err
 
 
 def test_apply_adds_several_lights_each_with_its_side_distance_and_tint(tmp_path):

@@ -8,7 +8,8 @@ Each case runs the command line in a child process (`_child.py` below: the comma
 `fit` and what follows it), twice: first with `GODRAYS_JAX_CACHE_DIR` an empty folder (cold), then again on the
 folder the first run filled (warm). Recorded: wall seconds, seconds compiling (XLA's compilation or a load from
 the cache), seconds in `fit`, seconds of the checks after it (metrics, `determination`, the report and the files),
-the fit's steps, and the child's peak RSS (`resource.getrusage(RUSAGE_CHILDREN)`, a fresh process per run).
+the fit's steps, the child's peak RSS (`resource.getrusage(RUSAGE_CHILDREN)`, a fresh process per run), and how
+many of XLA's slow-compile banners its stderr held (summed in a line after the table).
 
 Frames: the `hidden_sun` reference at its own 320x180, and pairs made from it at other sizes (each pixel repeated,
 the light's position scaled, its field of view kept in the header). `--apply`: `godrays-jax apply` of the default
@@ -120,7 +121,9 @@ def run_peak(arguments: list[str], cache: Path, folder: Path) -> dict:
     if peak["rc"] != 0:
         raise RuntimeError(f"{' '.join(arguments)} failed:\n{done.stderr[-2000:]}")
     record = json.loads(record_path.read_text())
-    record.update(wall=wall, stdout=done.stdout, peak_rss_mib=peak["peak"] / 1024)
+    # XLA's banner for a compile it finds slow ("Very slow compile? If you want to file a bug ...") on stderr.
+    banners = sum("slow compile" in line.lower() for line in done.stderr.splitlines())
+    record.update(wall=wall, stdout=done.stdout, peak_rss_mib=peak["peak"] / 1024, slow_compile_banners=banners)
     return record
 
 
@@ -141,7 +144,8 @@ def fit_rows(sizes: list[str], folder: Path) -> list[dict]:
             loss = next((line for line in record["stdout"].splitlines() if line.startswith("loss before")), "")
             rows.append(dict(case=f"fit {size} + report", cache=label, wall=record["wall"], compiling=record["compiling"],
                              fit=record["fit"], after_fit=record["after_fit"], steps=steps_of(record["stdout"]),
-                             peak_rss_mib=record["peak_rss_mib"], loss=loss))  # fmt: skip
+                             peak_rss_mib=record["peak_rss_mib"], loss=loss,
+                             slow_compile_banners=record["slow_compile_banners"]))  # fmt: skip
             print(_row(rows[-1]), flush=True)
     return rows
 
@@ -162,7 +166,8 @@ def apply_rows(folder: Path) -> list[dict]:
     for label, record in zip(("cold", "warm"), measured(arguments, case)):
         rows.append(dict(case="apply volumetric_haze 1920x1080", cache=label, wall=record["wall"],
                          compiling=record["compiling"], fit=None, after_fit=None, steps="",
-                         peak_rss_mib=record["peak_rss_mib"], loss=""))  # fmt: skip
+                         peak_rss_mib=record["peak_rss_mib"], loss="",
+                         slow_compile_banners=record["slow_compile_banners"]))  # fmt: skip
         print(_row(rows[-1]), flush=True)
     buffers = gr.read_buffers(frame)
     (x, y), in_front = read_light(frame)
@@ -235,6 +240,8 @@ def main() -> None:
         rows = fit_rows(args.sizes, Path(folder))
         if args.apply:
             rows += apply_rows(Path(folder))
+    banners = sum(row.get("slow_compile_banners", 0) for row in rows)
+    print(f"XLA's slow-compile banners on the commands' stderr: {banners} in {len(rows)} runs", flush=True)
     if args.tests:
         rows.append(test_row())
     if args.json:

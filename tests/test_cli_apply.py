@@ -211,14 +211,14 @@ def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, 
     assert main(["apply", str(frame), "--preset", "xna_crepuscular", "--layer-only", "-o", str(layer)]) == 1
     assert "stores 2 lights (godrays:lights) and --layer-only draws one" in capsys.readouterr().err
     assert main(["batch", str(frame), "-o", str(tmp_path / "out"), "--preset", "xna_crepuscular", "--dry-run"]) == 0
-    assert "batch draws each frame's first (godrays:light_px)" in capsys.readouterr().err
+    assert "2 lights (godrays:lights): batch draws the first (godrays:light_px)" in capsys.readouterr().err
 
     def stop(*_, **__):
         raise CommandError("stopped where the fit starts")
 
     monkeypatch.setattr(fit_command, "fit", stop)  # what it says of the lights comes before
     assert main(["fit", str(frame), str(drawn), "--preset", "xna_crepuscular", "-o", str(tmp_path / "p.json")]) == 1
-    assert "the fit draws one, its first (godrays:light_px); apply draws them all" in capsys.readouterr().err
+    assert "2 lights (godrays:lights): fit draws the first (godrays:light_px), apply draws" in capsys.readouterr().err
 
 
 def test_apply_adds_several_lights_each_with_its_side_distance_and_tint(tmp_path):

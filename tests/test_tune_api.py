@@ -211,3 +211,38 @@ def test_fit_rounds_counts_as_the_cli_does_unless_fractional_counts_are_asked(se
     assert answer["effect"]["num_samples"] != round(answer["effect"]["num_samples"])
     status, answer = client.request("POST", "/api/fit", {**start, "fractional_counts": "yes"})
     assert status == 400 and "fractional_counts" in answer["error"]
+
+
+def test_a_frame_of_several_lights_is_tuned_under_all_and_each_is_dragged(tmp_path):
+    """`other_lights` (a frame's several lights): the after view adds their light (`lit_by`, each with its tint),
+    each moves to the page's position, and the layer view and the fit, which draw one light, refuse them."""
+    frame, effect = small_frame(), small_effect()
+    lamp = gr.Light(np.asarray([10.0, 4.0], np.float32), tint=np.asarray([0.5, 1.0, 2.0], np.float32))
+    tuner = Tuner(frame, (32.0, 6.0), effect=effect, target=frame.color, other_lights=[lamp],
+                  save_path=tmp_path / "params.json")  # fmt: skip
+
+    def shown(**payload):
+        path = tmp_path / "shown.png"
+        path.write_bytes(decode(tuner.render({"quality": "full", **payload})))
+        return oiio.ImageBuf(str(path)).get_pixels(oiio.UINT8).astype(int)
+
+    def expected(xy):
+        lights = [gr.Light(jnp.asarray([32.0, 6.0])), eqx.tree_at(lambda light: light.xy, lamp, jnp.asarray(xy))]
+        return np.asarray(display_encode(gr.lit_by(effect, frame, lights))).astype(int)
+
+    try:
+        assert tuner.state()["other_lights"] == [[10.0, 4.0]]
+        there, moved = shown(), shown(other_lights=[[50.0, 20.0]])
+        assert np.abs(there - expected([10.0, 4.0])).max() <= 1 and np.abs(moved - expected([50.0, 20.0])).max() <= 1
+        alone = np.asarray(display_encode(effect(frame, jnp.asarray([32.0, 6.0])))).astype(int)
+        assert np.abs(there - alone).max() > 10 and np.abs(there - moved).max() > 10  # the lamp shows, and moves
+        with pytest.raises(tuner_module.TuneRequestError, match="other_lights must be 1"):
+            tuner.render({"other_lights": [[1.0, 2.0], [3.0, 4.0]]})
+        with pytest.raises(tuner_module.TuneRequestError, match="layer view draws one light"):
+            tuner.render({"view": "layer"})
+        with pytest.raises(tuner_module.TuneRequestError, match="fit to target draws one light"):
+            tuner.fit({})
+    finally:
+        tuner.close()
+    with pytest.raises(ValueError, match="other_lights must be a sequence of Light"):
+        Tuner(frame, (32.0, 6.0), effect=effect, other_lights=[(10.0, 4.0)])

@@ -5,6 +5,7 @@ import shutil
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 import OpenImageIO as oiio
 import pytest
 
@@ -93,3 +94,30 @@ def test_page_fits_and_cancels_in_chromium(browser, monkeypatch):
         button.click()
         wait.until(lambda d: "cancelled" in d.find_element(By.ID, "fit-status").text)
         assert button.text == "fit to target" and not tuner.fit_progress()["running"]
+
+
+def test_page_drags_each_of_several_lights_in_chromium(browser):
+    """A frame of several lights: a marker each, and a press moves the light nearest to it, which the frame is then
+    rendered with (the other where it was)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    frame = small_frame()
+    lamp = gr.Light(np.asarray([10.0, 4.0], np.float32))
+    tuner = Tuner(frame, (50.0, 6.0), effect=small_effect(), other_lights=[lamp], max_preview_pixels=300)
+    with TuneServer(tuner) as running:
+        browser.get(running.url)
+        wait = WebDriverWait(browser, 300)
+        wait.until(lambda d: d.execute_script("return window.tuneStats.length") >= 1)
+        assert len(browser.find_elements(By.CLASS_NAME, "other-marker")) == 1
+        image = browser.find_element(By.ID, "frame")
+        width, height = image.size["width"], image.size["height"]
+        # (12, 20) in the frame's pixels, nearer the lamp at (10, 4) than the light at (50, 6); offsets from the centre.
+        at = (round(12 / frame.width * width - width / 2), round(20 / frame.height * height - height / 2))
+        ActionChains(browser).move_to_element_with_offset(image, *at).click().perform()
+        wait.until(lambda d: d.execute_script("return others[0][1]") > 10)
+        assert browser.execute_script("return light") == pytest.approx([50.0, 6.0])
+        full = "return window.tuneStats.filter((s) => s.quality === 'full').length"
+        wait.until(lambda d: d.execute_script(full) >= 2)
+        assert browser.find_element(By.ID, "error").text == ""

@@ -4,6 +4,7 @@
 import numpy as np
 
 import godrays_jax as gr
+from godrays_jax.app import tune_command
 from godrays_jax.app.cli import main
 from godrays_jax.app.server import TuneServer
 from godrays_jax.app.tuner import Tuner
@@ -24,3 +25,36 @@ def test_cli_tune_errors_are_one_line(tmp_path, capsys):
     assert code == 1 and err.count("\n") == 1 and f"cannot listen on 127.0.0.1:{busy.port}" in err
     assert main(["tune", str(tmp_path / "missing.exr"), "--port", "0"]) == 1
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_cli_tune_takes_every_light_a_frame_stores(tmp_path, monkeypatch):
+    """Without `--light`, a frame that stores several lights (`godrays:lights`) is tuned under all of them: the first
+    as the tuner's light, the others beside it with their distances and tints; `--light` gives one light alone."""
+    frame_path = tmp_path / "frame.exr"
+    lights = [gr.StoredLight((32.0, 6.0)), gr.StoredLight((10.0, 4.0), True, 12.0, (0.5, 1.0, 2.0))]
+    gr.write_buffers(frame_path, small_frame(), light_xy=(32.0, 6.0), metadata=gr.lights_metadata(lights))
+    served = []
+
+    class Served:  # the tuner the command would serve, kept; nothing listens
+        url = "http://127.0.0.1:0/"
+
+        def __init__(self, tuner, port):
+            served.append(tuner)
+
+        def warm_up(self):
+            pass
+
+        def wait(self):
+            pass
+
+        def close(self):
+            served[-1].close()
+
+    monkeypatch.setattr(tune_command, "TuneServer", Served)
+    arguments = ["tune", str(frame_path), "--preset", "xna_crepuscular", "-o", str(tmp_path / "p.json")]
+    assert main(arguments) == 0 and main([*arguments, "--light", "20,5"]) == 0
+    (every, one) = served
+    assert every.light_xy == (32.0, 6.0) and len(every.other_lights) == 1 and one.other_lights == []
+    lamp = every.other_lights[0]
+    np.testing.assert_array_equal(lamp.xy, [10.0, 4.0])
+    assert lamp.depth == 12.0 and np.asarray(lamp.tint).tolist() == [0.5, 1.0, 2.0]

@@ -13,6 +13,7 @@ from godrays_jax.app.options import (
     resolve_light_depth,
     split_lights,
     warn,
+    warn_of_stored_lights,
     with_frame_camera,
 )
 from godrays_jax.effects.lights import check_lights_add
@@ -24,7 +25,7 @@ from godrays_jax.pipeline.sequences import (
     read_light_track,
 )
 from godrays_jax.primitives.frame_reading import read_buffers
-from godrays_jax.primitives.light_metadata import read_light_depth, read_lights
+from godrays_jax.primitives.light_metadata import read_light_depth
 
 
 def parse_frame_range(text: str) -> tuple[int, int]:
@@ -59,15 +60,6 @@ def _other_light_depth(inputs: list[str], first: float) -> tuple[str, float] | N
     return None
 
 
-def _stored_lights(path: str) -> list:
-    """The lights a frame's header stores when it has several (`read_lights`), else or unreadable `[]` (an unreadable
-    frame is reported when the run reaches it)."""
-    try:
-        return read_lights(path) or []
-    except (OSError, ValueError):
-        return []
-
-
 def run(args) -> int:
     """`godrays-jax batch` (arguments from `cli`): plan, then run or list the frames; exit status 1 if any frame failed."""
     light: LightSource = METADATA
@@ -100,10 +92,10 @@ def run(args) -> int:
         check_lights_add(effect)  # before any folder or frame (`frames_function` refuses it too)
     if first is not None:
         light = first
-    if args.light is None and args.light_track is None and len(stored := _stored_lights(inputs[0])) > 1:
-        warn("batch", f"{inputs[0]} stores {len(stored)} lights (godrays:lights): batch draws each frame's "
-             "first (godrays:light_px); pass them with --light 'X,Y;X,Y' (--light-depth, --light-tint) to draw "
-             "all")  # fmt: skip
+    if args.light is None and args.light_track is None:
+        warn_of_stored_lights("batch", inputs[0], hint=(
+            ", and batch with --light 'X,Y;X,Y' (--light-depth, --light-tint)"
+        ))
     if args.light_depth is None and (moved := _other_light_depth(inputs, light_depth)) is not None:
         warn("batch", f"{moved[0]} stores the light's distance {moved[1]:g}, the first frame {light_depth:g}: every "
              "frame takes the first frame's (one compiled program); pass --light-depth D to choose")  # fmt: skip

@@ -31,6 +31,7 @@ from godrays_jax.app.options import (
     read_target,
     resolve_light_depth,
     warn,
+    warn_of_stored_lights,
     with_frame_camera,
 )
 from godrays_jax.effects.fields import field_metadata, field_value
@@ -45,7 +46,6 @@ from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
 from godrays_jax.primitives.images import write_image
-from godrays_jax.primitives.light_metadata import read_lights
 
 
 def run(args) -> int:
@@ -75,9 +75,8 @@ def run(args) -> int:
                 f"{target_path} is {target.shape[1]}x{target.shape[0]} but {buffers_path} is {frame.width}x{frame.height}"
             )
         given = lights[index] if lights else None
-        if given is None and len(stored := read_lights(buffers_path) or []) > 1:
-            warn("fit", f"{buffers_path} stores {len(stored)} lights (godrays:lights): the fit draws one, its "
-                        "first (godrays:light_px); apply draws them all")  # fmt: skip
+        if given is None:
+            warn_of_stored_lights("fit", buffers_path)
         (light, front) = first_light(given, frame, target, buffers_path, fit_light=args.fit_light, space=args.space)
         if given == LIGHT_AUTO or args.fit_light:
             searched[index] = (frame, given == LIGHT_AUTO)

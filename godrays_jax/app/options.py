@@ -21,7 +21,7 @@ from godrays_jax.primitives.camera_metadata import read_clip_planes, read_frame_
 from godrays_jax.primitives.frame_reading import SKY_DEPTH, read_buffers
 from godrays_jax.primitives.image_files import image_size
 from godrays_jax.primitives.images import read_image
-from godrays_jax.primitives.light_metadata import read_light, read_light_depth
+from godrays_jax.primitives.light_metadata import read_light, read_light_depth, read_lights
 
 DEFAULT_PRESET = "xna_crepuscular"
 """The effect `apply`, `batch` and `tune` use without `--preset` / `--params`."""
@@ -354,6 +354,19 @@ def read_target(path: str) -> np.ndarray:
 def warn(command: str, text: str) -> None:
     """One line on stderr: `godrays-jax COMMAND: warning: TEXT`."""
     print(f"godrays-jax {command}: warning: {text}", file=sys.stderr, flush=True)
+
+
+def warn_of_stored_lights(command: str, path: str, *, hint: str = "") -> None:
+    """`warn` when the frame at `path` stores several lights (`godrays:lights`, a render of several) and `command`
+    draws one, its first (`godrays:light_px`); `apply` draws them all. An unreadable header says nothing here (the
+    frame is read, and reported, where the command reads it)."""
+    try:
+        stored = read_lights(path) or []
+    except (OSError, ValueError):
+        return
+    if len(stored) > 1:
+        warn(command, f"{path} stores {len(stored)} lights (godrays:lights): {command} draws the first "
+                      f"(godrays:light_px), apply draws them all{hint}")  # fmt: skip
 
 
 def has_sky(buffers: Buffers) -> bool:

@@ -5,7 +5,7 @@ The JSON API, `GET_API` and `POST_API` below (every answer is JSON; errors are `
 | request | body | answer |
 |---|---|---|
 | `GET /api/state` | | the frame's size, preview factor, light, effect (`effect_to_dict`), slider bounds, presets, views, tonemaps, save path, whether a target is loaded |
-| `POST /api/render` | `{"params", "light", "light_in_front", "quality", "view", "tonemap"}`, all optional | `{"image": "data:image/png;base64,...", "width", "height", "quality", "render_ms", "encode_ms"}` |
+| `POST /api/render` | `{"params", "light", "other_lights", "light_in_front", "quality", "view", "tonemap"}`, all optional | `{"image": "data:image/png;base64,...", "width", "height", "quality", "render_ms", "encode_ms"}` |
 | `POST /api/preset` | `{"name"}` | the new state (the effect becomes the preset) |
 | `POST /api/fit` | `{"params", "light", "light_in_front", "fixed"}` | starts a fit in the background and answers at once with its progress (409 if one is running) |
 | `GET /api/fit` | | the fit's progress `{"running", "step", "loss", "result", "error", "cancelled"}`; `result` is `{"effect", "loss_before", "loss_after", "steps", "fitted"}` once it is done |

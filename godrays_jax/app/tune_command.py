@@ -1,5 +1,7 @@
 """`godrays-jax tune`: serve the live tuner for one frame until Ctrl-C."""
 
+import numpy as np
+
 from godrays_jax.app.options import (
     CommandError,
     check_output_path,
@@ -12,7 +14,9 @@ from godrays_jax.app.options import (
 )
 from godrays_jax.app.server import HOST, TuneServer
 from godrays_jax.app.tuner import Tuner
+from godrays_jax.effects.lights import Light
 from godrays_jax.primitives.frame_reading import read_buffers
+from godrays_jax.primitives.light_metadata import read_lights
 
 
 def run(args) -> int:
@@ -25,6 +29,10 @@ def run(args) -> int:
     effect = effect_option(args.preset, args.params)
     buffers = read_buffers(args.buffers, **frame_reading(args))
     effect = with_frame_camera(effect, args, args.buffers)
+    # A frame that stores several lights (a render of several) is tuned under all of them, the first dragged.
+    stored = (read_lights(args.buffers) or []) if args.light is None else []
+    other_lights = [Light(np.asarray(light.xy, np.float32), in_front=light.in_front, depth=light.depth,
+                          tint=np.asarray(light.tint, np.float32)) for light in stored[1:]]  # fmt: skip
     # A frame without depth keeps the open sky found around the starting light while the light is dragged.
     effect, buffers, light_xy, in_front = frame_for_command("tune", effect, buffers, args.buffers, args.light)
     target = None if args.target is None else read_target(args.target)
@@ -35,7 +43,7 @@ def run(args) -> int:
         )
     tuner = Tuner(
         buffers, light_xy, effect=effect, target=target, light_in_front=in_front,
-        light_depth=resolve_light_depth(None, args.buffers), save_path=args.output,
+        light_depth=resolve_light_depth(None, args.buffers), other_lights=other_lights, save_path=args.output,
         max_preview_pixels=args.preview_pixels, fit_steps=args.fit_steps,
     )  # fmt: skip
     try:

@@ -5,13 +5,14 @@ docs/tuner.md says how renders are coalesced, previewed and displayed, and how "
 """
 
 import base64
+import dataclasses
 import json
 import math
 import os
 import reprlib
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from typing import Any, Literal
 
@@ -22,6 +23,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import count_fields
+from godrays_jax.effects.lights import Light, lit_by
 from godrays_jax.effects.presets import PRESETS, preset
 from godrays_jax.effects.serialization import (
     effect_from_dict,
@@ -96,6 +98,7 @@ def _render_view(
     view: str,
     tonemap: str,
     light_depth: float = math.inf,
+    other_lights: tuple[Light, ...] = (),
 ) -> UInt8[Array, "H W 3"]:
     if view == "before":
         return display_encode(buffers.color, tonemap=tonemap)
@@ -105,7 +108,10 @@ def _render_view(
         return display_encode(
             effect.layer(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth), tonemap=tonemap
         )
-    after = effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+    if other_lights:  # the lights beside the dragged one (the frame's several): their light added
+        after = lit_by(effect, buffers, [Light(light_xy, in_front=light_in_front, depth=light_depth), *other_lights])
+    else:
+        after = effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
     if view == "after":
         return display_encode(after, tonemap=tonemap)
     reference = buffers.color if target is None else target
@@ -219,6 +225,9 @@ class Tuner:
             the difference view and "fit to target".
         light_in_front: whether the light starts in front of the camera.
         light_depth: the light's distance from the camera (scene units, `inf` at infinity), as the frame stores it.
+        other_lights: the frame's lights beside that one (`effects.lights.Light`s: a render of several), drawn with
+            it where their light adds (`lit_by`); the page drags each. The layer view and "fit to target" draw one
+            light and refuse them.
         save_path: where "save" writes the parameters JSON.
         max_preview_pixels: previews have at most this many pixels (see `preview_factor`).
         fit_steps: solver steps at most for "fit to target".
@@ -233,6 +242,7 @@ class Tuner:
         target: Float[ArrayLike, "H W C"] | None = None,
         light_in_front: bool = True,
         light_depth: float = math.inf,
+        other_lights: Sequence[Light] = (),
         save_path: str | os.PathLike = "params.json",
         max_preview_pixels: int = 40_000,
         fit_steps: int = 20,
@@ -251,6 +261,9 @@ class Tuner:
         self.light_xy = (float(light_xy[0]), float(light_xy[1]))
         self.light_in_front = bool(light_in_front)
         self.light_depth = float(light_depth)
+        self.other_lights = list(other_lights)
+        if not all(isinstance(light, Light) for light in self.other_lights):
+            raise ValueError(f"other_lights must be a sequence of Light, got {other_lights!r}")
         self._check_renders(effect)
         self.effect = effect
         self.save_path = os.path.abspath(os.fspath(save_path))
@@ -288,6 +301,7 @@ class Tuner:
             "preview_factor": self.factor,
             "light": list(self.light_xy),
             "light_in_front": self.light_in_front,
+            "other_lights": [[float(v) for v in np.asarray(light.xy)] for light in self.other_lights],
             "effect": effect_to_dict(effect),
             "bounds": {name: list(bounds) for name, bounds in self.bounds(effect).items()},
             "pixel_fields": sorted(pixel_fields(effect)),
@@ -341,23 +355,42 @@ class Tuner:
             raise TuneRequestError(f"light_in_front must be true or false, got {_shown(in_front)}")
         return jnp.asarray([x, y], self.buffers.color.dtype), in_front
 
+    def _other_lights(self, payload: Mapping) -> list[Light]:
+        """The lights beside the dragged one, at the page's positions (`other_lights`: one `[x, y]` each)."""
+        positions = payload.get("other_lights", [[float(v) for v in np.asarray(o.xy)] for o in self.other_lights])
+        count = len(self.other_lights)
+        if not (isinstance(positions, list) and len(positions) == count and all(
+            isinstance(xy, list) and len(xy) == 2 for xy in positions
+        )):
+            raise TuneRequestError(f"other_lights must be {count} [x, y] in pixels, got {_shown(positions)}")
+        return [
+            dataclasses.replace(light, xy=jnp.asarray(check_light([_number(v, "other_lights") for v in xy]),
+                                                      self.buffers.color.dtype))
+            for light, xy in zip(self.other_lights, positions)
+        ]  # fmt: skip
+
     # --------------------------------------------------------------- actions
 
     def render(self, payload: Mapping) -> dict:
         """Render one view (validated here, rendered on the worker; may raise `Superseded`)."""
         effect = self.parse_effect(payload.get("params"))
         light, in_front = self._light(payload)
+        others = self._other_lights(payload)
         quality = _choice(payload, "quality", QUALITIES, "full")
         view = _choice(payload, "view", VIEWS, "after")
         tonemap = _choice(payload, "tonemap", TONEMAPS, "reinhard")
         if view == "target" and self.target is None:
             raise TuneRequestError("view 'target' needs a target (start the tuner with --target)")
+        if view == "layer" and others:
+            raise TuneRequestError(f"the layer view draws one light and this frame has {len(others) + 1}: "
+                                   "the after and difference views draw them all")  # fmt: skip
         preview = quality == "preview"
         buffers = self.preview_buffers if preview else self.buffers
         target = self.preview_target if preview else self.target
         if preview:
             effect = scale_pixel_fields(effect, 1.0 / self.factor)
             light = light / self.factor
+            others = [dataclasses.replace(other, xy=other.xy / self.factor) for other in others]
 
         def job():
             start = time.perf_counter()
@@ -365,7 +398,8 @@ class Tuner:
             # callback would keep the compiled view out of the persistent cache (a second launch compiles again).
             with ranges_guaranteed():
                 pixels = np.asarray(
-                    _render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap, self.light_depth)
+                    _render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap, self.light_depth,
+                                 tuple(others))
                 )
             rendered = time.perf_counter()
             png = encode_png(pixels)
@@ -436,6 +470,9 @@ class Tuner:
         """
         if self.target is None:
             raise TuneRequestError("no target to fit to: start the tuner with --target TARGET")
+        if self.other_lights:
+            raise TuneRequestError(f"fit to target draws one light and this frame has {len(self.other_lights) + 1}: "
+                                   "godrays-jax fit --light X,Y fits through one of them")  # fmt: skip
         effect = self.parse_effect(payload.get("params"))
         light, in_front = self._light(payload)
         fixed = payload.get("fixed", [])

@@ -238,9 +238,9 @@ def test_a_frame_of_several_lights_is_tuned_under_all_and_each_is_dragged(tmp_pa
         assert np.abs(there - alone).max() > 10 and np.abs(there - moved).max() > 10  # the lamp shows, and moves
         with pytest.raises(tuner_module.TuneRequestError, match="other_lights must be 1"):
             tuner.render({"other_lights": [[1.0, 2.0], [3.0, 4.0]]})
-        with pytest.raises(tuner_module.TuneRequestError, match="layer view draws one light"):
+        with pytest.raises(tuner_module.TuneRequestError, match="layer view draws one untinted light"):
             tuner.render({"view": "layer"})
-        with pytest.raises(tuner_module.TuneRequestError, match="fit to target draws one light"):
+        with pytest.raises(tuner_module.TuneRequestError, match="fit to target draws one untinted light"):
             tuner.fit({})
     finally:
         tuner.close()

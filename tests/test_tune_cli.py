@@ -29,7 +29,8 @@ def test_cli_tune_errors_are_one_line(tmp_path, capsys):
 
 def test_cli_tune_takes_every_light_a_frame_stores(tmp_path, monkeypatch):
     """Without `--light`, a frame that stores several lights (`godrays:lights`) is tuned under all of them: the first
-    as the tuner's light, the others beside it with their distances and tints; `--light` gives one light alone."""
+    as the tuner's light, the others beside it with their distances and tints; `--light` gives one light alone, or
+    several with `--light-depth` and `--light-tint` as `apply` takes them."""
     frame_path = tmp_path / "frame.exr"
     lights = [gr.StoredLight((32.0, 6.0)), gr.StoredLight((10.0, 4.0), True, 12.0, (0.5, 1.0, 2.0))]
     gr.write_buffers(frame_path, small_frame(), light_xy=(32.0, 6.0), metadata=gr.lights_metadata(lights))
@@ -53,8 +54,14 @@ def test_cli_tune_takes_every_light_a_frame_stores(tmp_path, monkeypatch):
     monkeypatch.setattr(tune_command, "TuneServer", Served)
     arguments = ["tune", str(frame_path), "--preset", "xna_crepuscular", "-o", str(tmp_path / "p.json")]
     assert main(arguments) == 0 and main([*arguments, "--light", "20,5"]) == 0
-    (every, one) = served
-    assert every.light_xy == (32.0, 6.0) and len(every.other_lights) == 1 and one.other_lights == []
+    given = ["--light", "20,5;40,9,behind", "--light-depth", "inf;7", "--light-tint", "2;1,0.5,0.25"]
+    assert main([*arguments, *given]) == 0
+    (every, one, both) = served
+    assert every.light_xy == (32.0, 6.0) and len(every.other_lights) == 1 and every.light_tint is None
+    assert one.light_xy == (20.0, 5.0) and one.other_lights == [] and one.light_tint is None
     lamp = every.other_lights[0]
     np.testing.assert_array_equal(lamp.xy, [10.0, 4.0])
     assert lamp.depth == 12.0 and np.asarray(lamp.tint).tolist() == [0.5, 1.0, 2.0]
+    (behind,) = both.other_lights
+    assert both.light_xy == (20.0, 5.0) and both.light_depth == np.inf and both.light_tint.tolist() == [2.0, 2.0, 2.0]
+    assert behind.in_front is False and behind.depth == 7.0 and np.asarray(behind.tint).tolist() == [1.0, 0.5, 0.25]

@@ -16,10 +16,10 @@ from godrays_jax.app.options import (
     split_lights,
     with_flare_texture,
     with_frame_camera,
+    with_stored_lights,
 )
 from godrays_jax.pipeline.batch import dither_seed_of, frames_function
 from godrays_jax.primitives.frame_files import read_frame, write_frame_like
-from godrays_jax.primitives.light_metadata import read_lights
 from godrays_jax.primitives.images import write_image
 
 
@@ -34,14 +34,11 @@ def run(args) -> int:
     effect = with_frame_camera(effect, args, args.buffers)
     light = light_of_params(None, args.params, args.buffers, buffers) if args.light is None else None
     lights, depths, tints = args.light, args.light_depth, args.light_tint
-    if args.light is None and light is None and (stored := read_lights(args.buffers)) is not None:
-        # A render of several lights: every one, each with its stored distance and tint unless given.
-        if args.layer_only and len(stored) > 1:
-            raise CommandError(f"{args.buffers} stores {len(stored)} lights (godrays:lights) and --layer-only draws "
-                               "one: pass --light X,Y to choose it")  # fmt: skip
-        lights = [(tuple(each.xy), each.in_front) for each in stored]
-        depths = depths or [each.depth for each in stored]
-        tints = tints or ([tuple(each.tint) for each in stored] if len(stored) > 1 else None)
+    if light is None:  # else the light `fit` found, alone
+        lights, depths, tints = with_stored_lights(args.buffers, lights, depths, tints)
+    if args.layer_only and args.light is None and lights:
+        raise CommandError(f"{args.buffers} stores {len(lights)} lights (godrays:lights) and --layer-only draws one: "
+                           "pass --light X,Y to choose it")  # fmt: skip
     first, light_depth, light_tint, beside = split_lights(
         lights, depths, tints, lambda: resolve_light_depth(None, args.buffers), layer_only=args.layer_only
     )

@@ -22,7 +22,6 @@ from godrays_jax.app.options import (
     SKY_DEPTH_HELP,
     parse_fit_light,
     parse_fov,
-    parse_light,
     parse_light_depth,
     parse_light_depths,
     parse_light_tints,
@@ -143,22 +142,10 @@ def _add_apply(subparsers) -> None:
         "(PARAMS.light.json), else every light of the frame's godrays:lights metadata (a render of several), else "
         "its godrays:light_px",
     )
-    parser.add_argument(
-        "--light-depth",
-        type=parse_light_depths,
-        metavar="D[;D...]",
-        help="the light's distance from the camera in scene units, or inf (read by the fogs and the XNA preset's "
-        "depth test and step clamp), one for every light or one per light; default: the frame's "
-        "godrays:lights_depth or godrays:light_depth metadata, else inf",
-    )
-    parser.add_argument(
-        "--light-tint",
-        type=parse_light_tints,
-        metavar="R,G,B[;R,G,B...]",
-        help="each light's tint, the linear RGB its light is multiplied by: its colour and intensity beside the "
-        "others' (one for every light or one per light); default: the frame's godrays:lights_tint metadata "
-        "when it stores several lights, else 1,1,1",
-    )
+    _add_light_depth_and_tint(
+        parser, depth_default="the frame's godrays:lights_depth or godrays:light_depth metadata, else inf",
+        tint_default="the frame's godrays:lights_tint metadata when it stores several lights, else 1,1,1",
+    )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)
     parser.add_argument(
@@ -195,16 +182,9 @@ def _add_batch(subparsers) -> None:
     lights.add_argument(
         "--light-track", metavar="FILE", help="per-frame lights: CSV rows 'frame,x,y[,in_front]' or JSON; frames between keys are interpolated linearly"
     )
-    parser.add_argument(
-        "--light-depth", type=parse_light_depths, metavar="D[;D...]",
-        help="the light's distance from the camera in scene units, or inf, for every frame (one for every light or "
-        "one per light); default: the first frame's godrays:light_depth metadata, else inf",
-    )  # fmt: skip
-    parser.add_argument(
-        "--light-tint", type=parse_light_tints, metavar="R,G,B[;R,G,B...]",
-        help="each light's tint, the linear RGB its light is multiplied by: its colour and intensity beside the "
-        "others' (one for every light or one per light); default: the frame's godrays:lights_tint metadata "
-        "when it stores several lights, else 1,1,1",
+    _add_light_depth_and_tint(
+        parser, depth_default="the first frame's godrays:light_depth metadata, else inf (the same in every frame)",
+        tint_default="1,1,1",
     )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)
@@ -242,11 +222,16 @@ def _add_tune(subparsers) -> None:
     parser.add_argument("--target", help="a reference image of the frame's size, for the difference view and fitting")
     parser.add_argument(
         "--light",
-        type=parse_light,
-        metavar="X,Y[,behind]",
-        help="the light's starting pixel position (',behind': behind the camera); default: the frame's "
-        "godrays:light_px metadata",
+        type=parse_lights,
+        metavar="X,Y[,behind][;X,Y...]",
+        help="the light's starting pixel position (',behind': behind the camera); several separated by ';', each "
+        "dragged, their light added; default: every light of the frame's godrays:lights metadata, else its "
+        "godrays:light_px",
     )
+    _add_light_depth_and_tint(
+        parser, depth_default="the frame's godrays:lights_depth or godrays:light_depth metadata, else inf",
+        tint_default="the frame's godrays:lights_tint metadata when it stores several lights, else 1,1,1",
+    )  # fmt: skip
     _add_effect_options(parser)
     parser.add_argument("--port", type=int, default=8000, help="port on 127.0.0.1 (default 8000; 0: any free port)")
     parser.add_argument("-o", "--output", default="params.json", help="where save writes (default params.json)")
@@ -257,6 +242,21 @@ def _add_tune(subparsers) -> None:
     parser.add_argument("--fit-steps", type=int, default=20, help="solver steps at most per fit (default 20)")
     _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.tune_command:run")
+
+
+def _add_light_depth_and_tint(parser, *, depth_default: str, tint_default: str) -> None:
+    """`--light-depth` and `--light-tint`, one value for every light of `--light` or one per light (apply, batch,
+    tune), with each command's defaults."""
+    parser.add_argument(
+        "--light-depth", type=parse_light_depths, metavar="D[;D...]",
+        help="the light's distance from the camera in scene units, or inf (read by the fogs and the XNA preset's "
+        f"depth test and step clamp), one for every light or one per light; default: {depth_default}",
+    )  # fmt: skip
+    parser.add_argument(
+        "--light-tint", type=parse_light_tints, metavar="R,G,B[;R,G,B...]",
+        help="each light's tint, the linear RGB its light is multiplied by: its colour and intensity beside the "
+        f"others' (one for every light or one per light); default: {tint_default}",
+    )  # fmt: skip
 
 
 def _add_fit(subparsers) -> None:

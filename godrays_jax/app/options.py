@@ -80,7 +80,8 @@ def parse_light(text: str) -> tuple[tuple[float, float], bool]:
     moved along its direction to `MAX_LIGHT_PX`; `behind` a light behind the camera (`LIGHT_SIDES`)."""
     if LIGHTS_SEPARATOR in text:
         raise argparse.ArgumentTypeError(
-            f"--light takes one light here, got {text!r}; several lights, separated by ';', are apply's and batch's"
+            f"--light takes one light here, got {text!r}; several lights, separated by ';', are apply's, batch's "
+            "and tune's"
         )
     parts = text.replace(" ", "").split(",")
     side = parts.pop().lower() if len(parts) == 3 else "front"
@@ -354,6 +355,21 @@ def read_target(path: str) -> np.ndarray:
 def warn(command: str, text: str) -> None:
     """One line on stderr: `godrays-jax COMMAND: warning: TEXT`."""
     print(f"godrays-jax {command}: warning: {text}", file=sys.stderr, flush=True)
+
+
+def with_stored_lights(
+    path: str, lights: list | None, depths: list[float] | None, tints: list | None
+) -> tuple[list | None, list[float] | None, list | None]:
+    """`--light`, `--light-depth` and `--light-tint` (`parse_lights`' lists, or None) as given; without `--light`, a
+    frame at `path` that stores several lights (`godrays:lights`: a render of several) gives them all, with their
+    stored distances and tints where those are not given (`split_lights` then splits them as `--light`'s)."""
+    if lights is not None or len(stored := read_lights(path) or []) < 2:
+        return lights, depths, tints
+    return (
+        [(tuple(light.xy), light.in_front) for light in stored],
+        depths or [light.depth for light in stored],
+        tints or [tuple(light.tint) for light in stored],
+    )
 
 
 def warn_of_stored_lights(command: str, path: str, *, hint: str = "") -> None:

@@ -1,7 +1,5 @@
 """`godrays-jax tune`: serve the live tuner for one frame until Ctrl-C."""
 
-import numpy as np
-
 from godrays_jax.app.options import (
     CommandError,
     check_output_path,
@@ -10,13 +8,13 @@ from godrays_jax.app.options import (
     frame_reading,
     read_target,
     resolve_light_depth,
+    split_lights,
     with_frame_camera,
+    with_stored_lights,
 )
 from godrays_jax.app.server import HOST, TuneServer
 from godrays_jax.app.tuner import Tuner
-from godrays_jax.effects.lights import Light
 from godrays_jax.primitives.frame_reading import read_buffers
-from godrays_jax.primitives.light_metadata import read_lights
 
 
 def run(args) -> int:
@@ -29,12 +27,13 @@ def run(args) -> int:
     effect = effect_option(args.preset, args.params)
     buffers = read_buffers(args.buffers, **frame_reading(args))
     effect = with_frame_camera(effect, args, args.buffers)
-    # A frame that stores several lights (a render of several) is tuned under all of them, the first dragged.
-    stored = (read_lights(args.buffers) or []) if args.light is None else []
-    other_lights = [Light(np.asarray(light.xy, np.float32), in_front=light.in_front, depth=light.depth,
-                          tint=np.asarray(light.tint, np.float32)) for light in stored[1:]]  # fmt: skip
+    # Several lights (`--light 'A;B'`, or a frame that stores several) are tuned together, each dragged.
+    first, light_depth, light_tint, other_lights = split_lights(
+        *with_stored_lights(args.buffers, args.light, args.light_depth, args.light_tint),
+        lambda: resolve_light_depth(None, args.buffers),
+    )
     # A frame without depth keeps the open sky found around the starting light while the light is dragged.
-    effect, buffers, light_xy, in_front = frame_for_command("tune", effect, buffers, args.buffers, args.light)
+    effect, buffers, light_xy, in_front = frame_for_command("tune", effect, buffers, args.buffers, first)
     target = None if args.target is None else read_target(args.target)
     if target is not None and target.shape[:2] != (buffers.height, buffers.width):
         raise CommandError(
@@ -43,7 +42,7 @@ def run(args) -> int:
         )
     tuner = Tuner(
         buffers, light_xy, effect=effect, target=target, light_in_front=in_front,
-        light_depth=resolve_light_depth(None, args.buffers), other_lights=other_lights, save_path=args.output,
+        light_depth=light_depth, other_lights=other_lights, light_tint=light_tint, save_path=args.output,
         max_preview_pixels=args.preview_pixels, fit_steps=args.fit_steps,
     )  # fmt: skip
     try:

@@ -99,6 +99,7 @@ def _render_view(
     tonemap: str,
     light_depth: float = math.inf,
     other_lights: tuple[Light, ...] = (),
+    light_tint: Float[Array, "3"] | None = None,
 ) -> UInt8[Array, "H W 3"]:
     if view == "before":
         return display_encode(buffers.color, tonemap=tonemap)
@@ -108,8 +109,10 @@ def _render_view(
         return display_encode(
             effect.layer(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth), tonemap=tonemap
         )
-    if other_lights:  # the lights beside the dragged one (the frame's several): their light added
-        after = lit_by(effect, buffers, [Light(light_xy, in_front=light_in_front, depth=light_depth), *other_lights])
+    if other_lights or light_tint is not None:  # several or tinted lights: their light added (`lit_by`)
+        first = Light(light_xy, in_front=light_in_front, depth=light_depth,
+                      tint=(1.0, 1.0, 1.0) if light_tint is None else light_tint)  # fmt: skip
+        after = lit_by(effect, buffers, [first, *other_lights])
     else:
         after = effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
     if view == "after":
@@ -227,7 +230,8 @@ class Tuner:
         light_depth: the light's distance from the camera (scene units, `inf` at infinity), as the frame stores it.
         other_lights: the frame's lights beside that one (`effects.lights.Light`s: a render of several), drawn with
             it where their light adds (`lit_by`); the page drags each. The layer view and "fit to target" draw one
-            light and refuse them.
+            untinted light and refuse them.
+        light_tint: the linear RGB that light's light is multiplied by (`Light.tint`; None or 1: the effect's own).
         save_path: where "save" writes the parameters JSON.
         max_preview_pixels: previews have at most this many pixels (see `preview_factor`).
         fit_steps: solver steps at most for "fit to target".
@@ -243,6 +247,7 @@ class Tuner:
         light_in_front: bool = True,
         light_depth: float = math.inf,
         other_lights: Sequence[Light] = (),
+        light_tint: Float[ArrayLike, "3"] | None = None,
         save_path: str | os.PathLike = "params.json",
         max_preview_pixels: int = 40_000,
         fit_steps: int = 20,
@@ -264,6 +269,11 @@ class Tuner:
         self.other_lights = list(other_lights)
         if not all(isinstance(light, Light) for light in self.other_lights):
             raise ValueError(f"other_lights must be a sequence of Light, got {other_lights!r}")
+        self.light_tint = None if light_tint is None else np.broadcast_to(np.asarray(light_tint, np.float32), (3,))
+        if self.light_tint is not None and np.all(self.light_tint == 1.0):
+            self.light_tint = None  # the effect's own light
+        if self.light_tint is not None and not (np.isfinite(self.light_tint).all() and (self.light_tint >= 0).all()):
+            raise ValueError(f"light_tint must be finite and >= 0 (linear RGB), got {light_tint!r}")
         self._check_renders(effect)
         self.effect = effect
         self.save_path = os.path.abspath(os.fspath(save_path))
@@ -381,9 +391,9 @@ class Tuner:
         tonemap = _choice(payload, "tonemap", TONEMAPS, "reinhard")
         if view == "target" and self.target is None:
             raise TuneRequestError("view 'target' needs a target (start the tuner with --target)")
-        if view == "layer" and others:
-            raise TuneRequestError(f"the layer view draws one light and this frame has {len(others) + 1}: "
-                                   "the after and difference views draw them all")  # fmt: skip
+        if view == "layer" and (others or self.light_tint is not None):
+            raise TuneRequestError(f"the layer view draws one untinted light and this frame has {len(others) + 1} "
+                                   "lights or a tint: the after and difference views draw them")  # fmt: skip
         preview = quality == "preview"
         buffers = self.preview_buffers if preview else self.buffers
         target = self.preview_target if preview else self.target
@@ -399,7 +409,7 @@ class Tuner:
             with ranges_guaranteed():
                 pixels = np.asarray(
                     _render_view(effect, buffers, light, jnp.asarray(in_front), target, view, tonemap, self.light_depth,
-                                 tuple(others))
+                                 tuple(others), None if self.light_tint is None else jnp.asarray(self.light_tint))
                 )
             rendered = time.perf_counter()
             png = encode_png(pixels)
@@ -470,9 +480,10 @@ class Tuner:
         """
         if self.target is None:
             raise TuneRequestError("no target to fit to: start the tuner with --target TARGET")
-        if self.other_lights:
-            raise TuneRequestError(f"fit to target draws one light and this frame has {len(self.other_lights) + 1}: "
-                                   "godrays-jax fit --light X,Y fits through one of them")  # fmt: skip
+        if self.other_lights or self.light_tint is not None:
+            raise TuneRequestError(f"fit to target draws one untinted light and this frame has "
+                                   f"{len(self.other_lights) + 1} lights or a tint: godrays-jax fit --light X,Y fits "
+                                   "through one of them")  # fmt: skip
         effect = self.parse_effect(payload.get("params"))
         light, in_front = self._light(payload)
         fixed = payload.get("fixed", [])

@@ -177,14 +177,14 @@ def test_fit_of_one_light_says_where_several_are_taken(tmp_path, capsys):
 
 def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, monkeypatch):
     """`render` of a scene with `lights` writes each one's pixel, side, distance and tint (its colour over the first
-    light's mean) into the frame's header; `apply` without `--light` draws them all, as `--light` with the same
+    light's, channel by channel) into the frame's header; `apply` without `--light` draws them all, as `--light` with the same
     lights, distances and tints does; `--layer-only` (one light), `batch` and `fit` (each frame's first) say what they
     draw."""
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps({
         "camera": {"position": [0, 0, 0], "target": [0, 0, -1], "up": [0, 1, 0], "fov_x_deg": 60, "width": 16,
                    "height": 12},
-        "lights": [{"type": "directional", "direction": [0.1, 0.1, -1], "color": [2, 2, 2]},
+        "lights": [{"type": "directional", "direction": [0.1, 0.1, -1], "color": [2, 1, 1]},
                    {"type": "point", "position": [-2, 0, -6], "color": [1, 0.5, 0.5]}],
         "objects": [{"type": "sphere", "center": [0.4, 0, -5], "radius": 0.7, "material": {"albedo": [0.5, 0.5, 0.5]}}],
     }))  # fmt: skip
@@ -193,11 +193,11 @@ def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, 
     assert [line.split()[0] for line in capsys.readouterr().out.splitlines()] == ["light", "light", "wrote"]
     stored = gr.read_lights(frame)
     assert [light.in_front for light in stored] == [True, True] and stored[0].depth == np.inf
-    assert stored[1].depth == pytest.approx(math.hypot(2, 6)) and stored[1].tint == pytest.approx((0.5, 0.25, 0.25))
+    assert stored[1].depth == pytest.approx(math.hypot(2, 6)) and stored[1].tint == pytest.approx((0.5, 0.5, 0.5))
     assert main(["apply", str(frame), "--preset", "xna_crepuscular", "-o", str(drawn)]) == 0
     lights = ";".join(f"{light.xy[0]!r},{light.xy[1]!r}" for light in stored)
     assert main(["apply", str(frame), "--preset", "xna_crepuscular", "--light", lights, "--light-depth",
-                 f"inf;{stored[1].depth!r}", "--light-tint", "1;0.5,0.25,0.25", "-o", str(given)]) == 0  # fmt: skip
+                 f"inf;{stored[1].depth!r}", "--light-tint", "1;0.5", "-o", str(given)]) == 0  # fmt: skip
     np.testing.assert_array_equal(gr.read_image(drawn), gr.read_image(given))
     one = tmp_path / "one.exr"
     first = lights.split(";")[0]

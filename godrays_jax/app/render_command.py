@@ -10,16 +10,20 @@ from godrays_jax.raster import light_distance, light_pixel, load_scene, render
 
 
 def frame_lights(scene, camera) -> list[StoredLight]:
-    """Every light of the scene as the frame's header stores it: its pixel, side and distance; its tint the light's
-    colour over the first light's mean (the first's tint 1, the effect's own light, as for a scene of one light)."""
-    first = float(np.mean(np.asarray(scene.light.color)))
+    """Every light of the scene as the frame's header stores it: its pixel, side and distance; its tint its colour
+    over the first light's, channel by channel (the first's tint 1: the effect's own light is the first light's, as
+    for a scene of one light; lamps of one colour tint 1 each). A channel the first light lacks takes the other's
+    colour over the first's mean (or as it is, under a black first light)."""
+    first = np.asarray(scene.light.color, np.float64)
+    mean = float(np.mean(first))
     lights = []
     for index, light in enumerate(scene.lights):
         xy, _, in_front = light_pixel(scene, camera, index=index)
-        color = np.asarray(light.color, np.float64) / (first if first > 0 else 1.0)
+        color = np.asarray(light.color, np.float64)
+        tint = np.where(first > 0, color / np.where(first > 0, first, 1.0), color / (mean if mean > 0 else 1.0))
         lights.append(StoredLight(
             (float(xy[0]), float(xy[1])), bool(in_front), light_distance(scene, camera, index=index),
-            (1.0, 1.0, 1.0) if index == 0 else tuple(float(value) for value in color),
+            (1.0, 1.0, 1.0) if index == 0 else tuple(float(value) for value in tint),
         ))  # fmt: skip
     return lights
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.app.render_command import frame_metadata
+from godrays_jax.app.render_command import frame_lights, frame_metadata
 
 EXAMPLES = Path(__file__).resolve().parent
 SCENE = EXAMPLES / "scenes" / "forest_hero.json"
@@ -112,13 +112,13 @@ def main() -> None:
         write_obj(OBJ)
     scene, camera = gr.load_scene(SCENE)
     buffers = gr.render(scene, camera)
-    light_xy, _, in_front = gr.light_pixel(scene, camera)
+    lights = frame_lights(scene, camera)
     # Normals and object ids serve no effect: leaving them out halves the file.
     shipped = gr.Buffers(color=buffers.color, depth=buffers.depth, coverage=buffers.coverage,
                          light_pass=buffers.light_pass, glow_pass=buffers.glow_pass)  # fmt: skip
-    light = (float(light_xy[0]), float(light_xy[1]))
-    gr.write_buffers(args.out, shipped, light_xy=light, light_in_front=bool(in_front), half=True,
-                     metadata=frame_metadata(scene, camera))  # fmt: skip
+    light = lights[0].xy
+    gr.write_buffers(args.out, shipped, light_xy=light, light_in_front=lights[0].in_front, half=True,
+                     metadata=frame_metadata(camera, lights))  # fmt: skip
     print(f"wrote {args.out}: {camera.width}x{camera.height}, light at ({light[0]:.1f}, {light[1]:.1f}) px")
 
 

@@ -28,11 +28,10 @@ def frame_lights(scene, camera) -> list[StoredLight]:
     return lights
 
 
-def frame_metadata(scene, camera) -> dict:
-    """The header `render` writes beside the light's pixel: the light's distance, the camera's field of view and
-    clip planes (effects that measure directions or hardware depth read them); for a scene of several lights, every
-    light (`lights_metadata` of `frame_lights`), which `apply` draws."""
-    lights = frame_lights(scene, camera)
+def frame_metadata(camera, lights: list[StoredLight]) -> dict:
+    """The header `render` writes beside the first light's pixel: its distance, the camera's field of view and clip
+    planes (effects that measure directions or hardware depth read them); for a scene of several lights, every light
+    (`lights_metadata` of `frame_lights`), which `apply` and `tune` draw."""
     return {
         LIGHT_DEPTH_ATTR: lights[0].depth,
         FOV_X_ATTR: float(camera.fov_x_deg),
@@ -47,7 +46,7 @@ def run(args) -> int:
     buffers = render(scene, camera, with_glow_pass=not args.no_glow)
     lights = frame_lights(scene, camera)
     write_buffers(args.output, buffers, light_xy=lights[0].xy, light_in_front=lights[0].in_front,
-                  metadata=frame_metadata(scene, camera))  # fmt: skip
+                  metadata=frame_metadata(camera, lights))  # fmt: skip
     if args.light:
         for light in lights:
             side = "in front" if light.in_front else "behind the camera"

@@ -165,21 +165,11 @@ def test_every_command_has_help(capsys):
         assert exit_info.value.code == 0
 
 
-def test_fit_of_one_light_says_where_several_are_taken(tmp_path, capsys):
-    frame = small_frame(tmp_path / "frame.exr")
-    arguments = ["fit", str(frame), str(frame), "-o", str(tmp_path / "out"), "--light", "3,2;5,1"]
-    with pytest.raises(SystemExit) as exit_info:
-        main(arguments)
-    assert exit_info.value.code == 2
-    assert "--light takes one light here" in capsys.readouterr().err
-    assert sorted(os.listdir(tmp_path)) == ["frame.exr"]
-
-
 def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, monkeypatch):
     """`render` of a scene with `lights` writes each one's pixel, side, distance and tint (its colour over the first
     light's, channel by channel) into the frame's header; `apply` without `--light` draws them all, as `--light` with the same
-    lights, distances and tints does; `--layer-only` (one light), `batch` and `fit` (each frame's first) say what they
-    draw."""
+    lights, distances and tints does, and so does `fit` (each tint over the first's); `--layer-only` (one light) and
+    `batch` (each frame's first) say what they draw."""
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps({
         "camera": {"position": [0, 0, 0], "target": [0, 0, -1], "up": [0, 1, 0], "fov_x_deg": 60, "width": 16,
@@ -210,12 +200,62 @@ def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, 
     assert main(["batch", str(frame), "-o", str(tmp_path / "out"), "--preset", "xna_crepuscular", "--dry-run"]) == 0
     assert "2 lights (godrays:lights): batch draws the first (godrays:light_px)" in capsys.readouterr().err
 
-    def stop(*_, **__):
+    # `fit` draws them all too: the header's lights as `--light` with the same distances and tints gives them.
+    taken = []
+
+    def stop(*args, **keywords):
+        taken.append((args[2], keywords["light_depth"], keywords["other_lights"]))
         raise CommandError("stopped where the fit starts")
 
-    monkeypatch.setattr(fit_command, "fit", stop)  # what it says of the lights comes before
-    assert main(["fit", str(frame), str(drawn), "--preset", "xna_crepuscular", "-o", str(tmp_path / "p.json")]) == 1
-    assert "2 lights (godrays:lights): fit draws the first (godrays:light_px), apply draws" in capsys.readouterr().err
+    monkeypatch.setattr(fit_command, "fit", stop)
+    fit_arguments = ["fit", str(frame), str(drawn), "--preset", "xna_crepuscular", "-o", str(tmp_path / "p.json")]
+    assert main(fit_arguments) == 1
+    assert main([*fit_arguments, "--light", lights, "--light-depth", f"inf;{stored[1].depth!r}", "--light-tint",
+                 "2;1"]) == 1  # fmt: skip
+    for (first, depths, others), tint in zip(taken, (0.5, 0.5)):  # a tint over the first's: 0.5 / 1 and 1 / 2
+        np.testing.assert_allclose(np.asarray(first[0]), stored[0].xy, rtol=1e-6)
+        assert depths == [np.inf] and len(others) == 1 and len(others[0]) == 1
+        np.testing.assert_allclose(np.asarray(others[0][0].xy), stored[1].xy, rtol=1e-6)
+        assert others[0][0].depth == pytest.approx(stored[1].depth) and others[0][0].in_front
+        np.testing.assert_allclose(np.asarray(others[0][0].tint), tint, rtol=1e-6)
+    assert "fit draws" not in capsys.readouterr().err
+
+
+def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one(tmp_path, capsys):
+    """`fit --light 'A;B'` fits the fields under both lights, and `apply --params` with the same lights gives the
+    fitted frame; `--fit-light` (one light refined), `--light auto` with tints and a count of distances that fits
+    neither one nor every light are one line each, with no file written."""
+    frame = tmp_path / "frame.exr"
+    zs = np.full((16, 24), np.inf, np.float32)
+    zs[10:], zs[3:, 8:10] = 4.0, 3.0  # the ground and a post
+    color = np.where(np.isfinite(zs)[..., None], 0.1, 0.3).astype(np.float32) * np.ones(3, np.float32)
+    color[2:4, 4:7] = color[1:3, 15:17] = 5.0  # the lights' discs
+    gr.write_buffers(frame, gr.Buffers(color=color, depth=zs, coverage=np.isfinite(zs).astype(np.float32)))
+    target, params, fitted = tmp_path / "target.exr", tmp_path / "p.json", tmp_path / "fitted.exr"
+    lights = ["--light", "5.5,3;16,2", "--light-tint", "1;0.5"]
+    start = gr.preset("xna_crepuscular")
+    fitted_names = ("density", "decay", "exposure")
+    truth = tmp_path / "truth.json"
+    gr.save_effect(truth, dataclasses.replace(start, density=0.7, decay=0.9, exposure=0.4))
+    assert main(["apply", str(frame), "--params", str(truth), *lights, "-o", str(target)]) == 0
+    fixed = ",".join(name for name in gr.parameter_bounds(start) if name not in fitted_names)
+    arguments = ["fit", str(frame), str(target), "--preset", "xna_crepuscular", "-o", str(params), "--max-steps", "20"]
+    assert main([*arguments, *lights, "--fixed", fixed]) == 0
+    out = capsys.readouterr().out
+    after = float(re.search(r"loss before \S+, after (\S+)", out).group(1))
+    assert after < 1e-6
+    assert main(["apply", str(frame), "--params", str(params), *lights, "-o", str(fitted)]) == 0
+    np.testing.assert_allclose(gr.read_image(fitted), gr.read_image(target), atol=1e-3)
+    for extra, message in (
+        (["--light", "5.5,3;16,2", "--fit-light"], "--fit-light refines one light"),
+        (["--light", "auto", "--light-tint", "1;0.5"], "--light auto finds one light"),
+        (["--light", "5.5,3;16,2", "--light-depth", "inf;2;3"], "--light-depth gives 3 values for 2 lights"),
+    ):
+        output = tmp_path / "refused.json"
+        assert main(["fit", str(frame), str(target), "-o", str(output), *extra]) == 1
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+        assert not output.exists() and not (tmp_path / "refused.light.json").exists()
 
 
 def test_apply_adds_several_lights_each_with_its_side_distance_and_tint(tmp_path):

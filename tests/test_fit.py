@@ -14,8 +14,9 @@ import pytest
 import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
+from godrays_jax.effects.fields import round_counts
 from godrays_jax.pipeline import fit_programs
-from godrays_jax.pipeline.fit import fit, plateaued, round_counts
+from godrays_jax.pipeline.fit import fit, plateaued
 from godrays_jax.pipeline.fit_programs import (
     DIFFERENCE_STEP,
     CoarseLinearisation,
@@ -87,6 +88,33 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
     # Fixed fields are untouched.
     np.testing.assert_array_equal(result.effect.tint, _rays().tint)
     assert float(result.effect.num_samples) == 8.0
+
+
+def test_a_frame_of_several_lights_is_fitted_under_all_of_them():
+    """`other_lights`: the frame is drawn under its first light and the others (`lit_by`), in the coarse phase (every
+    light's position scaled), the descent on the coarse Jacobian and the polish alike; `determination` takes them
+    too. The same fit through the first light alone cannot reach the frame: the second's rays are missing."""
+    frame = _frame(0)
+    lamp = gr.Light(xy=jnp.array([6.0, 3.0]), tint=(0.5, 0.4, 0.3))
+    truth = _rays(**TRUTH)
+    target = gr.lit_by(truth, frame, [gr.Light(xy=LIGHT), lamp])
+    both = fit(_rays(**START), frame, LIGHT, target, other_lights=[lamp], fixed=FIXED_RAYS, max_steps=30,
+               coarse_factor=2, coarse_jacobian=True)  # fmt: skip
+    for name in both.fitted:
+        np.testing.assert_allclose(getattr(both.effect, name), TRUTH[name], rtol=0.02, err_msg=name)
+    np.testing.assert_allclose(both.images_after[0], target, atol=2e-3)
+    first = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, coarse_factor=2,
+                coarse_jacobian=True)  # fmt: skip
+    assert first.loss_after > 100 * both.loss_after
+    # The second light's rays move with the fields too: the frame determines each more than the first's alone.
+    under_both = gr.determination(both.effect, frame, LIGHT, target, fitted=both.fitted, other_lights=[lamp])
+    under_first = gr.determination(both.effect, frame, LIGHT, target, fitted=both.fitted)
+    for name in both.fitted:
+        assert under_both.sensitivity[name] > 1.05 * under_first.sensitivity[name], name
+    with pytest.raises(ValueError, match=r"other_lights\[0\]\[0\]\.tint"):
+        fit(truth, frame, LIGHT, target, other_lights=[gr.Light(xy=(6.0, 3.0), tint=-1.0)], fixed=FIXED_RAYS)
+    with pytest.raises(ValueError, match="one sequence of Light per frame"):
+        fit(truth, [frame, frame], [LIGHT, LIGHT], [target, target], other_lights=[[lamp]], fixed=FIXED_RAYS)
 
 
 @pytest.mark.slow

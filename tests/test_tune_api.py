@@ -213,9 +213,10 @@ def test_fit_rounds_counts_as_the_cli_does_unless_fractional_counts_are_asked(se
     assert status == 400 and "fractional_counts" in answer["error"]
 
 
-def test_a_frame_of_several_lights_is_tuned_under_all_and_each_is_dragged(tmp_path):
+def test_a_frame_of_several_lights_is_tuned_under_all_and_each_is_dragged(tmp_path, monkeypatch):
     """`other_lights` (a frame's several lights): the after view adds their light (`lit_by`, each with its tint),
-    each moves to the page's position, and the layer view and the fit, which draw one light, refuse them."""
+    each moves to the page's position, the fit takes them at the preview's scale, and the layer view, which draws
+    one light, refuses them; the fit refuses a tint of the first light (it fits that light's colour)."""
     frame, effect = small_frame(), small_effect()
     lamp = gr.Light(np.asarray([10.0, 4.0], np.float32), tint=np.asarray([0.5, 1.0, 2.0], np.float32))
     tuner = Tuner(frame, (32.0, 6.0), effect=effect, target=frame.color, other_lights=[lamp],
@@ -240,9 +241,25 @@ def test_a_frame_of_several_lights_is_tuned_under_all_and_each_is_dragged(tmp_pa
             tuner.render({"other_lights": [[1.0, 2.0], [3.0, 4.0]]})
         with pytest.raises(tuner_module.TuneRequestError, match="layer view draws one untinted light"):
             tuner.render({"view": "layer"})
-        with pytest.raises(tuner_module.TuneRequestError, match="fit to target draws one untinted light"):
-            tuner.fit({})
+        taken = []
+
+        def fit_stopped(*args, **keywords):
+            taken.append(keywords["other_lights"])
+            raise RuntimeError("stopped where the fit starts")
+
+        monkeypatch.setattr(tuner_module, "fit", fit_stopped)
+        tuner.fit({"other_lights": [[50.0, 20.0]]})
+        assert "stopped where the fit starts" in tuner.wait_fit(30)["error"]
+        (lamp_fitted,) = taken[0]
+        np.testing.assert_allclose(np.asarray(lamp_fitted.xy), np.asarray([50.0, 20.0]) / tuner.factor)
+        np.testing.assert_array_equal(np.asarray(lamp_fitted.tint), lamp.tint)
     finally:
         tuner.close()
+    tinted = Tuner(frame, (32.0, 6.0), effect=effect, target=frame.color, light_tint=(2.0, 1.0, 1.0))
+    try:
+        with pytest.raises(tuner_module.TuneRequestError, match="fits the first light's colour, untinted"):
+            tinted.fit({})
+    finally:
+        tinted.close()
     with pytest.raises(ValueError, match="other_lights must be a sequence of Light"):
         Tuner(frame, (32.0, 6.0), effect=effect, other_lights=[(10.0, 4.0)])

@@ -22,7 +22,6 @@ from godrays_jax.app.options import (
     SKY_DEPTH_HELP,
     parse_fit_light,
     parse_fov,
-    parse_light_depth,
     parse_light_depths,
     parse_light_tints,
     parse_lights,
@@ -274,19 +273,20 @@ def _add_fit(subparsers) -> None:
         help="one more frame and its target sharing the parameters (repeatable)",
     )  # fmt: skip
     parser.add_argument(
-        "--light", type=parse_fit_light, action="append", metavar="X,Y[,behind]|auto",
-        help="the light's pixel position, once per frame in order (',behind': behind the camera), or 'auto': found "
-        "from the frame and its target before the fit (once for every frame); default: each frame's "
+        "--light", type=parse_fit_light, action="append", metavar="X,Y[,behind][;X,Y...]|auto",
+        help="the light's pixel position, once per frame in order (',behind': behind the camera; several lights "
+        "separated by ';', every one drawn and the fitted fields shared by all), or 'auto': one light found from "
+        "the frame and its target before the fit (once for every frame); default: each frame's godrays:lights or "
         "godrays:light_px metadata; a light found is written beside -o (PARAMS.light.json) for apply --params",
     )  # fmt: skip
     parser.add_argument(
         "--fit-light", action="store_true",
-        help="refine each given or stored light as --light auto finds one, from it, before the fit",
+        help="refine each given or stored light (one a frame) as --light auto finds one, from it, before the fit",
     )  # fmt: skip
-    parser.add_argument(
-        "--light-depth", type=parse_light_depth, metavar="D",
-        help="the light's distance from the camera in scene units, or inf, for every frame; default: each frame's "
-        "godrays:light_depth metadata, else inf",
+    _add_light_depth_and_tint(
+        parser, depth_default="each frame's godrays:lights_depth or godrays:light_depth metadata, else inf",
+        tint_default="each frame's godrays:lights_tint metadata when it stores several lights, else 1,1,1; the "
+        "fitted light_color is the first light's, the others' tints taken over the first's",
     )  # fmt: skip
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: volumetric_haze, VolumetricFog)")

@@ -1,6 +1,7 @@
 """`godrays-jax fit`: fit an effect's parameters to target frames and write them for `apply --params`."""
 
 import contextlib
+import dataclasses
 import os
 import sys
 
@@ -31,7 +32,8 @@ from godrays_jax.app.options import (
     read_target,
     resolve_light_depth,
     warn,
-    warn_of_stored_lights,
+    split_lights,
+    with_stored_lights,
     with_frame_camera,
 )
 from godrays_jax.effects.fields import field_metadata, field_value
@@ -64,7 +66,7 @@ def run(args) -> int:
     effect = effect_option(args.preset, args.params, default=default_fit_effect)
     fov = frame_field_of_view(args, args.buffers)
     effect = with_frame_camera(effect, args, args.buffers)
-    frames, light_positions, in_front, targets, depths = [], [], [], [], []
+    frames, light_positions, in_front, targets, depths, others = [], [], [], [], [], []
     searched = {}  # frame index -> (the frame as read, whether from the target alone) for each light searched for
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = read_buffers(buffers_path, **frame_reading(args))
@@ -74,9 +76,7 @@ def run(args) -> int:
             raise CommandError(
                 f"{target_path} is {target.shape[1]}x{target.shape[0]} but {buffers_path} is {frame.width}x{frame.height}"
             )
-        given = lights[index] if lights else None
-        if given is None:
-            warn_of_stored_lights("fit", buffers_path)
+        given, depth, beside = _frame_lights(args, lights[index] if lights else None, buffers_path)
         (light, front) = first_light(given, frame, target, buffers_path, fit_light=args.fit_light, space=args.space)
         if given == LIGHT_AUTO or args.fit_light:
             searched[index] = (frame, given == LIGHT_AUTO)
@@ -89,7 +89,8 @@ def run(args) -> int:
         frames.append(frame)
         light_positions.append(jnp.asarray(light, jnp.float32))
         in_front.append(bool(front))
-        depths.append(resolve_light_depth(args.light_depth, buffers_path))
+        depths.append(depth)
+        others.append(beside)
         targets.append(target)
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
     if "fov_x_deg" in effect.CAMERA_FIELDS and "fov_x_deg" not in fixed:
@@ -133,8 +134,8 @@ def run(args) -> int:
     try:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
-            fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, progress=progress,
-            coarse_factor=coarse_factor, coarse_jacobian=True, starts=starts,
+            fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, other_lights=others,
+            progress=progress, coarse_factor=coarse_factor, coarse_jacobian=True, starts=starts,
         )  # fmt: skip
     finally:
         bar.close()
@@ -153,7 +154,9 @@ def run(args) -> int:
     _say(f"loss before {result.loss_before:.6g}, after {after:.6g} ({loss_name})")
     fitted_images = result.images_after if args.fractional_counts else result.images_rounded
     _say(_metrics_line(result.images_before, fitted_images, targets))
-    lines = _determination_lines(result, frames, light_positions, targets, in_front, depths, args.space, coarse_factor)
+    lines = _determination_lines(
+        result, frames, light_positions, targets, in_front, depths, others, args.space, coarse_factor
+    )  # fmt: skip
     for line in lines:
         _say(line)
     report = fit_report_image(targets[0], fitted_images[0], result.loss_history) if args.report else None
@@ -167,6 +170,25 @@ def run(args) -> int:
         _say(f"wrote {args.report}")
     _say(f"wrote {args.output}")
     return 0
+
+
+def _frame_lights(args, given, path: str) -> tuple:
+    """A frame's lights: `first_light`'s `given` (`--light`'s first, `LIGHT_AUTO` or None: the header's), the first's
+    distance, and the lights beside it (`effects.lights.Light`s, each tint over the first's: the fitted
+    `light_color` is the first light's), from `--light`, `--light-depth`, `--light-tint` or the frame's header."""
+    if given == LIGHT_AUTO:
+        if args.light_tint is not None or (args.light_depth or [0])[1:]:
+            raise CommandError("--light auto finds one light: give --light-depth once and no --light-tint")
+        return given, resolve_light_depth((args.light_depth or [None])[0], path), []
+    lights, depths, tints = with_stored_lights(path, given, args.light_depth, args.light_tint)
+    first, depth, tint, beside = split_lights(lights, depths, tints, lambda: resolve_light_depth(None, path))
+    if beside and args.fit_light:
+        raise CommandError(f"--fit-light refines one light, and {path} has {len(beside) + 1}: fit without it")
+    first_tint = np.ones(3) if tint is None else np.asarray(tint, np.float64)
+    if not np.all(first_tint > 0):
+        raise CommandError(f"--light-tint: the first light's tint must be above 0 in every channel, got {tint}")
+    beside = [dataclasses.replace(light, tint=np.asarray(light.tint / first_tint, np.float32)) for light in beside]
+    return first, depth, beside
 
 
 def _say(line: str) -> None:
@@ -243,13 +265,13 @@ def _metrics_line(start_images, fitted_images, targets) -> str:
     )
 
 
-def _determination_lines(result, frames, lights, targets, in_front, depths, space, coarse_factor) -> list[str]:
+def _determination_lines(result, frames, lights, targets, in_front, depths, others, space, coarse_factor) -> list[str]:
     """Which fitted parameters the frames leave poorly determined, and what offsets them (`determination`, its
     Jacobian as the fit's polish took it)."""
     try:
         found = determination(
             result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front,
-            light_depth=depths, coarse_factor=coarse_factor,
+            light_depth=depths, other_lights=others, coarse_factor=coarse_factor,
         )
     except ValueError as error:  # the fit stands; only what it can say of it is less
         return [f"cannot tell which fitted parameters the frames determine: {error}"]

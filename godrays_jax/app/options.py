@@ -78,11 +78,6 @@ LIGHTS_SEPARATOR = ";"
 def parse_light(text: str) -> tuple[tuple[float, float], bool]:
     """`"X,Y"` or `"X,Y,front"` or `"X,Y,behind"` -> `((x, y), in_front)`: pixels, both finite numbers, a far light
     moved along its direction to `MAX_LIGHT_PX`; `behind` a light behind the camera (`LIGHT_SIDES`)."""
-    if LIGHTS_SEPARATOR in text:
-        raise argparse.ArgumentTypeError(
-            f"--light takes one light here, got {text!r}; several lights, separated by ';', are apply's, batch's "
-            "and tune's"
-        )
     parts = text.replace(" ", "").split(",")
     side = parts.pop().lower() if len(parts) == 3 else "front"
     usage = f"--light must be X,Y in pixels, or X,Y,behind for a light behind the camera (e.g. 160.5,42), got {text!r}"
@@ -99,8 +94,8 @@ def parse_light(text: str) -> tuple[tuple[float, float], bool]:
 
 
 def parse_lights(text: str) -> list[tuple[tuple[float, float], bool]]:
-    """`apply --light` and `batch --light`: one light as `parse_light` reads it, or several separated by `;`
-    (`"160,40;300,90,behind"`), each drawn by `effects.lights.lit_by`."""
+    """`--light`: one light as `parse_light` reads it, or several separated by `;` (`"160,40;300,90,behind"`),
+    each drawn by `effects.lights.lit_by`."""
     return [parse_light(part) for part in text.split(LIGHTS_SEPARATOR)]
 
 
@@ -168,12 +163,12 @@ LIGHT_AUTO = "auto"
 """`fit --light auto`: the light found from the frame and its target (`pipeline.light_search.find_light`)."""
 
 
-def parse_fit_light(text: str) -> tuple[tuple[float, float], bool] | str:
-    """`fit --light`: `LIGHT_AUTO` (`"auto"`, any case), or a position as `parse_light` reads it."""
+def parse_fit_light(text: str) -> list[tuple[tuple[float, float], bool]] | str:
+    """`fit --light`: `LIGHT_AUTO` (`"auto"`, any case), or a frame's lights as `parse_lights` reads them."""
     if text.strip().lower() == LIGHT_AUTO:
         return LIGHT_AUTO
     try:
-        return parse_light(text)
+        return parse_lights(text)
     except argparse.ArgumentTypeError as error:
         raise argparse.ArgumentTypeError(f"{error}; or auto, to find it from the target") from None
 

@@ -229,9 +229,10 @@ class Tuner:
         light_in_front: whether the light starts in front of the camera.
         light_depth: the light's distance from the camera (scene units, `inf` at infinity), as the frame stores it.
         other_lights: the frame's lights beside that one (`effects.lights.Light`s: a render of several), drawn with
-            it where their light adds (`lit_by`); the page drags each. The layer view and "fit to target" draw one
-            untinted light and refuse them.
-        light_tint: the linear RGB that light's light is multiplied by (`Light.tint`; None or 1: the effect's own).
+            it where their light adds (`lit_by`), "fit to target" too; the page drags each. The layer view draws
+            one untinted light and refuses them.
+        light_tint: the linear RGB that light's light is multiplied by (`Light.tint`; None or 1: the effect's own);
+            "fit to target" fits that light's colour and refuses a tint.
         save_path: where "save" writes the parameters JSON.
         max_preview_pixels: previews have at most this many pixels (see `preview_factor`).
         fit_steps: solver steps at most for "fit to target".
@@ -480,12 +481,12 @@ class Tuner:
         """
         if self.target is None:
             raise TuneRequestError("no target to fit to: start the tuner with --target TARGET")
-        if self.other_lights or self.light_tint is not None:
-            raise TuneRequestError(f"fit to target draws one untinted light and this frame has "
-                                   f"{len(self.other_lights) + 1} lights or a tint: godrays-jax fit --light X,Y fits "
-                                   "through one of them")  # fmt: skip
+        if self.light_tint is not None:
+            raise TuneRequestError("fit to target fits the first light's colour, untinted, and this light has a tint: "
+                                   "godrays-jax fit --light-tint takes the tints over the first's")  # fmt: skip
         effect = self.parse_effect(payload.get("params"))
         light, in_front = self._light(payload)
+        others = self._other_lights(payload)
         fixed = payload.get("fixed", [])
         bounds = self.bounds(effect)
         if not (isinstance(fixed, list) and all(isinstance(name, str) and name in bounds for name in fixed)):
@@ -501,14 +502,15 @@ class Tuner:
             self._fit_cancel.clear()
             self._fit_progress = _fit_state(running=True)
             self._fit_thread = threading.Thread(
-                target=self._run_fit, args=(effect, light, in_front, fixed, bounds, fractional),
+                target=self._run_fit, args=(effect, light, in_front, others, fixed, bounds, fractional),
                 name="godrays-tune-fit", daemon=True,
             )  # fmt: skip
             self._fit_thread.start()
             return dict(self._fit_progress)
 
     def _run_fit(
-        self, effect: Effect, light, in_front: bool, fixed: list[str], bounds: Mapping, fractional: bool
+        self, effect: Effect, light, in_front: bool, others: list[Light], fixed: list[str], bounds: Mapping,
+        fractional: bool,
     ) -> None:
         def progress(step, loss):
             if self._fit_cancel.is_set():
@@ -527,6 +529,7 @@ class Tuner:
                 max_steps=self.fit_steps,
                 light_in_front=in_front,
                 light_depth=self.light_depth,
+                other_lights=[dataclasses.replace(other, xy=other.xy / self.factor) for other in others],
                 progress=progress,
             )
             # Counts rounded, as `godrays-jax fit` saves them, unless the page asks for the relaxation's values.

@@ -345,6 +345,16 @@ def count_fields(effect: "Effect | type[Effect]") -> tuple[str, ...]:
     return tuple(name for name, info in field_metadata(effect).items() if info.count)
 
 
+def round_counts(effect: "Effect") -> "Effect":
+    """The effect with every count field (`FieldInfo.count`) rounded to the nearest integer."""
+    names = count_fields(effect)
+    if not names:
+        return effect
+    return eqx.tree_at(
+        lambda e: [field_value(e, n) for n in names], effect, [jnp.round(field_value(effect, n)) for n in names]
+    )
+
+
 def parameter_bounds(effect: "Effect | type[Effect]") -> dict[str, tuple[float, float]]:
     """`{field name: (low, high)}` for every fittable field of an effect (instance or class).
 

@@ -1,6 +1,7 @@
 """`render_compiled`: an effect's frame compiled once and stored (`exported`), its fields checked beforehand."""
 
 import math
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -9,6 +10,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.effects.base import Effect
+from godrays_jax.effects.lights import Light, lit_by
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.problem import check_inside_bounds, strongly_typed
 from godrays_jax.primitives.buffers import Buffers
@@ -22,8 +24,11 @@ def render_compiled(
     light_xy: Float[ArrayLike, "2"],
     light_in_front: bool,
     light_depth: Float[ArrayLike, ""] = math.inf,
+    *,
+    other_lights: Sequence[Light] = (),
 ) -> Float[Array, "H W C"]:
-    """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own).
+    """`effect(buffers, light_xy, ...)`, compiled (run op by op, each operation would compile on its own); with
+    `other_lights`, the frame under that light and them, their light added (`effects.lights.lit_by`).
 
     Known fields are checked against their bounds here, so that the compiled
     render carries no run-time range check and can be stored (`exported`):
@@ -31,8 +36,10 @@ def render_compiled(
     (`derivatives.values_only`). Traced arguments (a call inside `jit` or a
     derivative) are checked by the kernels when the program runs.
     """
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((effect, buffers, light_xy, light_depth))):
-        return _render(effect, buffers, light_xy, light_in_front, light_depth, True)  # traced: checked when run
+    other_lights = tuple(other_lights)
+    traced = jax.tree.leaves((effect, buffers, light_xy, light_depth, other_lights))
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in traced):  # traced: checked when run
+        return _render(effect, buffers, light_xy, light_in_front, light_depth, other_lights, True)
     check_inside_bounds(effect)
     # Every field an argument of the program: a NumPy value or a weakly typed one would make another program.
     effect = jax.tree.map(strongly_typed, effect)
@@ -42,14 +49,22 @@ def render_compiled(
     # Checked here, so the program is the same whether or not the caller guarantees ranges, and at the default
     # matmul precision whatever the caller's (a fit sets both for its solver): one stored program for every caller.
     with ranges_guaranteed(), jax.default_matmul_precision(None):
-        return exported.call("render", _render, effect, buffers, light_xy, light_in_front, light_depth, False)
+        return exported.call(
+            "render", _render, effect, buffers, light_xy, light_in_front, light_depth, other_lights, False
+        )  # fmt: skip
 
 
 @eqx.filter_jit
-def _render(effect, buffers, light_xy, light_in_front, light_depth, checked):
+def _render(effect, buffers, light_xy, light_in_front, light_depth, other_lights, checked):
     """`checked` is static: a render traced without range checks (nor derivatives) is never reused for one that
     needs them."""
     if checked:
-        return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        return _drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights)
     with ranges_guaranteed(), values_only():
-        return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        return _drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights)
+
+
+def _drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights):
+    if other_lights:
+        return lit_by(effect, buffers, [Light(light_xy, light_in_front, light_depth), *other_lights])
+    return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)

@@ -10,6 +10,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import parameter_bounds
+from godrays_jax.effects.lights import Light
 from godrays_jax.kernels.losses import Space, check_space
 from godrays_jax.pipeline import exported, fit_programs
 from godrays_jax.pipeline.fit_programs import CoarseLinearisation, residuals_and_jacobian
@@ -74,6 +75,7 @@ def determination(
     space: Space = "display",
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
     light_depth: float | Sequence[float] = math.inf,
+    other_lights: Sequence[Light] | Sequence[Sequence[Light]] = (),
     change: float = 0.1,
     threshold: float = 1e-3,
     coarse_factor: int = 1,
@@ -92,7 +94,7 @@ def determination(
 
     Args:
         effect: the solution (e.g. `FitResult.effect`); values inside bounds.
-        buffers, light_xy, target, light_in_front, light_depth: as for `fit`.
+        buffers, light_xy, target, light_in_front, light_depth, other_lights: as for `fit`.
         fitted: the fields to examine (e.g. `FitResult.fitted`).
         space: `"display"` or `"linear"`, as the fit compared.
         change: the step, a fraction of each field's range (> 0).
@@ -116,7 +118,8 @@ def determination(
         raise ValueError(f"coarse_factor must be an int >= 1, got {coarse_factor!r}")
     check_space(space)
     effect = jax.tree.map(strongly_typed, effect)
-    frames, lights, targets, in_front, depths = as_frames(buffers, light_xy, target, light_in_front, light_depth)
+    frame_data = as_frames(buffers, light_xy, target, light_in_front, light_depth, other_lights)
+    frames = frame_data[0]
     every = parameter_bounds(effect)
     if not fitted or not set(fitted) <= set(every):
         raise ValueError(f"fitted must name fittable fields of {type(effect).__name__}, got {list(fitted)}")
@@ -130,7 +133,6 @@ def determination(
     # cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         positions = problem.positions(np.dtype(frames[0].color.dtype))
-        frame_data = (frames, lights, targets, in_front, depths)
         coarse = _polish_linearisation(problem, frame_data, coarse_factor)
         if coarse is None:
             residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)

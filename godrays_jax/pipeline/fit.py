@@ -59,7 +59,8 @@ import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.fields import count_fields, field_value, replace_fields
+from godrays_jax.effects.fields import field_value, replace_fields, round_counts
+from godrays_jax.effects.lights import Light
 from godrays_jax.kernels.losses import LOSSES, Space, check_space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.fit_programs import (
@@ -134,16 +135,6 @@ class FitResult:
     images_before: list = dataclasses.field(default_factory=list, repr=False)
     images_after: list = dataclasses.field(default_factory=list, repr=False)
     images_rounded: list = dataclasses.field(default_factory=list, repr=False)
-
-
-def round_counts(effect: Effect) -> Effect:
-    """The effect with every count field (`FieldInfo.count`) rounded to the nearest integer."""
-    names = count_fields(effect)
-    if not names:
-        return effect
-    return eqx.tree_at(
-        lambda e: [field_value(e, n) for n in names], effect, [jnp.round(field_value(effect, n)) for n in names]
-    )
 
 
 class _StepCounter:
@@ -348,6 +339,7 @@ def fit(
     atol: float = 1e-7,
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
     light_depth: float | Sequence[float] = math.inf,
+    other_lights: Sequence[Light] | Sequence[Sequence[Light]] = (),
     progress: Callable[[int, float], None] | None = None,
     starts: Sequence[Effect] = (),
     probe_steps: int = 3,
@@ -391,6 +383,9 @@ def fit(
         light_in_front: whether each frame's light is in front of the camera.
         light_depth: each frame's light distance along its camera ray, scene units
             (`inf`: the sun), one or one per frame; effects that measure depth read it.
+        other_lights: the frame's lights beside its first (`effects.lights.Light`s: positions, sides, distances
+            and tints, which stay as given), or one such sequence per frame: each frame is then drawn under all of
+            them, their light added (`effects.lights.lit_by`), the fitted fields shared by every light.
         progress: called as `progress(step, loss)` after every step (steps
             counted over every start and both phases; the coarse phase's losses
             are at its resolution).
@@ -453,7 +448,7 @@ def fit(
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
     requested = jax.tree.map(strongly_typed, effect)
-    frame_data = tuple(as_frames(buffers, light_xy, target, light_in_front, light_depth))
+    frame_data = tuple(as_frames(buffers, light_xy, target, light_in_front, light_depth, other_lights))
     given = requested.same_on(frame_data[0])  # drawn alike, more cheaply where the frames allow (`Effect.same_on`)
     chosen = requested.fit_stand_in() if stand_in else requested
     effect = given if chosen is requested else chosen.same_on(frame_data[0])

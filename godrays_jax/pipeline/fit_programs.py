@@ -288,7 +288,10 @@ def host_evaluator(problem: FitProblem, frame_data, dtype, own=None, coarse: Coa
 
 
 def _rendered(candidate: Effect, frame_data) -> list:
-    return [render_compiled(candidate, frame, light, front, depth) for frame, light, _, front, depth in zip(*frame_data)]
+    return [
+        render_compiled(candidate, frame, light, front, depth, other_lights=others)
+        for frame, light, _, front, depth, others in zip(*frame_data)
+    ]
 
 
 @eqx.filter_jit

@@ -11,6 +11,7 @@ import numpy as np
 
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import field_metadata, field_value, parameter_bounds
+from godrays_jax.effects.lights import Light, lit_by
 from godrays_jax.kernels.losses import LOSSES, to_space
 from godrays_jax.primitives.buffers import Buffers
 
@@ -109,11 +110,12 @@ def _per_frame(value, count, name):
     return values
 
 
-def as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf):
-    """Normalise one frame or a sequence of frames into equal-length lists."""
+def as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf, other_lights=()):
+    """Normalise one frame or a sequence of frames into equal-length lists: `(frames, lights, targets, in_front,
+    depths, others)`, `others` each frame's lights beside its first (`effects.lights.Light`s, checked)."""
     if isinstance(buffers, Buffers):
         buffers, light_xy, target, light_in_front = [buffers], [light_xy], [target], [light_in_front]
-        light_depth = [light_depth]
+        light_depth, other_lights = [light_depth], [other_lights]
     else:
         buffers = list(buffers)
         count = len(buffers)
@@ -135,6 +137,11 @@ def as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf):
             raise ValueError(f"target must hold one image per frame ({count}), got {len(target)}")
         light_in_front = _per_frame(light_in_front, count, "light_in_front")
         light_depth = _per_frame(light_depth, count, "light_depth")
+        other_lights = list(other_lights) or [()] * count
+        if len(other_lights) != count:
+            raise ValueError(
+                f"other_lights must hold one sequence of Light per frame ({count}), got {len(other_lights)}"
+            )  # fmt: skip
     lights, targets = [], []
     for index, (frame, light, image) in enumerate(zip(buffers, light_xy, target)):
         light = jnp.asarray(light, frame.color.dtype)
@@ -153,9 +160,32 @@ def as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf):
         if depth.shape != () or not depth > 0:
             raise ValueError(f"light_depth[{index}] must be a distance > 0 in scene units (inf: the sun), got {depth}")
         depths.append(jnp.asarray(np.asarray(depth, frame.color.dtype)))
+    others = [_other_lights(frame_lights, frame.color.dtype, index) for index, (frame, frame_lights)
+              in enumerate(zip(buffers, other_lights))]  # fmt: skip
     # Python bools: static in every compiled program, so an effect that reads the light's side (the shadows read
     # along lines, outward from a light in front, inward from one behind) compiles the side it has alone.
-    return buffers, lights, targets, [bool(np.asarray(flag)) for flag in light_in_front], depths
+    return buffers, lights, targets, [bool(np.asarray(flag)) for flag in light_in_front], depths, others
+
+
+def _other_lights(lights, dtype, frame: int) -> tuple[Light, ...]:
+    """A frame's lights beside its first, as compiled programs take them: position, distance and tint arrays of
+    the frame's dtype, the side a Python bool (static, as the first light's)."""
+    if isinstance(lights, Light) or not all(isinstance(light, Light) for light in lights):
+        raise ValueError(f"other_lights[{frame}] must be a sequence of Light, got {lights!r}")
+    checked = []
+    for index, light in enumerate(lights):
+        name = f"other_lights[{frame}][{index}]"
+        xy, depth = np.asarray(light.xy, np.float64), np.asarray(light.depth, np.float64)
+        tint = np.broadcast_to(np.asarray(light.tint, np.float64), (3,))
+        if xy.shape != (2,) or not np.isfinite(xy).all():
+            raise ValueError(f"{name}.xy must be a finite (x, y) in pixels, got {light.xy!r}")
+        if depth.shape != () or not depth > 0:
+            raise ValueError(f"{name}.depth must be a distance > 0 in scene units (inf: the sun), got {light.depth!r}")
+        if not (np.isfinite(tint).all() and (tint >= 0).all()):
+            raise ValueError(f"{name}.tint must be finite and >= 0 (linear RGB), got {light.tint!r}")
+        xy, depth, tint = (jnp.asarray(value.astype(dtype)) for value in (xy, depth, tint))
+        checked.append(Light(xy=xy, in_front=bool(np.asarray(light.in_front)), depth=depth, tint=tint))
+    return tuple(checked)
 
 
 def _match_channels(image, target):
@@ -261,8 +291,12 @@ class FitProblem(eqx.Module):
         return eqx.tree_at(lambda e: [field_value(e, n) for n in self.names], self.effect, values)
 
     def rendered(self, candidate, frame_data):
-        for frame, light, image, front, depth in zip(*frame_data):
-            yield _match_channels(candidate(frame, light, light_in_front=front, light_depth=depth), image)
+        for frame, light, image, front, depth, others in zip(*frame_data):
+            if others:  # their light added to the first's (`lit_by`)
+                image_now = lit_by(candidate, frame, [Light(light, front, depth), *others])
+            else:
+                image_now = candidate(frame, light, light_in_front=front, light_depth=depth)
+            yield _match_channels(image_now, image)
 
     def residuals(self, y, frame_data):
         return self.residuals_of(self.effect_at(y), frame_data)

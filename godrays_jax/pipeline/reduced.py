@@ -1,5 +1,6 @@
 """A frame and an effect at a reduced resolution: the tuner's previews and the coarse phase of `fit`."""
 
+import dataclasses
 from collections.abc import Mapping
 
 import equinox as eqx
@@ -48,13 +49,14 @@ def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
 
 
 def downsample_frames(frame_data, factor: int) -> tuple:
-    """A fit's frames (`problem.as_frames`'s `(frames, lights, targets, in_front, depths)`) at `1 / factor` of
-    their resolution: the frames as `downsample_buffers`, the lights' positions in its pixels, the targets
+    """A fit's frames (`problem.as_frames`'s `(frames, lights, targets, in_front, depths, others)`) at `1 / factor`
+    of their resolution: the frames as `downsample_buffers`, every light's position in its pixels, the targets
     box-averaged."""
-    frames, lights, targets, in_front, depths = frame_data
+    frames, lights, targets, in_front, depths, others = frame_data
+    others = [tuple(dataclasses.replace(light, xy=light.xy / factor) for light in beside) for beside in others]
     return (
         [downsample_buffers(frame, factor) for frame in frames], [light / factor for light in lights],
-        [downsample_box(image, factor) for image in targets], in_front, depths,
+        [downsample_box(image, factor) for image in targets], in_front, depths, others,
     )  # fmt: skip
 
 

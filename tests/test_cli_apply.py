@@ -222,9 +222,10 @@ def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, 
 
 
 def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one(tmp_path, capsys):
-    """`fit --light 'A;B'` fits the fields under both lights, and `apply --params` with the same lights gives the
-    fitted frame; `--fit-light` (one light refined), `--light auto` with tints and a count of distances that fits
-    neither one nor every light are one line each, with no file written."""
+    """`fit --light 'A;B'` fits the fields under both lights and the second's tint over the first's, from a wrong
+    one, and `apply --params` with the same lights and the tint it prints gives the fitted frame; `--fixed
+    light_tints` keeps the tint given; `--fit-light` (one light refined), `--light auto` with tints and a count of
+    distances that fits neither one nor every light are one line each, with no file written."""
     frame = tmp_path / "frame.exr"
     zs = np.full((16, 24), np.inf, np.float32)
     zs[10:], zs[3:, 8:10] = 4.0, 3.0  # the ground and a post
@@ -240,12 +241,18 @@ def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one
     assert main(["apply", str(frame), "--params", str(truth), *lights, "-o", str(target)]) == 0
     fixed = ",".join(name for name in gr.parameter_bounds(start) if name not in fitted_names)
     arguments = ["fit", str(frame), str(target), "--preset", "xna_crepuscular", "-o", str(params), "--max-steps", "20"]
-    assert main([*arguments, *lights, "--fixed", fixed]) == 0
+    wrong = [*lights[:2], "--light-tint", "1;1"]
+    assert main([*arguments, *wrong, "--fixed", fixed]) == 0
     out = capsys.readouterr().out
-    after = float(re.search(r"loss before \S+, after (\S+)", out).group(1))
-    assert after < 1e-6
-    assert main(["apply", str(frame), "--params", str(params), *lights, "-o", str(fitted)]) == 0
+    assert float(re.search(r"loss before \S+, after (\S+)", out).group(1)) < 1e-6
+    tints = re.search(r"light_tints = (\S+) ", out).group(1)
+    np.testing.assert_allclose([float(v) for v in tints.split(";")[1].split(",")], 0.5, rtol=0.01)
+    fitted_lights = [*lights[:2], "--light-tint", tints]
+    assert main(["apply", str(frame), "--params", str(params), *fitted_lights, "-o", str(fitted)]) == 0
     np.testing.assert_allclose(gr.read_image(fitted), gr.read_image(target), atol=1e-3)
+    assert main([*arguments, *wrong, "--fixed", f"{fixed},light_tints"]) == 0
+    out = capsys.readouterr().out
+    assert "light_tints =" not in out and float(re.search(r"loss before \S+, after (\S+)", out).group(1)) > 1e-5
     for extra, message in (
         (["--light", "5.5,3;16,2", "--fit-light"], "--fit-light refines one light"),
         (["--light", "auto", "--light-tint", "1;0.5"], "--light auto finds one light"),

@@ -90,19 +90,26 @@ def test_several_frames_recover_one_parameter_set_from_another_start(two_frame_f
     assert float(result.effect.num_samples) == 8.0
 
 
-def test_a_frame_of_several_lights_is_fitted_under_all_of_them():
+def test_a_frame_of_several_lights_is_fitted_under_all_of_them_with_their_tints():
     """`other_lights`: the frame is drawn under its first light and the others (`lit_by`), in the coarse phase (every
-    light's position scaled), the descent on the coarse Jacobian and the polish alike; `determination` takes them
-    too. The same fit through the first light alone cannot reach the frame: the second's rays are missing."""
+    light's position scaled), the descent on the coarse Jacobian and the polish alike, and the other lights' tints
+    are fitted with the fields, from a wrong start; `determination` takes the lights too. The same fit through the
+    first light alone, or with the tints held at a wrong start, cannot reach the frame."""
     frame = _frame(0)
-    lamp = gr.Light(xy=jnp.array([6.0, 3.0]), tint=(0.5, 0.4, 0.3))
+    tint = np.array([0.5, 0.4, 0.3], np.float32)
+    lamp = gr.Light(xy=jnp.array([6.0, 3.0]), tint=tint)
     truth = _rays(**TRUTH)
     target = gr.lit_by(truth, frame, [gr.Light(xy=LIGHT), lamp])
-    both = fit(_rays(**START), frame, LIGHT, target, other_lights=[lamp], fixed=FIXED_RAYS, max_steps=30,
+    untinted = dataclasses.replace(lamp, tint=(1.0, 1.0, 1.0))
+    both = fit(_rays(**START), frame, LIGHT, target, other_lights=[untinted], fixed=FIXED_RAYS, max_steps=30,
                coarse_factor=2, coarse_jacobian=True)  # fmt: skip
     for name in both.fitted:
         np.testing.assert_allclose(getattr(both.effect, name), TRUTH[name], rtol=0.02, err_msg=name)
+    np.testing.assert_allclose(both.light_tints, [tint], rtol=0.02)
     np.testing.assert_allclose(both.images_after[0], target, atol=2e-3)
+    held = fit(_rays(**START), frame, LIGHT, target, other_lights=[untinted], fit_light_tints=False, fixed=FIXED_RAYS,
+               max_steps=30, coarse_factor=2, coarse_jacobian=True)  # fmt: skip
+    assert held.light_tints is None and held.loss_after > 100 * both.loss_after
     first = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, coarse_factor=2,
                 coarse_jacobian=True)  # fmt: skip
     assert first.loss_after > 100 * both.loss_after

@@ -286,7 +286,8 @@ def _add_fit(subparsers) -> None:
     _add_light_depth_and_tint(
         parser, depth_default="each frame's godrays:lights_depth or godrays:light_depth metadata, else inf",
         tint_default="each frame's godrays:lights_tint metadata when it stores several lights, else 1,1,1; the "
-        "fitted light_color is the first light's, the others' tints taken over the first's",
+        "fitted light_color is the first light's, the others' tints taken over the first's and fitted from there "
+        "(--fixed light_tints keeps them)",
     )  # fmt: skip
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", choices=sorted(PRESETS), help="start from a preset (default: volumetric_haze, VolumetricFog)")
@@ -300,7 +301,11 @@ def _add_fit(subparsers) -> None:
         "--solver", choices=("auto", "levenberg_marquardt", "gauss_newton", "bfgs"), default="auto",
         help="auto: Levenberg-Marquardt for mse, BFGS otherwise; gauss_newton needs a start near the solution",
     )  # fmt: skip
-    parser.add_argument("--fixed", metavar="A,B", help="comma-separated fields to keep as they are")
+    parser.add_argument(
+        "--fixed", metavar="A,B",
+        help="comma-separated fields to keep as they are (light_tints: the tints of the lights beside the first, "
+        "which a fit of several lights fits by default)",
+    )  # fmt: skip
     parser.add_argument("--max-steps", type=int, default=50, help="solver steps at most, in each phase (default 50)")
     parser.add_argument(
         "--coarse-factor", type=int, metavar="N",

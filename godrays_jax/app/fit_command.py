@@ -41,7 +41,8 @@ from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.determination import determination
-from godrays_jax.pipeline.fit import fit, polishes
+from godrays_jax.pipeline.fit import fit
+from godrays_jax.pipeline.fit_phases import polishes
 from godrays_jax.pipeline.frame_start import ground_layer_start
 from godrays_jax.pipeline.light_search import find_light
 from godrays_jax.pipeline.problem import fitted_bounds
@@ -93,6 +94,8 @@ def run(args) -> int:
         others.append(beside)
         targets.append(target)
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
+    fit_tints = LIGHT_TINTS not in fixed  # the tints of the lights beside the first: not a field of the effect
+    fixed = tuple(name for name in fixed if name != LIGHT_TINTS)
     if "fov_x_deg" in effect.CAMERA_FIELDS and "fov_x_deg" not in fixed:
         if fov is not None:
             fixed += ("fov_x_deg",)  # the frame's camera says it: not a parameter to fit
@@ -135,7 +138,8 @@ def run(args) -> int:
         result = fit(
             effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
             fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, other_lights=others,
-            progress=progress, coarse_factor=coarse_factor, coarse_jacobian=True, starts=starts,
+            fit_light_tints=fit_tints, progress=progress, coarse_factor=coarse_factor, coarse_jacobian=True,
+            starts=starts,
         )  # fmt: skip
     finally:
         bar.close()
@@ -144,6 +148,11 @@ def run(args) -> int:
     _say(f"fitted {type(chosen).__name__} ({_steps_line(result, coarse_factor)}):")
     for name in result.fitted:
         _say(f"  {name} = {values[name]}")
+    if result.light_tints is not None:
+        tints = ";".join(["1", *(",".join(f"{value:.6g}" for value in tint) for tint in result.light_tints)])
+        _say(f"  {LIGHT_TINTS} = {tints} (each light's over the first's: apply --light-tint '{tints}')")
+        others = [[dataclasses.replace(light, tint=tint) for light, tint in zip(beside, result.light_tints)]
+                  for beside in others]  # fmt: skip
     if result.start:
         _say(f"started from the fitted fields of {start_names[result.start - 1]} (a lower loss than the start given)")
     if effect.fit_stand_in() is not effect:
@@ -170,6 +179,10 @@ def run(args) -> int:
         _say(f"wrote {args.report}")
     _say(f"wrote {args.output}")
     return 0
+
+
+LIGHT_TINTS = "light_tints"
+"""The fitted tints of the lights beside each frame's first, as `fit` prints them and `--fixed` names them."""
 
 
 def _frame_lights(args, given, path: str) -> tuple:

@@ -115,6 +115,9 @@ class Effect(Part):
     """The stages (of `FIELD_STAGES`) whose columns of `fit`'s Jacobian are central differences of two renders
     without derivatives (`values_only`) instead of forward-mode lanes: fields that reach a large intermediate the
     other fields of their stage do not, whose tangent would hold a copy of it per lane."""
+    LIGHT_TINT_STAGE: typing.ClassVar[str] = ""
+    """The stage (of `FIELD_STAGES`) where the tints of several lights enter (`effects.lights.lit_by` multiplies
+    each light's part by its own): `fit`'s Jacobian takes a fitted tint's columns there."""
     CAMERA_FIELDS: typing.ClassVar[tuple[str, ...]] = ()
     """The fields in which the effect reads its frame's camera (`with_camera`): `"fov_x_deg"`, and `"near_plane"`
     with `"far_plane"`."""

@@ -128,6 +128,7 @@ class VolumetricFog(Effect):
     # docs/findings.md). Its column by differences costs two renders and a frame's memory.
     DIFFERENCED_STAGES: ClassVar[tuple[str, ...]] = ("camera",)
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
+    LIGHT_TINT_STAGE: ClassVar[str] = "sum"  # a light's tint multiplies its in-scattering and its share of the surface
 
     def same_on(self, frames: Sequence[Buffers]) -> "VolumetricFog":
         """On frames with no finite depth above 0 (all sky; surfaces at the eye are slabs of no depth) nothing

@@ -61,7 +61,7 @@ from jaxtyping import ArrayLike, Bool, Float
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import field_value, replace_fields, round_counts
 from godrays_jax.effects.lights import Light
-from godrays_jax.kernels.losses import LOSSES, Space, check_space
+from godrays_jax.kernels.losses import Space
 from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.fit_programs import (
     CoarseLinearisation,
@@ -73,6 +73,7 @@ from godrays_jax.pipeline.fit_programs import (
     solver_init,
     solver_step,
 )
+from godrays_jax.pipeline.fit_phases import Phases
 from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState
 from godrays_jax.pipeline.problem import (
     FitProblem,
@@ -80,15 +81,15 @@ from godrays_jax.pipeline.problem import (
     check_inside_bounds,
     fitted_bounds,
     folded_positions,
+    light_tints,
     start_point,
     strongly_typed,
+    tint_range,
+    with_light_tints,
 )
 from godrays_jax.pipeline.reduced import clip_to_bounds, downsample_frames, scale_pixel_fields
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
-
-SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
-
 
 @dataclasses.dataclass(frozen=True)
 class FitResult:
@@ -117,6 +118,8 @@ class FitResult:
         polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt).
         images_before, images_after, images_rounded: each frame as the effect given, `effect` and `rounded`
             render it (`(H, W, C)` linear, as `apply` renders it), from which the losses were taken.
+        light_tints: the fitted tints of the lights beside each frame's first, `(K, 3)` (`fit_light_tints`), the
+            images' and losses' after the fit; None where none were fitted.
     """
 
     effect: Effect
@@ -132,6 +135,7 @@ class FitResult:
     coarse_steps: int = 0
     start: int = 0
     polish_steps: int = 0
+    light_tints: np.ndarray | None = None
     images_before: list = dataclasses.field(default_factory=list, repr=False)
     images_after: list = dataclasses.field(default_factory=list, repr=False)
     images_rounded: list = dataclasses.field(default_factory=list, repr=False)
@@ -160,32 +164,6 @@ def _start_like(effect: Effect, other: Effect, bounds: dict[str, tuple[float, fl
 def _same_values(effect: Effect, other: Effect, names: Sequence[str]) -> bool:
     """Whether two effects hold equal values in the fields `names`."""
     return all(np.array_equal(np.asarray(field_value(effect, n)), np.asarray(field_value(other, n))) for n in names)
-
-
-def _solver(solver, loss, rtol, atol):
-    if not isinstance(solver, str):
-        if not isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
-            raise ValueError("solver must be a name or an optimistix least-squares solver or minimiser")
-        if isinstance(solver, optx.AbstractLeastSquaresSolver) and loss != "mse":
-            raise ValueError(f"a least-squares solver fits loss='mse' only, got loss={loss!r}: use a minimiser")
-        return solver
-    if solver not in SOLVERS:
-        raise ValueError(f"solver must be one of {', '.join(SOLVERS)}; got {solver!r}")
-    if solver == "auto":
-        solver = "levenberg_marquardt" if loss == "mse" else "bfgs"
-    if solver in ("levenberg_marquardt", "gauss_newton") and loss != "mse":
-        raise ValueError(f"solver={solver!r} fits least squares (loss='mse') only; use solver='bfgs' for loss={loss!r}")
-    if solver == "levenberg_marquardt":  # on the host (`marquardt`): no phase compiles a solver step of its own
-        return LevenbergMarquardt(rtol=rtol, atol=atol)
-    if solver == "gauss_newton":
-        return optx.GaussNewton(rtol=rtol, atol=atol)
-    return optx.BFGS(rtol=rtol, atol=atol)
-
-
-def polishes(solver, loss: str) -> bool:
-    """Whether `fit(solver=solver, loss=loss)` follows its descent with the polish phase (Marquardt's scaling):
-    after the Levenberg-Marquardt that `solver` names ("auto" for MSE); a solver the caller built runs as it is."""
-    return isinstance(solver, str) and loss == "mse" and solver in ("auto", "levenberg_marquardt")
 
 
 @eqx.filter_jit
@@ -234,7 +212,7 @@ class _Run:
 
 def _descend(
     candidates, bounds, frame_data, counter, *, optimiser, least_squares, loss, space, max_steps, probe_steps,
-    plateau_steps, plateau_rtol, own=None, coarse=None,
+    plateau_steps, plateau_rtol, tint_high=None, own=None, coarse=None,
 ) -> tuple[list[_Run], int]:
     """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
@@ -244,8 +222,11 @@ def _descend(
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
     keeps its own solver state, so a start that goes on is not started again.
     """
-    frames = frame_data[0]
-    problems = [FitProblem.of(candidate, bounds, frames, loss=loss, space=space) for candidate in candidates]
+    frames, tints = frame_data[0], None if tint_high is None else light_tints(frame_data)
+    problems = [
+        FitProblem.of(candidate, bounds, frames, loss=loss, space=space, light_tints=tints, tint_high=tint_high)
+        for candidate in candidates
+    ]
     dtype = np.dtype(frames[0].color.dtype)
     data = (problems[0], frame_data)
     runs = []
@@ -308,6 +289,11 @@ def _effect_of_run(run: _Run) -> Effect:
     return _fitted_effects(run.problem, jnp.asarray(run.positions(), dtype))[0]
 
 
+def _frames_of_run(run: _Run, frame_data) -> tuple:
+    """`frame_data` with the lights' tints at a run's last accepted point (as they are where it fits none)."""
+    return run.problem.frames_at_positions(jnp.asarray(run.positions(), frame_data[0][0].color.dtype), frame_data)
+
+
 def plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
     """Whether the loss has stopped moving: it fell by less than `plateau_rtol` of itself over the last
     `plateau_steps` steps, all taken since it first fell.
@@ -340,6 +326,7 @@ def fit(
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
     light_depth: float | Sequence[float] = math.inf,
     other_lights: Sequence[Light] | Sequence[Sequence[Light]] = (),
+    fit_light_tints: bool = True,
     progress: Callable[[int, float], None] | None = None,
     starts: Sequence[Effect] = (),
     probe_steps: int = 3,
@@ -384,8 +371,11 @@ def fit(
         light_depth: each frame's light distance along its camera ray, scene units
             (`inf`: the sun), one or one per frame; effects that measure depth read it.
         other_lights: the frame's lights beside its first (`effects.lights.Light`s: positions, sides, distances
-            and tints, which stay as given), or one such sequence per frame: each frame is then drawn under all of
-            them, their light added (`effects.lights.lit_by`), the fitted fields shared by every light.
+            and tints), or one such sequence per frame: each frame is then drawn under all of them, their light
+            added (`effects.lights.lit_by`), the fitted fields shared by every light.
+        fit_light_tints: with `other_lights`, fit their tints too, jointly with the fields (the `k`-th light
+            beside every frame's first sharing one tint, from the first frame's; up to `problem.TINT_RANGE` times
+            the largest given): `FitResult.light_tints`. False: the tints stay as given.
         progress: called as `progress(step, loss)` after every step (steps
             counted over every start and both phases; the coarse phase's losses
             are at its resolution).
@@ -440,15 +430,21 @@ def fit(
         A `FitResult`: fitted effect, rounded-count effect, loss history and
         the losses before, after and after rounding.
     """
-    phases = _Phases.of(
+    frame_data = tuple(as_frames(buffers, light_xy, target, light_in_front, light_depth, other_lights))
+    tints = light_tints(frame_data) if fit_light_tints else None
+    if tints is not None:  # every frame's from the first's
+        if len({len(beside) for beside in frame_data[5]}) > 1:
+            raise ValueError("other_lights must hold as many lights in every frame to fit their tints")
+        frame_data = with_light_tints(frame_data, tints)
+    phases = Phases.of(
         loss=loss, space=space, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol, probe_steps=probe_steps,
         coarse_factor=coarse_factor, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
         coarse_plateau_rtol=coarse_plateau_rtol, coarse_jacobian=coarse_jacobian,
+        tint_high=None if tints is None else tint_range(tints),
     )  # fmt: skip
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
     # loss compile twice: once for them, once for the fitted effect's.
     requested = jax.tree.map(strongly_typed, effect)
-    frame_data = tuple(as_frames(buffers, light_xy, target, light_in_front, light_depth, other_lights))
     given = requested.same_on(frame_data[0])  # drawn alike, more cheaply where the frames allow (`Effect.same_on`)
     chosen = requested.fit_stand_in() if stand_in else requested
     effect = given if chosen is requested else chosen.same_on(frame_data[0])
@@ -463,11 +459,12 @@ def fit(
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         problem = FitProblem.of(effect, bounds, frame_data[0], loss=loss, space=space)
         loss_before, images_before = effect_loss(problem, given, frame_data)
-        candidates, coarse_start, coarse = _coarse_phase(phases, candidates, bounds, frame_data, counter)
+        candidates, coarse_start, coarse, frame_data = _coarse_phase(phases, candidates, bounds, frame_data, counter)
         coarse_steps = counter.steps
         runs, winner = _descend(candidates, bounds, frame_data, counter, **phases.descend, coarse=coarse)
         start_index = origins[winner if coarse_start is None else coarse_start]
         run = runs[winner]
+        frame_data = _frames_of_run(run, frame_data)
         history = run.history if coarse_start is None and start_index == 0 else [loss_before, *run.history]
         def own(positions):  # through a stand-in, the polish's residuals: the effect given, at the positions
             return _as_given(given, effect, _fitted_effects(problem, positions)[0], names)
@@ -477,6 +474,7 @@ def fit(
         )  # fmt: skip
         history = [*history, *polish_history]
         positions = jnp.asarray(run.positions(), np.dtype(frame_data[0][0].color.dtype))
+        frame_data = _frames_of_run(run, frame_data)
         fitted_effect, rounded = (_as_given(given, effect, e, names) for e in _fitted_effects(run.problem, positions))
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
@@ -500,41 +498,8 @@ def fit(
         coarse_steps=coarse_steps,
         start=start_index,
         polish_steps=polish_steps,
+        light_tints=None if tints is None else np.asarray(light_tints(frame_data)),
     )
-
-
-@dataclasses.dataclass(frozen=True)
-class _Phases:
-    """How a fit runs, from `fit`'s keyword arguments (checked): its solver and the polish's, and the settings of
-    its descents (`_descend`'s keywords), at full and at the coarse resolution."""
-
-    optimiser: object
-    polisher: LevenbergMarquardt | None
-    descend: dict
-    coarse_factor: int
-    coarse_plateau_rtol: float
-    coarse_jacobian: bool
-
-    @classmethod
-    def of(cls, *, loss, space, solver, max_steps, rtol, atol, probe_steps, coarse_factor, plateau_steps,
-           plateau_rtol, coarse_plateau_rtol, coarse_jacobian) -> "_Phases":  # fmt: skip
-        if loss not in LOSSES:
-            raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
-        for name, value, least in (("max_steps", max_steps, 0), ("probe_steps", probe_steps, 1),
-                                   ("coarse_factor", coarse_factor, 1), ("plateau_steps", plateau_steps, 0)):  # fmt: skip
-            if not (isinstance(value, int) and value >= least):
-                raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
-        if not (plateau_rtol >= 0 and coarse_plateau_rtol >= 0):
-            raise ValueError(f"plateau_rtol and coarse_plateau_rtol must be >= 0, got {plateau_rtol!r}, {coarse_plateau_rtol!r}")
-        check_space(space)
-        optimiser = _solver(solver, loss, rtol, atol)
-        descend = dict(
-            optimiser=optimiser, least_squares=isinstance(optimiser, (LevenbergMarquardt, optx.AbstractLeastSquaresSolver)),
-            loss=loss, space=space, max_steps=max_steps, probe_steps=probe_steps, plateau_steps=plateau_steps,
-            plateau_rtol=plateau_rtol,
-        )  # fmt: skip
-        polisher = LevenbergMarquardt(rtol=rtol, atol=atol, scaled=True) if polishes(solver, loss) else None
-        return cls(optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol, bool(coarse_jacobian))
 
 
 def _distinct_starts(effect: Effect, starts: Sequence[Effect], bounds) -> tuple[list[Effect], list[int]]:
@@ -549,14 +514,15 @@ def _distinct_starts(effect: Effect, starts: Sequence[Effect], bounds) -> tuple[
 
 
 def _coarse_phase(
-    phases: _Phases, candidates, bounds, frame_data, counter
-) -> tuple[list[Effect], int | None, CoarseLinearisation | None]:
+    phases: Phases, candidates, bounds, frame_data, counter
+) -> tuple[list[Effect], int | None, CoarseLinearisation | None, tuple]:
     """With a coarse factor, the starts race at the reduced resolution (`reduced.downsample_buffers`) and the
-    winner descends there: its result at full resolution as the one start left, the index of the start that won
-    and the linearisation at the coarse resolution (`coarse_jacobian`, else None). Without, the starts and Nones."""
+    winner descends there: its result at full resolution as the one start left, the index of the start that won,
+    the linearisation at the coarse resolution (`coarse_jacobian`, else None) and `frame_data` with the lights'
+    tints it fitted. Without, the starts, Nones and `frame_data`."""
     factor = phases.coarse_factor
     if factor == 1:
-        return candidates, None, None
+        return candidates, None, None, frame_data
     reduced = downsample_frames(frame_data, factor)
     scaled = [scale_pixel_fields(candidate, 1.0 / factor) for candidate in candidates]
     coarse_runs, winner = _descend(
@@ -565,11 +531,12 @@ def _coarse_phase(
     fine_start = _effect_of_run(coarse_runs[winner])
     linearises = phases.coarse_jacobian and isinstance(phases.optimiser, LevenbergMarquardt)
     linearisation = CoarseLinearisation.of(coarse_runs[winner].problem, reduced, factor) if linearises else None
-    return [clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)], winner, linearisation
+    fine_start = clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)
+    return [fine_start], winner, linearisation, _frames_of_run(coarse_runs[winner], frame_data)
 
 
 def _polish_phase(
-    phases: _Phases, run: _Run, bounds, frame_data, counter, own, coarse: CoarseLinearisation | None
+    phases: Phases, run: _Run, bounds, frame_data, counter, own, coarse: CoarseLinearisation | None
 ) -> tuple[_Run, list[float], int]:
     """The polish after Levenberg-Marquardt (Marquardt's scaling, from where `run` stopped): its run, its losses
     (one per step, as a descent's: its first where it starts) and its steps. Through a stand-in it takes the

@@ -94,13 +94,17 @@ def differenced_columns(function, vector, *, positions: bool = False):
 
 def residual_function(y, data):
     problem, frame_data = data
-    residuals = lambda *vectors: problem.residuals_of(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+    def residuals(*vectors):
+        return problem.residuals_of(problem.effect_of_groups(vectors), problem.frames_of_groups(vectors, frame_data))
+
     return forward_mode(residuals, problem.lane_groups, problem.differenced_groups)(y), None
 
 
 def objective_function(y, data):
     problem, frame_data = data
-    objective = lambda *vectors: problem.objective(problem.effect_of_groups(vectors), frame_data)  # noqa: E731
+    def objective(*vectors):
+        return problem.objective(problem.effect_of_groups(vectors), problem.frames_of_groups(vectors, frame_data))
+
     return forward_mode(objective, problem.lane_groups, problem.differenced_groups)(y), None
 
 
@@ -121,7 +125,8 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
 
         def along(own, index=index):
             groups_now = [*vectors[:index], own, *vectors[index + 1 :]]
-            return problem.residuals_of(problem.effect_of_groups(groups_now, positions=True), frame_data)
+            frames_now = problem.frames_of_groups(groups_now, frame_data, positions=True)
+            return problem.residuals_of(problem.effect_of_groups(groups_now, positions=True), frames_now)
 
         if index in problem.differenced_groups:
             columns.append(differenced_columns(along, vector, positions=True))
@@ -131,7 +136,8 @@ def residuals_and_jacobian(problem: FitProblem, positions, frame_data):
         columns.append(jacobian)
     if residuals is None:  # every column differenced
         with values_only():
-            residuals = problem.residuals_of(problem.effect_of_groups(vectors, positions=True), frame_data)
+            frames_now = problem.frames_of_groups(vectors, frame_data, positions=True)
+            residuals = problem.residuals_of(problem.effect_of_groups(vectors, positions=True), frames_now)
     order = np.argsort(np.concatenate(groups))
     return residuals, jnp.concatenate(columns, axis=-1)[:, order]
 
@@ -237,8 +243,9 @@ def rendered_differences(problem: FitProblem, positions, frame_data, unknowns) -
         upper[index] = min(upper[index] + DIFFERENCE_STEP, 1.0)
         lower[index] = max(lower[index] - DIFFERENCE_STEP, 0.0)
         above, below = (
-            np.asarray(effect_residuals(problem, problem.effect_at_positions(jnp.asarray(at)), frame_data), np.float64)
-            for at in (upper, lower)
+            np.asarray(effect_residuals(problem, problem.effect_at_positions(at), problem.frames_at_positions(
+                at, frame_data)), np.float64)
+            for at in (jnp.asarray(upper), jnp.asarray(lower))
         )  # fmt: skip
         columns.append((above - below) / (float(upper[index]) - float(lower[index])))
     return np.stack(columns, axis=-1)
@@ -278,7 +285,8 @@ def host_evaluator(problem: FitProblem, frame_data, dtype, own=None, coarse: Coa
             return normal * np.outer(slope, slope), gradient * slope
 
         if own is not None:
-            residuals = np.asarray(effect_residuals(problem, own(positions), frame_data))
+            frames_now = problem.frames_at_positions(positions, frame_data)
+            residuals = np.asarray(effect_residuals(problem, own(positions), frames_now))
             return residuals, lambda: linearise(residuals=residuals)
         residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
         residuals = np.asarray(residuals)

@@ -1,6 +1,7 @@
 """What a fit solves: the fitted fields' bounds, the frames normalised, the unknowns mapped into the bounds, the
 residuals and the loss; `fit` and `determination` share it."""
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -193,12 +194,41 @@ def _match_channels(image, target):
     return image[..., :channels], target[..., :channels]
 
 
+def light_tints(frame_data) -> jax.Array | None:
+    """The tints of the lights beside each frame's first (`as_frames`' `others`), `(K, 3)`, the first frame's (a fit
+    shares them over its frames); None where the frames have no other light."""
+    others = frame_data[5][0]
+    return jnp.stack([jnp.asarray(light.tint) for light in others]) if others else None
+
+
+def with_light_tints(frame_data, tints) -> tuple:
+    """`frame_data` with the `k`-th light beside every frame's first tinted `tints[k]`."""
+    others = [
+        tuple(dataclasses.replace(light, tint=tint) for light, tint in zip(beside, tints)) for beside in frame_data[5]
+    ]
+    return (*frame_data[:5], others)
+
+
+TINT_RANGE = 8.0
+"""The fitted tints' upper bound, in units of the largest tint they start from (and at least this): a light's
+tint over the first's, which the fit moves from the tint given."""
+
+
+def tint_range(light_tints) -> float:
+    """The upper bound of fitted tints that start at `light_tints` (`TINT_RANGE` times the largest, at least)."""
+    return TINT_RANGE * max(1.0, float(np.max(light_tints))) if light_tints is not None else TINT_RANGE
+
+
 class FitProblem(eqx.Module):
     """What a fit's objective needs besides the unknowns; static fields make compilations reusable.
 
-    Every field but `effect` is static and hashable, and the objective
+    Every field but `effect` and `light_tints` is static and hashable, and the objective
     functions below are module-level, so two fits of the same effect type,
     fitted names, frame sizes and options reuse one compiled solver step.
+
+    `light_tints`, where not None, are fitted too: the tints of the lights beside each frame's first (`(K, 3)`,
+    shared by every frame, their start), unknowns after the fields' in `[0, tint_high]`, in the effect's
+    `LIGHT_TINT_STAGE`; the frames then render with the tints the unknowns give (`frames_at`).
     """
 
     effect: Effect
@@ -209,11 +239,20 @@ class FitProblem(eqx.Module):
     loss: str = eqx.field(static=True)
     space: str = eqx.field(static=True)
     stages: tuple[str, ...] = eqx.field(static=True)
+    light_tints: jax.Array | None = None
+    tint_high: float = eqx.field(static=True, default=TINT_RANGE)
 
     @classmethod
-    def of(cls, effect: Effect, bounds: dict[str, tuple[float, float]], frames, *, loss: str, space: str):
-        """The problem of fitting `bounds`' fields of `effect` to `frames`, each frame weighted by its pixel count."""
+    def of(
+        cls, effect: Effect, bounds: dict[str, tuple[float, float]], frames, *, loss: str, space: str,
+        light_tints: jax.Array | None = None, tint_high: float | None = None,
+    ):  # fmt: skip
+        """The problem of fitting `bounds`' fields of `effect` (and `light_tints`, where given, in `[0, tint_high]`:
+        by default `TINT_RANGE` times the largest of them, and at least that) to `frames`, each frame weighted by
+        its pixel count."""
         total_pixels = sum(frame.height * frame.width for frame in frames)
+        if tint_high is None:
+            tint_high = tint_range(light_tints)
         return cls(
             effect=effect,
             names=tuple(bounds),
@@ -223,12 +262,22 @@ class FitProblem(eqx.Module):
             loss=loss,
             space=space,
             stages=tuple(type(effect).FIELD_STAGES.get(name, "") for name in bounds),
+            light_tints=light_tints,
+            tint_high=tint_high,
         )
+
+    @property
+    def blocks(self) -> list[tuple[tuple[float, float], tuple[int, ...], str]]:
+        """Each block of unknowns' bounds, shape and stage: the fields', then the tints' where they are fitted."""
+        blocks = list(zip(self.bounds, self.shapes, self.stages))
+        if self.light_tints is not None:
+            blocks.append(((0.0, self.tint_high), tuple(self.light_tints.shape), type(self.effect).LIGHT_TINT_STAGE))
+        return blocks
 
     @property
     def group_stages(self) -> tuple[str, ...]:
         """The stage of each of `lane_groups`, in its order."""
-        return tuple(dict.fromkeys(self.stages))
+        return tuple(dict.fromkeys(stage for _, _, stage in self.blocks))
 
     @property
     def differenced_groups(self) -> tuple[int, ...]:
@@ -245,7 +294,7 @@ class FitProblem(eqx.Module):
     def lane_groups(self) -> tuple[tuple[int, ...], ...]:
         """The unknowns' indices grouped by their fields' stage (`Effect.FIELD_STAGES`), in order of first appearance."""
         groups, offset = {}, 0
-        for stage, shape in zip(self.stages, self.shapes):
+        for _, shape, stage in self.blocks:
             size = math.prod(shape)
             groups.setdefault(stage, []).extend(range(offset, offset + size))
             offset += size
@@ -255,24 +304,45 @@ class FitProblem(eqx.Module):
         """`effect_at` of the unknowns given as one vector per group of `lane_groups`, in its order (a field's
         value then carries a derivative only where its own group's vector does); `positions`: the vectors hold
         positions in the fields' ranges (`effect_at_positions`) instead."""
-        to_value = _linear if positions else from_unit
+        return self._effect_of(self._in_order(vectors), to_value=_linear if positions else from_unit)
+
+    def frames_of_groups(self, vectors, frame_data, *, positions: bool = False):
+        """`frame_data` with the lights' tints the unknowns give (`frames_at`), from one vector per group."""
+        return self._frames_of(self._in_order(vectors), frame_data, to_value=_linear if positions else from_unit)
+
+    def _in_order(self, vectors):
+        """The unknowns in order from one vector per group of `lane_groups` (a list of scalars where several)."""
         if len(vectors) == 1:  # one stage: the unknowns in order
-            return self._effect_of(vectors[0], to_value=to_value)
+            return vectors[0]
         unknowns = {}
         for vector, group in zip(vectors, self.lane_groups):
             unknowns |= {index: vector[position] for position, index in enumerate(group)}
-        return self._effect_of([unknowns[index] for index in range(len(unknowns))], to_value=to_value)
+        return [unknowns[index] for index in range(len(unknowns))]
 
     def effect_at(self, y):
         """The effect with the fitted fields set from the flat unit-scaled unknowns `y`."""
         return self._effect_of(y)
 
+    def frames_at(self, y, frame_data):
+        """`frame_data` with the fitted tints from the flat unit-scaled unknowns `y` (as given without them)."""
+        return self._frames_of(y, frame_data)
+
+    def frames_at_positions(self, positions, frame_data):
+        """`frame_data` with the fitted tints at `positions` in their range (`effect_at_positions`'s map)."""
+        return self._frames_of(positions, frame_data, to_value=_linear)
+
+    def tints_at_positions(self, positions) -> jax.Array | None:
+        """The fitted tints at `positions` in their range, `(K, 3)`; None where the tints are not fitted."""
+        return None if self.light_tints is None else self._tints_of(positions, _linear)
+
     def positions(self, dtype):
-        """Where the effect's fitted values sit in their ranges, flat: 0 on the lower bound, 1 on the upper."""
-        return jnp.concatenate([
-            jnp.ravel((jnp.asarray(field_value(self.effect, name), dtype) - low) / (high - low))
-            for name, (low, high) in zip(self.names, self.bounds)
-        ])  # fmt: skip
+        """Where the effect's fitted values (then the tints) sit in their ranges, flat: 0 on the lower bound, 1 on
+        the upper."""
+        values = [jnp.asarray(field_value(self.effect, name), dtype) for name in self.names]
+        if self.light_tints is not None:
+            values.append(jnp.asarray(self.light_tints, dtype))
+        return jnp.concatenate([jnp.ravel((value - low) / (high - low)) for value, ((low, high), _, _) in
+                                zip(values, self.blocks)])  # fmt: skip
 
     def effect_at_positions(self, positions):
         """The effect with each fitted field at `low + (high - low) * position`, linear and unfolded: derivatives
@@ -290,6 +360,18 @@ class FitProblem(eqx.Module):
             offset += size
         return eqx.tree_at(lambda e: [field_value(e, n) for n in self.names], self.effect, values)
 
+    def _tints_of(self, unknowns, to_value):
+        """The fitted tints from the unknowns (a flat array or a list of scalars), after the fields'."""
+        start = sum(math.prod(shape) for shape in self.shapes)
+        piece = unknowns[start:]
+        unit = jnp.reshape(piece if isinstance(piece, jax.Array) else jnp.stack(piece), self.light_tints.shape)
+        return to_value(unit, 0.0, self.tint_high).astype(self.light_tints.dtype)
+
+    def _frames_of(self, unknowns, frame_data, to_value=from_unit):
+        if self.light_tints is None:
+            return frame_data
+        return with_light_tints(frame_data, self._tints_of(unknowns, to_value))
+
     def rendered(self, candidate, frame_data):
         for frame, light, image, front, depth, others in zip(*frame_data):
             if others:  # their light added to the first's (`lit_by`)
@@ -299,7 +381,7 @@ class FitProblem(eqx.Module):
             yield _match_channels(image_now, image)
 
     def residuals(self, y, frame_data):
-        return self.residuals_of(self.effect_at(y), frame_data)
+        return self.residuals_of(self.effect_at(y), self.frames_at(y, frame_data))
 
     def residuals_of(self, candidate, frame_data):
         return self.residuals_of_images([image for image, _ in self.rendered(candidate, frame_data)], frame_data)
@@ -335,11 +417,13 @@ def check_inside_bounds(effect: Effect) -> None:
 
 @eqx.filter_jit
 def start_point(problem, dtype):
-    """The flat unknowns of the starting effect; a value on a bound starts `START_INSET` inside it."""
+    """The flat unknowns of the starting effect (then tints); a value on a bound starts `START_INSET` inside it."""
+    values = [jnp.asarray(field_value(problem.effect, name), dtype) for name in problem.names]
+    if problem.light_tints is not None:
+        values.append(jnp.asarray(problem.light_tints, dtype))
     return jnp.concatenate([
-        jnp.ravel(jnp.clip(to_unit(jnp.asarray(field_value(problem.effect, name), dtype), low, high), START_INSET,
-                           1.0 - START_INSET))
-        for name, (low, high) in zip(problem.names, problem.bounds)
+        jnp.ravel(jnp.clip(to_unit(value, low, high), START_INSET, 1.0 - START_INSET))
+        for value, ((low, high), _, _) in zip(values, problem.blocks)
     ])  # fmt: skip
 
 

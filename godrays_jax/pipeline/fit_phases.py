@@ -1,0 +1,73 @@
+"""How a fit runs: its solver (`SOLVERS`), whether a polish follows (`polishes`), and the settings of its phases
+(`Phases`), from `fit`'s keyword arguments, checked."""
+
+import dataclasses
+
+import optimistix as optx
+
+from godrays_jax.kernels.losses import LOSSES, check_space
+from godrays_jax.pipeline.marquardt import LevenbergMarquardt
+
+SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
+
+
+def _solver(solver, loss, rtol, atol):
+    """The optimiser `solver` names (or is), checked against `loss`."""
+    if not isinstance(solver, str):
+        if not isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
+            raise ValueError("solver must be a name or an optimistix least-squares solver or minimiser")
+        if isinstance(solver, optx.AbstractLeastSquaresSolver) and loss != "mse":
+            raise ValueError(f"a least-squares solver fits loss='mse' only, got loss={loss!r}: use a minimiser")
+        return solver
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {', '.join(SOLVERS)}; got {solver!r}")
+    if solver == "auto":
+        solver = "levenberg_marquardt" if loss == "mse" else "bfgs"
+    if solver in ("levenberg_marquardt", "gauss_newton") and loss != "mse":
+        raise ValueError(f"solver={solver!r} fits least squares (loss='mse') only; use solver='bfgs' for loss={loss!r}")
+    if solver == "levenberg_marquardt":  # on the host (`marquardt`): no phase compiles a solver step of its own
+        return LevenbergMarquardt(rtol=rtol, atol=atol)
+    if solver == "gauss_newton":
+        return optx.GaussNewton(rtol=rtol, atol=atol)
+    return optx.BFGS(rtol=rtol, atol=atol)
+
+
+def polishes(solver, loss: str) -> bool:
+    """Whether `fit(solver=solver, loss=loss)` follows its descent with the polish phase (Marquardt's scaling):
+    after the Levenberg-Marquardt that `solver` names ("auto" for MSE); a solver the caller built runs as it is."""
+    return isinstance(solver, str) and loss == "mse" and solver in ("auto", "levenberg_marquardt")
+
+
+@dataclasses.dataclass(frozen=True)
+class Phases:
+    """How a fit runs, from `fit`'s keyword arguments (checked): its solver and the polish's, and the settings of
+    its descents (`fit._descend`'s keywords), at full and at the coarse resolution."""
+
+    optimiser: object
+    polisher: LevenbergMarquardt | None
+    descend: dict
+    coarse_factor: int
+    coarse_plateau_rtol: float
+    coarse_jacobian: bool
+
+    @classmethod
+    def of(cls, *, loss, space, solver, max_steps, rtol, atol, probe_steps, coarse_factor, plateau_steps,
+           plateau_rtol, coarse_plateau_rtol, coarse_jacobian, tint_high=None) -> "Phases":  # fmt: skip
+        """`tint_high`: the fitted tints' upper bound (`problem.tint_range`), None where no tint is fitted."""
+        if loss not in LOSSES:
+            raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
+        for name, value, least in (("max_steps", max_steps, 0), ("probe_steps", probe_steps, 1),
+                                   ("coarse_factor", coarse_factor, 1), ("plateau_steps", plateau_steps, 0)):  # fmt: skip
+            if not (isinstance(value, int) and value >= least):
+                raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
+        if not (plateau_rtol >= 0 and coarse_plateau_rtol >= 0):
+            raise ValueError(f"plateau_rtol and coarse_plateau_rtol must be >= 0, got {plateau_rtol!r}, {coarse_plateau_rtol!r}")
+        check_space(space)
+        optimiser = _solver(solver, loss, rtol, atol)
+        descend = dict(
+            optimiser=optimiser, least_squares=isinstance(optimiser, (LevenbergMarquardt, optx.AbstractLeastSquaresSolver)),
+            loss=loss, space=space, max_steps=max_steps, probe_steps=probe_steps, plateau_steps=plateau_steps,
+            plateau_rtol=plateau_rtol, tint_high=tint_high,
+        )  # fmt: skip
+        polisher = LevenbergMarquardt(rtol=rtol, atol=atol, scaled=True) if polishes(solver, loss) else None
+        return cls(optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol, bool(coarse_jacobian))

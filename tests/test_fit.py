@@ -113,11 +113,16 @@ def test_a_frame_of_several_lights_is_fitted_under_all_of_them_with_their_tints(
     first = fit(_rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=30, coarse_factor=2,
                 coarse_jacobian=True)  # fmt: skip
     assert first.loss_after > 100 * both.loss_after
-    # The second light's rays move with the fields too: the frame determines each more than the first's alone.
-    under_both = gr.determination(both.effect, frame, LIGHT, target, fitted=both.fitted, other_lights=[lamp])
+    # The second light's rays move with the fields too: the frame determines each more than the first's alone; the
+    # tints, where the fit fitted them, are examined beside the fields.
+    under_both = gr.determination(both.effect, frame, LIGHT, target, fitted=both.fitted, other_lights=[lamp],
+                                  fit_light_tints=False)  # fmt: skip
     under_first = gr.determination(both.effect, frame, LIGHT, target, fitted=both.fitted)
+    assert set(under_both.sensitivity) == set(both.fitted)
     for name in both.fitted:
         assert under_both.sensitivity[name] > 1.05 * under_first.sensitivity[name], name
+    with_tints = gr.determination(both.effect, frame, LIGHT, target, fitted=both.fitted, other_lights=[lamp])
+    assert set(with_tints.sensitivity) == {*both.fitted, "light_tints"} and with_tints.sensitivity["light_tints"] > 1e-3
     with pytest.raises(ValueError, match=r"other_lights\[0\]\[0\]\.tint"):
         fit(truth, frame, LIGHT, target, other_lights=[gr.Light(xy=(6.0, 3.0), tint=-1.0)], fixed=FIXED_RAYS)
     with pytest.raises(ValueError, match="one sequence of Light per frame"):

@@ -284,7 +284,8 @@ def _determination_lines(result, frames, lights, targets, in_front, depths, othe
     try:
         found = determination(
             result.effect, frames, lights, targets, fitted=result.fitted, space=space, light_in_front=in_front,
-            light_depth=depths, other_lights=others, coarse_factor=coarse_factor,
+            light_depth=depths, other_lights=others, fit_light_tints=result.light_tints is not None,
+            coarse_factor=coarse_factor,
         )
     except ValueError as error:  # the fit stands; only what it can say of it is less
         return [f"cannot tell which fitted parameters the frames determine: {error}"]

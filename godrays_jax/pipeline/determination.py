@@ -19,6 +19,7 @@ from godrays_jax.pipeline.problem import (
     as_frames,
     check_inside_bounds,
     fitted_bounds,
+    light_tints,
     strongly_typed,
 )
 from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
@@ -34,7 +35,8 @@ class Determination:
         sensitivity: field -> the RMS change of the compared image (in the
             fit's space) when the field moves by `change` of its fitting range
             and the other fitted fields move to offset it as well as they can;
-            for a vector field, its least determined component.
+            for a vector field, its least determined component; `light_tints`
+            the same for the other lights' tints, where the fit fitted them.
         poorly_determined: the fields whose sensitivity is below `threshold`,
             in fitting order.
         offsets: for each poorly determined field, its step and the others'
@@ -76,6 +78,7 @@ def determination(
     light_in_front: Bool[ArrayLike, ""] | bool | Sequence[bool] = True,
     light_depth: float | Sequence[float] = math.inf,
     other_lights: Sequence[Light] | Sequence[Sequence[Light]] = (),
+    fit_light_tints: bool = True,
     change: float = 0.1,
     threshold: float = 1e-3,
     coarse_factor: int = 1,
@@ -95,6 +98,9 @@ def determination(
     Args:
         effect: the solution (e.g. `FitResult.effect`); values inside bounds.
         buffers, light_xy, target, light_in_front, light_depth, other_lights: as for `fit`.
+        fit_light_tints: whether the fit fitted the tints of `other_lights` (as `fit`'s): they are then examined
+            with the fields, as `light_tints` (a light's tint over the first's, in units of its fitting range:
+            `problem.TINT_RANGE` times the largest given), and the fit's compiled Jacobian is the one taken.
         fitted: the fields to examine (e.g. `FitResult.fitted`).
         space: `"display"` or `"linear"`, as the fit compared.
         change: the step, a fraction of each field's range (> 0).
@@ -125,10 +131,11 @@ def determination(
         raise ValueError(f"fitted must name fittable fields of {type(effect).__name__}, got {list(fitted)}")
     check_inside_bounds(effect)
     bounds = fitted_bounds(effect, fixed=[name for name in every if name not in fitted])
-    names = tuple(bounds)
     # Through the effect's stand-in (`Effect.same_on`, `Effect.fit_stand_in`), as `fit` differentiates it: the
     # same program as a fit's steps, which after a fit is compiled already.
-    problem = FitProblem.of(effect.fit_stand_in().same_on(frames), bounds, frames, loss="mse", space=space)
+    tints = light_tints(frame_data) if fit_light_tints else None
+    problem = FitProblem.of(effect.fit_stand_in().same_on(frames), bounds, frames, loss="mse", space=space,
+                            light_tints=tints)  # fmt: skip
     # The positions are the effect's own values, checked inside their bounds above: no run-time range check, so the
     # cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
@@ -137,7 +144,7 @@ def determination(
         if coarse is None:
             residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
             rows = jacobian.shape[0]
-            _check_finite(np.sum(np.abs(np.asarray(jacobian)), axis=0), names, problem.shapes)
+            _check_finite(np.sum(np.abs(np.asarray(jacobian)), axis=0), problem)
             # J = QR with Q's columns orthonormal: |J v| = |R v| for every v, so the SVD and every least-squares
             # offset below are R's, a parameters-by-parameters matrix, instead of the pixels-by-parameters Jacobian's.
             jacobian = _triangular(np.asarray(jacobian))
@@ -145,19 +152,19 @@ def determination(
             residuals = fit_programs.effect_residuals(problem, problem.effect, frame_data)
             normal, _ = coarse.normal_equations(positions, np.asarray(residuals), problem, frame_data)
             rows = len(residuals)
-            _check_finite(np.diag(normal), names, problem.shapes)
+            _check_finite(np.diag(normal), problem)
             # R with R^T R = J^T J: |R v| = |J v| for every v, as the QR decomposition's.
             values, vectors = np.linalg.eigh(normal)
             jacobian = np.sqrt(np.maximum(values, 0.0))[:, None] * vectors.T
     # The cut-off below which `lstsq` treats singular values as zero stays the Jacobian's (it scales with the rows).
     cutoff = np.finfo(np.float64).eps * max(rows, jacobian.shape[1])
     owners, labels, lows, spans = [], [], [], []
-    for name, shape in zip(names, problem.shapes):
+    for name, ((low, high), shape, _) in zip(_block_names(problem), problem.blocks):
         size = math.prod(shape)
         owners += [name] * size
         labels += [name] if size == 1 and not shape else [f"{name}[{k}]" for k in range(size)]
-        lows += [bounds[name][0]] * size
-        spans += [bounds[name][1] - bounds[name][0]] * size
+        lows += [float(low)] * size
+        spans += [float(high) - float(low)] * size
     # Where each field sits in its range: 0 on the lower bound, 1 on the upper.
     position = np.clip(np.asarray(positions, np.float64), 0.0, 1.0)
     pinned = np.minimum(position, 1.0 - position) <= ON_BOUND
@@ -171,7 +178,7 @@ def determination(
     for index, name in enumerate(owners):
         if name not in sensitivity or per_unknown[index] < sensitivity[name]:
             sensitivity[name], worst[name] = float(per_unknown[index]), index
-    poorly = tuple(name for name in names if sensitivity[name] < threshold)
+    poorly = tuple(name for name in _block_names(problem) if sensitivity[name] < threshold)
     offsets, offset_change = {}, {}
     for name in poorly:
         index = worst[name]
@@ -201,9 +208,15 @@ def determination(
     )
 
 
-def _check_finite(columns, names, shapes) -> None:
+def _block_names(problem: FitProblem) -> tuple[str, ...]:
+    """The name of each of the problem's blocks of unknowns: its fields', then `light_tints` where it fits them."""
+    return (*problem.names, *(["light_tints"] if problem.light_tints is not None else []))
+
+
+def _check_finite(columns, problem: FitProblem) -> None:
     """A `ValueError` naming the fields whose Jacobian `columns` (one number per unknown) are not finite."""
-    owners = [name for name, shape in zip(names, shapes) for _ in range(math.prod(shape))]
+    blocks = zip(_block_names(problem), problem.blocks)
+    owners = [name for name, (_, shape, _) in blocks for _ in range(math.prod(shape))]
     broken = list(dict.fromkeys(name for name, column in zip(owners, np.asarray(columns)) if not np.isfinite(column)))
     if broken:
         raise ValueError(f"the frames' derivatives in {', '.join(broken)} are not finite at these values")
@@ -218,7 +231,8 @@ def _polish_linearisation(problem: FitProblem, frame_data, factor: int) -> Coars
     reduced = downsample_frames(frame_data, factor)
     scaled = scale_pixel_fields(problem.effect, 1.0 / factor)
     coarse_problem = FitProblem.of(scaled, dict(zip(problem.names, problem.bounds)), reduced[0], loss=problem.loss,
-                                   space=problem.space)  # fmt: skip
+                                   space=problem.space, light_tints=problem.light_tints,
+                                   tint_high=problem.tint_high)  # fmt: skip
     coarse = CoarseLinearisation.of(coarse_problem, reduced, factor)
     return None if coarse is None else dataclasses.replace(coarse, sharp=tuple(sharp))
 

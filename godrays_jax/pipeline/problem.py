@@ -222,7 +222,7 @@ def tint_range(light_tints) -> float:
 class FitProblem(eqx.Module):
     """What a fit's objective needs besides the unknowns; static fields make compilations reusable.
 
-    Every field but `effect` and `light_tints` is static and hashable, and the objective
+    Every field but `effect`, `light_tints` and `tint_high` is static and hashable, and the objective
     functions below are module-level, so two fits of the same effect type,
     fitted names, frame sizes and options reuse one compiled solver step.
 
@@ -240,7 +240,7 @@ class FitProblem(eqx.Module):
     space: str = eqx.field(static=True)
     stages: tuple[str, ...] = eqx.field(static=True)
     light_tints: jax.Array | None = None
-    tint_high: float = eqx.field(static=True, default=TINT_RANGE)
+    tint_high: jax.Array | None = None  # an argument of the compiled programs, not a constant: any bound shares them
 
     @classmethod
     def of(
@@ -251,8 +251,8 @@ class FitProblem(eqx.Module):
         by default `TINT_RANGE` times the largest of them, and at least that) to `frames`, each frame weighted by
         its pixel count."""
         total_pixels = sum(frame.height * frame.width for frame in frames)
-        if tint_high is None:
-            tint_high = tint_range(light_tints)
+        if light_tints is not None:
+            tint_high = jnp.asarray(tint_range(light_tints) if tint_high is None else tint_high, light_tints.dtype)
         return cls(
             effect=effect,
             names=tuple(bounds),
@@ -263,7 +263,7 @@ class FitProblem(eqx.Module):
             space=space,
             stages=tuple(type(effect).FIELD_STAGES.get(name, "") for name in bounds),
             light_tints=light_tints,
-            tint_high=tint_high,
+            tint_high=None if light_tints is None else tint_high,
         )
 
     @property

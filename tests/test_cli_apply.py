@@ -247,12 +247,17 @@ def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one
     assert float(re.search(r"loss before \S+, after (\S+)", out).group(1)) < 1e-6
     tints = re.search(r"light_tints = (\S+) ", out).group(1)
     np.testing.assert_allclose([float(v) for v in tints.split(";")[1].split(",")], 0.5, rtol=0.01)
-    fitted_lights = [*lights[:2], "--light-tint", tints]
-    assert main(["apply", str(frame), "--params", str(params), *fitted_lights, "-o", str(fitted)]) == 0
+    # `apply --params` takes the tints from beside the parameters (`p.light.json`), as `--light-tint` gives them.
+    assert json.loads((tmp_path / "p.light.json").read_text())["light_tints"] == [pytest.approx([0.5] * 3, rel=0.01)]
+    assert main(["apply", str(frame), "--params", str(params), *lights[:2], "-o", str(fitted)]) == 0
+    assert f"light tints {tints} from {tmp_path / 'p.light.json'} (fitted by fit)" in capsys.readouterr().out
+    np.testing.assert_allclose(gr.read_image(fitted), gr.read_image(target), atol=1e-3)
+    assert main(["apply", str(frame), "--params", str(params), *lights[:2], "--light-tint", tints, "-o", str(fitted)]) == 0
     np.testing.assert_allclose(gr.read_image(fitted), gr.read_image(target), atol=1e-3)
     assert main([*arguments, *wrong, "--fixed", f"{fixed},light_tints"]) == 0
     out = capsys.readouterr().out
     assert "light_tints =" not in out and float(re.search(r"loss before \S+, after (\S+)", out).group(1)) > 1e-5
+    assert not (tmp_path / "p.light.json").exists()  # a fit that fits no tint leaves none for apply to read
     for extra, message in (
         (["--light", "5.5,3;16,2", "--fit-light"], "--fit-light refines one light"),
         (["--light", "auto", "--light-tint", "1;0.5"], "--light auto finds one light"),

@@ -17,15 +17,25 @@ Colour is stored as half floats, depth as float32, zip compressed. Every file's
 header carries `godrays:light_px` (x right, y down, pixel centres at
 `i + 0.5`), `godrays:light_in_front`, `godrays:light_depth` (the light's
 distance along its camera ray, scene units, `inf` for the sun) and
-`godrays:fov_x_deg`.
+`godrays:fov_x_deg`. Where a scene has several lights (`Scene.more_lights`:
+`street_two_lamps`) those three light attributes are the first light's, and
+its files also carry every light in `godrays_jax`'s words (`lights_metadata`, read by
+`read_lights`): `godrays:lights` (`x,y` each, `x,y,behind` for a light behind
+the camera), `godrays:lights_depth` (each light's distance) and
+`godrays:lights_tint` (each light's irradiance at the camera, the medium left
+out, over the first's, channel by channel: a lamp's radiance times pi
+radius^2 over its squared distance, a sun's radiance times its disc's solid
+angle; the first's 1 in each channel), `;` between lights, floats as `repr`
+writes them.
 
-`scenes.json` (read by `scenes.py`) gets each scene's light, medium, samples,
-render seconds (wall and CPU) and noise floor: half the display-space MSE between the two
-fog frames, display space `x / (1 + |x|)` per channel as `godrays-jax fit`
+`scenes.json` (read by `scenes.py`) gets each scene's light (for several
+lights also the three `godrays:lights*` texts), medium, samples, render
+seconds (wall and CPU) and noise floor: half the display-space MSE between the
+two fog frames, display space `x / (1 + |x|)` per channel as `godrays-jax fit`
 compares (`kernels.losses.mse_loss`).
 
 The sun is a disc in an environment map (at infinity, so its shafts are
-parallel); the point light is a small emitting sphere inside the medium. The
+parallel); a lamp is a small emitting sphere inside the medium. The
 medium is a sphere around the camera (its radius is the medium's extent) or,
 for `ground_fog`, a layer near the ground that the camera stands in.
 
@@ -106,12 +116,20 @@ class Medium:
 
 @dataclass(frozen=True)
 class Scene:
+    """`light` is the first light (its sky is the scene's); `more_lights` any others, each a `Lamp` (a sphere of its
+    own) or a `Sun` (a disc of its own in the first light's sky)."""
+
     name: str
     shows: str
     light: Sun | Lamp
     medium: Medium
     camera: tuple[float, float, float] = (0.0, 1.6, 0.0)
     shapes: list = field(default_factory=list)  # (kind, to_world matrix as nested lists, reflectance)
+    more_lights: tuple[Sun | Lamp, ...] = ()
+
+    @property
+    def lights(self) -> tuple[Sun | Lamp, ...]:
+        return (self.light, *self.more_lights)
 
 
 def box(center, half_size, reflectance=(0.5, 0.5, 0.5)):
@@ -214,41 +232,93 @@ def _ground_fog() -> Scene:
     )
 
 
+def _street_two_lamps() -> Scene:
+    near = Lamp(position=(-2.6, 3.0, -8.4), radiance=(1800.0, 1350.0, 810.0), sky=(0.002, 0.002, 0.002))
+    far = Lamp(position=(3.6, 3.0, -16.5), radiance=(1800.0, 2100.0, 3000.0))
+    # each lamp a globe on its post, the post a little nearer the camera: a shadow fanning down toward it
+    lamp_posts = [post(-2.6, -8.2, 0.07, 2.9, (0.25, 0.25, 0.25)), post(3.6, -16.3, 0.08, 2.9, (0.25, 0.25, 0.25))]
+    # in front of the halos, their shadows passing near the camera: a tall post just right of the near lamp, one
+    # just left of the far lamp, a kiosk under the far lamp
+    occluders = [post(-1.37, -5.0, 0.1, 5.0, (0.3, 0.3, 0.3)), post(2.0, -11.0, 0.1, 5.0, (0.3, 0.3, 0.3)),
+                 box((2.8, 1.0, -13.5), (0.8, 1.0, 0.6), (0.4, 0.38, 0.35))]
+    facades = [box((-7.0, 4.0, -22.0), (0.3, 4.0, 16.0), (0.45, 0.42, 0.4)),
+               box((8.5, 4.0, -24.0), (0.3, 4.0, 16.0), (0.45, 0.42, 0.4))]
+    return Scene(
+        "street_two_lamps", "a night street in fog, two lamps (a warm one 9 units away on the left, a cool one 17 "
+        "units away on the right), posts and a kiosk in front of them: two glows with shadow shafts",
+        near, Medium(0.05, 0.9, 0.7, 40.0), shapes=lamp_posts + occluders + facades, more_lights=(far,),
+    )
+
+
 SCENES = {s.name: s for s in (_hidden_sun(), _blinds(), _forest(), _sun_off_screen(), _point_light(),
-                              _thin_haze(), _ground_fog())}
+                              _thin_haze(), _ground_fog(), _street_two_lamps())}
 
 
 # ----------------------------------------------------------------------------- camera
 
 
-def project(scene: Scene) -> tuple[tuple[float, float], bool, float]:
-    """The light's pixel position (x right, y down, centres at i + 0.5), whether in front, its depth along its ray."""
+def project(scene: Scene, light: Sun | Lamp | None = None) -> tuple[tuple[float, float], bool, float]:
+    """A light's pixel position (x right, y down, centres at i + 0.5), whether in front, its depth along its ray;
+    `light` defaults to the scene's first."""
+    light = scene.light if light is None else light
     focal = (WIDTH / 2) / math.tan(math.radians(FOV_X_DEG) / 2)  # pixels per unit of x / -z
-    if isinstance(scene.light, Sun):
-        x, y, z = scene.light.direction()
+    if isinstance(light, Sun):
+        x, y, z = light.direction()
         depth = math.inf
     else:
-        x, y, z = np.asarray(scene.light.position) - np.asarray(scene.camera)
+        x, y, z = np.asarray(light.position) - np.asarray(scene.camera)
         depth = float(math.sqrt(x * x + y * y + z * z))
     forward = -z
     return (WIDTH / 2 + focal * x / forward, HEIGHT / 2 - focal * y / forward), bool(forward > 0), depth
 
 
+def irradiance(light: Sun | Lamp, depth: float) -> np.ndarray:
+    """The light's irradiance (RGB) at the camera's distance `depth`, the medium left out: a sun's radiance times its
+    disc's solid angle; a lamp's radiant intensity (radiance times pi radius^2) over the squared distance."""
+    if isinstance(light, Sun):
+        return np.asarray(light.radiance, np.float64) * 2 * math.pi * (1 - math.cos(math.radians(light.radius_deg)))
+    return np.asarray(light.radiance, np.float64) * math.pi * light.radius**2 / depth**2
+
+
+def lights_attributes(scene: Scene) -> dict[str, str] | None:
+    """For a scene of several lights, the header's `godrays:lights` (`x,y` or `x,y,behind` each),
+    `godrays:lights_depth` and `godrays:lights_tint` (each light's irradiance at the camera over the first's, channel
+    by channel: the first's tint 1), `;` between lights, as `godrays_jax`'s `lights_metadata` writes them; `None` for
+    a scene of one light."""
+    if not scene.more_lights:
+        return None
+    projected = [project(scene, light) for light in scene.lights]
+    first = irradiance(scene.light, projected[0][2])
+    if not np.all(first > 0):
+        raise ValueError(f"{scene.name}: the first light must shine in every channel to tint the others by it")
+    tints = [np.ones(3)] + [irradiance(light, depth) / first
+                            for light, (_, _, depth) in zip(scene.more_lights, projected[1:])]
+    return {
+        "godrays:lights": ";".join(",".join([repr(float(x)), repr(float(y)), *([] if in_front else ["behind"])])
+                                   for (x, y), in_front, _ in projected),
+        "godrays:lights_depth": ";".join(repr(float(depth)) for _, _, depth in projected),
+        "godrays:lights_tint": ";".join(",".join(repr(float(c)) for c in tint) for tint in tints),
+    }
+
+
 # ----------------------------------------------------------------------------- Mitsuba
 
 
-def _envmap(mi, light):
-    """A latitude-longitude sky (Mitsuba's convention: u = atan2(x, -z) / 2 pi, v = acos(y) / pi), the sun a disc."""
+def _envmap(mi, lights):
+    """A latitude-longitude sky (Mitsuba's convention: u = atan2(x, -z) / 2 pi, v = acos(y) / pi): the first light's
+    sky, every sun a disc."""
     rows, cols = ENVMAP_SIZE
     pixels = np.empty((rows, cols, 3), np.float32)
-    pixels[...] = light.sky
-    if isinstance(light, Sun):
+    pixels[...] = lights[0].sky
+    suns = [light for light in lights if isinstance(light, Sun)]
+    if suns:
         theta = (np.arange(rows) + 0.5) / rows * np.pi
         phi = (np.arange(cols) + 0.5) / cols * 2 * np.pi
         theta, phi = np.meshgrid(theta, phi, indexing="ij")
         direction = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
-        disc = direction @ light.direction() >= math.cos(math.radians(light.radius_deg))
-        pixels[disc] = light.radiance
+        for sun in suns:
+            disc = direction @ sun.direction() >= math.cos(math.radians(sun.radius_deg))
+            pixels[disc] = sun.radiance
     return {"type": "envmap", "bitmap": mi.Bitmap(pixels)}
 
 
@@ -275,10 +345,12 @@ def scene_dict(mi, scene: Scene, *, fog: bool, emitters: bool = True) -> dict:
         d[f"shape_{i}"] = {"type": kind, "to_world": T(matrix),
                            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(reflectance)}}}
     if emitters:
-        d["sky"] = _envmap(mi, scene.light)
-        if isinstance(scene.light, Lamp):
-            d["lamp"] = {"type": "sphere", "center": list(scene.light.position), "radius": scene.light.radius,
-                         "emitter": {"type": "area", "radiance": {"type": "rgb", "value": list(scene.light.radiance)}}}
+        d["sky"] = _envmap(mi, scene.lights)
+        lamps = [light for light in scene.lights if isinstance(light, Lamp)]
+        for i, lamp in enumerate(lamps):
+            d["lamp" if i == 0 else f"lamp_{i + 1}"] = {
+                "type": "sphere", "center": list(lamp.position), "radius": lamp.radius,
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": list(lamp.radiance)}}}
     if fog:
         m = scene.medium
         # declared once, referred to by the shape that bounds it and by the camera inside it
@@ -311,7 +383,8 @@ def render_geometry(mi, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """Depth along the pixel centre's ray (`+inf` on a miss) and the fraction of a grid of rays that hit."""
     import drjit as dr
 
-    loaded = mi.load_dict(scene_dict(mi, scene, fog=False, emitters=isinstance(scene.light, Lamp)))
+    lamps = any(isinstance(light, Lamp) for light in scene.lights)  # the bulbs are geometry too
+    loaded = mi.load_dict(scene_dict(mi, scene, fog=False, emitters=lamps))
     sensor = loaded.sensors()[0]
 
     def cast(offset_x, offset_y):
@@ -360,15 +433,33 @@ def write_frame(path: Path, color: np.ndarray, scene: Scene, depth=None, coverag
     spec.attribute("godrays:light_in_front", oiio.TypeInt, int(in_front))
     spec.attribute("godrays:light_depth", oiio.TypeFloat, light_depth)
     spec.attribute("godrays:fov_x_deg", oiio.TypeFloat, FOV_X_DEG)
+    for name, value in (lights_attributes(scene) or {}).items():
+        spec.attribute(name, value)
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
         raise OSError(f"cannot write {path}: {oiio.geterror()}")
 
 
+def describe_light(light: Sun | Lamp, sky: bool = True) -> str:
+    if isinstance(light, Sun):
+        text = (f"sun: disc of radius {light.radius_deg:g} deg, radiance {list(light.radiance)}, "
+                f"azimuth {light.azimuth_deg:g} deg, elevation {light.elevation_deg:g} deg")
+    else:
+        text = f"lamp: sphere of radius {light.radius:g} at {list(light.position)}, radiance {list(light.radiance)}"
+    return f"{text}; sky {list(light.sky)}" if sky else text
+
+
 def record(scene: Scene, spp: int, seconds: dict, floor: float, variant: str) -> dict:
     light_px, in_front, light_depth = project(scene)
     m = scene.medium
-    light = scene.light
+    several = lights_attributes(scene)
+    if several:
+        light = "; ".join(f"{i + 1}. {describe_light(light, sky=False)}" for i, light in enumerate(scene.lights))
+        light += f"; sky {list(scene.light.sky)}"
+        lights = {"lights": several["godrays:lights"], "lights_depth": several["godrays:lights_depth"],
+                  "lights_tint": several["godrays:lights_tint"]}
+    else:
+        light, lights = describe_light(scene.light), {}
     return {
         "shows": scene.shows,
         "clean": f"{scene.name}_clean.exr",
@@ -377,11 +468,8 @@ def record(scene: Scene, spp: int, seconds: dict, floor: float, variant: str) ->
         "light_in_front": in_front,
         "light_depth": None if math.isinf(light_depth) else light_depth,
         "fov_x_deg": FOV_X_DEG,
-        "light": (f"sun: disc of radius {light.radius_deg:g} deg, radiance {list(light.radiance)}, "
-                  f"azimuth {light.azimuth_deg:g} deg, elevation {light.elevation_deg:g} deg; sky {list(light.sky)}")
-        if isinstance(light, Sun) else
-        (f"lamp: sphere of radius {light.radius:g} at {list(light.position)}, radiance {list(light.radiance)}; "
-         f"sky {list(light.sky)}"),
+        **lights,
+        "light": light,
         "medium": {"sigma_t": m.sigma_t, "albedo": m.albedo, "g": m.g, "extent": m.describe()},
         "camera": list(scene.camera),
         "spp": {"fog": spp, "clean": spp * CLEAN_SPP_FACTOR},

@@ -29,7 +29,11 @@ class ReferenceScene:
     lie off screen), `light_depth` in scene units along the light's camera ray
     (`inf` for the sun), `fov_x_deg` the horizontal field of view. Paths are
     absolute. `renderer` is `"mitsuba"` (frames with `R, G, B, A, Z`, depth
-    along the ray) or `"blender"` (multilayer, `Z` planar).
+    along the ray) or `"blender"` (multilayer, `Z` planar). `lights`: for a
+    scene of several lights (`street_two_lamps`; there `light_px` and
+    `light_depth` are the first's) the header's `godrays:lights`,
+    `godrays:lights_depth` and `godrays:lights_tint` texts by those names, as
+    `--light`, `--light-depth` and `--light-tint` take them; `None` for one.
     """
 
     name: str
@@ -47,6 +51,7 @@ class ReferenceScene:
     spp: dict
     seconds: dict
     noise_floor: float
+    lights: dict | None = None
 
 
 def _load(folder: Path, renderer: str) -> list[ReferenceScene]:
@@ -72,6 +77,7 @@ def _load(folder: Path, renderer: str) -> list[ReferenceScene]:
             spp=entry["spp"],
             seconds=entry["seconds"],
             noise_floor=float(entry["noise_floor"]),
+            lights={key: entry[key] for key in ("lights", "lights_depth", "lights_tint")} if "lights" in entry else None,
         ))
     return scenes
 

@@ -14,6 +14,7 @@ from godrays_jax.app.options import (
     light_of_params,
     resolve_light_depth,
     split_lights,
+    tints_of_params,
     with_flare_texture,
     with_frame_camera,
     with_stored_lights,
@@ -36,6 +37,7 @@ def run(args) -> int:
     lights, depths, tints = args.light, args.light_depth, args.light_tint
     if light is None:  # else the light `fit` found, alone
         lights, depths, tints = with_stored_lights(args.buffers, lights, depths, tints)
+        tints = tints_of_params(args.light_tint, args.params, lights) or tints
     if args.layer_only and args.light is None and lights:
         raise CommandError(f"{args.buffers} stores {len(lights)} lights (godrays:lights) and --layer-only draws one: "
                            "pass --light X,Y to choose it")  # fmt: skip

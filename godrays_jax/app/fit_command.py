@@ -95,6 +95,8 @@ def run(args) -> int:
         targets.append(target)
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
     fit_tints = LIGHT_TINTS not in fixed  # the tints of the lights beside the first: not a field of the effect
+    if fit_tints and any(others):  # written beside the parameters, for `apply --params`
+        check_output_path(found_lights_path(args.output), *[path for pair in pairs for path in pair])
     fixed = tuple(name for name in fixed if name != LIGHT_TINTS)
     if "fov_x_deg" in effect.CAMERA_FIELDS and "fov_x_deg" not in fixed:
         if fov is not None:
@@ -150,7 +152,8 @@ def run(args) -> int:
         _say(f"  {name} = {values[name]}")
     if result.light_tints is not None:
         tints = ";".join(["1", *(",".join(f"{value:.6g}" for value in tint) for tint in result.light_tints)])
-        _say(f"  {LIGHT_TINTS} = {tints} (each light's over the first's: apply --light-tint '{tints}')")
+        _say(f"  {LIGHT_TINTS} = {tints} (each light's over the first's; apply --params takes them from "
+             f"{found_lights_path(args.output)})")
         others = [[dataclasses.replace(light, tint=tint) for light, tint in zip(beside, result.light_tints)]
                   for beside in others]  # fmt: skip
     if result.start:
@@ -168,12 +171,14 @@ def run(args) -> int:
     )  # fmt: skip
     for line in lines:
         _say(line)
+    fitted_tints = result.light_tints
     report = fit_report_image(targets[0], fitted_images[0], result.loss_history) if args.report else None
     _write_outputs(args.output, chosen, [
         *([(args.report, lambda path: write_image(path, report))] if args.report else []),
-        *([(found_lights_path(args.output), lambda path: write_text(path, found_lights_text(found)))] if found else []),
+        *([(found_lights_path(args.output), lambda path: write_text(path, found_lights_text(found, fitted_tints)))]
+          if found or fitted_tints is not None else []),
     ])  # fmt: skip
-    if found:
+    if found or fitted_tints is not None:
         _say(f"wrote {found_lights_path(args.output)}")
     if args.report:
         _say(f"wrote {args.report}")

@@ -52,9 +52,10 @@ def _pair(xy) -> str:
     return f"{xy[0]:.6g},{xy[1]:.6g}"
 
 
-def found_lights_text(found: dict[str, tuple[LightSearch, Buffers]]) -> str:
+def found_lights_text(found: dict[str, tuple[LightSearch, Buffers]], tints=None) -> str:
     """The file of the lights found (`options.found_lights_path`): for each frame (by file name, as `apply` finds
-    it) the light in pixels, the frame's size and the light's standard error, as JSON."""
+    it) the light in pixels, the frame's size and the light's standard error; and the fitted tints of the lights
+    beside the first (`tints`, `(K, 3)`, over the first's), which `apply --params` takes; as JSON."""
     lights = [
         {
             "frame": os.path.basename(path),
@@ -64,7 +65,8 @@ def found_lights_text(found: dict[str, tuple[LightSearch, Buffers]]) -> str:
         }
         for path, (search, frame) in found.items()
     ]
-    return json.dumps({"lights": lights}, indent=2) + "\n"
+    fitted = {} if tints is None else {"light_tints": [[float(v) for v in tint] for tint in tints]}
+    return json.dumps({"lights": lights, **fitted}, indent=2) + "\n"
 
 
 def write_text(path: str, text: str) -> None:

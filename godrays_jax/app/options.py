@@ -200,6 +200,29 @@ def light_of_params(
     return position, True
 
 
+def tints_of_params(tints: list | None, params_path: str | None, lights: list | None) -> list | None:
+    """`tints` (`--light-tint`) if given; else, for a frame of `lights` (several), the tints `fit` fitted for the
+    lights beside the first, from the file beside the parameters `params_path` (`found_lights_path`), said on
+    stdout, where it holds one for each of them; else None (the frame's header's, or 1)."""
+    if tints is not None or params_path is None or not lights:
+        return tints
+    if not os.path.exists(path := found_lights_path(params_path)):
+        return tints
+    try:
+        with open(path, "rb") as stream:
+            fitted = parse_json_object(stream.read(MAX_EFFECT_FILE_BYTES + 1)).get("light_tints")
+        fitted = None if fitted is None else [tuple(float(v) for v in tint) for tint in fitted]
+    except (OSError, ValueError, TypeError) as error:
+        raise CommandError(f"{path} is not the lights `fit` writes: {error_line(error)}") from None
+    if fitted is None or len(fitted) != len(lights) - 1:
+        return tints
+    if not all(len(tint) == 3 and all(math.isfinite(v) and v >= 0 for v in tint) for tint in fitted):
+        raise CommandError(f"{path}: light_tints must be R,G,B triples of finite numbers >= 0, got {fitted}")
+    text = ";".join(["1", *(",".join(f"{v:.6g}" for v in tint) for tint in fitted)])
+    print(f"light tints {text} from {path} (fitted by fit)", flush=True)
+    return [(1.0, 1.0, 1.0), *fitted]
+
+
 def _found_light(path: str, frame_name: str) -> tuple[tuple[float, float], tuple[int, int]] | None:
     """The position and frame size of the light `fit` found for the frame named `frame_name`, from the file at
     `path`; None when it holds none for that frame."""

@@ -252,7 +252,8 @@ def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one
     assert main(["apply", str(frame), "--params", str(params), *lights[:2], "-o", str(fitted)]) == 0
     assert f"light tints {tints} from {tmp_path / 'p.light.json'} (fitted by fit)" in capsys.readouterr().out
     np.testing.assert_allclose(gr.read_image(fitted), gr.read_image(target), atol=1e-3)
-    assert main(["apply", str(frame), "--params", str(params), *lights[:2], "--light-tint", tints, "-o", str(fitted)]) == 0
+    given = ["--light-tint", tints]
+    assert main(["apply", str(frame), "--params", str(params), *lights[:2], *given, "-o", str(fitted)]) == 0
     np.testing.assert_allclose(gr.read_image(fitted), gr.read_image(target), atol=1e-3)
     assert main([*arguments, *wrong, "--fixed", f"{fixed},light_tints"]) == 0
     out = capsys.readouterr().out

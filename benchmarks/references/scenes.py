@@ -77,7 +77,9 @@ def _load(folder: Path, renderer: str) -> list[ReferenceScene]:
             spp=entry["spp"],
             seconds=entry["seconds"],
             noise_floor=float(entry["noise_floor"]),
-            lights={key: entry[key] for key in ("lights", "lights_depth", "lights_tint")} if "lights" in entry else None,
+            lights=(
+                {key: entry[key] for key in ("lights", "lights_depth", "lights_tint")} if "lights" in entry else None
+            ),
         ))
     return scenes
 

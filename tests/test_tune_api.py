@@ -245,6 +245,7 @@ def test_a_frame_of_several_lights_is_tuned_under_all_and_each_is_dragged(tmp_pa
 
         def fit_stopped(*args, **keywords):
             taken.append(keywords["other_lights"])
+            assert keywords["fit_light_tints"] is False  # the tints the page draws with
             raise RuntimeError("stopped where the fit starts")
 
         monkeypatch.setattr(tuner_module, "fit", fit_stopped)

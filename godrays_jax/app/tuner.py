@@ -530,6 +530,7 @@ class Tuner:
                 light_in_front=in_front,
                 light_depth=self.light_depth,
                 other_lights=[dataclasses.replace(other, xy=other.xy / self.factor) for other in others],
+                fit_light_tints=False,  # the page's tints, which its views draw the fitted effect with
                 progress=progress,
             )
             # Counts rounded, as `godrays-jax fit` saves them, unless the page asks for the relaxation's values.

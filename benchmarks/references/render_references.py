@@ -251,37 +251,39 @@ def _street_two_lamps() -> Scene:
 
 
 def _canopy_sun_above() -> Scene:
-    sun = Sun(azimuth_deg=4.0, elevation_deg=ELEV)
+    # 30 degrees up (off the top edge at y = -109): high enough to leave the frame, low enough that the view meets
+    # its shafts 30 degrees from the sun, where the phase function is 2.4 times what it is at 45
+    sun = Sun(azimuth_deg=4.0, elevation_deg=30.0)
     rng = np.random.default_rng(23)
 
     def roof_height(x, z):  # the canopy's mid height: a gentle swell between 4.8 and 6.2
         return 5.5 + 0.4 * math.sin(0.45 * x + 1.0) + 0.3 * math.cos(0.37 * z)
 
-    # openings in the roof, where the view sees them: the gaps that the shafts come through
+    # 16 openings in the roof where the view meets their shafts, at least a unit apart
     gaps = []
-    while len(gaps) < GAPS:
-        x, z, r = rng.uniform(-9.0, 9.0), rng.uniform(-34.0, -8.0), rng.uniform(*GAP_R)
+    while len(gaps) < 16:
+        x, z, r = rng.uniform(-9.0, 9.0), rng.uniform(-34.0, -8.0), rng.uniform(1.4, 2.6)
         if all((x - gx) ** 2 + (z - gz) ** 2 > (r + gr + 1.0) ** 2 for gx, gz, gr in gaps):
             gaps.append((x, z, r))
+    # the roof: 2000 leaves 1-2 units across (about 95% cover between the gaps), x in [-18, 18], z in [-50, -4], wide
+    # and deep enough that the sun reaches no fog in view except through it
     leaves = []
-    while len(leaves) < LEAVES:
-        x, z = rng.uniform(-XMAX, XMAX), rng.uniform(ZMIN, -4.0)
+    while len(leaves) < 2000:
+        x, z = rng.uniform(-18.0, 18.0), rng.uniform(-50.0, -4.0)
         if any((x - gx) ** 2 + (z - gz) ** 2 < r * r for gx, gz, r in gaps):
             continue
         y = roof_height(x, z) + rng.uniform(-0.6, 0.6)
         shade = rng.uniform(0.8, 1.2)
-        leaves.append(box((x, y, z), (rng.uniform(LEAF[0], LEAF[1]), 0.03, rng.uniform(LEAF[0], LEAF[1])),
+        leaves.append(box((x, y, z), (rng.uniform(0.5, 1.0), 0.03, rng.uniform(0.5, 1.0)),
                           (0.12 * shade, 0.2 * shade, 0.07 * shade)))
     trunks = [post(x, z, r, roof_height(x, z), (0.3, 0.24, 0.18))
               for x, z, r in ((-5.5, -9.0, 0.3), (4.5, -12.5, 0.35), (-2.0, -19.0, 0.3), (7.5, -22.0, 0.35),
                               (-8.5, -25.0, 0.35), (1.5, -28.0, 0.3))]
     return Scene(
-        "canopy_sun_above", "the sun off the top edge, high behind a roof of leaves on trunks: shafts slant down "
-        "through its gaps onto the ground",
-        sun, Medium(SIGMA, 0.9, G, RADIUS), shapes=trunks + leaves,
+        "canopy_sun_above", "a roof of leaves on trunks 4-7 units up, the sun 30 degrees up beyond it, off the top "
+        "edge: the roof dark against bright gaps, shafts slanting down through the gaps onto the ground",
+        sun, Medium(0.04, 0.9, 0.7, 40.0), shapes=trunks + leaves,
     )
-
-GAPS, LEAVES, LEAF, GAP_R, ZMIN, XMAX, ELEV, SIGMA, G, RADIUS = 12, 2000, (0.5, 1.0), (1.4, 2.6), -50.0, 18.0, 30.0, 0.04, 0.7, 40.0
 
 SCENES = {s.name: s for s in (_hidden_sun(), _blinds(), _forest(), _sun_off_screen(), _point_light(),
                               _thin_haze(), _ground_fog(), _street_two_lamps(), _canopy_sun_above())}

@@ -33,6 +33,7 @@ from godrays_jax.app.options import (
     resolve_light_depth,
     warn,
     split_lights,
+    tints_text,
     with_stored_lights,
     with_frame_camera,
 )
@@ -151,9 +152,8 @@ def run(args) -> int:
     for name in result.fitted:
         _say(f"  {name} = {values[name]}")
     if result.light_tints is not None:
-        tints = ";".join(["1", *(",".join(f"{value:.6g}" for value in tint) for tint in result.light_tints)])
-        _say(f"  {LIGHT_TINTS} = {tints} (each light's over the first's; apply --params takes them from "
-             f"{found_lights_path(args.output)})")
+        _say(f"  {LIGHT_TINTS} = {tints_text(result.light_tints)} (each light's over the first's; apply --params "
+             f"takes them from {found_lights_path(args.output)})")
         others = [[dataclasses.replace(light, tint=tint) for light, tint in zip(beside, result.light_tints)]
                   for beside in others]  # fmt: skip
     if result.start:

@@ -200,6 +200,11 @@ def light_of_params(
     return position, True
 
 
+def tints_text(tints) -> str:
+    """The tints of the lights beside the first as `--light-tint` takes them, the first's 1: `"1;r,g,b;..."`."""
+    return ";".join(["1", *(",".join(f"{float(v):.6g}" for v in tint) for tint in tints)])
+
+
 def tints_of_params(tints: list | None, params_path: str | None, lights: list | None) -> list | None:
     """`tints` (`--light-tint`) if given; else, for a frame of `lights` (several), the tints `fit` fitted for the
     lights beside the first, from the file beside the parameters `params_path` (`found_lights_path`), said on
@@ -218,8 +223,7 @@ def tints_of_params(tints: list | None, params_path: str | None, lights: list | 
         return tints
     if not all(len(tint) == 3 and all(math.isfinite(v) and v >= 0 for v in tint) for tint in fitted):
         raise CommandError(f"{path}: light_tints must be R,G,B triples of finite numbers >= 0, got {fitted}")
-    text = ";".join(["1", *(",".join(f"{v:.6g}" for v in tint) for tint in fitted)])
-    print(f"light tints {text} from {path} (fitted by fit)", flush=True)
+    print(f"light tints {tints_text(fitted)} from {path} (fitted by fit)", flush=True)
     return [(1.0, 1.0, 1.0), *fitted]
 
 

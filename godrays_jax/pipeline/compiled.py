@@ -10,9 +10,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from godrays_jax.effects.base import Effect
-from godrays_jax.effects.lights import Light, lit_by
+from godrays_jax.effects.lights import Light
 from godrays_jax.pipeline import exported
-from godrays_jax.pipeline.problem import check_inside_bounds, strongly_typed
+from godrays_jax.pipeline.problem import check_inside_bounds, drawn, strongly_typed
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.checks import ranges_guaranteed
 from godrays_jax.primitives.derivatives import values_only
@@ -59,12 +59,6 @@ def _render(effect, buffers, light_xy, light_in_front, light_depth, other_lights
     """`checked` is static: a render traced without range checks (nor derivatives) is never reused for one that
     needs them."""
     if checked:
-        return _drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights)
+        return drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights)
     with ranges_guaranteed(), values_only():
-        return _drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights)
-
-
-def _drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights):
-    if other_lights:
-        return lit_by(effect, buffers, [Light(light_xy, light_in_front, light_depth), *other_lights])
-    return effect(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        return drawn(effect, buffers, light_xy, light_in_front, light_depth, other_lights)

@@ -189,6 +189,14 @@ def _other_lights(lights, dtype, frame: int) -> tuple[Light, ...]:
     return tuple(checked)
 
 
+def drawn(effect: Effect, frame: Buffers, light_xy, light_in_front: bool, light_depth, others=()):
+    """A fit's frame: `effect` under its light, and under `others` beside it their light added (`lit_by`); one
+    light is the effect's own call, whose program a fit of one light has always compiled."""
+    if others:
+        return lit_by(effect, frame, [Light(light_xy, light_in_front, light_depth), *others])
+    return effect(frame, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+
+
 def _match_channels(image, target):
     channels = min(image.shape[-1], target.shape[-1], 3)
     return image[..., :channels], target[..., :channels]
@@ -331,18 +339,16 @@ class FitProblem(eqx.Module):
         """`frame_data` with the fitted tints at `positions` in their range (`effect_at_positions`'s map)."""
         return self._frames_of(positions, frame_data, to_value=_linear)
 
-    def tints_at_positions(self, positions) -> jax.Array | None:
-        """The fitted tints at `positions` in their range, `(K, 3)`; None where the tints are not fitted."""
-        return None if self.light_tints is None else self._tints_of(positions, _linear)
+    def start_values(self, dtype) -> list:
+        """The fitted fields' values in the effect, then the tints' where they are fitted: one array per block."""
+        values = [jnp.asarray(field_value(self.effect, name), dtype) for name in self.names]
+        return values if self.light_tints is None else [*values, jnp.asarray(self.light_tints, dtype)]
 
     def positions(self, dtype):
         """Where the effect's fitted values (then the tints) sit in their ranges, flat: 0 on the lower bound, 1 on
         the upper."""
-        values = [jnp.asarray(field_value(self.effect, name), dtype) for name in self.names]
-        if self.light_tints is not None:
-            values.append(jnp.asarray(self.light_tints, dtype))
         return jnp.concatenate([jnp.ravel((value - low) / (high - low)) for value, ((low, high), _, _) in
-                                zip(values, self.blocks)])  # fmt: skip
+                                zip(self.start_values(dtype), self.blocks)])  # fmt: skip
 
     def effect_at_positions(self, positions):
         """The effect with each fitted field at `low + (high - low) * position`, linear and unfolded: derivatives
@@ -374,11 +380,7 @@ class FitProblem(eqx.Module):
 
     def rendered(self, candidate, frame_data):
         for frame, light, image, front, depth, others in zip(*frame_data):
-            if others:  # their light added to the first's (`lit_by`)
-                image_now = lit_by(candidate, frame, [Light(light, front, depth), *others])
-            else:
-                image_now = candidate(frame, light, light_in_front=front, light_depth=depth)
-            yield _match_channels(image_now, image)
+            yield _match_channels(drawn(candidate, frame, light, front, depth, others), image)
 
     def residuals(self, y, frame_data):
         return self.residuals_of(self.effect_at(y), self.frames_at(y, frame_data))
@@ -418,12 +420,9 @@ def check_inside_bounds(effect: Effect) -> None:
 @eqx.filter_jit
 def start_point(problem, dtype):
     """The flat unknowns of the starting effect (then tints); a value on a bound starts `START_INSET` inside it."""
-    values = [jnp.asarray(field_value(problem.effect, name), dtype) for name in problem.names]
-    if problem.light_tints is not None:
-        values.append(jnp.asarray(problem.light_tints, dtype))
     return jnp.concatenate([
         jnp.ravel(jnp.clip(to_unit(value, low, high), START_INSET, 1.0 - START_INSET))
-        for value, ((low, high), _, _) in zip(values, problem.blocks)
+        for value, ((low, high), _, _) in zip(problem.start_values(dtype), problem.blocks)
     ])  # fmt: skip
 
 

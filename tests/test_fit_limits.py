@@ -80,7 +80,7 @@ def test_a_default_fit_of_a_frame_without_a_camera_stays_within_two_gigabytes(ca
     casting its shadow across the ground. Each fits, to finite parameters: the field of view's column is a
     difference of two renders (`Effect.DIFFERENCED_STAGES`), where its forward-mode lanes held the lines' table once
     per lane. The commands inherit the suite's XLA options (`conftest.SUITE_XLA_FLAGS`); under the command's own the
-    pillar's first fit can pass the limit (benchmarks/README.md, "Memory as a function of the frame")."""
+    pillar's first fit can exceed the limit (benchmarks/README.md, "Memory as a function of the frame")."""
     make_depth, light = WITHOUT_A_CAMERA[case]
     frame, target, params = tmp_path / "frame.exr", tmp_path / "target.exr", tmp_path / "params.json"
     gr.write_buffers(frame, _frame(make_depth(180, 320)))

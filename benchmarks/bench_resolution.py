@@ -18,7 +18,6 @@ import math
 import os
 import sys
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 

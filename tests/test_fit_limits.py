@@ -62,36 +62,42 @@ def _pillar(height, width):
     return depth
 
 
-WITHOUT_A_CAMERA = {  # the frame's depth and the light
-    "all sky": (lambda h, w: np.full((h, w), np.inf), "160,40"),
-    "all zero": (lambda h, w: np.zeros((h, w)), "160,40"),
-    "a light 1e12 pixels away": (_ground, "1e12,1e12"),
-    "a pillar in the light": (_pillar, "160,40"),
+WITHOUT_A_CAMERA = {  # the frames' depth and their lights, by whether anything in them casts a shadow
+    "no shadows": {
+        "all sky": (lambda h, w: np.full((h, w), np.inf), "160,40"),
+        "all zero": (lambda h, w: np.zeros((h, w)), "160,40"),
+    },
+    "shadows": {
+        "a pillar in the light": (_pillar, "160,40"),
+        "a light 1e12 pixels away": (_ground, "1e12,1e12"),
+    },
 }
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", list(WITHOUT_A_CAMERA))
-def test_a_default_fit_of_a_frame_without_a_camera_stays_within_two_gigabytes(case, tmp_path, environment):
+@pytest.mark.parametrize("kind", list(WITHOUT_A_CAMERA))
+def test_a_default_fit_of_a_frame_without_a_camera_stays_within_two_gigabytes(kind, tmp_path, environment):
     """The default fit (`volumetric_haze`) of a 320x180 frame without a field of view (which the fit then fits too)
-    under a 2 GB data limit, the first of the frames with shadows and the first without from an empty cache (those
-    after them read the programs back, as a user's second fit does): frames whose depth is all sky or all zero
-    (nothing casts a shadow: `Effect.same_on`, no shadows' table), a ground lit from far off screen, and a pillar
-    casting its shadow across the ground. Each fits, to finite parameters: the field of view's column is a
-    difference of two renders (`Effect.DIFFERENCED_STAGES`), where its forward-mode lanes held the lines' table once
-    per lane. The commands inherit the suite's XLA options (`conftest.SUITE_XLA_FLAGS`); under the command's own the
-    pillar's first fit can exceed the limit (benchmarks/README.md, "Memory as a function of the frame")."""
-    make_depth, light = WITHOUT_A_CAMERA[case]
-    frame, target, params = tmp_path / "frame.exr", tmp_path / "target.exr", tmp_path / "params.json"
-    gr.write_buffers(frame, _frame(make_depth(180, 320)))
+    under a 2 GB data limit, for each frame of `WITHOUT_A_CAMERA` in turn: frames whose depth is all sky or all zero
+    (nothing casts a shadow: `Effect.same_on`, no shadows' table), and those with shadows: a pillar casting its shadow
+    across the ground, and a ground lit from far off screen. The first of each kind compiles from an empty cache and
+    the other reads its programs back, as a user's second fit does: in turn, where two workers at once compiled the
+    same programs twice. Each fits, to finite parameters: the field of view's column is a difference of
+    two renders (`Effect.DIFFERENCED_STAGES`), where its forward-mode lanes held the lines' table once per lane. The
+    commands inherit the suite's XLA options (`conftest.SUITE_XLA_FLAGS`); under the command's own the pillar's first
+    fit can exceed the limit (benchmarks/README.md, "Memory as a function of the frame")."""
+    target = tmp_path / "target.exr"
     gr.write_image(target, np.full((180, 320, 3), 0.3, np.float32))
-    done = _command("fit", str(frame), str(target), "--light", light, "-o", str(params), "--max-steps", "2",
-                    env=environment, limit=MEMORY_LIMIT)  # fmt: skip
-    _, err = done.communicate(timeout=900)
-    assert done.returncode == 0, err
-    values = json.loads(params.read_text())  # the effect's name and its fields, as `apply --params` reads them
-    flat = [v for value in values.values() for v in np.ravel(value).tolist() if isinstance(v, (int, float))]
-    assert flat and all(math.isfinite(v) for v in flat), values
+    for case, (make_depth, light) in WITHOUT_A_CAMERA[kind].items():
+        frame, params = tmp_path / f"{case}.exr", tmp_path / f"{case}.json"
+        gr.write_buffers(frame, _frame(make_depth(180, 320)))
+        done = _command("fit", str(frame), str(target), "--light", light, "-o", str(params), "--max-steps", "2",
+                        env=environment, limit=MEMORY_LIMIT)  # fmt: skip
+        _, err = done.communicate(timeout=900)
+        assert done.returncode == 0, (case, err)
+        values = json.loads(params.read_text())  # the effect's name and its fields, as `apply --params` reads them
+        flat = [v for value in values.values() for v in np.ravel(value).tolist() if isinstance(v, (int, float))]
+        assert flat and all(math.isfinite(v) for v in flat), (case, values)
 
 
 def _small_fit(tmp_path, environment, *extra):

@@ -5,7 +5,6 @@ structure (two spheres and a one-triangle mesh), one image size and one tile
 capacity: moving objects changes values, not the compiled program.
 """
 
-import dataclasses
 import json
 import math
 

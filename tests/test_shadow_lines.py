@@ -21,7 +21,6 @@ from godrays_jax.kernels.shadow_lines import (
     line_coordinate,
     segment_visibility_by_lines,
 )
-from godrays_jax.kernels.shadow_samples import segment_visibility
 
 HEIGHT, WIDTH, FOV = 12, 16, 60.0
 THICKNESS, MAX_DISTANCE, SEGMENTS = 2.0, 80.0, 6  # thick slabs: a small frame shows long shadows

@@ -2,16 +2,22 @@
 
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
         python benchmarks/references/render_references.py [SCENE ...] [--spp 256] [--variant llvm_ad_rgb]
+            [--geometry-only]
 
 Every scene is 320x180, camera looking along -z with a horizontal field of
 view of 50 degrees, ground at y = 0. Per scene NAME it writes into this folder:
 
 - `NAME_clean.exr`: the frame without a medium (path tracer, max depth 3,
   four times the fog's samples per pixel): `R, G, B` (linear), `A` (the
-  fraction of a 4x4 grid of rays in the pixel that hit geometry), `Z` (the
+  fraction of a 16x16 grid of rays in the pixel that hit geometry: a 4x4 grid's
+  steps of a quarter left one-pixel lines along every silhouette in a fit's
+  difference), `Z` (the
   distance along the pixel centre's camera ray, scene units, `+inf` on sky).
 - `NAME_fog_a.exr`, `NAME_fog_b.exr`: the same frame inside a homogeneous
   medium (volumetric path tracer, max depth 3), seeds 1 and 2: `R, G, B`.
+
+`--geometry-only` casts the clean frames' `A` and `Z` again and rewrites them
+beside the colour already stored, which it keeps (no render, seconds a scene).
 
 Colour is stored as half floats, depth as float32, zip compressed. Every file's
 header carries `godrays:light_px` (x right, y down, pixel centres at
@@ -62,7 +68,7 @@ PASS_SPP = 32  # samples per launch: the LLVM variant holds one launch's paths i
 SEEDS = {"clean": 0, "fog_a": 1, "fog_b": 2}
 GROUND_REFLECTANCE = (0.35, 0.32, 0.27)
 ENVMAP_SIZE = (1024, 2048)
-COVERAGE_GRID = 4
+COVERAGE_GRID = 16
 
 
 # ----------------------------------------------------------------------------- scene description
@@ -521,6 +527,8 @@ def main() -> None:
     parser.add_argument("--variant", default="llvm_ad_rgb")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=HERE)
+    parser.add_argument("--geometry-only", action="store_true",
+                        help="rewrite the clean frames' coverage and depth, keeping their stored colour")
     args = parser.parse_args()
 
     unknown = [name for name in args.scenes if name not in SCENES]
@@ -537,6 +545,13 @@ def main() -> None:
         seconds = {}
         start, cpu = time.perf_counter(), time.process_time()
         depth, coverage = render_geometry(mi, scene)
+        if args.geometry_only:
+            import OpenImageIO as oiio
+
+            path = args.out / f"{name}_clean.exr"
+            write_frame(path, oiio.ImageBuf(str(path)).get_pixels(oiio.FLOAT)[..., :3], scene, depth, coverage)
+            print(f"{name}: coverage and depth rewritten", flush=True)
+            continue
         clean = render_color(mi, scene, fog=False, spp=args.spp * CLEAN_SPP_FACTOR, seed=SEEDS["clean"])
         seconds["clean"] = [round(time.perf_counter() - start, 1), round(time.process_time() - cpu, 1)]
         write_frame(args.out / f"{name}_clean.exr", clean, scene, depth, coverage)

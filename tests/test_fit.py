@@ -468,6 +468,16 @@ def test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolutio
     normal, gradient = linearisation.normal_equations(positions, residuals, problem, frame_data)
     np.testing.assert_allclose(normal, mixed.T @ mixed, rtol=2e-3, atol=1e-6 * np.abs(mixed.T @ mixed).max())
     np.testing.assert_allclose(gradient, mixed.T @ residuals, rtol=2e-3, atol=1e-6 * np.abs(mixed.T @ residuals).max())
+    # A polish keeps the sharp columns of its first point (`kept`): elsewhere the rest are that point's own.
+    kept = dataclasses.replace(linearisation, kept={})
+    kept.normal_equations(positions, residuals, problem, frame_data)
+    moved = positions.at[sharp[0]].add(0.1)
+    fresh, _ = linearisation.normal_equations(moved, residuals, problem, frame_data)
+    normal_kept, _ = kept.normal_equations(moved, residuals, problem, frame_data)
+    rest = [index for index in range(len(positions)) if index not in sharp]
+    np.testing.assert_allclose(normal_kept[np.ix_(sharp, sharp)], normal[np.ix_(sharp, sharp)], rtol=1e-12)
+    np.testing.assert_allclose(normal_kept[np.ix_(rest, rest)], fresh[np.ix_(rest, rest)], rtol=1e-12)
+    assert not np.allclose(fresh[np.ix_(sharp, sharp)], normal[np.ix_(sharp, sharp)], rtol=1e-2)
 
 
 def test_the_fit_begins_from_the_start_with_the_lowest_loss():

@@ -413,9 +413,10 @@ def fit(
             the steps it accepts stay the full resolution's, each step a
             render and a coarse Jacobian. The polish takes the full
             resolution's derivatives of the fields that move sharp edges
-            (`Effect.SHARP_STAGES`; every field's where the effect names
-            none) and the coarse ones of the rest. Ignored when a fitted
-            field is in pixels (`reduced.pixel_fields`).
+            (`Effect.SHARP_STAGES`, taken where it starts and kept; every
+            field's, at every step, where the effect names none) and the
+            coarse ones of the rest. Ignored when a fitted field is in
+            pixels (`reduced.pixel_fields`).
         stand_in: the starts race and descend as the effect's stand-in
             (`Effect.fit_stand_in`: the same fields read more cheaply, where
             the effect names one; for `VolumetricFog` with its shadows read
@@ -541,13 +542,15 @@ def _polish_phase(
     """The polish after Levenberg-Marquardt (Marquardt's scaling, from where `run` stopped): its run, its losses
     (one per step, as a descent's: its first where it starts) and its steps. Through a stand-in it takes the
     effect's own residuals (`own`, as `host_evaluator`'s) and the stand-in's Jacobian; after the descent's
-    `coarse` one, the `SHARP_STAGES`' columns at full resolution (all where the effect names none), the rest
-    coarse. Without a polish, `run`, no losses and no steps."""
+    `coarse` one, the `SHARP_STAGES`' columns at full resolution, taken at its start and kept
+    (`CoarseLinearisation.kept`), the rest coarse (every column at full resolution where the effect names none).
+    Without a polish, `run`, no losses and no steps."""
     if phases.polisher is None or phases.descend["max_steps"] == 0:
         return run, [], 0
     before = counter.steps
     sharp = type(run.problem.effect).SHARP_STAGES
-    linearisation = None if coarse is None or sharp is None else dataclasses.replace(coarse, sharp=tuple(sharp))
+    linearisation = (None if coarse is None or sharp is None
+                     else dataclasses.replace(coarse, sharp=tuple(sharp), kept={}))  # fmt: skip
     polish = {**phases.descend, "optimiser": phases.polisher, "own": own, "coarse": linearisation}
     polished, _ = _descend([_effect_of_run(run)], bounds, frame_data, counter, **polish)
     return polished[0], polished[0].history, counter.steps - before

@@ -155,6 +155,11 @@ class CoarseLinearisation:
     sharp: tuple[str, ...] = ()
     """Stages whose columns are the fine resolution's own instead (`Effect.SHARP_STAGES`: the fields that move
     edges a pixel wide, which a block's derivatives blur)."""
+    kept: dict | None = dataclasses.field(default=None, compare=False, repr=False)
+    """Where the `sharp` stages' columns are kept once taken at the first point linearised: a polish starts near the
+    minimum, where they change little, and each point taken again costs two renders a sharp field
+    (benchmarks/README.md, "The fit as users run it"). None: taken at every point (`determination`, at the fitted
+    point)."""
 
     @classmethod
     def of(cls, problem: FitProblem, frame_data, factor: int) -> "CoarseLinearisation | None":
@@ -190,7 +195,12 @@ class CoarseLinearisation:
             return normal_equations(rows, _folded(blocks, residuals))
         sharp = np.asarray(fine_problem.stage_unknowns(self.sharp))
         rest = np.setdiff1d(np.arange(rows.shape[1]), sharp)
-        fine = rendered_differences(fine_problem, positions, fine_frame_data, sharp)
+        if self.kept is not None and "columns" in self.kept:
+            fine = self.kept["columns"]
+        else:
+            fine = rendered_differences(fine_problem, positions, fine_frame_data, sharp)
+            if self.kept is not None:
+                self.kept["columns"] = fine
         normal, gradient = np.zeros((rows.shape[1],) * 2), np.zeros(rows.shape[1])
         coarse_rows, fine_folded = np.asarray(rows[:, rest], np.float64), _folded(blocks, fine)
         normal[np.ix_(rest, rest)] = coarse_rows.T @ coarse_rows

@@ -224,6 +224,28 @@ def test_gradients_reach_every_medium_field_with_surfaces_beyond_the_medium(rng)
         np.testing.assert_allclose(float(reverse[index]), float(forward), rtol=1e-4, err_msg=name)
 
 
+@pytest.mark.parametrize("light", [(40.98, 18.01), (40.5, 18.5)], ids=["near a pixel's corner", "on a pixel centre"])
+def test_a_light_hidden_by_a_thin_surface_leaks_no_light_at_its_own_pixels(light):
+    """The sun behind a thin trunk (the slabs a fit of `forest_low_sun` ends with): within a pixel or so of the light
+    every point of a view ray lies below the lines' lowest bin of `s`, and so do the trunk's slabs; the pixels around
+    the light read as shadowed as the rest of the trunk, where they read a bright spot (several times the trunk)."""
+    height, width = 45, 80
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[36:] = 4.0
+    depth[:36, 36:46] = 2.4  # the trunk, in front of the light
+    frame = gr.Buffers(color=jnp.full((height, width, 3), 0.012, jnp.float32), depth=jnp.asarray(depth),
+                       coverage=jnp.asarray(np.isfinite(depth), jnp.float32))  # fmt: skip
+    effect = gr.VolumetricFog(
+        medium=gr.Medium(extinction=0.02, max_distance=60.0, anisotropy=0.8, light_color=(2.0, 2.0, 2.0)),
+        thickness=0.09, edge_softness=0.12, fov_x_deg=50.0, shadows="lines", num_shadow_lines=64, num_shadow_bins=96,
+        resolution_factor=1,
+    )  # fmt: skip
+    image = np.asarray(render_compiled(effect, frame, jnp.asarray(light, jnp.float32), True))[..., :3].mean(axis=-1)
+    x, y = int(light[0]), int(light[1])
+    trunk = np.median(image[:30, 38:44])
+    assert image[y - 2 : y + 3, x - 2 : x + 3].max() <= 1.05 * trunk, (image[y - 2 : y + 3, x - 2 : x + 3], trunk)
+
+
 @pytest.mark.parametrize("preset", ["volumetric_haze", "physically_based"])  # shadows read along lines, by samples
 def test_a_frame_at_the_eye_gives_finite_values_and_gradients(preset):
     """Depth 0 everywhere (a cleared depth buffer, a surface at the eye): the fog and its derivatives in every

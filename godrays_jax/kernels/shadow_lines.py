@@ -31,7 +31,7 @@ that consecutive cells meet), with linear faces `edge_softness` times its nearer
 slab thinner than its two faces is a tent); their blend's maximum along the
 line from the light is the coverage, on `num_bins` bins of `s` even in
 `log s` over `[s_max / 5e3, s_max]`, `s_max = pi * max_distance`, beyond every
-`s` inside the medium. Each face is spread over at most
+`s` inside the medium, the lowest holding what covers any `s` below it. Each face is spread over at most
 `_FACE_BINS` bins. A pixel reads its two nearest lines up to its own cell, and
 each segment `[lower, upper]` of its view ray takes the mean coverage over its
 range of `s` (at least one bin wide), so a shadow's edge inside a segment
@@ -192,12 +192,12 @@ class _Lines:
         return line, cell
 
 
-def _face_deltas(start, width, s_min, log_step, num_bins):
-    """The bins (`(..., _FACE_BINS)`) a ramp from 0 at `start` to 1 at `start + width` rises over, and its rise in
-    each, summing to 1: its values at the bins' centres are the running sums."""
+def _face_deltas(start, width, s_min, log_step, num_bins, lowest=0):
+    """The bins (`(..., _FACE_BINS)`) a ramp from 0 at `start` to 1 at `start + width` rises over, from bin
+    `lowest` on, and its rise in each, summing to 1: its values at the bins' centres are the running sums."""
     held = jax.lax.stop_gradient(start)
     first = jnp.ceil(jnp.log(jnp.maximum(held, s_min * 1e-3) / s_min) / log_step)
-    first = jnp.clip(first, 0, num_bins).astype(jnp.int32)
+    first = jnp.clip(first, lowest, num_bins).astype(jnp.int32)
     index = first[..., None] + jnp.arange(_FACE_BINS)
     centre = s_min * jnp.exp(index.astype(start.dtype) * log_step)
     # A face narrower than a thousandth of the first bin (a surface at the eye: none at all) rises as a step: a
@@ -226,7 +226,10 @@ def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s
     low, high = jnp.minimum(*near), jnp.maximum(*far)
     face = jnp.minimum(softness * low, 0.5 * (high - low))
     rise_at, rise = _face_deltas(low, face, s_min, log_step, num_bins)
-    fall_at, fall = _face_deltas(high - face, face, s_min, log_step, num_bins)
+    # The lowest bin holds what covers any `s` below `s_min` (not what covers `s_min` itself): every point there reads
+    # it, and within a pixel or so of the light every point of a view ray is there, while the slabs that shadow them
+    # end there too (the light's own pixel on a surface that hides it would otherwise read lit).
+    fall_at, fall = _face_deltas(high - face, face, s_min, log_step, num_bins, lowest=1)
     amount = jnp.where(blocks, weight, 0.0)[..., None]
     # Per cell (the scan's axis first): each line's texels' face changes and the bins they fall in, a face's rise
     # past the last bin (beyond the medium) dropped.

@@ -4,7 +4,8 @@
 
 Per scene (`benchmarks/references/scenes.py`): `godrays-jax fit CLEAN FOG_A -o
 params.json` (the default model, `VolumetricFog` from `volumetric_haze`; light,
-its distance and the field of view from the frames' headers), then
+its distance and the field of view from the frames' headers; the depth map seen
+from the light, `SCENE_light_view.exr`, where the scene has one), then
 `godrays-jax apply CLEAN --params params.json -o out.exr`; the display-space
 MSE (`x / (1 + |x|)` per channel, the fit's loss) of `out.exr` against both
 fog renders as ratios to the scene's noise floor, beside `ScatteringFog`'s
@@ -47,6 +48,9 @@ def fit_scene(scene, folder: Path, preset: str | None, report: Path | None) -> d
     if report is not None:
         options += ["--report", str(report / f"fit_report_{scene.name}.png")]
     light = [] if scene.renderer == "mitsuba" else light_options(scene)  # Blender's headers lack the light
+    # A scene whose shadows are cast from outside the frame ships the depth map seen from its light beside it.
+    light_view = scene.clean.with_name(f"{scene.name}_light_view.exr")
+    light += ["--light-view", str(light_view)] if light_view.exists() else []
     log = None if report is None else report / f"fit_{scene.name}.txt"  # what the command printed: steps, start
     seconds = _run("fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *options, *light, log=log)
     seconds += _run("apply", str(scene.clean), "--params", str(params), "-o", str(output), *light)

@@ -20,6 +20,7 @@ from godrays_jax.primitives.color import display_map as display_map
 from godrays_jax.primitives.color import srgb_decode as srgb_decode
 from godrays_jax.primitives.color import srgb_encode as srgb_encode
 from godrays_jax.primitives.derivatives import values_only as values_only
+from godrays_jax.primitives.light_view import LightView as LightView
 from godrays_jax.primitives.resample import box_pool as box_pool
 from godrays_jax.primitives.resample import downsample_box as downsample_box
 from godrays_jax.primitives.resample import upsample_bilinear as upsample_bilinear
@@ -49,6 +50,7 @@ from godrays_jax.kernels.lens import lens_dirt_intensity as lens_dirt_intensity
 from godrays_jax.kernels.lens import light_direction as light_direction
 from godrays_jax.kernels.lens import sun_spot as sun_spot
 from godrays_jax.kernels.lens import view_directions as view_directions
+from godrays_jax.kernels.light_view_shadows import light_view_visibility as light_view_visibility
 from godrays_jax.kernels.losses import LOSSES as LOSSES
 from godrays_jax.kernels.losses import charbonnier_loss as charbonnier_loss
 from godrays_jax.kernels.losses import l1_loss as l1_loss
@@ -135,6 +137,8 @@ _ON_FIRST_USE = {
     "read_light_depth": "godrays_jax.primitives.light_metadata",
     "read_lights": "godrays_jax.primitives.light_metadata",
     "lights_metadata": "godrays_jax.primitives.light_metadata",
+    "read_light_view": "godrays_jax.primitives.light_view_files",
+    "write_light_view": "godrays_jax.primitives.light_view_files",
     "StoredLight": "godrays_jax.primitives.light_metadata",
     "plan_batch": "godrays_jax.pipeline.batch",
     "run_batch": "godrays_jax.pipeline.batch",

@@ -54,6 +54,11 @@ def _depth(rng, dtype):
     return _plane(rng, dtype, 1.0, 40.0)
 
 
+# A roof of slats seen from a sun straight above (its camera looks down the frame's -y from 10 units above it), 5.5
+# units above the frame's camera: its shadow falls on the points below, some within its ramp (`light_view_visibility`).
+LIGHT_VIEW_DEPTH = np.where(np.logical_and.outer(np.arange(16) % 5 < 3, np.arange(16) % 4 < 2), 4.5, np.inf).astype(np.float32)
+LIGHT_VIEW_FROM_CAMERA = np.asarray([[1, 0, 0, 0], [0, 0, 1, -5], [0, -1, 0, 10]], np.float32)
+
 RAYS = dict(num_samples=6, weight=1.0, exposure=0.3)
 
 CASES = {
@@ -116,6 +121,12 @@ CASES = {
         lambda r, t: (_depth(r, t), _light(r, t), _scalar(r, t, 0.01, 0.05)),
     ),  # fmt: skip
     "l1_loss": Case(gr.l1_loss, lambda r, t: (_image(r, t), _image(r, t))),
+    "light_view_visibility": Case(
+        lambda points, scale: gr.light_view_visibility(points, light_view=gr.LightView(
+            depth=LIGHT_VIEW_DEPTH, from_camera=LIGHT_VIEW_FROM_CAMERA, scale=scale)),
+        lambda r, t: (r.uniform([-3.0, 1.0, 2.0], [3.0, 5.0, 8.0], size=(HEIGHT, WIDTH, 3)).astype(t),
+                      _scalar(r, t, 1.5, 2.5)),
+    ),  # fmt: skip
     "lens_dirt": Case(
         lambda dirt, depth, light, fov: gr.lens_dirt(dirt, depth, light, fov_x_deg=fov, far_plane=50.0, power=4.0),
         lambda r, t: (_image(r, t, 1), _depth(r, t), _light(r, t), _scalar(r, t, 40.0, 70.0)),

@@ -2,7 +2,7 @@
 
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
         python benchmarks/references/render_references.py [SCENE ...] [--spp 256] [--variant llvm_ad_rgb]
-            [--geometry-only]
+            [--geometry-only] [--light-view]
 
 Every scene is 320x180, camera looking along -z with a horizontal field of
 view of 50 degrees, ground at y = 0. Per scene NAME it writes into this folder:
@@ -18,6 +18,24 @@ view of 50 degrees, ground at y = 0. Per scene NAME it writes into this folder:
 
 `--geometry-only` casts the clean frames' `A` and `Z` again and rewrites them
 beside the colour already stored, which it keeps (no render, seconds a scene).
+
+`--light-view` writes, for a scene whose (first) light is a sun, `NAME_light_view.exr`:
+a shadow map, the depth of the geometry seen from the sun (no medium, no
+render of the frame; other scenes are skipped). One channel `Z` (float32,
+1024x1024, zip): the planar depth along the light camera's forward axis (the
+direction the sunlight travels) from its image plane, scene units, `+inf` where
+the pixel centre's ray meets nothing. The light camera is orthographic, its
+image plane 300 units from the frame camera toward the sun, centred on the
+frame camera, covering 96x96 units (the medium's sphere of radius 40 and a
+margin); its up is the world's up made perpendicular to its forward. Its
+header carries `godrays:light_view_projection` (`orthographic`),
+`godrays:light_view_from_camera` (the row-major 3x4 `[R | t]` taking a point
+`X` in the frame camera's view space to the light camera's, `R @ X + t`, both
+x right, y up, z forward, scene units) and `godrays:light_view_scale` (pixels
+per scene unit); numbers as `repr` writes them, one space apart. A point at
+`(lx, ly, lz)` in light view falls at pixel `(W/2 + scale lx, H/2 - scale ly)`
+(x right, y down, centres at `i + 0.5`), lit if `lz` is not beyond the map's
+depth there.
 
 Colour is stored as half floats, depth as float32, zip compressed. Every file's
 header carries `godrays:light_px` (x right, y down, pixel centres at
@@ -69,6 +87,9 @@ SEEDS = {"clean": 0, "fog_a": 1, "fog_b": 2}
 GROUND_REFLECTANCE = (0.35, 0.32, 0.27)
 ENVMAP_SIZE = (1024, 2048)
 COVERAGE_GRID = 16
+LIGHT_VIEW_PIXELS = 1024  # the shadow map's width and height
+LIGHT_VIEW_SPAN = 96.0  # scene units across it: the medium's sphere (radius 40) and a margin
+LIGHT_VIEW_DISTANCE = 300.0  # its image plane's distance from the frame camera toward the sun
 
 
 # ----------------------------------------------------------------------------- scene description
@@ -363,6 +384,42 @@ def _envmap(mi, lights):
     return {"type": "envmap", "bitmap": mi.Bitmap(pixels)}
 
 
+def look_at(origin, target, up) -> np.ndarray:
+    """Mitsuba's `look_at` camera-to-world in float64 (its own rounds to float32): columns left, up, forward,
+    position."""
+    origin = np.asarray(origin, np.float64)
+    forward = np.asarray(target, np.float64) - origin
+    forward /= np.linalg.norm(forward)
+    left = np.cross(np.asarray(up, np.float64), forward)
+    left /= np.linalg.norm(left)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = left, np.cross(forward, left), forward, origin
+    return matrix
+
+
+def frame_to_world(scene: Scene) -> np.ndarray:
+    """The frame camera's camera-to-world: at `scene.camera`, looking along -z, up +y."""
+    camera = np.asarray(scene.camera, np.float64)
+    return look_at(camera, camera - [0.0, 0.0, 1.0], [0.0, 1.0, 0.0])
+
+
+def light_to_world(scene: Scene) -> np.ndarray:
+    """The sun's orthographic light camera's camera-to-world: `LIGHT_VIEW_DISTANCE` from the frame camera toward the
+    sun, looking along the sunlight at the frame camera, its up the world's +y made perpendicular to that (-z for a
+    sun within 8 degrees of straight overhead)."""
+    camera = np.asarray(scene.camera, np.float64)
+    toward = scene.light.direction()
+    up = [0.0, 1.0, 0.0] if abs(toward[1]) < 0.99 else [0.0, 0.0, -1.0]
+    return look_at(camera + LIGHT_VIEW_DISTANCE * toward, camera, up)
+
+
+def view_from_world(to_world: np.ndarray) -> np.ndarray:
+    """The 3x4 world-to-view `[R | t]` of a camera-to-world (Mitsuba's: columns left, up, forward, position), in
+    `godrays_jax`'s view space: x right, y up, z forward."""
+    rotation = to_world[:3, :3].T * np.array([[-1.0], [1.0], [1.0]])  # Mitsuba's camera x is left
+    return np.concatenate([rotation, -(rotation @ to_world[:3, 3])[:, None]], 1)
+
+
 def scene_dict(mi, scene: Scene, *, fog: bool, emitters: bool = True) -> dict:
     """Mitsuba's description of `scene`, with or without its medium (and its lights, for the geometry pass)."""
     T = mi.ScalarTransform4f
@@ -371,7 +428,7 @@ def scene_dict(mi, scene: Scene, *, fog: bool, emitters: bool = True) -> dict:
         "type": "perspective",
         "fov": FOV_X_DEG,
         "fov_axis": "x",
-        "to_world": T().look_at(origin=camera, target=[camera[0], camera[1], camera[2] - 1.0], up=[0, 1, 0]),
+        "to_world": T(frame_to_world(scene)),
         "film": {"type": "hdrfilm", "width": WIDTH, "height": HEIGHT, "rfilter": {"type": "box"},
                  "pixel_format": "rgb", "component_format": "float32"},
         "sampler": {"type": "independent"},
@@ -443,6 +500,36 @@ def render_geometry(mi, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return depth.astype(np.float32), (hits / COVERAGE_GRID**2).astype(np.float32)
 
 
+def render_light_view(mi, scene: Scene) -> tuple[np.ndarray, np.ndarray, float]:
+    """The sun's shadow map: planar depth from the orthographic light camera's image plane along its forward axis at
+    every pixel centre (`+inf` on a miss, no medium), the 3x4 frame-view-to-light-view `[R | t]` and the scale
+    (pixels per scene unit)."""
+    import drjit as dr
+
+    if not isinstance(scene.light, Sun):
+        raise ValueError(f"{scene.name}: a light view needs a sun as the first light")
+    lamps = any(isinstance(light, Lamp) for light in scene.lights)  # the bulbs are geometry too
+    loaded = mi.load_dict(scene_dict(mi, scene, fog=False, emitters=lamps))
+    frame = view_from_world(frame_to_world(scene))
+    light_world = light_to_world(scene)
+    light = view_from_world(light_world)
+    rotation = light[:, :3] @ frame[:, :3].T  # X_light = R_l (R_f^T (X - t_f)) + t_l
+    light_from_camera = np.concatenate([rotation, (light[:, 3] - rotation @ frame[:, 3])[:, None]], 1)
+
+    n, scale = LIGHT_VIEW_PIXELS, LIGHT_VIEW_PIXELS / LIGHT_VIEW_SPAN
+    offsets = (np.arange(n) + 0.5 - n / 2) / scale  # pixel centres in light-view units
+    lx, ly = np.meshgrid(offsets, -offsets)  # rows top (up) to bottom
+    right, up, forward = light[:, :3]
+    position = light_world[:3, 3]
+    origins = position + lx.reshape(-1, 1) * right + ly.reshape(-1, 1) * up  # on the image plane (lz = 0)
+    origins = origins.astype(np.float32)
+    ray = mi.Ray3f(mi.Point3f(origins[:, 0], origins[:, 1], origins[:, 2]),
+                   mi.Vector3f(*(float(c) for c in forward)))
+    si = loaded.ray_intersect(ray)
+    depth = np.asarray(dr.select(si.is_valid(), si.t, dr.inf)).reshape(n, n)
+    return depth.astype(np.float32), light_from_camera, scale
+
+
 # ----------------------------------------------------------------------------- files
 
 
@@ -477,6 +564,25 @@ def write_frame(path: Path, color: np.ndarray, scene: Scene, depth=None, coverag
     for name, value in (lights_attributes(scene) or {}).items():
         spec.attribute(name, value)
     out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
+        raise OSError(f"cannot write {path}: {oiio.geterror()}")
+
+
+def write_light_view(path: Path, depth: np.ndarray, light_from_camera: np.ndarray, scale: float) -> None:
+    """One float32 channel `Z`, zip; the projection, the frame-view-to-light-view matrix and the scale in the
+    header."""
+    import OpenImageIO as oiio
+
+    height, width = depth.shape
+    spec = oiio.ImageSpec(width, height, 1, oiio.FLOAT)
+    spec.channelnames = ("Z",)
+    spec.z_channel = 0
+    spec.attribute("compression", "zip")
+    spec.attribute("godrays:light_view_projection", "orthographic")
+    spec.attribute("godrays:light_view_from_camera", " ".join(repr(float(x)) for x in light_from_camera.ravel()))
+    spec.attribute("godrays:light_view_scale", repr(float(scale)))
+    out = oiio.ImageOutput.create(str(path))
+    pixels = np.ascontiguousarray(depth[..., None], dtype=np.float32)
     if out is None or not out.open(str(path), spec) or not out.write_image(pixels) or not out.close():
         raise OSError(f"cannot write {path}: {oiio.geterror()}")
 
@@ -529,6 +635,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE)
     parser.add_argument("--geometry-only", action="store_true",
                         help="rewrite the clean frames' coverage and depth, keeping their stored colour")
+    parser.add_argument("--light-view", action="store_true",
+                        help="write a sun scene's shadow map (NAME_light_view.exr) and nothing else, skipping "
+                             "scenes without a sun (with --geometry-only: both)")
     args = parser.parse_args()
 
     unknown = [name for name in args.scenes if name not in SCENES]
@@ -543,6 +652,17 @@ def main() -> None:
     for name in args.scenes or list(SCENES):
         scene = SCENES[name]
         seconds = {}
+        if args.light_view:
+            if isinstance(scene.light, Sun):
+                start, cpu = time.perf_counter(), time.process_time()
+                light_depth, light_from_camera, scale = render_light_view(mi, scene)
+                write_light_view(args.out / f"{name}_light_view.exr", light_depth, light_from_camera, scale)
+                print(f"{name}: light view written ({time.perf_counter() - start:.1f} s, "
+                      f"{time.process_time() - cpu:.1f} s CPU)", flush=True)
+            else:
+                print(f"{name}: no sun, no light view", flush=True)
+            if not args.geometry_only:
+                continue
         start, cpu = time.perf_counter(), time.process_time()
         depth, coverage = render_geometry(mi, scene)
         if args.geometry_only:

@@ -17,6 +17,7 @@ from godrays_jax.app.options import (
     tints_of_params,
     with_flare_texture,
     with_frame_camera,
+    with_light_view,
     with_stored_lights,
 )
 from godrays_jax.pipeline.batch import dither_seed_of, frames_function
@@ -32,6 +33,7 @@ def run(args) -> int:
     check_output_path(args.output, args.buffers)
     effect = with_flare_texture(effect_option(args.preset, args.params), args.flare_texture)
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
+    buffers = with_light_view(buffers, args.light_view)
     effect = with_frame_camera(effect, args, args.buffers)
     light = light_of_params(None, args.params, args.buffers, buffers) if args.light is None else None
     lights, depths, tints = args.light, args.light_depth, args.light_tint

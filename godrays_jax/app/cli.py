@@ -148,6 +148,11 @@ def _add_apply(subparsers) -> None:
     _add_effect_options(parser)
     _add_frame_options(parser)
     parser.add_argument(
+        "--light-view", metavar="EXR",
+        help="a depth map seen from the light, with its camera in its header (docs/file_formats.md): the "
+        "volumetric fog's shadows of what lies outside the frame",
+    )  # fmt: skip
+    parser.add_argument(
         "--flare-texture", metavar="IMAGE", help="the flare texture of a GodRays or FlareOuts effect (any image)"
     )
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
@@ -278,6 +283,11 @@ def _add_fit(subparsers) -> None:
         "separated by ';', every one drawn and the fitted fields shared by all), or 'auto': one light found from "
         "the frame and its target before the fit (once for every frame); default: each frame's godrays:lights or "
         "godrays:light_px metadata; a light found is written beside -o (PARAMS.light.json) for apply --params",
+    )  # fmt: skip
+    parser.add_argument(
+        "--light-view", action="append", metavar="EXR",
+        help="a depth map seen from the light, with its camera in its header (docs/file_formats.md), once per "
+        "frame in order: the volumetric fog's shadows of what lies outside the frame",
     )  # fmt: skip
     parser.add_argument(
         "--fit-light", action="store_true",

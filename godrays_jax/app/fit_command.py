@@ -36,6 +36,7 @@ from godrays_jax.app.options import (
     tints_text,
     with_stored_lights,
     with_frame_camera,
+    with_light_view,
 )
 from godrays_jax.effects.fields import field_metadata, field_value
 from godrays_jax.effects.presets import preset
@@ -63,6 +64,11 @@ def run(args) -> int:
         lights *= len(pairs)  # `--light auto` once finds every frame's light
     if len(lights) not in (0, len(pairs)):
         raise CommandError(f"give --light once per frame ({len(pairs)} frames) or not at all, got {len(lights)}")
+    light_views = args.light_view or [None] * len(pairs)
+    if len(light_views) != len(pairs):
+        raise CommandError(
+            f"give --light-view once per frame ({len(pairs)} frames) or not at all, got {len(light_views)}"
+        )
     if args.fit_light or LIGHT_AUTO in lights:
         check_output_path(found_lights_path(args.output), *[path for pair in pairs for path in pair])
     effect = effect_option(args.preset, args.params, default=default_fit_effect)
@@ -71,7 +77,7 @@ def run(args) -> int:
     frames, light_positions, in_front, targets, depths, others = [], [], [], [], [], []
     searched = {}  # frame index -> (the frame as read, whether from the target alone) for each light searched for
     for index, (buffers_path, target_path) in enumerate(pairs):
-        frame = read_buffers(buffers_path, **frame_reading(args))
+        frame = with_light_view(read_buffers(buffers_path, **frame_reading(args)), light_views[index])
         effect = effect_for_frame("fit", effect, frame, buffers_path)
         target = read_target(target_path)
         if target.shape[:2] != frame.color.shape[:2]:

@@ -2,6 +2,7 @@
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import os
 import sys
@@ -22,6 +23,7 @@ from godrays_jax.primitives.frame_reading import SKY_DEPTH, read_buffers
 from godrays_jax.primitives.image_files import image_size
 from godrays_jax.primitives.images import read_image
 from godrays_jax.primitives.light_metadata import read_light, read_light_depth, read_lights
+from godrays_jax.primitives.light_view_files import read_light_view
 
 DEFAULT_PRESET = "xna_crepuscular"
 """The effect `apply`, `batch` and `tune` use without `--preset` / `--params`."""
@@ -358,6 +360,17 @@ def frame_reading(args: argparse.Namespace) -> dict:
         "depth_channel": args.depth_channel, "color_layer": args.color_layer, "sky_depth": args.sky_depth,
         "depth_kind": args.depth_kind, "fov_x_deg": args.fov_x_deg, "without_depth": True,
     }  # fmt: skip
+
+
+def with_light_view(buffers: Buffers, path: str | None) -> Buffers:
+    """`buffers` with the depth map seen from the light that `--light-view` names (`read_light_view`), or as they
+    are without one; a file that cannot be read is the command's error."""
+    if path is None:
+        return buffers
+    try:
+        return dataclasses.replace(buffers, light_view=read_light_view(path))
+    except (OSError, ValueError) as error:
+        raise CommandError(f"--light-view: {error}") from None
 
 
 def frame_field_of_view(args: argparse.Namespace, path: str) -> float | None:

@@ -169,6 +169,7 @@ class VolumetricFog(Effect):
             slabs=Slabs(thickness=self.thickness, edge_softness=self.edge_softness), shadows=self.shadow_reading,
             direct_fraction=self.direct_fraction, ambient_rise=self.ambient_rise, num_view_steps=self.num_view_steps,
             resolution_factor=factor, coverage=coverage, uncovered_depth=uncovered_depth,
+            light_view=buffers.light_view,
         )  # fmt: skip
 
     @property

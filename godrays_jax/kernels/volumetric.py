@@ -90,6 +90,7 @@ from godrays_jax.kernels.fog_reading import (
     upsample_by_depth,
 )
 from godrays_jax.kernels.lens import rays_through, view_directions
+from godrays_jax.kernels.light_view_shadows import light_view_visibility
 from godrays_jax.kernels.shadow_reading import ShadowReading, ShadowSamples, Slabs
 from godrays_jax.primitives.camera import focal_length_px, unit_vectors
 from godrays_jax.primitives.checks import (
@@ -100,10 +101,13 @@ from godrays_jax.primitives.checks import (
     is_static_int,
 )
 from godrays_jax.primitives.derivatives import values_are_only_needed
+from godrays_jax.primitives.light_view import LightView
 
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
 _NEAREST_LIGHT = 1e-3
 
+# Points a segment's shadow is read at from a depth map seen from the light (`_seen_by_the_light_too`).
+_LIGHT_VIEW_SAMPLES = 8
 # The pixels' reads of the march rays are made this many pixels (whole rows) at a time on larger frames: memory
 # O(band x lanes) in a fit's Jacobian instead of O(frame x lanes), the same values.
 _BAND_PIXELS = 1 << 14
@@ -177,6 +181,7 @@ def volumetric_fog_terms(
     resolution_factor: int = 1,
     coverage: Float[Array, "H W"] | None = None,
     uncovered_depth: Float[Array, "H W"] | None = None,
+    light_view: LightView | None = None,
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"], Float[Array, "H W"]]:
     """`(surface, scattered, ambient)`: the fogged frame is `C * surface + light_color * scattered + ambient_color * ambient`.
 
@@ -222,6 +227,11 @@ def volumetric_fog_terms(
             each pixel sees, along the pixel's ray: a surface behind or in
             front of its own at a silhouette between two surfaces; `inf`, the
             sky (None: the sky everywhere). Used with `coverage`.
+        light_view: a depth map seen from the light and its camera
+            (`primitives.light_view.LightView`): each segment's visibility
+            is then also read from it where the segment's light comes from
+            (`light_view_shadows`), for what casts shadows outside the frame.
+            None: only the depth buffer casts shadows.
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
@@ -244,12 +254,14 @@ def volumetric_fog_terms(
         if coverage is None:
             raise ValueError("uncovered_depth needs coverage (the share of each pixel its own surface covers)")
         check_plane(uncovered_depth, "uncovered_depth", height, width)
+    if light_view is not None and not isinstance(light_view, LightView):
+        raise ValueError(f"light_view must be a LightView or None, got {type(light_view).__name__}")
     static_front = light_in_front if isinstance(light_in_front, bool) else None
     static_sun = is_static_sun(light_depth)
     arguments = (
         depth, light_xy, fov_x_deg, None if static_sun else light_depth,
         None if static_front is not None else jnp.asarray(light_in_front),
-        medium, slabs, direct_fraction, ambient_rise, coverage, uncovered_depth,
+        medium, slabs, direct_fraction, ambient_rise, coverage, uncovered_depth, light_view,
     )  # fmt: skip
     # Called eagerly, the terms run compiled once per shape and count: their loops over functions defined in the call
     # would be traced and compiled again on every call. Traced (an effect, a fit), they are part of the caller's trace.
@@ -262,7 +274,7 @@ def volumetric_fog_terms(
 
 
 def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, slabs, direct_fraction, ambient_rise,
-               coverage, uncovered_depth, *, shadows, num_view_steps, resolution_factor, static_front, static_sun,
+               coverage, uncovered_depth, light_view, *, shadows, num_view_steps, resolution_factor, static_front, static_sun,
                values_only):  # fmt: skip
     """`volumetric_fog_terms` after its checks; `static_front`: the light's side when the caller gave it as a
     Python bool, else None (`light_in_front` traced); `static_sun`: the caller gave the sun as a Python number
@@ -301,11 +313,13 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         depth, jnp.asarray(light_xy, dtype), fov_x_deg=fov_x_deg, light_depth=light_depth,
         light_in_front=light_in_front, slabs=slabs, max_distance=medium.max_distance,
     )  # fmt: skip
+    focal = focal_length_px(width, fov_x_deg, dtype)
+    if light_view is not None:
+        visibility = _seen_by_the_light_too(visibility, light_view, height, width, focal)
     march_options = dict(
         toward=toward, inverse=inverse, light_depth=light_depth, medium=medium, visibility=visibility,
         num_view_steps=num_view_steps,
     )  # fmt: skip
-    focal = focal_length_px(width, fov_x_deg, dtype)
     spacing = resolution_factor
     band = max(_BAND_PIXELS // width, 1)
     if spacing == 1:
@@ -414,6 +428,21 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         return blend_where_partly_covered(terms, covered, uncovered, other_side, chunk=chunk)
 
     return one_side_then_silhouettes(planes)
+
+
+def _seen_by_the_light_too(visibility, light_view, height, width, focal):
+    """`visibility` (a shadow reading's) times the light view's mean over each segment, `_LIGHT_VIEW_SAMPLES` points
+    evenly along it on the view ray through its pixel: a segment is often longer than a shaft through a gap is
+    wide, and one point of it would read the shaft or miss it."""
+    fractions = (jnp.arange(_LIGHT_VIEW_SAMPLES) + 0.5) / _LIGHT_VIEW_SAMPLES
+
+    def both(pixel_xy, lower, upper, middles):
+        view = unit_vectors(rays_through(pixel_xy[..., 0], pixel_xy[..., 1], height, width, focal))
+        distances = lower[..., None] + (upper - lower)[..., None] * fractions.astype(lower.dtype)
+        seen = light_view_visibility(view[..., None, None, :] * distances[..., None], light_view=light_view)
+        return visibility(pixel_xy, lower, upper, middles) * jnp.mean(seen, axis=-1)
+
+    return both
 
 
 _compiled_fog_terms = jax.jit(

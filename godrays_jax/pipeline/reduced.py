@@ -44,6 +44,7 @@ def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
         light_pass=plane(buffers.light_pass),
         glow_pass=box(buffers.glow_pass),
         glow_target=box(buffers.glow_target),
+        light_view=buffers.light_view,  # the light's own view: the same scene at any resolution of the frame
         depth_kind=buffers.depth_kind,
     )
 

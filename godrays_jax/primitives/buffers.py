@@ -5,6 +5,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from godrays_jax.primitives.camera import DEPTH_KINDS, DepthKind, planar_to_ray_depth
+from godrays_jax.primitives.light_view import LightView
 
 
 class Buffers(eqx.Module):
@@ -27,6 +28,9 @@ class Buffers(eqx.Module):
         glow_target: the VBex article's glow target, what the bloom spreads (the
             sky's sun spot, emissive surfaces and night lights, the
             atmosphere's glowing shell), `(H, W, 3)` linear HDR, if rendered.
+        light_view: a depth map seen from the light and its camera (`LightView`),
+            for what casts shadows outside the frame, if rendered; the
+            volumetric fog reads it.
         depth_kind: `"ray"` (the default; `render`, Mitsuba) or `"planar"`
             (Blender's Cycles `Z` pass; `camera.DEPTH_KINDS`), static.
     """
@@ -39,6 +43,7 @@ class Buffers(eqx.Module):
     light_pass: Float[Array, "H W"] | None = None
     glow_pass: Float[Array, "H W 4"] | None = None
     glow_target: Float[Array, "H W 3"] | None = None
+    light_view: LightView | None = None
     depth_kind: DepthKind = eqx.field(static=True, default="ray")
 
     def __check_init__(self):
@@ -71,6 +76,8 @@ class Buffers(eqx.Module):
             if actual is not None and not jnp.issubdtype(value.dtype, kind):
                 kind_text = "an integer" if kind is jnp.integer else "a floating-point"
                 raise ValueError(f"buffers.{name} must have {kind_text} dtype, got {value.dtype}")
+        if self.light_view is not None and not isinstance(self.light_view, LightView):
+            raise ValueError(f"buffers.light_view must be a LightView or None, got {type(self.light_view).__name__}")
 
     def ray_depth(self, fov_x_deg: Float[ArrayLike, ""] | None = None) -> Float[Array, "H W"]:
         """Depth as distance along each pixel's camera ray (scene units, `+inf` on sky), what effects read.

@@ -1,0 +1,56 @@
+"""How much of the light reaches points of the frame's view space, read from a depth map seen from the light.
+
+A shadow map's test, as engines make it: a point is lit when it lies no
+deeper along the light camera's axis than the first surface its pixel of the
+map sees (`primitives.light_view.LightView`). Each point is compared with the
+four texels around its position on the map and the four results blended by
+bilinear weights (percentage-closer filtering), so that a shadow's edge moves
+smoothly as the point moves over the map's grid; each comparison is a linear
+ramp `RAMP_TEXELS` texels' footprints deep behind the texel's surface, so that
+the points' positions (the medium's fields that place a view ray's segments)
+have gradients. The volumetric fog multiplies its screen-space reading of a
+segment's shadow (`shadow_reading`) by this one, read where the segment's
+light comes from: the depth buffer finds the shadows of what the frame shows,
+the map those of what it does not.
+"""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from godrays_jax.primitives.light_view import LightView
+from godrays_jax.primitives.sampling import bilinear_corners
+
+RAMP_TEXELS = 2.0
+"""How deep behind a texel's surface a point falls from lit to shadowed, in texels' footprints: a surface that
+slants across a texel spans about one footprint in depth when it faces the light at 45 degrees (more when it
+faces away), and the four texels around a point blend such spans."""
+
+
+def light_view_visibility(points: Float[Array, "*S 3"], *, light_view: LightView) -> Float[Array, "*S"]:
+    """How much of the light reaches each of `points` (the frame camera's view space, scene units), in [0, 1].
+
+    1 where the point lies off the map (beyond `[0, w] x [0, h]`), behind a
+    perspective map's centre, or where its texels see nothing (`+inf`);
+    nothing is known there and nothing blocks. Differentiable in the points
+    and the map's camera (`from_camera`, `scale`); not in the map's depths'
+    positions (the texels are sampled where they are).
+    """
+    if not isinstance(light_view, LightView):
+        raise ValueError(f"light_view must be a LightView, got {type(light_view).__name__}")
+    if jnp.shape(points)[-1:] != (3,):
+        raise ValueError(f"points must have shape (..., 3), got {jnp.shape(points)}")
+    dtype = jnp.result_type(points, jnp.float32)
+    height, width = light_view.depth.shape[-2:]
+    x, y, z, footprint = light_view.project(jnp.asarray(points, dtype))
+    rows, cols, weights = bilinear_corners(x - 0.5, y - 0.5, height, width)
+    texels = jnp.asarray(light_view.depth, dtype)[rows, cols]
+    ramp = RAMP_TEXELS * footprint
+    seen = jnp.isfinite(texels)
+    # Lit up to the texel's surface, shadowed a ramp behind it; where the texel sees nothing the difference is
+    # replaced by a ramp, so that no infinity reaches a derivative.
+    behind = jnp.where(seen, z - texels, -ramp)
+    lit = jnp.sum(weights * jnp.clip(1.0 - behind / ramp, 0.0, 1.0), axis=0)
+    on_map = (x >= 0.0) & (x <= width) & (y >= 0.0) & (y <= height)
+    if light_view.projection == "perspective":
+        on_map = on_map & (z > 0.0)
+    return jnp.where(on_map, lit, 1.0)

@@ -1,0 +1,192 @@
+"""A depth map seen from the light: the kernel against a NumPy loop and at its edges, its files, the fog and the
+commands reading it."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import godrays_jax as gr
+from godrays_jax.app.cli import main
+from godrays_jax.kernels.light_view_shadows import RAMP_TEXELS
+from godrays_jax.primitives.light_view_files import FROM_CAMERA_ATTR
+
+# A sun straight above: its camera looks down the frame's -y from 10 units above the frame's camera; the frame's z
+# (forward) is up on the map. Slats at 4.5 along its axis (5.5 units above the frame's camera) with gaps.
+FROM_ABOVE = np.asarray([[1, 0, 0, 0], [0, 0, 1, -5], [0, -1, 0, 10]], np.float64)
+SLATS = np.where(np.logical_and.outer(np.arange(16) % 5 < 3, np.arange(16) % 4 < 2), 4.5, np.inf)
+
+
+def _numpy_visibility(points, depth, transform, scale, projection):
+    """The shadow map's test point by point: the four texels around each point's place, each lit up to its surface
+    and shadowed `RAMP_TEXELS` footprints behind it, blended by bilinear weights; 1 off the map."""
+    height, width = depth.shape
+    out = np.ones(points.shape[:-1])
+    for index in np.ndindex(*points.shape[:-1]):
+        lx, ly, lz = transform[:, :3] @ points[index] + transform[:, 3]
+        if projection == "perspective":
+            if lz <= 0:
+                continue
+            x, y, footprint = width / 2 + scale * lx / lz, height / 2 - scale * ly / lz, lz / scale
+        else:
+            x, y, footprint = width / 2 + scale * lx, height / 2 - scale * ly, 1 / scale
+        if not (0 <= x <= width and 0 <= y <= height):
+            continue
+        u, v = x - 0.5, y - 0.5
+        col0, row0 = math.floor(u), math.floor(v)
+        total = 0.0
+        for dr in (0, 1):
+            for dc in (0, 1):
+                weight = (v - row0 if dr else 1 - (v - row0)) * (u - col0 if dc else 1 - (u - col0))
+                texel = depth[min(max(row0 + dr, 0), height - 1), min(max(col0 + dc, 0), width - 1)]
+                lit = 1.0 if np.isinf(texel) else min(max(1 - (lz - texel) / (RAMP_TEXELS * footprint), 0.0), 1.0)
+                total += weight * lit
+        out[index] = total
+    return out
+
+
+def _points(rng, count=40):
+    return rng.uniform([-4.0, 0.0, 1.0], [4.0, 6.0, 9.0], size=(count, 3))
+
+
+@pytest.mark.parametrize("projection", ["orthographic", "perspective"])
+def test_matches_a_numpy_loop_eagerly_under_jit_and_vmap(projection, rng):
+    points = _points(rng)
+    scale = 2.0 if projection == "orthographic" else 6.0
+    transform = FROM_ABOVE if projection == "orthographic" else FROM_ABOVE + [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 3]]
+    view = gr.LightView(depth=jnp.asarray(SLATS, jnp.float32), from_camera=jnp.asarray(transform, jnp.float32),
+                        scale=jnp.float32(scale), projection=projection)  # fmt: skip
+    expected = _numpy_visibility(points, SLATS, transform, scale, projection)
+    assert 0.05 < np.mean(expected) < 0.95  # both lit and shadowed points
+    points = jnp.asarray(points, jnp.float32)
+    eager = gr.light_view_visibility(points, light_view=view)
+    jitted = jax.jit(lambda p, v: gr.light_view_visibility(p, light_view=v))(points, view)
+    mapped = jax.vmap(lambda p: gr.light_view_visibility(p, light_view=view))(points)
+    for values in (eager, jitted, mapped):
+        np.testing.assert_allclose(values, expected, atol=2e-5)
+
+
+def test_off_the_map_behind_its_centre_and_where_it_sees_nothing_the_light_reaches(rng):
+    beyond = jnp.asarray([[100.0, 3.0, 4.0], [0.0, 3.0, 50.0]], jnp.float32)  # far to the side, far ahead
+    view = gr.LightView(depth=jnp.asarray(np.zeros((16, 16)), jnp.float32), from_camera=FROM_ABOVE, scale=2.0)
+    np.testing.assert_array_equal(gr.light_view_visibility(beyond, light_view=view), 1.0)
+    under_the_roof = jnp.asarray([[0.0, 3.0, 4.0]], jnp.float32)  # every texel a surface at 0: deep in its shadow
+    np.testing.assert_array_equal(gr.light_view_visibility(under_the_roof, light_view=view), 0.0)
+    nothing = gr.LightView(depth=jnp.full((16, 16), jnp.inf), from_camera=FROM_ABOVE, scale=2.0)
+    anywhere = jnp.asarray(_points(rng), jnp.float32)
+    np.testing.assert_array_equal(gr.light_view_visibility(anywhere, light_view=nothing), 1.0)
+    behind = gr.LightView(depth=jnp.zeros((16, 16)), from_camera=FROM_ABOVE, scale=6.0, projection="perspective")
+    above_the_light = jnp.asarray([[0.0, 12.0, 5.0]], jnp.float32)  # lz = -2: behind the map's centre
+    values = gr.light_view_visibility(above_the_light, light_view=behind)
+    grads = jax.grad(lambda p: gr.light_view_visibility(p, light_view=behind).sum())(above_the_light)
+    assert float(values[0]) == 1.0 and np.all(np.isfinite(grads))
+
+
+def test_gradients_float64(x64):
+    """In the points and the map's camera, where a point lies within a ramp and between texel centres."""
+    depth = jnp.asarray(np.where(np.arange(16)[None, :] < 8, 4.5, 3.0) * np.ones((16, 1)))
+    point = jnp.asarray([[0.13, 5.21, 5.31]])  # lz = 4.79: within the ramp behind 4.5, between it and 3 beside
+
+    def visibility(points, from_camera, scale):
+        return gr.light_view_visibility(points, light_view=gr.LightView(depth, from_camera, scale))
+
+    assert 0.0 < float(visibility(point, jnp.asarray(FROM_ABOVE), 2.0)[0]) < 1.0
+    check_grads(visibility, (point, jnp.asarray(FROM_ABOVE), jnp.asarray(2.0)), order=1, modes=("fwd", "rev"),
+                eps=1e-6)  # fmt: skip
+
+
+def test_a_light_view_file_round_trips_and_a_bad_header_is_named(tmp_path):
+    view = gr.LightView(depth=jnp.asarray(SLATS, jnp.float32), from_camera=jnp.asarray(FROM_ABOVE, jnp.float32),
+                        scale=jnp.float32(2.5), projection="perspective")  # fmt: skip
+    path = tmp_path / "light.exr"
+    gr.write_light_view(path, view)
+    back = gr.read_light_view(path)
+    np.testing.assert_array_equal(back.depth, view.depth)
+    np.testing.assert_array_equal(back.from_camera, view.from_camera)
+    assert float(back.scale) == 2.5 and back.projection == "perspective"
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(4, 3, 1, oiio.FLOAT)
+    spec.channelnames = ("Z",)
+    spec.attribute("godrays:light_view_projection", "orthographic")
+    spec.attribute(FROM_CAMERA_ATTR, "1 0 0 0 0 1 0")  # 7 numbers
+    spec.attribute("godrays:light_view_scale", "2")
+    bad = tmp_path / "bad.exr"
+    out = oiio.ImageOutput.create(str(bad))
+    assert out.open(str(bad), spec) and out.write_image(np.full((3, 4, 1), 1e10, np.float32)) and out.close()
+    with pytest.raises(ValueError, match=f"{FROM_CAMERA_ATTR} must be 12 finite numbers"):
+        gr.read_light_view(bad)
+
+
+def _frame(height=18, width=32):
+    depth = np.full((height, width), np.inf, np.float32)
+    depth[12:] = 15.0
+    depth[:, 14:17] = 6.0  # a post
+    return gr.Buffers(color=np.full((height, width, 3), 0.2, np.float32), depth=depth,
+                      coverage=np.isfinite(depth).astype(np.float32))  # fmt: skip
+
+
+def _with_view(frame, depth, height=10.0, scale=0.5):
+    """`frame` with a map from a sun straight above, its camera `height` above the frame's, `scale` pixels a unit."""
+    from_camera = jnp.asarray(FROM_ABOVE, jnp.float32).at[2, 3].set(height)
+    view = gr.LightView(depth=jnp.asarray(depth, jnp.float32), from_camera=from_camera, scale=scale)
+    return gr.Buffers(color=frame.color, depth=frame.depth, coverage=frame.coverage, light_view=view)
+
+
+SUN_ABOVE = np.asarray([16.0, -400.0], np.float32)
+
+
+def test_the_fog_reads_the_light_view_beside_the_frames_shadows():
+    """A map that sees nothing changes nothing; a roof over the whole medium leaves only the ambient and the
+    surfaces; slats let some light through, differentiably, under jit and vmap over frames."""
+    effect = gr.preset("volumetric_haze")
+    frame = _frame()
+    plain = np.asarray(effect.layer(frame, SUN_ABOVE))
+    open_sky = np.asarray(effect.layer(_with_view(frame, np.full((64, 64), np.inf)), SUN_ABOVE))
+    np.testing.assert_allclose(open_sky, plain, rtol=1e-6, atol=1e-7)
+    medium = gr.BoundedMedium(extinction=0.05, max_distance=effect.medium.max_distance, anisotropy=0.7)
+    roofed = _with_view(frame, np.zeros((64, 64)), height=1e3, scale=0.01)  # a roof over all the medium, above it
+    _, scattered, _ = gr.volumetric_fog_terms(roofed.depth, SUN_ABOVE, fov_x_deg=50.0, medium=medium,
+                                              light_view=roofed.light_view)  # fmt: skip
+    _, unroofed, _ = gr.volumetric_fog_terms(frame.depth, SUN_ABOVE, fov_x_deg=50.0, medium=medium)
+    assert float(jnp.max(scattered)) == 0.0 and float(jnp.min(unroofed)) > 0.0
+    slats = _with_view(frame, np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1)))
+    _, slatted, _ = gr.volumetric_fog_terms(slats.depth, SUN_ABOVE, fov_x_deg=50.0, medium=medium,
+                                           light_view=slats.light_view)  # fmt: skip
+    assert np.all(slatted <= unroofed + 1e-7) and 0.2 < float(jnp.mean(slatted) / jnp.mean(unroofed)) < 0.85
+
+    def loss(effect, frames):
+        return jnp.mean(jax.vmap(lambda f: effect(f, SUN_ABOVE))(frames))
+
+    frames = jax.tree.map(lambda *leaves: jnp.stack(leaves), slats, slats)
+    grads = jax.jit(jax.grad(loss))(effect, frames)
+    leaves = [leaf for leaf in jax.tree.leaves(grads) if isinstance(leaf, jax.Array)]
+    assert leaves and all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in leaves)
+    assert float(grads.medium.extinction) != 0.0
+
+
+def test_apply_reads_a_light_view_and_names_a_bad_one(tmp_path):
+    frame, view, output = tmp_path / "frame.exr", tmp_path / "light.exr", tmp_path / "out.exr"
+    slats = _with_view(_frame(), np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1)))
+    gr.write_buffers(frame, _frame(), light_xy=tuple(SUN_ABOVE))
+    gr.write_light_view(view, slats.light_view)
+    arguments = ["apply", str(frame), "--preset", "volumetric_haze", "--fov-x-deg", "50"]
+    assert main([*arguments, "--light-view", str(view), "-o", str(output)]) == 0
+    assert main([*arguments, "-o", str(tmp_path / "plain.exr")]) == 0
+    shaded, plain = (np.asarray(gr.read_image(path))[..., :3] for path in (output, tmp_path / "plain.exr"))
+    assert np.mean(shaded) < np.mean(plain)
+    assert main([*arguments, "--light-view", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "no.exr")]) == 1
+    assert not (tmp_path / "no.exr").exists()
+
+
+def test_fit_takes_one_light_view_per_frame(tmp_path, capsys):
+    frame, target = tmp_path / "frame.exr", tmp_path / "target.exr"
+    gr.write_buffers(frame, _frame(), light_xy=tuple(SUN_ABOVE))
+    gr.write_image(target, np.full((18, 32, 3), 0.3, np.float32))
+    arguments = ["fit", str(frame), str(target), "-o", str(tmp_path / "p.json"), "--light-view", str(frame)]
+    assert main([*arguments, "--light-view", str(frame)]) == 1
+    assert "give --light-view once per frame (1 frames) or not at all, got 2" in capsys.readouterr().err
+    assert not (tmp_path / "p.json").exists()

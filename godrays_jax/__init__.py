@@ -155,6 +155,7 @@ _ON_FIRST_USE = {
     "DirectionalLight": "godrays_jax.raster",
     "light_distance": "godrays_jax.raster",
     "light_pixel": "godrays_jax.raster",
+    "light_view": "godrays_jax.raster",
     "load_obj": "godrays_jax.raster",
     "load_scene": "godrays_jax.raster",
     "Material": "godrays_jax.raster",

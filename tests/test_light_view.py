@@ -1,6 +1,7 @@
 """A depth map seen from the light: the kernel against a NumPy loop and at its edges, its files, the fog and the
 commands reading it."""
 
+import json
 import math
 
 import jax
@@ -190,3 +191,50 @@ def test_fit_takes_one_light_view_per_frame(tmp_path, capsys):
     assert main([*arguments, "--light-view", str(frame)]) == 1
     assert "give --light-view once per frame (1 frames) or not at all, got 2" in capsys.readouterr().err
     assert not (tmp_path / "p.json").exists()
+
+
+@pytest.mark.parametrize("light", [{"type": "directional", "direction": [0.3, 1.0, 0.1]},
+                                   {"type": "point", "position": [1.5, 12.0, -9.0]}], ids=["sun", "lamp"])
+def test_a_scenes_light_view_shades_what_lies_under_an_occluder_outside_the_frame(light):
+    """`raster.light_view`: a ball above the frame (out of its view) shades the ground under it, which the frame
+    shows, and not the ground beside that; the sun's view and a lamp's, through the frame's own view space."""
+    scene, camera = gr.scene_from_dict({
+        "camera": {"position": [0, 1.5, 0], "target": [-2, 0.5, -6], "up": [0, 1, 0], "fov_x_deg": 50, "width": 48,
+                   "height": 27},
+        "lights": [light],
+        "objects": [{"type": "sphere", "center": [0, 5, -6], "radius": 1.5},  # above the frame's top edge
+                    {"type": "sphere", "center": [0, -1000, 0], "radius": 1000}],  # the ground
+    })  # fmt: skip
+    ball = np.asarray([0.0, 5.0, -6.0])
+    if light["type"] == "directional":
+        toward = np.asarray(light["direction"]) / np.linalg.norm(light["direction"])
+        shadow = ball - (ball[1] / toward[1]) * toward  # the ground under the ball, along the sunlight
+    else:
+        lamp = np.asarray(light["position"], np.float64)
+        shadow = lamp + (ball - lamp) * lamp[1] / (lamp[1] - ball[1])
+    ground = np.stack([shadow, shadow + [6.0, 0.0, 0.0]]) + [0.0, 0.02, 0.0]  # just above the ground
+    points = camera.to_view(jnp.asarray(ground, jnp.float32))
+    xy, _, in_front = gr.project_point(camera, jnp.asarray(ball, jnp.float32))
+    assert bool(in_front) and float(xy[1]) < 0 and float(points[0, 2]) > 0  # the ball above the frame, its shadow in view
+    view = gr.light_view(scene, camera, reach=40.0, size=256)
+    under, beside = np.asarray(gr.light_view_visibility(points, light_view=view))
+    assert under == 0.0 and beside > 0.99  # beside: the ground a ramp's share below it at a grazing angle
+
+
+def test_render_writes_a_light_view_that_apply_reads(tmp_path):
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps({
+        "camera": {"position": [0, 1.5, 0], "target": [-2, 0.5, -6], "up": [0, 1, 0], "fov_x_deg": 50, "width": 48,
+                   "height": 27},
+        "lights": [{"type": "directional", "direction": [0.3, 1.0, 0.1]}],
+        "objects": [{"type": "sphere", "center": [0, 5, -6], "radius": 1.5},
+                    {"type": "sphere", "center": [0, -1000, 0], "radius": 1000}],
+    }))  # fmt: skip
+    frame, view = tmp_path / "frame.exr", tmp_path / "light.exr"
+    assert main(["render", str(scene), "-o", str(frame), "--light-view", str(view), "--light-view-reach", "30"]) == 0
+    seen = gr.read_light_view(view)
+    assert seen.projection == "perspective" and seen.depth.shape == (1024, 1024) and np.isfinite(seen.depth).any()
+    assert main(["apply", str(frame), "--preset", "volumetric_haze", "--light-view", str(view),
+                 "-o", str(tmp_path / "out.exr")]) == 0  # fmt: skip
+    assert main(["render", str(scene), "-o", str(tmp_path / "f2.exr"), "--light-view", str(tmp_path / "f2.exr")]) == 1
+    assert not (tmp_path / "f2.exr").exists()

@@ -342,6 +342,16 @@ def _add_render(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, help="output frame (.exr)")
     parser.add_argument("--light", action="store_true", help="also print the light's pixel position and distance")
     parser.add_argument("--no-glow", action="store_true", help="skip the glow pass (one rasterization instead of two)")
+    parser.add_argument(
+        "--light-view", metavar="EXR",
+        help="also write the depth seen from the first light (a shadow map, docs/file_formats.md), which apply and "
+        "fit take as --light-view: the volumetric fog's shadows of what lies outside the frame",
+    )  # fmt: skip
+    parser.add_argument(
+        "--light-view-reach", type=float, metavar="UNITS",
+        help="the radius around the camera the light view covers, scene units (the fog's max_distance); default: "
+        "the volumetric_haze preset's",
+    )  # fmt: skip
     _add_cache_option(parser)
     parser.set_defaults(handler="godrays_jax.app.render_command:run")
 

@@ -1,12 +1,17 @@
 """`godrays-jax render`: a scene file through the built-in rasterizer to an EXR frame."""
 
+import math
+import os
+
 import numpy as np
 
-from godrays_jax.app.options import check_output_path
+from godrays_jax.app.options import CommandError, check_output_path
+from godrays_jax.effects.presets import preset
 from godrays_jax.primitives.camera_metadata import CLIP_PLANES_ATTR, FOV_X_ATTR
 from godrays_jax.primitives.frame_files import write_buffers
 from godrays_jax.primitives.light_metadata import LIGHT_DEPTH_ATTR, StoredLight, lights_metadata
-from godrays_jax.raster import light_distance, light_pixel, load_scene, render
+from godrays_jax.primitives.light_view_files import write_light_view
+from godrays_jax.raster import light_distance, light_pixel, light_view, load_scene, render
 
 
 def frame_lights(scene, camera) -> list[StoredLight]:
@@ -42,11 +47,24 @@ def frame_metadata(camera, lights: list[StoredLight]) -> dict:
 
 def run(args) -> int:
     check_output_path(args.output, args.scene)
+    if args.light_view:
+        check_output_path(args.light_view, args.scene, args.output)
+    reach = args.light_view_reach
+    if reach is None:
+        reach = float(preset("volumetric_haze").medium.max_distance)
+    elif not (math.isfinite(reach) and reach > 0):
+        raise CommandError(f"--light-view-reach must be a number of scene units > 0, got {reach}")
+    if args.light_view and os.path.abspath(args.light_view) == os.path.abspath(args.output):
+        raise CommandError("--light-view names the frame's own output (-o): give it a file of its own")
     scene, camera = load_scene(args.scene)
     buffers = render(scene, camera, with_glow_pass=not args.no_glow)
+    seen = light_view(scene, camera, reach=reach) if args.light_view else None  # before either file is written
     lights = frame_lights(scene, camera)
     write_buffers(args.output, buffers, light_xy=lights[0].xy, light_in_front=lights[0].in_front,
                   metadata=frame_metadata(camera, lights))  # fmt: skip
+    if seen is not None:
+        write_light_view(args.light_view, seen)
+        print(f"wrote {args.light_view}")
     if args.light:
         for light in lights:
             side = "in front" if light.in_front else "behind the camera"

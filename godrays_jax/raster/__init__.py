@@ -5,6 +5,7 @@ from godrays_jax.raster.glow_pass import GLOW_OCCLUDER_SCALE as GLOW_OCCLUDER_SC
 from godrays_jax.raster.glow_pass import GLOW_SOURCE_SCALE as GLOW_SOURCE_SCALE
 from godrays_jax.raster.lights import light_distance as light_distance
 from godrays_jax.raster.lights import light_pixel as light_pixel
+from godrays_jax.raster.light_view import light_view as light_view
 from godrays_jax.raster.loading import load_obj as load_obj
 from godrays_jax.raster.loading import load_scene as load_scene
 from godrays_jax.raster.loading import scene_from_dict as scene_from_dict

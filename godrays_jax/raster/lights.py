@@ -10,7 +10,7 @@ from godrays_jax.primitives.camera import Camera, project_point
 from godrays_jax.raster.scene import DirectionalLight, Scene, Sphere
 
 
-def _light_point(scene: Scene, index: int) -> Float[Array, "3"] | None:
+def light_point(scene: Scene, index: int) -> Float[Array, "3"] | None:
     """The world position of `scene.lights[index]`: for the first light the sun object's centre (a mesh's
     translation), else a point light's position; None for a directional light without a sun object (a light at
     infinity)."""
@@ -23,7 +23,7 @@ def _light_point(scene: Scene, index: int) -> Float[Array, "3"] | None:
     return light.position
 
 
-def _checked_index(scene: Scene, index: int) -> int:
+def checked_light_index(scene: Scene, index: int) -> int:
     if not (isinstance(index, int) and 0 <= index < len(scene.lights)):
         raise ValueError(f"index must be a light of the scene's {len(scene.lights)}, got {index!r}")
     return index
@@ -34,8 +34,8 @@ def light_pixel(scene: Scene, camera: Camera, *, index: int = 0) -> tuple[Float[
     the sun object's centre (a mesh's translation; the first light's), else of a point light, else of the camera
     position plus a directional light's direction (a light at infinity). Returns `(xy, view_depth, in_front)` as
     `project_point` does."""
-    index = _checked_index(scene, index)
-    point = _light_point(scene, index)
+    index = checked_light_index(scene, index)
+    point = light_point(scene, index)
     if point is None:
         direction = scene.lights[index].direction
         point = camera.position + direction / jnp.linalg.norm(direction)
@@ -52,7 +52,7 @@ def light_distance(scene: Scene, camera: Camera, *, index: int = 0) -> float:
     (`godrays:light_depth`): the XNA crepuscular-rays article's depth test and
     step clamp read it.
     """
-    point = _light_point(scene, _checked_index(scene, index))
+    point = light_point(scene, checked_light_index(scene, index))
     if point is None:
         return math.inf
     return float(np.linalg.norm(np.asarray(point, np.float64) - np.asarray(camera.position, np.float64)))

@@ -9,9 +9,19 @@ from godrays_jax.app.options import CommandError, check_output_path
 from godrays_jax.effects.presets import preset
 from godrays_jax.primitives.camera_metadata import CLIP_PLANES_ATTR, FOV_X_ATTR
 from godrays_jax.primitives.frame_files import write_buffers
-from godrays_jax.primitives.light_metadata import LIGHT_DEPTH_ATTR, StoredLight, lights_metadata
+from godrays_jax.primitives.light_metadata import (
+    LIGHT_DEPTH_ATTR,
+    StoredLight,
+    lights_metadata,
+)
 from godrays_jax.primitives.light_view_files import write_light_view
-from godrays_jax.raster import light_distance, light_pixel, light_view, load_scene, render
+from godrays_jax.raster import (
+    light_distance,
+    light_pixel,
+    light_view,
+    load_scene,
+    render,
+)
 
 
 def frame_lights(scene, camera) -> list[StoredLight]:

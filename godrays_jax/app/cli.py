@@ -89,6 +89,12 @@ FRAME_HELP = (
 )
 
 
+LIGHT_VIEW_HELP = (
+    "a depth map seen from the light, with its camera in its header (docs/file_formats.md; render --light-view "
+    "writes one): the volumetric fog's shadows of what lies outside the frame"
+)
+
+
 def _add_frame_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--color-layer", metavar="LAYER",
@@ -147,11 +153,7 @@ def _add_apply(subparsers) -> None:
     )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)
-    parser.add_argument(
-        "--light-view", metavar="EXR",
-        help="a depth map seen from the light, with its camera in its header (docs/file_formats.md): the "
-        "volumetric fog's shadows of what lies outside the frame",
-    )  # fmt: skip
+    parser.add_argument("--light-view", metavar="EXR", help=LIGHT_VIEW_HELP)
     parser.add_argument(
         "--flare-texture", metavar="IMAGE", help="the flare texture of a GodRays or FlareOuts effect (any image)"
     )
@@ -237,6 +239,7 @@ def _add_tune(subparsers) -> None:
         tint_default="the frame's godrays:lights_tint metadata when it stores several lights, else 1,1,1",
     )  # fmt: skip
     _add_effect_options(parser)
+    parser.add_argument("--light-view", metavar="EXR", help=LIGHT_VIEW_HELP)
     parser.add_argument("--port", type=int, default=8000, help="port on 127.0.0.1 (default 8000; 0: any free port)")
     parser.add_argument("-o", "--output", default="params.json", help="where save writes (default params.json)")
     _add_frame_options(parser)
@@ -284,11 +287,7 @@ def _add_fit(subparsers) -> None:
         "the frame and its target before the fit (once for every frame); default: each frame's godrays:lights or "
         "godrays:light_px metadata; a light found is written beside -o (PARAMS.light.json) for apply --params",
     )  # fmt: skip
-    parser.add_argument(
-        "--light-view", action="append", metavar="EXR",
-        help="a depth map seen from the light, with its camera in its header (docs/file_formats.md), once per "
-        "frame in order: the volumetric fog's shadows of what lies outside the frame",
-    )  # fmt: skip
+    parser.add_argument("--light-view", action="append", metavar="EXR", help=f"{LIGHT_VIEW_HELP}; once per frame, in order")
     parser.add_argument(
         "--fit-light", action="store_true",
         help="refine each given or stored light (one a frame) as --light auto finds one, from it, before the fit",

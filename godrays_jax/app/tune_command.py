@@ -10,6 +10,7 @@ from godrays_jax.app.options import (
     resolve_light_depth,
     split_lights,
     with_frame_camera,
+    with_light_view,
     with_stored_lights,
 )
 from godrays_jax.app.server import HOST, TuneServer
@@ -25,7 +26,7 @@ def run(args) -> int:
     if args.fit_steps < 1:
         raise CommandError(f"--fit-steps must be >= 1, got {args.fit_steps}")
     effect = effect_option(args.preset, args.params)
-    buffers = read_buffers(args.buffers, **frame_reading(args))
+    buffers = with_light_view(read_buffers(args.buffers, **frame_reading(args)), args.light_view)
     effect = with_frame_camera(effect, args, args.buffers)
     # Several lights (`--light 'A;B'`, or a frame that stores several) are tuned together, each dragged.
     first, light_depth, light_tint, other_lights = split_lights(

@@ -39,8 +39,11 @@ depth there.
 
 Colour is stored as half floats, depth as float32, zip compressed. Every file's
 header carries `godrays:light_px` (x right, y down, pixel centres at
-`i + 0.5`), `godrays:light_in_front`, `godrays:light_depth` (the light's
-distance along its camera ray, scene units, `inf` for the sun) and
+`i + 0.5`; for a light behind the camera, `window_behind`'s sun, its
+projection mirrored through the camera plane, as `godrays_jax`'s
+`project_point` makes it), `godrays:light_in_front` (0 there),
+`godrays:light_depth` (the light's distance along its camera ray, scene
+units, `inf` for the sun) and
 `godrays:fov_x_deg`. Where a scene has several lights (`Scene.more_lights`:
 `street_two_lamps`) those three light attributes are the first light's, and
 its files also carry every light in `godrays_jax`'s words (`lights_metadata`, read by
@@ -312,16 +315,49 @@ def _canopy_sun_above() -> Scene:
         sun, Medium(0.04, 0.9, 0.7, 40.0), shapes=trunks + leaves,
     )
 
+
+def _window_behind() -> Scene:
+    # 35 degrees up behind the camera, 10 degrees to its left, through a window high in the wall 2 units behind the
+    # camera: the beam slants forward and down across the view onto the floor 7-9.5 units ahead, where the floor is in
+    # view (from 6.1 ahead: the frame's lower edge is 14.7 degrees down). At 35 degrees only a window 6.5 units up
+    # throws the patch that far, so the room is 8.5 high. Looking away from the sun the haze scatters 130-150 degrees
+    # (g = 0.7: a hundredth of the forward lobe), so the sun is 40 times the others' for a beam in view.
+    sun = Sun(azimuth_deg=190.0, elevation_deg=35.0, radiance=(100000.0, 84000.0, 64000.0))
+    wall, bar = (0.5, 0.47, 0.43), (0.6, 0.57, 0.52)
+
+    def slab(x0, x1, y0, y1, z0, z1, reflectance=wall):  # a box from its bounds
+        return box(((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2), ((x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2),
+                   reflectance)
+
+    # inside: x in [-4, 4], y in [0, 8.5], z in [-14, 2]; walls 0.2 thick, down into the ground
+    room = [slab(-4.2, 4.2, 8.5, 8.7, -14.2, 2.2), slab(-4.2, -4.0, -0.1, 8.5, -14.2, 2.2),
+            slab(4.0, 4.2, -0.1, 8.5, -14.2, 2.2), slab(-4.0, 4.0, -0.1, 8.5, -14.2, -14.0)]
+    left, right, bottom, top = -1.8, 0.2, 6.5, 8.1  # the window in the back wall: 2 wide, 1.6 high
+    mid_x, mid_y = (left + right) / 2, (bottom + top) / 2
+    back = [slab(-4.0, left, -0.1, 8.5, 2.0, 2.2), slab(right, 4.0, -0.1, 8.5, 2.0, 2.2),
+            slab(left, right, -0.1, bottom, 2.0, 2.2), slab(left, right, top, 8.5, 2.0, 2.2)]
+    cross = [slab(mid_x - 0.08, mid_x + 0.08, bottom, top, 2.05, 2.15, bar),
+             slab(left, right, mid_y - 0.08, mid_y + 0.08, 2.05, 2.15, bar)]
+    return Scene(
+        "window_behind", "a closed room 8 wide, 8.5 high, 16 deep, the sun 35 degrees up behind the camera through a "
+        "cross-barred window high in the wall 2 units behind it: a beam slanting down across the view onto a "
+        "window-shaped patch on the floor 7-9.5 units ahead, the rest dark but for its bounce",
+        sun, Medium(0.06, 0.9, 0.7, 17.0), shapes=room + back + cross,
+    )
+
+
 SCENES = {s.name: s for s in (_hidden_sun(), _blinds(), _forest(), _sun_off_screen(), _point_light(),
-                              _thin_haze(), _ground_fog(), _street_two_lamps(), _canopy_sun_above())}
+                              _thin_haze(), _ground_fog(), _street_two_lamps(), _canopy_sun_above(),
+                              _window_behind())}
 
 
 # ----------------------------------------------------------------------------- camera
 
 
 def project(scene: Scene, light: Sun | Lamp | None = None) -> tuple[tuple[float, float], bool, float]:
-    """A light's pixel position (x right, y down, centres at i + 0.5), whether in front, its depth along its ray;
-    `light` defaults to the scene's first."""
+    """A light's pixel position (x right, y down, centres at i + 0.5; a light behind the camera's projection mirrored
+    through the camera plane, as `godrays_jax`'s `project_point`), whether in front, its depth along its ray; `light`
+    defaults to the scene's first."""
     light = scene.light if light is None else light
     focal = (WIDTH / 2) / math.tan(math.radians(FOV_X_DEG) / 2)  # pixels per unit of x / -z
     if isinstance(light, Sun):
@@ -331,7 +367,8 @@ def project(scene: Scene, light: Sun | Lamp | None = None) -> tuple[tuple[float,
         x, y, z = np.asarray(light.position) - np.asarray(scene.camera)
         depth = float(math.sqrt(x * x + y * y + z * z))
     forward = -z
-    return (WIDTH / 2 + focal * x / forward, HEIGHT / 2 - focal * y / forward), bool(forward > 0), depth
+    scale = focal / max(abs(forward), 1e-6)  # behind the camera: mirrored through its plane, as `project_point`
+    return (WIDTH / 2 + scale * x, HEIGHT / 2 - scale * y), bool(forward > 0), depth
 
 
 def irradiance(light: Sun | Lamp, depth: float) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""ground_layer_start: a fog layer read from a frame's depth (a ground plane below the camera)."""
+"""ground_layer_start: a fog layer read from a frame's depth (a ground plane below the camera); enclosed_start: a
+medium bounded to the room a frame without sky shows."""
 
 import dataclasses
 
@@ -7,10 +8,14 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.effects.fields import field_value
-from godrays_jax.kernels.lens import view_directions
 from godrays_jax.app.fit_command import fit_starts
-from godrays_jax.pipeline.frame_start import GROUND_PERCENTILE, ground_layer_start
+from godrays_jax.effects.fields import field_metadata, field_value
+from godrays_jax.kernels.lens import view_directions
+from godrays_jax.pipeline.frame_start import (
+    GROUND_PERCENTILE,
+    enclosed_start,
+    ground_layer_start,
+)
 
 HEIGHT, WIDTH, FOV = 18, 32, 50.0
 
@@ -76,3 +81,23 @@ def test_the_fit_command_races_the_presets_and_a_ground_layer_on_each():
     assert float(starts[3].medium.anisotropy) == float(gr.preset("physically_based").medium.anisotropy)
     assert len({float(start.layer_top) for start in starts[2:]}) == 1  # each read with the frame's field of view
     assert not any("ground layer" in name for name in fit_starts(gr.GodRays(), [frame], None)[0])  # no layer to read
+
+
+def test_a_frame_without_sky_starts_a_medium_bounded_to_its_room():
+    """The farthest wall bounds the medium, the median surface sets its extinction, and nothing caps its top; a
+    frame with sky, or with a surface at the eye, gives no such start, and `fit_starts` races it last."""
+    frame, depth = _frame()
+    room_depth = np.where(np.isfinite(depth), depth, 9.0).astype(np.float32)  # walls 9 units away where sky was
+    room = gr.Buffers(color=frame.color, depth=jnp.asarray(room_depth), coverage=jnp.ones_like(frame.coverage))
+    start = enclosed_start(gr.preset("volumetric_haze"), room)
+    layer_top, extinction, max_distance = _values(start)
+    assert max_distance == pytest.approx(float(np.max(room_depth)), rel=1e-6)
+    assert extinction == pytest.approx(1.0 / float(np.median(room_depth)), rel=1e-6)
+    assert layer_top == field_metadata(start)["layer_top"].bounds[1]
+    assert float(start.medium.anisotropy) == float(gr.preset("volumetric_haze").medium.anisotropy)
+    at_the_eye = gr.Buffers(color=frame.color, depth=jnp.zeros_like(room.depth), coverage=room.coverage)
+    for other in (frame, at_the_eye):
+        assert enclosed_start(gr.preset("volumetric_haze"), other) is None
+    names, starts = fit_starts(gr.preset("volumetric_haze"), [room], FOV)
+    assert names[-1].startswith("the medium of the room the frames show") and _values(starts[-1]) == _values(start)
+    assert not any("room" in name for name in fit_starts(gr.preset("volumetric_haze"), [frame], FOV)[0])

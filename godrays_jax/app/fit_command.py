@@ -45,7 +45,7 @@ from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.fit_phases import polishes
-from godrays_jax.pipeline.frame_start import ground_layer_start
+from godrays_jax.pipeline.frame_start import enclosed_start, ground_layer_start
 from godrays_jax.pipeline.light_search import find_light
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
@@ -243,7 +243,8 @@ def _write_outputs(output: str, effect, beside: list) -> None:
 
 def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
     """The other starts `fit` races beside `effect`, and their names: the model's presets (`model_presets`),
-    then a fog layer read from the frames (`ground_layer_start`) on the fields of `effect` and of each preset.
+    then a fog layer read from the frames (`ground_layer_start`) on the fields of `effect` and of each preset, and
+    in frames with no sky a medium bounded to the room they show (`enclosed_start`) on `effect`'s.
 
     So the result does not hang on the start given (`benchmarks/fit_volumetric.py --starts`); the presets take
     the frame's field of view `fov_x_deg` (or keep theirs when it is `None`), which the layer's heights need.
@@ -255,6 +256,10 @@ def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
         if layer is not None:
             names.append(f"the ground layer estimated from the frame, on the other fields of {name}")
             starts.append(layer)
+    room = enclosed_start(effect, frames)
+    if room is not None:
+        names.append("the medium of the room the frames show (no sky), on the other fields of the start given")
+        starts.append(room)
     return names, starts
 
 

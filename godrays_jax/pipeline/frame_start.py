@@ -1,10 +1,14 @@
-"""A fit's start estimated from the frame itself: a medium bounded to a layer near the ground.
+"""A fit's starts estimated from the frame itself: a medium bounded to a layer near the ground, or to a room.
 
 The shipped presets of a layered medium (`VolumetricFog`) start with no top
 (`layer_top` on its upper bound), where the top has no gradient: a fit from
 them can never find a fog bank that the camera stands in. `ground_layer_start`
 reads a finite layer from the frames' geometry, so `fit` has a start from which
-the top moves (`godrays-jax fit` adds it to the model's presets).
+the top moves (`godrays-jax fit` adds it to the model's presets). In a frame
+with no sky (a room) the presets' medium reaches far beyond the walls, and the
+light crosses all of it on its way in: `enclosed_start` bounds the medium to
+the surfaces seen, with no top (a beam from a high window crosses the whole
+room).
 """
 
 from collections.abc import Sequence
@@ -70,6 +74,42 @@ def ground_layer_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> E
         "layer_top": -ground,
         "medium.extinction": 1.0 / max(float(np.median(depths)), 1e-6),
         "medium.max_distance": float(np.max(depths)),
+    }
+    dtype = jnp.result_type(field_value(effect, "layer_top"))
+    return replace_fields(
+        effect,
+        {name: jnp.asarray(np.clip(value, *infos[name].bounds), dtype) for name, value in values.items()},
+    )
+
+
+def enclosed_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effect | None:
+    """`effect` with its medium bounded to the room its frames show: a start for `fit(..., starts=...)` when no pixel
+    of any frame is sky.
+
+    `medium.max_distance` is the farthest surface's depth, `medium.extinction`
+    one over the surfaces' median depth, and `layer_top` its upper bound (no
+    top), each clipped into its field's bounds; every other field is
+    `effect`'s. `None` when a frame has sky (a depth that is not finite, or
+    coverage below one half), a surface at the eye (depth 0), or no depth,
+    or when the effect lacks one of `GROUND_LAYER_FIELDS`. Not
+    differentiable: a start, read once on the host.
+    """
+    frames = [frames] if isinstance(frames, Buffers) else list(frames)
+    infos = field_metadata(effect)
+    if any(name not in infos for name in GROUND_LAYER_FIELDS) or any(frame.depth is None for frame in frames):
+        return None
+    depths = [np.asarray(frame.ray_depth(jnp.asarray(field_value(effect, "fov_x_deg"), jnp.float32))) for frame in frames]
+    closed = all(
+        np.all(np.isfinite(depth)) and np.all(depth > 0) and np.all(np.asarray(frame.coverage) >= 0.5)
+        for frame, depth in zip(frames, depths)
+    )  # fmt: skip
+    if not closed:
+        return None
+    every = np.concatenate([depth.ravel() for depth in depths]).astype(np.float64)
+    values = {
+        "layer_top": infos["layer_top"].bounds[1],
+        "medium.extinction": 1.0 / float(np.median(every)),
+        "medium.max_distance": float(np.max(every)),
     }
     dtype = jnp.result_type(field_value(effect, "layer_top"))
     return replace_fields(

@@ -9,8 +9,8 @@ smoothly as the point moves over the map's grid; each comparison is a linear
 ramp `RAMP_TEXELS` texels' footprints deep behind the texel's surface, so that
 the points' positions (the medium's fields that place a view ray's segments)
 have gradients. The volumetric fog multiplies its screen-space reading of a
-segment's shadow (`shadow_reading`) by this one, read where the segment's
-light comes from: the depth buffer finds the shadows of what the frame shows,
+segment's shadow (`shadow_reading`) by this one's mean at points along the
+segment: the depth buffer finds the shadows of what the frame shows,
 the map those of what it does not.
 """
 

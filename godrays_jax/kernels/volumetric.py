@@ -229,7 +229,7 @@ def volumetric_fog_terms(
             sky (None: the sky everywhere). Used with `coverage`.
         light_view: a depth map seen from the light and its camera
             (`primitives.light_view.LightView`): each segment's visibility
-            is then also read from it where the segment's light comes from
+            is then also the mean of its test at points along the segment
             (`light_view_shadows`), for what casts shadows outside the frame.
             None: only the depth buffer casts shadows.
     """

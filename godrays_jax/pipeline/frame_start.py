@@ -75,11 +75,7 @@ def ground_layer_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> E
         "medium.extinction": 1.0 / max(float(np.median(depths)), 1e-6),
         "medium.max_distance": float(np.max(depths)),
     }
-    dtype = jnp.result_type(field_value(effect, "layer_top"))
-    return replace_fields(
-        effect,
-        {name: jnp.asarray(np.clip(value, *infos[name].bounds), dtype) for name, value in values.items()},
-    )
+    return _with_values(effect, values)
 
 
 def enclosed_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effect | None:
@@ -111,6 +107,12 @@ def enclosed_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effec
         "medium.extinction": 1.0 / float(np.median(every)),
         "medium.max_distance": float(np.max(every)),
     }
+    return _with_values(effect, values)
+
+
+def _with_values(effect: Effect, values: dict[str, float]) -> Effect:
+    """`effect` with `values` for its fields by name, each clipped into its field's bounds."""
+    infos = field_metadata(effect)
     dtype = jnp.result_type(field_value(effect, "layer_top"))
     return replace_fields(
         effect,

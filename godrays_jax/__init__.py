@@ -144,6 +144,7 @@ _ON_FIRST_USE = {
     "run_batch": "godrays_jax.pipeline.batch",
     "expand_frames": "godrays_jax.pipeline.sequences",
     "read_light_track": "godrays_jax.pipeline.sequences",
+    "maps_by_frame": "godrays_jax.pipeline.sequences",
     "determination": "godrays_jax.pipeline.determination",
     "Determination": "godrays_jax.pipeline.determination",
     "fit": "godrays_jax.pipeline.fit",

@@ -11,6 +11,7 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
+from godrays_jax.app import tune_command
 from godrays_jax.app.cli import main
 from godrays_jax.kernels.light_view_shadows import RAMP_TEXELS
 from godrays_jax.primitives.light_view_files import FROM_CAMERA_ATTR
@@ -142,22 +143,24 @@ SUN_ABOVE = np.asarray([16.0, -400.0], np.float32)
 
 def test_the_fog_reads_the_light_view_beside_the_frames_shadows():
     """A map that sees nothing changes nothing; a roof over the whole medium leaves only the ambient and the
-    surfaces; slats let some light through, differentiably, under jit and vmap over frames."""
+    surfaces; slats let some light through, differentiably, under jit and vmap over frames. (The fog's terms
+    compiled: one program for the maps, one without.)"""
     effect = gr.preset("volumetric_haze")
     frame = _frame()
-    plain = np.asarray(effect.layer(frame, SUN_ABOVE))
-    open_sky = np.asarray(effect.layer(_with_view(frame, np.full((64, 64), np.inf)), SUN_ABOVE))
-    np.testing.assert_allclose(open_sky, plain, rtol=1e-6, atol=1e-7)
     medium = gr.BoundedMedium(extinction=0.05, max_distance=effect.medium.max_distance, anisotropy=0.7)
+
+    @jax.jit
+    def scattered(buffers):
+        return gr.volumetric_fog_terms(buffers.depth, SUN_ABOVE, fov_x_deg=50.0, medium=medium,
+                                       light_view=buffers.light_view)[1]  # fmt: skip
+
+    unroofed = np.asarray(scattered(frame))
+    np.testing.assert_allclose(scattered(_with_view(frame, np.full((64, 64), np.inf))), unroofed, rtol=1e-6, atol=1e-7)
     roofed = _with_view(frame, np.zeros((64, 64)), height=1e3, scale=0.01)  # a roof over all the medium, above it
-    _, scattered, _ = gr.volumetric_fog_terms(roofed.depth, SUN_ABOVE, fov_x_deg=50.0, medium=medium,
-                                              light_view=roofed.light_view)  # fmt: skip
-    _, unroofed, _ = gr.volumetric_fog_terms(frame.depth, SUN_ABOVE, fov_x_deg=50.0, medium=medium)
-    assert float(jnp.max(scattered)) == 0.0 and float(jnp.min(unroofed)) > 0.0
+    assert float(jnp.max(scattered(roofed))) == 0.0 and float(np.min(unroofed)) > 0.0
     slats = _with_view(frame, np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1)))
-    _, slatted, _ = gr.volumetric_fog_terms(slats.depth, SUN_ABOVE, fov_x_deg=50.0, medium=medium,
-                                           light_view=slats.light_view)  # fmt: skip
-    assert np.all(slatted <= unroofed + 1e-7) and 0.2 < float(jnp.mean(slatted) / jnp.mean(unroofed)) < 0.85
+    slatted = np.asarray(scattered(slats))
+    assert np.all(slatted <= unroofed + 1e-7) and 0.2 < float(np.mean(slatted) / np.mean(unroofed)) < 0.85
 
     def loss(effect, frames):
         return jnp.mean(jax.vmap(lambda f: effect(f, SUN_ABOVE))(frames))
@@ -181,6 +184,76 @@ def test_apply_reads_a_light_view_and_names_a_bad_one(tmp_path):
     assert np.mean(shaded) < np.mean(plain)
     assert main([*arguments, "--light-view", str(tmp_path / "missing.exr"), "-o", str(tmp_path / "no.exr")]) == 1
     assert not (tmp_path / "no.exr").exists()
+
+
+def test_batch_reads_each_frames_light_view_by_its_number(tmp_path, capsys):
+    """`batch --light-view PATTERN`: each frame's map is the file of its number (a roof over all the medium in
+    frame 1's, nothing in frame 2's, each with its own camera); a frame whose number has no map is the run's
+    one-line error before anything is written."""
+    roofed = _with_view(_frame(), np.zeros((64, 64)), height=1e3, scale=0.01).light_view
+    for number, view in ((1, roofed), (2, _with_view(_frame(), np.full((64, 64), np.inf)).light_view)):
+        gr.write_buffers(tmp_path / f"shot.{number:04d}.exr", _frame(), light_xy=tuple(SUN_ABOVE))
+        gr.write_light_view(tmp_path / f"view.{number:04d}.exr", view)
+    arguments = ["batch", str(tmp_path / "shot.####.exr"), "--preset", "volumetric_haze", "--fov-x-deg", "50",
+                 "--layer-only", "-q"]  # fmt: skip
+    assert main([*arguments, "-o", str(tmp_path / "out"), "--light-view", str(tmp_path / "view.####.exr")]) == 0
+    shaded, open_sky = (np.asarray(gr.read_image(tmp_path / "out" / f"shot.{n:04d}.exr"))[..., :3] for n in (1, 2))
+    assert np.mean(shaded) < 0.9 * np.mean(open_sky)  # the roof leaves the ambient light alone
+    (tmp_path / "view.0002.exr").unlink()
+    capsys.readouterr()
+    assert main([*arguments, "-o", str(tmp_path / "none"), "--light-view", str(tmp_path / "view.####.exr")]) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "shot.0002.exr is frame 2, which" in error[0], error
+    assert not list((tmp_path / "none").glob("*")) if (tmp_path / "none").exists() else True
+
+
+def test_tune_serves_the_frame_with_its_light_view(tmp_path, monkeypatch, capsys):
+    """`tune --light-view MAP`: the tuner draws the frame and its previews with the map (the previews keep it);
+    a map that cannot be read is one line, and nothing is served."""
+    frame, view = tmp_path / "frame.exr", tmp_path / "light.exr"
+    slats = _with_view(_frame(), np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1)))
+    gr.write_buffers(frame, _frame(), light_xy=tuple(SUN_ABOVE))
+    gr.write_light_view(view, slats.light_view)
+    served = []
+
+    class Served:  # the tuner the command would serve, kept; nothing listens
+        url = "http://127.0.0.1:0/"
+
+        def __init__(self, tuner, port):
+            served.append(tuner)
+
+        def warm_up(self):
+            pass
+
+        def wait(self):
+            pass
+
+        def close(self):
+            served[-1].close()
+
+    monkeypatch.setattr(tune_command, "TuneServer", Served)
+    arguments = ["tune", str(frame), "--preset", "volumetric_haze", "--fov-x-deg", "50", "-o", str(tmp_path / "p.json")]
+    assert main([*arguments, "--light-view", str(view)]) == 0
+    (tuner,) = served
+    for buffers in (tuner.buffers, tuner.preview_buffers):
+        np.testing.assert_array_equal(np.asarray(buffers.light_view.depth), np.asarray(slats.light_view.depth))
+    capsys.readouterr()
+    assert main([*arguments, "--light-view", str(tmp_path / "missing.exr")]) == 1
+    assert capsys.readouterr().err.count("\n") == 1 and len(served) == 1
+
+
+def test_maps_go_to_the_frames_of_their_number_or_one_to_every_frame(tmp_path):
+    frames = [str(tmp_path / f"shot.{n:04d}.exr") for n in (7, 8)]
+    maps = [tmp_path / f"lv_{n}.exr" for n in (8, 7)]
+    for path in maps:
+        path.write_bytes(b"")
+    assert gr.maps_by_frame(frames, str(tmp_path / "lv_*.exr")) == {frames[0]: str(maps[1]), frames[1]: str(maps[0])}
+    assert gr.maps_by_frame(frames, str(maps[0])) == dict.fromkeys(frames, str(maps[0]))
+    with pytest.raises(ValueError, match="shot.0008.exr is frame 8, which"):
+        gr.maps_by_frame(frames, str(tmp_path / "lv_7*.exr"))
+    (tmp_path / "lv_008.exr").write_bytes(b"")
+    with pytest.raises(ValueError, match="have the same frame number"):
+        gr.maps_by_frame(frames, str(tmp_path / "lv_*.exr"))
 
 
 def test_fit_takes_one_light_view_per_frame(tmp_path, capsys):

@@ -22,6 +22,7 @@ from godrays_jax.pipeline.sequences import (
     METADATA,
     LightSource,
     expand_frames,
+    maps_by_frame,
     read_light_track,
 )
 from godrays_jax.primitives.frame_reading import read_buffers
@@ -110,8 +111,17 @@ def run(args) -> int:
         frames=parse_frame_range(args.frames) if args.frames else None,
         shard=shard,
     )
+    light_views = None
+    if args.light_view is not None:
+        try:
+            light_views = maps_by_frame([job.input for job in jobs if not job.done], args.light_view)
+        except ValueError as error:
+            raise BatchError(f"--light-view: {error}") from None
     if args.dry_run:
         print("\n".join(describe_plan(jobs, light)))
+        if light_views:
+            maps = sorted(set(light_views.values()))
+            print(f"light-view maps: {maps[0]}" if len(maps) == 1 else f"light-view maps: {len(maps)} files, one a frame")
         for light_beside in beside:
             x, y = (float(value) for value in light_beside.xy)
             side = "" if light_beside.in_front else ", behind the camera"
@@ -127,6 +137,7 @@ def run(args) -> int:
         light_depth=light_depth,
         light_tint=light_tint,
         beside=beside,
+        light_views=light_views,
         dither=not args.no_dither,
         **{key: value for key, value in frame_reading(args).items() if key != "without_depth"},  # run_batch reads both
         progress=None if args.quiet else sys.stderr,

@@ -194,6 +194,11 @@ def _add_batch(subparsers) -> None:
     )  # fmt: skip
     _add_effect_options(parser)
     _add_frame_options(parser)
+    parser.add_argument(
+        "--light-view", metavar="EXR_PATTERN",
+        help=f"{LIGHT_VIEW_HELP}; one file for every frame, or a pattern (as the frames') whose file numbered N "
+        "goes to frame N",
+    )  # fmt: skip
     parser.add_argument("--layer-only", action="store_true", help="write the effect alone, not blended on the frame")
     parser.add_argument("--ext", help="write this format instead (e.g. png): colour only, display-encoded")
     _add_dither_option(parser)

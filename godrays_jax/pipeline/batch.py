@@ -18,7 +18,7 @@ import re
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TextIO
 
 import jax
@@ -40,6 +40,7 @@ from godrays_jax.primitives.frame_files import FrameFile, read_frame, write_fram
 from godrays_jax.primitives.frame_reading import SKY_DEPTH, DepthKindOption
 from godrays_jax.primitives.image_files import read_header
 from godrays_jax.primitives.images import write_image
+from godrays_jax.primitives.light_view_files import read_light_view
 
 
 class BatchError(ValueError):
@@ -247,8 +248,10 @@ def dither_seed_of(path: str) -> int:
     return 0 if number is None else number % 2**32
 
 
-def _load(job: Job, light: LightSource, reading: dict, effect: Effect) -> _Loaded:
+def _load(job: Job, light: LightSource, reading: dict, effect: Effect, light_views: Mapping[str, str]) -> _Loaded:
     buffers, frame_file = read_frame(job.input, **reading)
+    if job.input in light_views:
+        buffers = dataclasses.replace(buffers, light_view=read_light_view(light_views[job.input]))
     frame_light = light_for(job.input, light)
     return _Loaded(job, ready_frame(effect, buffers, frame_light[0], job.input), frame_file, frame_light)
 
@@ -268,7 +271,8 @@ def _common_size(jobs: Sequence[Job]) -> tuple[int, int] | None:
 
 
 def _structure_text(buffers: Buffers) -> str:
-    return ", ".join(f.name for f in dataclasses.fields(buffers) if getattr(buffers, f.name) is not None)
+    names = [f.name for f in dataclasses.fields(buffers) if getattr(buffers, f.name) is not None]
+    return ", ".join(f"{name} ({buffers.light_view.projection})" if name == "light_view" else name for name in names)
 
 
 def frames_function(
@@ -344,6 +348,7 @@ def run_batch(
     sky_depth: float = SKY_DEPTH,
     depth_kind: DepthKindOption = "auto",
     fov_x_deg: float | None = None,
+    light_views: Mapping[str, str] | None = None,
     dither: bool = True,
     devices: Sequence[jax.Device] | None = None,
     io_threads: int = 2,
@@ -362,6 +367,9 @@ def run_batch(
         depth_channel, color_layer, sky_depth, depth_kind, fov_x_deg: how
             frames are read (`read_frame`; frames without depth are read too,
             and get their open sky from `plates.buffers_without_depth`).
+        light_views: each frame's depth map seen from the light (`read_light_view`), by the frame's path
+            (`sequences.maps_by_frame`); a frame not in it has none. Every frame's map must have the first's size
+            and projection (one program).
         dither: 8-bit outputs (PNG, JPEG, TIFF through `--ext`) get
             triangular dither seeded by the frame number (`dither_seed_of`).
         devices: devices to spread the frames over (default: `jax.local_devices()`).
@@ -398,7 +406,7 @@ def run_batch(
             concurrent.futures.ThreadPoolExecutor(io_threads, thread_name_prefix="godrays-write") as writers,
         ):
             run.writers = writers
-            reads = _Reads(run, readers, iter(todo), lambda job: _load(job, light, reading, effect),
+            reads = _Reads(run, readers, iter(todo), lambda job: _load(job, light, reading, effect, light_views or {}),
                            lookahead=max(2 * run.group_size, io_threads + 1))  # fmt: skip
             try:
                 for job, loaded in reads:
@@ -434,6 +442,7 @@ class _Run:
     dither: bool
     writers: concurrent.futures.Executor | None = None
     structure: object = None
+    light_view_size: tuple[int, int] | None = None
     claims: dict[str, Claim] = dataclasses.field(default_factory=dict)
     group: list[_Loaded] = dataclasses.field(default_factory=list)
     pending_writes: collections.deque = dataclasses.field(default_factory=collections.deque)
@@ -472,6 +481,12 @@ class _Run:
         if structure != self.structure:
             self.fail(job, f"different passes ({_structure_text(loaded.buffers)}) than the run's first frame")
             return
+        if (view := loaded.buffers.light_view) is not None:
+            self.light_view_size = self.light_view_size or view.depth.shape
+            if view.depth.shape != self.light_view_size:
+                self.fail(job, f"a light-view map of {view.depth.shape[1]}x{view.depth.shape[0]} (the run's first "
+                          f"frame's is {self.light_view_size[1]}x{self.light_view_size[0]})")  # fmt: skip
+                return
         if np.min(np.asarray(loaded.buffers.coverage)) >= 1.0:
             self.report.without_sky.append(job.input)
         self.group.append(loaded)

@@ -145,6 +145,33 @@ def expand_frames(pattern: str) -> list[str]:
     return paths
 
 
+def maps_by_frame(frames: Sequence[str], pattern: str) -> dict[str, str]:
+    """The file of `pattern` (an `expand_frames` pattern) that goes with each of `frames`: the same one for every
+    frame where the pattern names one file (a camera that does not move), else the one with the frame's number
+    (`frame_number`), as a sequence of depth maps seen from the light is rendered beside the frames.
+
+    Raises:
+        ValueError: the pattern matches nothing, two of its files have the same number, or a frame has no number
+            or no file with its number (the message names the first).
+    """
+    files = expand_frames(pattern)
+    if len(files) == 1 and os.path.isfile(pattern):
+        return {frame: files[0] for frame in frames}
+    numbered: dict[int | None, str] = {}
+    for path in files:
+        if (number := frame_number(path)) in numbered:
+            raise ValueError(f"{numbered[number]} and {path} in {pattern!r} have the same frame number")
+        numbered[number] = path
+    chosen = {}
+    for frame in frames:
+        number = frame_number(frame)
+        if number is None or number not in numbered:
+            missing = "has no frame number" if number is None else f"is frame {number}, which {pattern!r} lacks"
+            raise ValueError(f"{frame} {missing} ({len(numbered)} file(s) match it)")
+        chosen[frame] = numbered[number]
+    return chosen
+
+
 def read_light_track(path: str | os.PathLike) -> dict[int, ScreenLight]:
     """A light track: the light's pixel position for each frame number.
 

@@ -11,10 +11,11 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from godrays_jax.app import tune_command
 from godrays_jax.app.cli import main
 from godrays_jax.kernels.light_view_shadows import RAMP_TEXELS
 from godrays_jax.primitives.light_view_files import FROM_CAMERA_ATTR
+
+from tune_support import served_tuners
 
 # A sun straight above: its camera looks down the frame's -y from 10 units above the frame's camera; the frame's z
 # (forward) is up on the map. Slats at 4.5 along its axis (5.5 units above the frame's camera) with gaps.
@@ -214,24 +215,7 @@ def test_tune_serves_the_frame_with_its_light_view(tmp_path, monkeypatch, capsys
     slats = _with_view(_frame(), np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1)))
     gr.write_buffers(frame, _frame(), light_xy=tuple(SUN_ABOVE))
     gr.write_light_view(view, slats.light_view)
-    served = []
-
-    class Served:  # the tuner the command would serve, kept; nothing listens
-        url = "http://127.0.0.1:0/"
-
-        def __init__(self, tuner, port):
-            served.append(tuner)
-
-        def warm_up(self):
-            pass
-
-        def wait(self):
-            pass
-
-        def close(self):
-            served[-1].close()
-
-    monkeypatch.setattr(tune_command, "TuneServer", Served)
+    served = served_tuners(monkeypatch)
     arguments = ["tune", str(frame), "--preset", "volumetric_haze", "--fov-x-deg", "50", "-o", str(tmp_path / "p.json")]
     assert main([*arguments, "--light-view", str(view)]) == 0
     (tuner,) = served

@@ -4,12 +4,11 @@
 import numpy as np
 
 import godrays_jax as gr
-from godrays_jax.app import tune_command
 from godrays_jax.app.cli import main
 from godrays_jax.app.server import TuneServer
 from godrays_jax.app.tuner import Tuner
 
-from tune_support import small_effect, small_frame
+from tune_support import served_tuners, small_effect, small_frame
 
 
 def test_cli_tune_errors_are_one_line(tmp_path, capsys):
@@ -34,24 +33,7 @@ def test_cli_tune_takes_every_light_a_frame_stores(tmp_path, monkeypatch):
     frame_path = tmp_path / "frame.exr"
     lights = [gr.StoredLight((32.0, 6.0)), gr.StoredLight((10.0, 4.0), True, 12.0, (0.5, 1.0, 2.0))]
     gr.write_buffers(frame_path, small_frame(), light_xy=(32.0, 6.0), metadata=gr.lights_metadata(lights))
-    served = []
-
-    class Served:  # the tuner the command would serve, kept; nothing listens
-        url = "http://127.0.0.1:0/"
-
-        def __init__(self, tuner, port):
-            served.append(tuner)
-
-        def warm_up(self):
-            pass
-
-        def wait(self):
-            pass
-
-        def close(self):
-            served[-1].close()
-
-    monkeypatch.setattr(tune_command, "TuneServer", Served)
+    served = served_tuners(monkeypatch)
     arguments = ["tune", str(frame_path), "--preset", "xna_crepuscular", "-o", str(tmp_path / "p.json")]
     assert main(arguments) == 0 and main([*arguments, "--light", "20,5"]) == 0
     given = ["--light", "20,5;40,9,behind", "--light-depth", "inf;7", "--light-tint", "2;1,0.5,0.25"]

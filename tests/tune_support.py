@@ -14,6 +14,7 @@ import pytest
 from selenium import webdriver
 
 import godrays_jax as gr
+from godrays_jax.app import tune_command
 from godrays_jax.app.server import HOST, TOKEN_HEADER, TuneServer
 from godrays_jax.app.tuner import RenderQueue, Tuner
 from godrays_jax.primitives.buffers import Buffers
@@ -22,6 +23,30 @@ from godrays_jax.primitives.buffers import Buffers
 SAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "data", "sample_frame.exr")
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"
+
+
+def served_tuners(monkeypatch) -> list:
+    """The tuners that `godrays-jax tune` commands build, in order, each kept where the command would serve it;
+    nothing listens, and the command returns at once."""
+    served = []
+
+    class Served:
+        url = "http://127.0.0.1:0/"
+
+        def __init__(self, tuner, port):
+            served.append(tuner)
+
+        def warm_up(self):
+            pass
+
+        def wait(self):
+            pass
+
+        def close(self):
+            served[-1].close()
+
+    monkeypatch.setattr(tune_command, "TuneServer", Served)
+    return served
 
 
 def small_frame(height=36, width=64):

@@ -271,6 +271,7 @@ def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one
         assert not output.exists() and not (tmp_path / "refused.light.json").exists()
 
 
+@pytest.mark.slow
 def test_apply_adds_several_lights_each_with_its_side_distance_and_tint(tmp_path):
     """`--light 'A;B,behind'` with a distance and a tint per light is `lit_by` of those lights; one tint and one
     distance are every light's."""

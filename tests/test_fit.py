@@ -202,6 +202,7 @@ def _field_of_view_problem():
     return problem, frame_data, fov, np.asarray([index for index in range(len(fitted)) if index != fov])
 
 
+@pytest.mark.slow
 def test_the_field_of_views_column_is_a_central_difference_of_renders_without_derivatives(x64):
     """VolumetricFog's field of view moves every ray of the march and every shadow's line: its column of the fit's
     Jacobian (`residuals_and_jacobian`: Levenberg-Marquardt, the determination) is a central difference of two

@@ -142,6 +142,7 @@ def _with_view(frame, depth, height=10.0, scale=0.5):
 SUN_ABOVE = np.asarray([16.0, -400.0], np.float32)
 
 
+@pytest.mark.slow
 def test_the_fog_reads_the_light_view_beside_the_frames_shadows():
     """A map that sees nothing changes nothing; a roof over the whole medium leaves only the ambient and the
     surfaces; slats let some light through, differentiably, under jit and vmap over frames. (The fog's terms
@@ -278,6 +279,7 @@ def test_a_scenes_light_view_shades_what_lies_under_an_occluder_outside_the_fram
     assert under == 0.0 and beside > 0.99  # beside: the ground a ramp's share below it at a grazing angle
 
 
+@pytest.mark.slow
 def test_render_writes_a_light_view_that_apply_reads(tmp_path):
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps({

@@ -111,6 +111,7 @@ def test_lights_are_refused_where_they_do_not_add():
     frames_function(multiply)  # one light of its own: the effect as it is
 
 
+@pytest.mark.slow
 def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_tints():
     effect, frame = cheap_volumetric(), make_frame()
 

@@ -640,7 +640,8 @@ def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
     assert np.all(np.isfinite(np.asarray(derivative))) and float(jnp.max(jnp.abs(derivative))) > 0
 
 
-@pytest.mark.parametrize("shadows", slow_where(["samples", "lines"], {"lines"}))
+@pytest.mark.slow
+@pytest.mark.parametrize("shadows", ["samples", "lines"])
 @pytest.mark.parametrize("resolution_factor", [1, 2.5])
 def test_a_sun_known_when_traced_gives_the_traced_suns_terms_and_derivatives(x64, shadows, resolution_factor):
     """A sun given as a Python `inf` drops the point light's branches from the program (`light_geometry`): the

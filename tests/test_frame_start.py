@@ -1,5 +1,5 @@
 """ground_layer_start: a fog layer read from a frame's depth (a ground plane below the camera); enclosed_start: a
-medium bounded to the room a frame without sky shows."""
+medium bounded to the room a frame without sky shows; thin_slabs_start: where a light view casts the shadows."""
 
 import dataclasses
 
@@ -13,8 +13,10 @@ from godrays_jax.effects.fields import field_metadata, field_value
 from godrays_jax.kernels.lens import view_directions
 from godrays_jax.pipeline.frame_start import (
     GROUND_PERCENTILE,
+    THIN_SLABS,
     enclosed_start,
     ground_layer_start,
+    thin_slabs_start,
 )
 
 HEIGHT, WIDTH, FOV = 18, 32, 50.0
@@ -101,3 +103,19 @@ def test_a_frame_without_sky_starts_a_medium_bounded_to_its_room():
     names, starts = fit_starts(gr.preset("volumetric_haze"), [room], FOV)
     assert names[-1].startswith("the medium of the room the frames show") and _values(starts[-1]) == _values(start)
     assert not any("room" in name for name in fit_starts(gr.preset("volumetric_haze"), [frame], FOV)[0])
+
+
+def test_a_frame_with_a_light_view_starts_from_thin_slabs():
+    """Thin slabs and every other field the start given's, for frames of which one has a light view; none without,
+    or for an effect without slabs; `fit_starts` races it last."""
+    frame, _ = _frame()
+    view = gr.LightView(depth=jnp.full((8, 8), jnp.inf), from_camera=jnp.eye(3, 4), scale=1.0)
+    seen = dataclasses.replace(frame, light_view=view)
+    effect = gr.preset("volumetric_haze")
+    start = thin_slabs_start(effect, [frame, seen])
+    assert float(start.thickness) == pytest.approx(THIN_SLABS) and start.thickness.dtype == effect.thickness.dtype
+    assert float(start.medium.extinction) == float(effect.medium.extinction)
+    assert thin_slabs_start(effect, [frame]) is None and thin_slabs_start(gr.preset("xna_crepuscular"), seen) is None
+    names, starts = fit_starts(effect, [seen], FOV)
+    assert names[-1].startswith("thin slabs") and float(starts[-1].thickness) == pytest.approx(THIN_SLABS)
+    assert not any(name.startswith("thin slabs") for name in fit_starts(effect, [frame], FOV)[0])

@@ -346,9 +346,36 @@ def _window_behind() -> Scene:
     )
 
 
+def _window_ahead() -> Scene:
+    # The sun 40 degrees up straight ahead (off the top edge: the frame's half height is 14.7 degrees), through a
+    # window in the far wall 12 units ahead, 2.5-4 units up (in view, 4-11 degrees up): the beam slants down toward
+    # the camera onto the floor 7-9 units ahead, where the floor is in view (from 6.1). The window shows the sky and
+    # the haze outside, lit; the room's other walls are dark but for the light bounced off the patch.
+    sun = Sun(azimuth_deg=0.0, elevation_deg=40.0)
+    wall = (0.5, 0.47, 0.43)
+
+    def slab(x0, x1, y0, y1, z0, z1, reflectance=wall):  # a box from its bounds
+        return box(((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2), ((x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2),
+                   reflectance)
+
+    # inside: x in [-4, 4], y in [0, 6], z in [-12, 3]; walls 0.2 thick, down into the ground
+    room = [slab(-4.2, 4.2, 6.0, 6.2, -12.2, 3.2), slab(-4.2, -4.0, -0.1, 6.0, -12.2, 3.2),
+            slab(4.0, 4.2, -0.1, 6.0, -12.2, 3.2), slab(-4.0, 4.0, -0.1, 6.0, 3.0, 3.2)]
+    left, right, bottom, top = -1.2, 1.2, 2.5, 4.0  # the window in the far wall: 2.4 wide, 1.5 high
+    far = [slab(-4.0, left, -0.1, 6.0, -12.2, -12.0), slab(right, 4.0, -0.1, 6.0, -12.2, -12.0),
+           slab(left, right, -0.1, bottom, -12.2, -12.0), slab(left, right, top, 6.0, -12.2, -12.0)]
+    bar = slab(-0.06, 0.06, bottom, top, -12.15, -12.05, (0.6, 0.57, 0.52))  # a mullion down the window's middle
+    return Scene(
+        "window_ahead", "a room 8 wide, 6 high, 15 deep, a window with a mullion in the far wall 12 units ahead, the "
+        "sun 40 degrees up beyond it, off the top edge: a beam from the window slanting down toward the camera onto "
+        "a window-shaped patch on the floor 7-9 units ahead, the mullion's shadow down the beam",
+        sun, Medium(0.06, 0.9, 0.7, 17.0), shapes=room + far + [bar],
+    )
+
+
 SCENES = {s.name: s for s in (_hidden_sun(), _blinds(), _forest(), _sun_off_screen(), _point_light(),
                               _thin_haze(), _ground_fog(), _street_two_lamps(), _canopy_sun_above(),
-                              _window_behind())}
+                              _window_behind(), _window_ahead())}
 
 
 # ----------------------------------------------------------------------------- camera

@@ -8,7 +8,8 @@ the top moves (`godrays-jax fit` adds it to the model's presets). In a frame
 with no sky (a room) the presets' medium reaches far beyond the walls, and the
 light crosses all of it on its way in: `enclosed_start` bounds the medium to
 the surfaces seen, with no top (a beam from a high window crosses the whole
-room).
+room). Where a depth map seen from the light casts the shadows, `thin_slabs_start`
+keeps the depth buffer's own from shading what the light reaches.
 """
 
 from collections.abc import Sequence
@@ -110,10 +111,31 @@ def enclosed_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effec
     return _with_values(effect, values)
 
 
+THIN_SLABS = 0.01
+"""`thin_slabs_start`'s `thickness`: the depth buffer's surfaces a hundredth of their depth deep."""
+
+
+def thin_slabs_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effect | None:
+    """`effect` with thin slabs (`thickness` `THIN_SLABS`): a start for `fit(..., starts=...)` when a frame carries
+    a depth map seen from the light (`Buffers.light_view`).
+
+    The map casts the shadows of what the frame shows too. The depth buffer's slabs, at the presets' thickness,
+    also shade the points that lie behind a surface on screen while the light reaches them around it: a beam that
+    a window in view lets in, seen below the wall above the window, is dimmed three times over. From thick slabs a
+    fit of such a frame thins the medium to keep the beam dim, and stays there (benchmarks/README.md,
+    "VolumetricFog against the path-traced references"). `None` without a map, or for an effect without
+    `thickness`.
+    """
+    frames = [frames] if isinstance(frames, Buffers) else list(frames)
+    if "thickness" not in field_metadata(effect) or all(frame.light_view is None for frame in frames):
+        return None
+    return _with_values(effect, {"thickness": THIN_SLABS})
+
+
 def _with_values(effect: Effect, values: dict[str, float]) -> Effect:
     """`effect` with `values` for its fields by name, each clipped into its field's bounds."""
     infos = field_metadata(effect)
-    dtype = jnp.result_type(field_value(effect, "layer_top"))
+    dtype = jnp.result_type(field_value(effect, next(iter(values))))
     return replace_fields(
         effect,
         {name: jnp.asarray(np.clip(value, *infos[name].bounds), dtype) for name, value in values.items()},

@@ -121,10 +121,9 @@ def thin_slabs_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Eff
 
     The map casts the shadows of what the frame shows too. The depth buffer's slabs, at the presets' thickness,
     also shade the points that lie behind a surface on screen while the light reaches them around it: a beam that
-    a window in view lets in, seen below the wall above the window, is dimmed three times over. From thick slabs a
-    fit of such a frame thins the medium to keep the beam dim, and stays there (benchmarks/README.md,
-    "VolumetricFog against the path-traced references"). `None` without a map, or for an effect without
-    `thickness`.
+    a window in view lets in, seen below the wall above the window, is dimmed where the map lets it through. From
+    thick slabs a fit of such a frame thins the medium to keep the beam dim, and stays there (benchmarks/README.md,
+    "A sunbeam through a window in view"). `None` without a map, or for an effect without `thickness`.
     """
     frames = [frames] if isinstance(frames, Buffers) else list(frames)
     if "thickness" not in field_metadata(effect) or all(frame.light_view is None for frame in frames):

@@ -129,6 +129,7 @@ def test_gradients_in_the_image_and_every_scalar_together(x64, rng):
                 modes=("fwd", "rev"), eps=1e-6)  # fmt: skip
 
 
+@pytest.mark.slow
 def test_gradient_in_the_image_eager_jit_vmap(rng):
     images = jnp.asarray(rng.uniform(size=(2, HEIGHT, WIDTH, 3)), jnp.float32)
     lights = jnp.asarray([LIGHTS["on_screen"], LIGHTS["off_screen"]], jnp.float32)

@@ -140,7 +140,7 @@ def scratch_folder(tmp_path: Path) -> Path:
 PYTHON_PAGES = [page for page in nav_pages() if (DOCS / page).is_file() and fenced(DOCS / page, "python")]
 
 
-@pytest.mark.parametrize("page", slow_where(PYTHON_PAGES, {"research.md", "fitting.md"}))
+@pytest.mark.parametrize("page", slow_where(PYTHON_PAGES, {"research.md", "fitting.md", "index.md"}))
 def test_the_python_blocks_of_a_page_run_in_order(page, tmp_path, monkeypatch):
     monkeypatch.chdir(scratch_folder(tmp_path))
     namespace = {}

@@ -320,7 +320,7 @@ def test_jit_equals_eager_and_eager_compiles_once(name):
     assert _programs_lowered[True] == before
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", slow_where(sorted(CASES), {"volumetric_fog_terms"}))
 def test_vmap_equals_a_loop(name):
     examples, batched = _batch(name)
     looped = jnp.stack([CASES[name].call(*example) for example in examples])
@@ -341,7 +341,12 @@ def _batched_gradients(name):
     return examples, batched, cotangents, gradient, jax.grad(batch_loss, argnums=tuple(range(1, len(batched) + 1)))
 
 
-@pytest.mark.parametrize("name", slow_where(sorted(CASES), {"volumetric_fog_terms", "fast_radial_rays"}))
+SLOW_GRADIENTS = {"volumetric_fog_terms", "fast_radial_rays", "radial_rays_multipass", "segment_visibility_by_lines"}
+"""The kernels whose gradients of `vmap` take about ten seconds or more on a loaded empty-cache run: run with the slow
+tests (README)."""
+
+
+@pytest.mark.parametrize("name", slow_where(sorted(CASES), SLOW_GRADIENTS))
 def test_grad_of_vmap_and_vmap_of_grad_equal_per_example_gradients(name):
     """Under `jit`, as a training step runs them: the gradient of a batched loss in every input, and the per-example
     gradient mapped over the batch, each equal to every example's own gradient (eager equals jit: the first test

@@ -54,6 +54,7 @@ def test_a_light_is_found_from_the_targets_halo(case):
     assert np.linalg.norm(found.light_xy - light) < 1.0, (found.light_xy, found.start_xy, light)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("light", [(-12.0, 12.0), (30.0, -10.0)])
 def test_the_halo_of_a_light_off_screen_gives_starts_past_the_edge_nearest_it(light):
     """The XNA preset's rays reach a few pixels (decay .95 per sample): `gpu_gems`' cross the frame, so its halo

@@ -182,6 +182,7 @@ def test_kernels_accept_numpy_images():
 # ------------------------------------------------------------------------------ flare-outs
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(images(), st.data())
 def test_scale_iterated_flares_properties(image, data):

@@ -469,6 +469,7 @@ FITTED = ("extinction", "max_distance", "height_falloff", "layer_top", "anisotro
           "thickness", "edge_softness", "fov_x_deg", "light_depth")  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("light_depth", [12.0, math.inf])
 def test_gradients_float64(x64, rng, light_depth, monkeypatch):
     """Every fitted field's derivative against central differences, with the segments' placement held where the

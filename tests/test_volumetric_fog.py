@@ -204,6 +204,7 @@ def test_march_spacing_is_a_fraction_of_the_frame():
     assert march_factor(1080, 1920, 1) == 6
 
 
+@pytest.mark.slow
 def test_gradients_reach_every_medium_field_with_surfaces_beyond_the_medium(rng):
     """A surface beyond `max_distance` (its light's path starts outside the ball): reverse-mode gradients, which
     Levenberg-Marquardt's normal equations take, agree with forward mode (were NaN in `max_distance`)."""
@@ -246,6 +247,7 @@ def test_a_light_hidden_by_a_thin_surface_leaks_no_light_at_its_own_pixels(light
     assert image[y - 2 : y + 3, x - 2 : x + 3].max() <= 1.05 * trunk, (image[y - 2 : y + 3, x - 2 : x + 3], trunk)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", ["volumetric_haze", "physically_based"])  # shadows read along lines, by samples
 def test_a_frame_at_the_eye_gives_finite_values_and_gradients(preset):
     """Depth 0 everywhere (a cleared depth buffer, a surface at the eye): the fog and its derivatives in every

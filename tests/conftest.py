@@ -14,8 +14,8 @@ SUITE_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitt
 os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {SUITE_XLA_FLAGS}".strip()
 
 # Tracing builds JAX's graphs out of many small objects, and Python's cyclic collector, at its default thresholds,
-# walks every object the process holds again and again while a large program is traced: collecting rarely takes a
-# tenth off the suite's tracing-heavy tests (benchmarks/README.md, "The test suite on CI").
+# walks every object the process holds again and again while a large program is traced: collecting rarely shortens
+# the suite's tracing-heavy tests (benchmarks/README.md, "The test suite on CI").
 gc.set_threshold(200_000, 50, 1000)
 
 import jax  # noqa: E402 - after XLA_FLAGS

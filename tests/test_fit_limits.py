@@ -66,7 +66,7 @@ FRAME_SIZE = (90, 160)
 """The frames without a camera, height and width. A table of shadows held once per forward-mode lane (one 11.6 GB
 buffer at 320x180) would still take several times `MEMORY_LIMIT` here: the table's cells run along the frame's
 diagonal, half as long. At this size the compiler sets the command's peak, as at 320x180, and the two kinds' fits take
-a minute less under the suite's options (benchmarks/README.md, "The test suite on CI")."""
+less time under the suite's options (benchmarks/README.md, "The test suite on CI")."""
 
 
 WITHOUT_A_CAMERA = {  # the frames' depth and their lights, by whether anything in them casts a shadow

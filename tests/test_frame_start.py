@@ -14,6 +14,7 @@ from godrays_jax.kernels.lens import view_directions
 from godrays_jax.pipeline.frame_start import (
     GROUND_PERCENTILE,
     THIN_SLABS,
+    closed_room_start,
     enclosed_start,
     ground_layer_start,
     thin_slabs_start,
@@ -101,7 +102,8 @@ def test_a_frame_without_sky_starts_a_medium_bounded_to_its_room():
     for other in (frame, at_the_eye):
         assert enclosed_start(gr.preset("volumetric_haze"), other) is None
     names, starts = fit_starts(gr.preset("volumetric_haze"), [room], FOV)
-    assert names[-1].startswith("the medium of the room the frames show") and _values(starts[-1]) == _values(start)
+    index = next(k for k, name in enumerate(names) if name.startswith("the medium of the room the frames show"))
+    assert _values(starts[index]) == _values(start)
     assert not any("room" in name for name in fit_starts(gr.preset("volumetric_haze"), [frame], FOV)[0])
 
 
@@ -119,3 +121,24 @@ def test_a_frame_with_a_light_view_starts_from_thin_slabs():
     names, starts = fit_starts(effect, [seen], FOV)
     assert names[-1].startswith("thin slabs") and float(starts[-1].thickness) == pytest.approx(THIN_SLABS)
     assert not any(name.startswith("thin slabs") for name in fit_starts(effect, [frame], FOV)[0])
+
+
+def test_a_room_read_as_closed_starts_from_thin_slabs_and_its_farthest_wall():
+    """A frame that the fog reads as closed beyond its edges (a room whose window shows a little sky) starts with
+    thin slabs and the medium ending at its farthest surface, every other field the start given's; a frame with
+    more sky, or with a light view, gives no such start; `fit_starts` races it last."""
+    frame, depth = _frame()
+    room_depth = np.where(np.isfinite(depth), depth, 9.0).astype(np.float32)
+    room_depth[2:4, 10:13] = np.inf  # a window: 6 of the frame's 576 pixels show the sky
+    room = gr.Buffers(color=frame.color, depth=jnp.asarray(room_depth), coverage=jnp.ones_like(frame.coverage))
+    effect = gr.preset("volumetric_haze")
+    start = closed_room_start(effect, room)
+    assert float(start.thickness) == pytest.approx(THIN_SLABS)
+    assert float(start.medium.max_distance) == pytest.approx(float(np.max(room_depth[np.isfinite(room_depth)])))
+    assert float(start.medium.extinction) == float(effect.medium.extinction)
+    view = gr.LightView(depth=jnp.full((8, 8), jnp.inf), from_camera=jnp.eye(3, 4), scale=1.0)
+    for other in (frame, dataclasses.replace(room, light_view=view)):  # a third sky; a map says what lies beyond
+        assert closed_room_start(effect, other) is None
+    names, starts = fit_starts(effect, [room], FOV)
+    assert "farthest wall" in names[-1] and float(starts[-1].thickness) == pytest.approx(THIN_SLABS)
+    assert not any("farthest wall" in name for name in fit_starts(effect, [frame], FOV)[0])

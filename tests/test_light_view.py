@@ -142,6 +142,24 @@ def _with_view(frame, depth, height=10.0, scale=0.5):
 SUN_ABOVE = np.asarray([16.0, -400.0], np.float32)
 
 
+def test_a_light_view_says_what_lies_beyond_a_closed_frame():
+    """A room's frame (no sky) is read as closed beyond its edges, its light shaded wherever it leaves in front of
+    the walls; given a map, the map says what lies there instead: a map that sees nothing lets more light in."""
+    frame = _frame(9, 16)
+    room = np.where(np.isfinite(frame.depth), frame.depth, 20.0)
+    medium = gr.BoundedMedium(extinction=0.05, max_distance=30.0, anisotropy=0.7)
+
+    def scattered(light_view):
+        return np.asarray(gr.volumetric_fog_terms(jnp.asarray(room), SUN_ABOVE, fov_x_deg=50.0, medium=medium,
+                                                  light_view=light_view)[1])  # fmt: skip
+
+    closed = scattered(None)
+    seeing_nothing = gr.LightView(depth=jnp.full((8, 8), jnp.inf), from_camera=jnp.asarray(FROM_ABOVE, jnp.float32),
+                                  scale=0.5)  # fmt: skip
+    opened = scattered(seeing_nothing)
+    assert np.all(closed <= opened + 1e-7) and float(np.mean(closed)) < 0.5 * float(np.mean(opened))
+
+
 @pytest.mark.slow
 def test_the_fog_reads_the_light_view_beside_the_frames_shadows():
     """A map that sees nothing changes nothing; a roof over the whole medium leaves only the ambient and the

@@ -3,9 +3,10 @@
 The loop knows nothing of lines, bins or the coordinate `s`: it walks each shadow ray from points along a
 segment toward the light in small steps, projects every step onto the screen and tests the texel it lands in
 (its slab `[D, D * (1 + thickness)]` along that texel's camera ray, hard faces; sky, emitters and points
-off screen or behind the camera block nothing). The kernel, fine-grained, must agree with it everywhere but
-at the slabs' edges, for the sun and a point light, in front of the camera on screen, far off screen and
-behind the camera.
+off screen or behind the camera block nothing, but in a frame read as closed beyond its edges a walk toward a
+light in front that leaves the screen in front of the far face of the last texel it crossed is blocked there).
+The kernel, fine-grained, must agree with it everywhere but at the slabs' edges, for the sun and a point light,
+in front of the camera on screen, far off screen and behind the camera, open and closed.
 """
 
 import functools
@@ -60,8 +61,9 @@ def _segments(depth):
     return np.stack([x, y], -1), bounds[..., :-1], bounds[..., 1:]
 
 
-def _loop_visibility(depth, pixel_xy, lower, upper, light_point, sun, points_per_segment=16, steps=1000):
-    """The mean over each segment of whether its points see the light, by marching each shadow ray in 3-D."""
+def _loop_visibility(depth, pixel_xy, lower, upper, light_point, sun, points_per_segment=16, steps=1000, closed=False):
+    """The mean over each segment of whether its points see the light, by marching each shadow ray in 3-D;
+    `closed`: the frame read as closed beyond its edges."""
     f = _focal()
     light_point = np.asarray(light_point, float)
     unit = light_point / np.linalg.norm(light_point)
@@ -91,6 +93,15 @@ def _loop_visibility(depth, pixel_xy, lower, upper, light_point, sun, points_per
             along = np.linalg.norm(walk, axis=-1)
             blocks = np.isfinite(texel) & (texel * (1 + THICKNESS) < emitter_limit)
             blocked = np.any(blocks & (along >= texel) & (along <= texel * (1 + THICKNESS)), axis=-1)
+            if closed and light_point[2] > 0:
+                # Where a walk leaves the screen for good: its last step on it, and that step's texel.
+                last = on.shape[-1] - 1 - np.argmax(on[..., ::-1], axis=-1)
+                leaves = np.any(on, axis=-1) & ~np.take_along_axis(on, np.minimum(last + 1, on.shape[-1] - 1)[..., None],
+                                                                   axis=-1)[..., 0] & (last + 1 < on.shape[-1])
+                edge = np.take_along_axis(np.where(on, depth[row, col], np.inf), last[..., None], axis=-1)[..., 0]
+                at = np.take_along_axis(along, last[..., None], axis=-1)[..., 0]
+                edge_blocks = np.isfinite(edge) & (edge * (1 + THICKNESS) < emitter_limit)
+                blocked |= leaves & edge_blocks & (at <= edge * (1 + THICKNESS))
             out[j, i] = 1.0 - np.mean(blocked, axis=-1)
     return out
 
@@ -131,6 +142,40 @@ def test_matches_shadow_rays_traced_in_3d(name):
     if not in_front:
         # The loop tells a light behind the camera from its mirror image in front.
         assert np.mean(np.abs(kernel(True) - expected)) > 0.04
+
+
+CLOSED_LIGHTS = {
+    "sun off the top edge": (-0.1, 1.0, 1.0),
+    "sun far off the side": (-3.0, 0.4, 1.0),
+}
+
+
+@pytest.mark.parametrize("name", CLOSED_LIGHTS)
+def test_a_closed_frame_shades_the_rays_that_leave_it_in_front_of_its_edge(name):
+    """A room's frame (no sky), the light in front off screen: read closed (`enclosed=1`), a shadow ray that leaves
+    the screen in front of the far face of the surface seen where it leaves is shaded, as the traced loop says; read
+    open, the same frame lets it through."""
+    point = CLOSED_LIGHTS[name]
+    depth = _depth()
+    pixel_xy, lower, upper = _segments(depth)
+    light_xy, _, in_front = _light(point)
+    expected = _loop_visibility(depth, pixel_xy, lower, upper, point, True, closed=True)
+
+    def kernel(enclosed):
+        return np.asarray(segment_visibility_by_lines(
+            jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
+            light_in_front=in_front, thickness=THICKNESS, edge_softness=0.01, max_distance=MAX_DISTANCE,
+            enclosed=enclosed, **FINE,
+        ))  # fmt: skip
+
+    got, open_reading = kernel(1.0), kernel(0.0)
+    assert np.mean(np.abs(got - expected)) < 0.04, np.mean(np.abs(got - expected))
+    assert np.mean(np.abs(got - expected) > 0.5) < 0.02
+    # Closed, most of the room is shaded where open it was lit; halfway closed (the faces halfway to the eye), between.
+    assert np.mean(open_reading - got) > 0.3
+    half = kernel(0.5)
+    assert np.all(half >= got - 1e-6) and np.all(half <= open_reading + 1e-6)
+    assert np.mean(open_reading - half) > 0.05 and np.mean(half - got) > 0.05
 
 
 @pytest.mark.slow

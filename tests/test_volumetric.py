@@ -14,7 +14,8 @@ from jax.test_util import check_grads
 from godrays_jax.kernels import fog_march, volumetric
 from godrays_jax.kernels.bounded_medium import BoundedMedium
 from godrays_jax.kernels.fog_march import march_grid
-from godrays_jax.kernels.shadow_reading import ShadowLines, ShadowSamples, Slabs
+from godrays_jax.kernels.shadow_lines import segment_visibility_by_lines
+from godrays_jax.kernels.shadow_reading import ENCLOSED_SKY, ShadowLines, ShadowSamples, Slabs, enclosure
 from godrays_jax.kernels.shadow_samples import segment_visibility
 from godrays_jax.kernels.volumetric import apply_volumetric_fog, volumetric_fog_terms
 from godrays_jax.primitives.derivatives import values_only
@@ -778,6 +779,35 @@ def test_shadows_move_smoothly_with_the_light(x64):
     np.testing.assert_allclose(visibility(3.001), 0.5, atol=0.01)
     np.testing.assert_allclose(visibility(2.5), 1.0)
     np.testing.assert_allclose(visibility(3.5), 0.0)
+
+
+def test_a_frame_with_little_sky_is_read_as_closed_beyond_its_edges():
+    """1 up to `ENCLOSED_SKY[0]` of the pixels sky, 0 from `ENCLOSED_SKY[1]`, linear between."""
+    low, high = ENCLOSED_SKY
+    for share, expected in ((0.0, 1.0), (low, 1.0), (0.5 * (low + high), 0.5), (high, 0.0), (0.4, 0.0)):
+        depth = np.full(1000, 7.0)
+        depth[: round(share * 1000)] = np.inf
+        assert float(enclosure(jnp.asarray(depth.reshape(20, 50)))) == pytest.approx(expected, abs=1e-6), share
+
+
+@pytest.mark.parametrize("reading", ["samples", "lines"])
+def test_a_ray_leaving_a_closed_frame_in_front_of_its_edge_is_shaded(reading):
+    """A wall 10 away fills the frame; the sun ahead, off the top edge. A point 3 away reaches the top edge in front
+    of the wall: read closed, the ceiling out of view shades it; read open, nothing does. A point beyond the wall's
+    slab leaves behind it: lit either way. Both readings agree."""
+    depth = jnp.full((8, 16), 10.0)
+    pixel_xy, distances = jnp.asarray([[[8.5, 6.5]]]), jnp.asarray([[[3.0, 25.0]]])
+    options = dict(fov_x_deg=60.0, thickness=0.1, edge_softness=0.02)
+
+    def visibility(enclosed):
+        if reading == "samples":
+            return segment_visibility(depth, (8.0, -40.0), pixel_xy, distances, num_shadow_samples=16,
+                                      enclosed=enclosed, **options)[0, 0]  # fmt: skip
+        return segment_visibility_by_lines(depth, (8.0, -40.0), pixel_xy, distances - 0.05, distances + 0.05,
+                                           max_distance=40.0, enclosed=enclosed, **options)[0, 0]  # fmt: skip
+
+    np.testing.assert_allclose(np.asarray(visibility(1.0)), [0.0, 1.0], atol=0.02)
+    np.testing.assert_allclose(np.asarray(visibility(0.0)), [1.0, 1.0], atol=0.02)
 
 
 def test_bad_options_name_the_argument():

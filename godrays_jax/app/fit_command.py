@@ -45,7 +45,7 @@ from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.fit_phases import polishes
-from godrays_jax.pipeline.frame_start import enclosed_start, ground_layer_start, thin_slabs_start
+from godrays_jax.pipeline.frame_start import closed_room_start, enclosed_start, ground_layer_start, thin_slabs_start
 from godrays_jax.pipeline.light_search import find_light
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
@@ -244,8 +244,9 @@ def _write_outputs(output: str, effect, beside: list) -> None:
 def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
     """The other starts `fit` races beside `effect`, and their names: the model's presets (`model_presets`),
     then a fog layer read from the frames (`ground_layer_start`) on the fields of `effect` and of each preset, and
-    in frames with no sky a medium bounded to the room they show (`enclosed_start`) on `effect`'s, and in frames
-    with a light view thin slabs (`thin_slabs_start`) on `effect`'s.
+    in frames with no sky a medium bounded to the room they show (`enclosed_start`) on `effect`'s, in frames
+    with a light view thin slabs (`thin_slabs_start`) on `effect`'s, and in frames the fog reads as closed beyond
+    their edges thin slabs and a medium ending at the farthest wall (`closed_room_start`) on `effect`'s.
 
     So the result does not hang on the start given (`benchmarks/fit_volumetric.py --starts`); the presets take
     the frame's field of view `fov_x_deg` (or keep theirs when it is `None`), which the layer's heights need.
@@ -265,6 +266,13 @@ def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
     if thin is not None:
         names.append("thin slabs (the light view casts the frames' shadows), on the other fields of the start given")
         starts.append(thin)
+    closed = closed_room_start(effect, frames)
+    if closed is not None:
+        names.append(
+            "thin slabs and a medium ending at the farthest wall (a room read as closed beyond the frame), on the "
+            "other fields of the start given"
+        )
+        starts.append(closed)
     return names, starts
 
 

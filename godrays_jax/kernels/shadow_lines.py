@@ -36,7 +36,13 @@ line from the light is the coverage, on `num_bins` bins of `s` even in
 each segment `[lower, upper]` of its view ray takes the mean coverage over its
 range of `s` (at least one bin wide), so a shadow's edge inside a segment
 counts in proportion. Sky, the emitter (a slab reaching the light) and
-texels off screen block nothing.
+texels off screen block nothing, unless the frame is read as closed beyond its
+edges (`enclosed`, `shadow_reading.enclosure`): then, for a light in front of
+the camera, the first cell on screen of each line from the light (where a
+shadow ray leaves the screen) has its texels' near faces moved toward the eye
+(at `enclosed = 1` to it), so that a shadow ray that leaves the screen in front
+of the far face of the surface seen there is shaded, as by the room's ceiling
+and walls out of view.
 
 Where the lines go. With the hub on screen the lines are at fixed angles
 `2 pi k / num_lines` and the cells start at the hub: under a pan they ride
@@ -207,10 +213,11 @@ def _face_deltas(start, width, s_min, log_step, num_bins, lowest=0):
     return index, jnp.diff(value, axis=-1, prepend=0.0)
 
 
-def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins, in_front):
+def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min, log_step, num_bins, in_front,
+                    enclosed):  # fmt: skip
     """Each cell's coverage at the bins, the maximum of its texels' blend from the light out to it:
     `(cells, num_lines, num_bins)`, and whether its cells are stored last first (a bool, traced when `in_front`
-    is)."""
+    is). `enclosed`: how closed the frame is beyond its edges (the module's docstring)."""
     height, width = depth.shape
     dtype = depth.dtype
     x, y = lines.positions(0.0)
@@ -224,6 +231,12 @@ def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s
     near = [line_coordinate(front, sine, cosine, inverse) for sine, cosine in ends]
     far = [line_coordinate(front * (1 + thickness), sine, cosine, inverse) for sine, cosine in ends]
     low, high = jnp.minimum(*near), jnp.maximum(*far)
+    # Where a shadow ray toward a light in front leaves the screen: the first cell on screen from the light (the
+    # hub's own when it is on screen, where no ray leaves). A light behind the camera may shine through an opening
+    # behind it, which the frame cannot show: its rays leave as before.
+    closed = jnp.asarray(enclosed, dtype) * jnp.asarray(in_front, dtype)
+    before = jnp.concatenate([jnp.broadcast_to(lines.full, (x.shape[0], 1)), on_screen[:, :-1]], axis=1)
+    low = jnp.where(on_screen & ~before, (1.0 - closed) * low, low)
     face = jnp.minimum(softness * low, 0.5 * (high - low))
     rise_at, rise = _face_deltas(low, face, s_min, log_step, num_bins)
     # The lowest bin holds what covers any `s` below `s_min` (not what covers `s_min` itself): every point there reads
@@ -293,6 +306,7 @@ def segment_visibility_by_lines(
     num_lines: int = 512,
     num_bins: int = 192,
     cell_px: float | None = None,
+    enclosed: Float[ArrayLike, ""] = 0.0,
 ) -> Float[Array, "h w M"]:
     """How much of the light reaches each segment `[lower, upper]` of the view rays through `pixel_xy`, in [0, 1]:
     the mean over the segment's range of `s` (the module's docstring).
@@ -315,6 +329,9 @@ def segment_visibility_by_lines(
         num_bins: bins of `s` (static int, >= 2).
         cell_px: the cells' length in pixels (a Python number > 0); None:
             `default_cell_px`, one pixel on a frame of 320 pixels.
+        enclosed: how closed the frame is beyond its edges, in [0, 1] (`shadow_reading.enclosure`): 0, texels
+            off screen block nothing; 1, a shadow ray toward a light in front of the camera that leaves the
+            screen in front of the far face of the surface seen where it leaves is shaded. No gradient.
     """
     for name, count in (("num_lines", num_lines), ("num_bins", num_bins)):
         if not is_static_int(count) or count < 2:
@@ -323,7 +340,8 @@ def segment_visibility_by_lines(
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
     light_xy = check_light(light_xy)
     for name, value in (("fov_x_deg", fov_x_deg), ("light_depth", light_depth), ("thickness", thickness),
-                        ("edge_softness", edge_softness), ("max_distance", max_distance)):  # fmt: skip
+                        ("edge_softness", edge_softness), ("max_distance", max_distance),
+                        ("enclosed", enclosed)):  # fmt: skip
         check_scalar(value, name)
     if jnp.ndim(pixel_xy) != 3 or jnp.shape(pixel_xy)[-1] != 2:
         raise ValueError(f"pixel_xy must have shape (h, w, 2), got shape {jnp.shape(pixel_xy)}")
@@ -341,14 +359,14 @@ def segment_visibility_by_lines(
     static_front = light_in_front if isinstance(light_in_front, bool) else None
     return _visibility(
         depth, jnp.asarray(light_xy, dtype), pixel_xy, lower, upper, fov_x_deg, light_depth,
-        jnp.asarray(light_in_front), thickness, edge_softness, max_distance, num_lines=num_lines, num_bins=num_bins,
-        cell_px=float(cell_px), static_front=static_front,
+        jnp.asarray(light_in_front), thickness, edge_softness, max_distance, enclosed, num_lines=num_lines,
+        num_bins=num_bins, cell_px=float(cell_px), static_front=static_front,
     )  # fmt: skip
 
 
 @functools.partial(jax.jit, static_argnames=("num_lines", "num_bins", "cell_px", "static_front"))
 def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth, light_in_front, thickness,
-                edge_softness, max_distance, *, num_lines, num_bins, cell_px, static_front):  # fmt: skip
+                edge_softness, max_distance, enclosed, *, num_lines, num_bins, cell_px, static_front):  # fmt: skip
     """`segment_visibility_by_lines` after its checks, compiled once per shape and count (called eagerly, a scan
     over a function defined in the call would be traced and compiled again on every call); `static_front`: the
     light's side when the caller gave it as a Python bool, else None (`light_in_front` traced)."""
@@ -356,13 +374,14 @@ def _visibility(depth, light_xy, pixel_xy, lower, upper, fov_x_deg, light_depth,
         depth, light_xy, fov_x_deg=fov_x_deg, light_depth=light_depth,
         light_in_front=light_in_front if static_front is None else static_front, thickness=thickness,
         edge_softness=edge_softness, max_distance=max_distance, num_lines=num_lines, num_bins=num_bins, cell_px=cell_px,
+        enclosed=enclosed,
     )  # fmt: skip
     return read(pixel_xy, lower, upper)
 
 
 def lines_reader(
     depth, light_xy, *, fov_x_deg, light_depth, light_in_front, thickness, edge_softness, max_distance, num_lines,
-    num_bins, cell_px,
+    num_bins, cell_px, enclosed=0.0,
 ) -> Callable[[Array, Array, Array], Array]:
     """The lines' table of a frame (`depth` in the caller's dtype, `light_xy` as `segment_visibility_by_lines`
     takes them, checked), and the function `read(pixel_xy, lower, upper)` that reads segments from it: built once,
@@ -383,8 +402,9 @@ def lines_reader(
     log_step = math.log(_BIN_SPAN) / (num_bins - 1)
     thickness = jnp.asarray(thickness, dtype)
     softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
+    enclosed = jax.lax.stop_gradient(jnp.asarray(enclosed, dtype))
     covered, reversed_cells = _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s_min,
-                                              log_step, num_bins, in_front)  # fmt: skip
+                                              log_step, num_bins, in_front, enclosed)  # fmt: skip
 
     def read(pixel_xy, lower, upper):
         """The visibility of the segments `[lower, upper]` (`(n, M)`) of the rays through `pixel_xy` (`(n, 2)`)."""

@@ -9,17 +9,41 @@ the segment from lines through the light (`ShadowLines`,
 `shadow_lines.segment_visibility_by_lines`): no sampling that crawls under a
 camera pan, at more cost. `volumetric.volumetric_fog_terms` takes one of
 each.
+
+Beyond the frame's edges the buffer knows nothing. Under open sky a shadow ray
+that leaves the screen meets nothing; in a room it meets the ceiling or a wall
+out of view, and the light enters only through the openings the frame shows.
+`enclosure` tells the two apart by the frame's sky, and both readings shade a
+ray that leaves a closed frame in front of the surface seen where it leaves.
 """
 
 import math
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.kernels.shadow_lines import default_cell_px, lines_reader
 from godrays_jax.kernels.shadow_samples import segment_visibility
 from godrays_jax.primitives.checks import check_scalar, is_static_int
+
+ENCLOSED_SKY: tuple[float, float] = (0.05, 0.15)
+"""The shares of a frame's pixels that are sky at and below which `enclosure` reads it as closed beyond its edges,
+and at and above which as open (linear between): a room's windows against the sky of any outdoor frame
+(benchmarks/README.md, "A sunbeam through a window in view")."""
+
+
+def enclosure(depth: Float[Array, "H W"]) -> Float[Array, ""]:
+    """How closed the frame of `depth` (scene units, `+inf` on sky) is beyond its edges, in [0, 1]: 1 where at most
+    `ENCLOSED_SKY[0]` of its pixels are sky (a room, its windows), 0 from `ENCLOSED_SKY[1]` up (open air), linear
+    between, so that a sequence whose sky grows fades from one reading to the other. No gradient: what the frame
+    is, not a fitted value."""
+    low, high = ENCLOSED_SKY
+    sky = jnp.logical_not(jnp.isfinite(jax.lax.stop_gradient(depth)))
+    sky = jnp.mean(sky.astype(jnp.result_type(depth, jnp.float32)))
+    return jnp.clip((high - sky) / (high - low), 0.0, 1.0)
 
 
 class Slabs(eqx.Module):
@@ -53,16 +77,18 @@ class _Reading(eqx.Module):
         light_in_front: Bool[ArrayLike, ""] | bool = True,
         slabs: Slabs,
         max_distance: Float[ArrayLike, ""],
+        enclosed: Float[ArrayLike, ""] = 0.0,
     ) -> Callable[[Array, Array, Array, Array], Array]:
         """The function `visibility(pixel_xy, lower, upper, middles)`: how much of the light reaches each segment
         `[lower, upper]` (`(h, w, M)`, scene units) of the view rays through `pixel_xy` (`(h, w, 2)`, pixels), in
         [0, 1]. `ShadowSamples` reads it at `middles` (the distances where each segment's light comes from),
         `ShadowLines` over the whole segment, its bins reaching the largest shadow ray inside the medium's radius
         `max_distance`, from one table of the frame that every call reads (a march in bands builds it once).
-        `depth` and `light_xy` in the caller's floating dtype, checked by the caller."""
+        `depth` and `light_xy` in the caller's floating dtype, checked by the caller; `enclosed`, how closed the
+        frame is beyond its edges (`enclosure`)."""
         light = dict(
             fov_x_deg=fov_x_deg, light_depth=light_depth, light_in_front=light_in_front, thickness=slabs.thickness,
-            edge_softness=slabs.edge_softness,
+            edge_softness=slabs.edge_softness, enclosed=enclosed,
         )  # fmt: skip
         return self._reader(depth, light_xy, max_distance, light)
 

@@ -3,7 +3,10 @@
 The shadow ray from a point on pixel `p`'s view ray toward the light crosses the camera rays of the pixels on the
 screen segment from `p` toward the light's position; at each of `num_shadow_samples` samples `q` on it, in closed
 form, the depths it runs through since the previous sample meet `q`'s slab `[D_q, D_q * (1 + thickness)]` or not
-(soft faces `edge_softness * D_q` wide; the test at the four texels around `q`, by bilinear weights).
+(soft faces `edge_softness * D_q` wide; the test at the four texels around `q`, by bilinear weights). Where the
+screen segment leaves the screen (a light in front, off screen) its last sample is where the shadow ray leaves:
+in a frame read as closed beyond its edges (`enclosed`, `shadow_reading.enclosure`) the slab there reaches toward
+the eye (at `enclosed = 1` to it), so that a shadow ray leaving in front of the surface seen there is shaded.
 `volumetric`'s module docstring has the model; `shadow_lines` reads the same test along lines through the light.
 """
 
@@ -28,9 +31,9 @@ def _ramp(x):
     return jnp.clip(x, 0.0, 1.0)
 
 
-@functools.partial(jax.jit, static_argnums=13)
+@functools.partial(jax.jit, static_argnums=14)
 def _shadow_march(depth, pixel_xy, distances, step, reach, view_cross_light, view, toward, inverse, in_front, focal,
-                  thickness, softness, num_shadow_samples):  # fmt: skip
+                  thickness, softness, enclosed, num_shadow_samples):  # fmt: skip
     """`segment_visibility`'s loop over the shadow samples, compiled once per shape and count: called eagerly, a
     loop over a function defined in the call would be traced and compiled again on every call."""
     height, width = depth.shape
@@ -73,7 +76,10 @@ def _shadow_march(depth, pixel_xy, distances, step, reach, view_cross_light, vie
         blocks = jnp.isfinite(front) & (front > 0) & (front * (1 + thickness) * inverse < 1.0) & (reach[..., None] > 0)
         front = jnp.where(blocks, front, 1.0)
         soft = softness * front
-        inside_slab = _ramp((farthest - front) / soft) * _ramp((front * (1 + thickness) - nearest) / soft)
+        # The last sample of a segment cut at the screen's edge, toward a light in front: where the ray leaves.
+        leaves = (k == num_shadow_samples) & in_front & (reach[..., None] < 1.0)
+        near_face = jnp.where(leaves, 1.0 - enclosed, 1.0) * front
+        inside_slab = _ramp((farthest - near_face) / soft) * _ramp((front * (1 + thickness) - nearest) / soft)
         inside = jnp.sum(weight[..., None] * jnp.where(blocks, inside_slab, 0.0), axis=0)
         return (jnp.minimum(visibility, 1.0 - inside), crossing), None
 
@@ -97,6 +103,7 @@ def segment_visibility(
     thickness: Float[ArrayLike, ""],
     edge_softness: Float[ArrayLike, ""],
     num_shadow_samples: int,
+    enclosed: Float[ArrayLike, ""] = 0.0,
 ) -> Float[Array, "h w M"]:
     """How much of the light reaches the points `distances` along the view rays through `pixel_xy`, in [0, 1].
 
@@ -115,6 +122,9 @@ def segment_visibility(
         edge_softness: the width of the slab's soft faces, a fraction of depth, > 0.
         num_shadow_samples: depth samples along the screen segment (static int, >= 1), besides
             the one at its end.
+        enclosed: how closed the frame is beyond its edges, in [0, 1] (`shadow_reading.enclosure`): 0, texels
+            off screen block nothing; 1, a shadow ray toward a light in front of the camera that leaves the
+            screen in front of the far face of the surface seen where it leaves is shaded. No gradient.
 
     The loop runs over the samples, so memory is that of `distances` whatever
     `num_shadow_samples` is.
@@ -125,7 +135,7 @@ def segment_visibility(
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
     light_xy = check_light(light_xy)
     for name, value in (("fov_x_deg", fov_x_deg), ("light_depth", light_depth), ("thickness", thickness),
-                        ("edge_softness", edge_softness)):  # fmt: skip
+                        ("edge_softness", edge_softness), ("enclosed", enclosed)):  # fmt: skip
         check_scalar(value, name)
     if jnp.ndim(pixel_xy) != 3 or jnp.shape(pixel_xy)[-1] != 2:
         raise ValueError(f"pixel_xy must have shape (h, w, 2), got shape {jnp.shape(pixel_xy)}")
@@ -161,8 +171,9 @@ def segment_visibility(
     view_cross_light = jnp.cross(view, toward)
     thickness = jnp.asarray(thickness, dtype)
     softness = jnp.maximum(jnp.asarray(edge_softness, dtype), 1e-6)
+    enclosed = jax.lax.stop_gradient(jnp.asarray(enclosed, dtype))
 
     return _shadow_march(
         depth, pixel_xy, distances, step, reach, view_cross_light, view, toward, inverse, in_front, focal, thickness,
-        softness, num_shadow_samples,
+        softness, enclosed, num_shadow_samples,
     )  # fmt: skip

@@ -91,7 +91,12 @@ from godrays_jax.kernels.fog_reading import (
 )
 from godrays_jax.kernels.lens import rays_through, view_directions
 from godrays_jax.kernels.light_view_shadows import light_view_visibility
-from godrays_jax.kernels.shadow_reading import ShadowReading, ShadowSamples, Slabs
+from godrays_jax.kernels.shadow_reading import (
+    ShadowReading,
+    ShadowSamples,
+    Slabs,
+    enclosure,
+)
 from godrays_jax.primitives.camera import focal_length_px, unit_vectors
 from godrays_jax.primitives.checks import (
     check_image,
@@ -231,7 +236,12 @@ def volumetric_fog_terms(
             (`primitives.light_view.LightView`): each segment's visibility
             is then also the mean of its test at points along the segment
             (`light_view_shadows`), for what casts shadows outside the frame.
-            None: only the depth buffer casts shadows.
+            None: only the depth buffer casts shadows, and a frame that is
+            nearly all surface (`shadow_reading.enclosure`: a room, its
+            windows) is read as closed beyond its edges: a shadow ray toward
+            a light in front that leaves the screen in front of the surface
+            seen where it leaves is shaded, as by the ceiling and walls out
+            of view, so the light enters through the openings the frame shows.
     """
     if jnp.ndim(depth) != 2:
         raise ValueError(f"depth must have shape (H, W), got shape {jnp.shape(depth)}")
@@ -309,9 +319,11 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
         ambient = jnp.maximum(opacity + rise * scattering_height(view, start, end, tau), 0.0)
         return (1.0 - opacity) * jnp.where(finite, 1.0 - share + share * dimmed, 1.0), ambient
 
+    # A map seen from the light says what lies beyond the frame's edges; without one, the frame's sky says.
     visibility = shadows.reader(
         depth, jnp.asarray(light_xy, dtype), fov_x_deg=fov_x_deg, light_depth=light_depth,
         light_in_front=light_in_front, slabs=slabs, max_distance=medium.max_distance,
+        enclosed=0.0 if light_view is not None else enclosure(depth),
     )  # fmt: skip
     focal = focal_length_px(width, fov_x_deg, dtype)
     if light_view is not None:

@@ -9,7 +9,10 @@ with no sky (a room) the presets' medium reaches far beyond the walls, and the
 light crosses all of it on its way in: `enclosed_start` bounds the medium to
 the surfaces seen, with no top (a beam from a high window crosses the whole
 room). Where a depth map seen from the light casts the shadows, `thin_slabs_start`
-keeps the depth buffer's own from shading what the light reaches.
+keeps the depth buffer's own from shading what the light reaches. A room whose
+windows show the sky, which the fog reads as closed beyond its edges, lets the
+light in only through them: `closed_room_start` gives it thin slabs and a medium
+that ends at the farthest wall.
 """
 
 from collections.abc import Sequence
@@ -20,6 +23,7 @@ import numpy as np
 from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fields import field_metadata, field_value, replace_fields
 from godrays_jax.kernels.lens import view_directions
+from godrays_jax.kernels.shadow_reading import enclosure
 from godrays_jax.primitives.buffers import Buffers
 
 GROUND_LAYER_FIELDS: tuple[str, ...] = ("layer_top", "medium.extinction", "medium.max_distance", "fov_x_deg")
@@ -129,6 +133,39 @@ def thin_slabs_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Eff
     if "thickness" not in field_metadata(effect) or all(frame.light_view is None for frame in frames):
         return None
     return _with_values(effect, {"thickness": THIN_SLABS})
+
+
+CLOSED_ROOM_FIELDS: tuple[str, ...] = ("thickness", "medium.max_distance", "fov_x_deg")
+"""The fields an effect needs for `closed_room_start` (the field of view in degrees)."""
+
+
+def closed_room_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effect | None:
+    """`effect` with thin slabs (`thickness` `THIN_SLABS`) and its medium ending at the farthest surface its frames
+    show: a start for `fit(..., starts=...)` when the fog reads every frame as closed beyond its edges
+    (`shadow_reading.enclosure` above 0: a room, its windows) and none carries a depth map seen from the light.
+
+    Read closed, a room takes the light in only through the openings its frames show. A beam from a window in view
+    lies on screen behind the wall above the window, which slabs of the presets' depth shade; and the presets'
+    medium, reaching far beyond the window, fills the window's own pixels with the haze outside, lit. From the
+    presets a fit keeps both dim by thinning the medium (benchmarks/README.md, "A sunbeam through a window in
+    view"). `medium.max_distance` is the farthest finite depth, clipped into its bounds; every other field is
+    `effect`'s. `None` for an effect without one of `CLOSED_ROOM_FIELDS`, a frame without depth or with a light
+    view, or one read as open. Not differentiable: a start, read once on the host.
+    """
+    frames = [frames] if isinstance(frames, Buffers) else list(frames)
+    infos = field_metadata(effect)
+    if any(name not in infos for name in CLOSED_ROOM_FIELDS) or any(
+        frame.depth is None or frame.light_view is not None for frame in frames
+    ):
+        return None
+    fov = jnp.asarray(field_value(effect, "fov_x_deg"), jnp.float32)
+    depths = [np.asarray(frame.ray_depth(fov)) for frame in frames]
+    if not all(float(enclosure(jnp.asarray(depth))) > 0 for depth in depths):
+        return None
+    finite = np.concatenate([depth[np.isfinite(depth)] for depth in depths])
+    if finite.size == 0:
+        return None
+    return _with_values(effect, {"thickness": THIN_SLABS, "medium.max_distance": float(np.max(finite))})
 
 
 def _with_values(effect: Effect, values: dict[str, float]) -> Effect:

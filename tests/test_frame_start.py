@@ -137,8 +137,17 @@ def test_a_room_read_as_closed_starts_from_thin_slabs_and_its_farthest_wall():
     assert float(start.medium.max_distance) == pytest.approx(float(np.max(room_depth[np.isfinite(room_depth)])))
     assert float(start.medium.extinction) == float(effect.medium.extinction)
     view = gr.LightView(depth=jnp.full((8, 8), jnp.inf), from_camera=jnp.eye(3, 4), scale=1.0)
-    for other in (frame, dataclasses.replace(room, light_view=view)):  # a third sky; a map says what lies beyond
+    at_the_eye = gr.Buffers(color=frame.color, depth=jnp.zeros_like(room.depth), coverage=room.coverage)
+    # A third sky; a map says what lies beyond; surfaces at the eye are no room.
+    for other in (frame, dataclasses.replace(room, light_view=view), at_the_eye):
         assert closed_room_start(effect, other) is None
+    # Wholly closed (at most 5 % sky) it is the start `godrays-jax fit` takes alone; a frame 10 % sky is closed in
+    # part, and only races it.
+    assert closed_room_start(effect, room, wholly=True) is not None
+    part = room_depth.copy()
+    part.flat[: part.size // 10] = np.inf
+    partly = gr.Buffers(color=frame.color, depth=jnp.asarray(part), coverage=room.coverage)
+    assert closed_room_start(effect, partly) is not None and closed_room_start(effect, partly, wholly=True) is None
     names, starts = fit_starts(effect, [room], FOV)
     assert "farthest wall" in names[-1] and float(starts[-1].thickness) == pytest.approx(THIN_SLABS)
     assert not any("farthest wall" in name for name in fit_starts(effect, [frame], FOV)[0])

@@ -63,8 +63,9 @@ compares (`kernels.losses.mse_loss`).
 
 The sun is a disc in an environment map (at infinity, so its shafts are
 parallel); a lamp is a small emitting sphere inside the medium. The
-medium is a sphere around the camera (its radius is the medium's extent) or,
-for `ground_fog`, a layer near the ground that the camera stands in.
+medium is a sphere around the camera (its radius is the medium's extent),
+for `ground_fog` a layer near the ground that the camera stands in, or, for
+`window_ahead_room`, the inside of the room alone (its window shows clear sky).
 
 `llvm_ad_rgb` (the default) needs an LLVM newer than 15 (`DRJIT_LIBLLVM_PATH`;
 19 works); `--variant scalar_rgb` runs without one, slower. One
@@ -127,17 +128,21 @@ class Lamp:
 class Medium:
     """Homogeneous: extinction `sigma_t` (per scene unit), single-scattering `albedo`, Henyey-Greenstein `g`.
 
-    `extent`: a sphere of this radius around the camera, or `("layer", top)`:
-    the slab from below the ground up to height `top`, 200 units wide.
+    `extent`: a sphere of this radius around the camera, `("layer", top)`:
+    the slab from below the ground up to height `top`, 200 units wide, or
+    `("box", (x0, x1, y0, y1, z0, z1))`: that box (a room's inside).
     """
 
     sigma_t: float
     albedo: float
     g: float
-    extent: float | tuple[str, float]
+    extent: float | tuple[str, float] | tuple[str, tuple[float, ...]]
 
     def describe(self) -> str:
-        if isinstance(self.extent, tuple):
+        if isinstance(self.extent, tuple) and self.extent[0] == "box":
+            x0, x1, y0, y1, z0, z1 = self.extent[1]
+            where = f"box x {x0:g} to {x1:g}, y {y0:g} to {y1:g}, z {z0:g} to {z1:g} (camera inside)"
+        elif isinstance(self.extent, tuple):
             where = f"layer from the ground to y = {self.extent[1]:g} (camera inside)"
         else:
             where = f"sphere of radius {self.extent:g} around the camera"
@@ -346,7 +351,7 @@ def _window_behind() -> Scene:
     )
 
 
-def _window_ahead() -> Scene:
+def _window_ahead(name: str = "window_ahead", haze_inside: bool = False) -> Scene:
     # The sun 40 degrees up straight ahead (off the top edge: the frame's half height is 14.7 degrees), through a
     # window in the far wall 12 units ahead, 2.5-4 units up (in view, 4-11 degrees up): the beam slants down toward
     # the camera onto the floor 7-9 units ahead, where the floor is in view (from 6.1). The window shows the sky and
@@ -365,17 +370,18 @@ def _window_ahead() -> Scene:
     far = [slab(-4.0, left, -0.1, 6.0, -12.2, -12.0), slab(right, 4.0, -0.1, 6.0, -12.2, -12.0),
            slab(left, right, -0.1, bottom, -12.2, -12.0), slab(left, right, top, 6.0, -12.2, -12.0)]
     bar = slab(-0.06, 0.06, bottom, top, -12.15, -12.05, (0.6, 0.57, 0.52))  # a mullion down the window's middle
-    return Scene(
-        "window_ahead", "a room 8 wide, 6 high, 15 deep, a window with a mullion in the far wall 12 units ahead, the "
-        "sun 40 degrees up beyond it, off the top edge: a beam from the window slanting down toward the camera onto "
-        "a window-shaped patch on the floor 7-9 units ahead, the mullion's shadow down the beam",
-        sun, Medium(0.06, 0.9, 0.7, 17.0), shapes=room + far + [bar],
-    )
+    shows = ("a room 8 wide, 6 high, 15 deep, a window with a mullion in the far wall 12 units ahead, the sun 40 "
+             "degrees up beyond it, off the top edge: a beam from the window slanting down toward the camera onto a "
+             "window-shaped patch on the floor 7-9 units ahead, the mullion's shadow down the beam")
+    # The haze inside the room alone (a hundredth inside its walls, down into the ground): the window shows clear sky.
+    inside = ("box", (-3.99, 3.99, -0.5, 5.99, -11.99, 2.99))
+    return Scene(name, shows + ("; the haze fills the room alone" if haze_inside else ""), sun,
+                 Medium(0.06, 0.9, 0.7, inside if haze_inside else 17.0), shapes=room + far + [bar])
 
 
 SCENES = {s.name: s for s in (_hidden_sun(), _blinds(), _forest(), _sun_off_screen(), _point_light(),
                               _thin_haze(), _ground_fog(), _street_two_lamps(), _canopy_sun_above(),
-                              _window_behind(), _window_ahead())}
+                              _window_behind(), _window_ahead(), _window_ahead("window_ahead_room", True))}
 
 
 # ----------------------------------------------------------------------------- camera
@@ -518,7 +524,11 @@ def scene_dict(mi, scene: Scene, *, fog: bool, emitters: bool = True) -> dict:
         # declared once, referred to by the shape that bounds it and by the camera inside it
         d["fog"] = {"type": "homogeneous", "id": "fog", "sigma_t": m.sigma_t, "albedo": m.albedo,
                     "phase": {"type": "hg", "g": m.g}}
-        if isinstance(m.extent, tuple):
+        if isinstance(m.extent, tuple) and m.extent[0] == "box":
+            x0, x1, y0, y1, z0, z1 = m.extent[1]
+            bounds = {"type": "cube", "to_world": T().translate([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2]).scale(
+                [(x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2])}
+        elif isinstance(m.extent, tuple):
             top, bottom = m.extent[1], -1.0  # below the ground, so the ground never coincides with a face
             bounds = {"type": "cube", "to_world": T().translate([0, (top + bottom) / 2, 0]).scale(
                 [100, (top - bottom) / 2, 100])}

@@ -45,7 +45,12 @@ from godrays_jax.pipeline.batch import ready_frame
 from godrays_jax.pipeline.determination import determination
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.fit_phases import polishes
-from godrays_jax.pipeline.frame_start import closed_room_start, enclosed_start, ground_layer_start, thin_slabs_start
+from godrays_jax.pipeline.frame_start import (
+    closed_room_start,
+    enclosed_start,
+    ground_layer_start,
+    thin_slabs_start,
+)
 from godrays_jax.pipeline.light_search import find_light
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
@@ -123,6 +128,14 @@ def run(args) -> int:
     if coarse_factor < 1:
         raise CommandError(f"--coarse-factor must be an integer >= 1, got {coarse_factor}")
     start_names, starts = fit_starts(effect, frames, fov)
+    # In a room read wholly closed the presets' thick slabs shade the beams its windows let in and their far-reaching
+    # media fill the windows with lit haze; from them the race keeps a thinned medium, where the room's own start,
+    # slower in its first steps, goes much further (benchmarks/README.md, "A sunbeam through a window in view").
+    room = closed_room_start(effect, frames, wholly=True) if args.params is None and all(in_front) else None
+    if room is not None:
+        effect, start_names, starts = room, [], []
+        _say("the frames are read as closed beyond their edges (a room, its windows): the fit starts from thin slabs "
+             "and a medium ending at the farthest wall, on the other fields of the start given, and races no other")
     found = {}
     for index, (frame, auto) in searched.items():
         path = pairs[index][0]

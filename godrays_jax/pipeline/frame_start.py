@@ -139,7 +139,7 @@ CLOSED_ROOM_FIELDS: tuple[str, ...] = ("thickness", "medium.max_distance", "fov_
 """The fields an effect needs for `closed_room_start` (the field of view in degrees)."""
 
 
-def closed_room_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effect | None:
+def closed_room_start(effect: Effect, frames: Buffers | Sequence[Buffers], *, wholly: bool = False) -> Effect | None:
     """`effect` with thin slabs (`thickness` `THIN_SLABS`) and its medium ending at the farthest surface its frames
     show: a start for `fit(..., starts=...)` when the fog reads every frame as closed beyond its edges
     (`shadow_reading.enclosure` above 0: a room, its windows) and none carries a depth map seen from the light.
@@ -149,8 +149,10 @@ def closed_room_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Ef
     medium, reaching far beyond the window, fills the window's own pixels with the haze outside, lit. From the
     presets a fit keeps both dim by thinning the medium (benchmarks/README.md, "A sunbeam through a window in
     view"). `medium.max_distance` is the farthest finite depth, clipped into its bounds; every other field is
-    `effect`'s. `None` for an effect without one of `CLOSED_ROOM_FIELDS`, a frame without depth or with a light
-    view, or one read as open. Not differentiable: a start, read once on the host.
+    `effect`'s. `None` for an effect without one of `CLOSED_ROOM_FIELDS`, a frame without depth, with a light
+    view or with a surface at the eye (depth 0: no room, as for `enclosed_start`), or one read as open; with `wholly`, also one read as closed only in part (`enclosure` below 1), so that
+    the start is the one `godrays-jax fit` takes in place of every other (docs/fitting.md). Not differentiable: a
+    start, read once on the host.
     """
     frames = [frames] if isinstance(frames, Buffers) else list(frames)
     infos = field_metadata(effect)
@@ -160,7 +162,10 @@ def closed_room_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Ef
         return None
     fov = jnp.asarray(field_value(effect, "fov_x_deg"), jnp.float32)
     depths = [np.asarray(frame.ray_depth(fov)) for frame in frames]
-    if not all(float(enclosure(jnp.asarray(depth))) > 0 for depth in depths):
+    if any(np.any(depth <= 0) for depth in depths):
+        return None
+    closed = [float(enclosure(jnp.asarray(depth))) for depth in depths]
+    if not all(value >= 1.0 if wholly else value > 0 for value in closed):
         return None
     finite = np.concatenate([depth[np.isfinite(depth)] for depth in depths])
     if finite.size == 0:

@@ -39,7 +39,8 @@ counts in proportion. Sky, the emitter (a slab reaching the light) and
 texels off screen block nothing, unless the frame is read as closed beyond its
 edges (`enclosed`, `shadow_reading.enclosure`): then, for a light in front of
 the camera, the first cell on screen of each line from the light (where a
-shadow ray leaves the screen) has its texels' near faces moved toward the eye
+shadow ray leaves the screen) and the cell off screen just before it, which
+reads the edge's texels, have their near faces moved toward the eye
 (at `enclosed = 1` to it), so that a shadow ray that leaves the screen in front
 of the far face of the surface seen there is shaded, as by the room's ceiling
 and walls out of view.
@@ -224,19 +225,22 @@ def _coverage_table(depth, lines, toward, inverse, focal, thickness, softness, s
     row, col, weight = bilinear_corners(x - 0.5, y - 0.5, height, width)
     front = depth[row, col]  # (4, lines, cells)
     on_screen = (x >= 0) & (x <= width) & (y >= 0) & (y <= height)
+    # Where a shadow ray toward a light in front leaves the screen: the first cell on screen from the light (none
+    # when the hub is on screen), and the cell off screen just before it, which the pixels along the edge read with
+    # it (its texels the edge's, clamped). A light behind the camera may shine through an opening behind it, which
+    # the frame cannot show: its rays leave as before.
+    closed = jnp.asarray(enclosed, dtype) * jnp.asarray(in_front, dtype)
+    before = jnp.concatenate([jnp.broadcast_to(lines.full, (x.shape[0], 1)), on_screen[:, :-1]], axis=1)
+    after = jnp.concatenate([on_screen[:, 1:], jnp.zeros_like(on_screen[:, :1])], axis=1)
+    leaving = (on_screen & ~before) | (~on_screen & after & (closed > 0))
     # A surface at the eye (depth 0) is a slab of no depth: it blocks nothing, as the sky does not.
-    blocks = jnp.isfinite(front) & (front > 0) & on_screen & (front * (1 + thickness) * inverse < 1.0)
+    blocks = jnp.isfinite(front) & (front > 0) & (on_screen | leaving) & (front * (1 + thickness) * inverse < 1.0)
     front = jnp.where(blocks, front, 1.0)
     ends = [_off_axis(*lines.positions(shift), toward, height, width, focal) for shift in (-0.5, 0.5)]
     near = [line_coordinate(front, sine, cosine, inverse) for sine, cosine in ends]
     far = [line_coordinate(front * (1 + thickness), sine, cosine, inverse) for sine, cosine in ends]
     low, high = jnp.minimum(*near), jnp.maximum(*far)
-    # Where a shadow ray toward a light in front leaves the screen: the first cell on screen from the light (the
-    # hub's own when it is on screen, where no ray leaves). A light behind the camera may shine through an opening
-    # behind it, which the frame cannot show: its rays leave as before.
-    closed = jnp.asarray(enclosed, dtype) * jnp.asarray(in_front, dtype)
-    before = jnp.concatenate([jnp.broadcast_to(lines.full, (x.shape[0], 1)), on_screen[:, :-1]], axis=1)
-    low = jnp.where(on_screen & ~before, (1.0 - closed) * low, low)
+    low = jnp.where(leaving, (1.0 - closed) * low, low)
     face = jnp.minimum(softness * low, 0.5 * (high - low))
     rise_at, rise = _face_deltas(low, face, s_min, log_step, num_bins)
     # The lowest bin holds what covers any `s` below `s_min` (not what covers `s_min` itself): every point there reads

@@ -221,6 +221,7 @@ def test_a_render_of_several_lights_is_applied_with_every_one(tmp_path, capsys, 
     assert "fit draws" not in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one(tmp_path, capsys):
     """`fit --light 'A;B'` fits the fields under both lights and the second's tint over the first's, from a wrong
     one, and `apply --params` with the same lights and the tint it prints gives the fitted frame; `--fixed

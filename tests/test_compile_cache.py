@@ -69,6 +69,7 @@ def _sample_at_a_quarter(path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_repeated_fit_reads_its_traced_programs_back(tmp_path):
     """`fit` stores its solver's programs traced (`pipeline.exported`); the next process traces and stores nothing."""
     cache = tmp_path / "cache"
@@ -88,6 +89,7 @@ def test_a_repeated_fit_reads_its_traced_programs_back(tmp_path):
     assert second.stdout.replace("b.json", "a.json") == first.stdout
 
 
+@pytest.mark.slow
 def test_no_cache_writes_nothing_and_cache_clear_empties_it(tmp_path):
     cache = tmp_path / "cache"
     done = _cli("apply", SAMPLE, "--preset", "sun_overcast", "-o", tmp_path / "a.png", "--no-cache", cache=cache)

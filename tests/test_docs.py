@@ -173,7 +173,7 @@ def test_the_pages_that_write_files_run_commands():
     assert set(WRITES) <= set(SHELL_PAGES)
 
 
-@pytest.mark.parametrize("page", slow_where(SHELL_PAGES, {"pipelines.md", "rasterizer.md"}))
+@pytest.mark.parametrize("page", slow_where(SHELL_PAGES, {"pipelines.md", "rasterizer.md", "index.md"}))
 def test_the_shell_commands_of_a_page_run_in_order(page, tmp_path):
     scratch = scratch_folder(tmp_path)
     bin_dir = scratch / "bin"

@@ -341,7 +341,10 @@ def _batched_gradients(name):
     return examples, batched, cotangents, gradient, jax.grad(batch_loss, argnums=tuple(range(1, len(batched) + 1)))
 
 
-SLOW_GRADIENTS = {"volumetric_fog_terms", "fast_radial_rays", "radial_rays_multipass", "segment_visibility_by_lines"}
+SLOW_GRADIENTS = {
+    "volumetric_fog_terms", "fast_radial_rays", "radial_rays_multipass", "segment_visibility_by_lines",
+    "apply_volumetric_fog",
+}
 """The kernels whose gradients of `vmap` take about ten seconds or more on a loaded empty-cache run: run with the slow
 tests (README)."""
 

@@ -153,6 +153,7 @@ def test_gradients(x64, scene, in_front):
         assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
 
 
+@pytest.mark.slow
 def test_effects_are_differentiable_and_vanish_behind():
     depth = jnp.full((24, 40), jnp.inf).at[16:].set(30.0)
     buffers = gr.Buffers(color=jnp.full((24, 40, 3), 0.2), depth=depth, coverage=jnp.isfinite(depth) * 1.0)

@@ -192,6 +192,7 @@ def test_the_fog_reads_the_light_view_beside_the_frames_shadows():
     assert float(grads.medium.extinction) != 0.0
 
 
+@pytest.mark.slow
 def test_apply_reads_a_light_view_and_names_a_bad_one(tmp_path):
     frame, view, output = tmp_path / "frame.exr", tmp_path / "light.exr", tmp_path / "out.exr"
     slats = _with_view(_frame(), np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1)))

@@ -66,6 +66,7 @@ def scratch(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_the_python_blocks_run_in_order(scratch, monkeypatch):
     monkeypatch.chdir(scratch)
     code = blocks("python")

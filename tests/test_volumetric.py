@@ -808,6 +808,13 @@ def test_a_ray_leaving_a_closed_frame_in_front_of_its_edge_is_shaded(reading):
 
     np.testing.assert_allclose(np.asarray(visibility(1.0)), [0.0, 1.0], atol=0.02)
     np.testing.assert_allclose(np.asarray(visibility(0.0)), [1.0, 1.0], atol=0.02)
+    # Under jit and vmap (over how closed) as eagerly; finite gradients with the frame halfway closed.
+    closed = jnp.asarray([0.0, 0.5, 1.0])
+    batched = jax.jit(jax.vmap(visibility))(closed)
+    for index, value in enumerate(closed):
+        np.testing.assert_allclose(np.asarray(batched[index]), np.asarray(visibility(value)), atol=1e-5)
+    gradient = jax.grad(lambda value: jnp.sum(visibility(value)))(jnp.float32(0.5))
+    assert np.isfinite(float(gradient))
 
 
 def test_bad_options_name_the_argument():

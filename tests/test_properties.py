@@ -304,7 +304,7 @@ def _effect_grad(effect_and_light, buffers, in_front):
 
 
 FOGS = ("participating_media", "volumetric_haze", "physically_based")
-"""The fog presets: each draws any light at any distance (`test_fog_presets_finite_values_and_gradients_for_any_light_and_distance`)."""
+"""The fog presets, whose lights, far ones among them, are drawn at every distance and side by their own test below."""
 
 
 @st.composite

@@ -153,6 +153,8 @@ _ON_FIRST_USE = {
     "find_light": "godrays_jax.pipeline.light_search",
     "halo_starts": "godrays_jax.pipeline.light_search",
     "LightSearch": "godrays_jax.pipeline.light_search",
+    "profile_light": "godrays_jax.pipeline.light_profile",
+    "LightProfile": "godrays_jax.pipeline.light_profile",
     "DirectionalLight": "godrays_jax.raster",
     "light_distance": "godrays_jax.raster",
     "light_pixel": "godrays_jax.raster",

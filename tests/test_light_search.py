@@ -142,6 +142,8 @@ def test_fit_light_auto_finds_the_light_and_apply_params_uses_it(tmp_path, capsy
     out = capsys.readouterr().out
     (line,) = [line for line in out.splitlines() if line.startswith("light of")]
     assert "from the target's halo" in line, out
+    # Then placed by whole fits around the light found (`light_profile`), each fit's light and loss a line.
+    assert out.count("a fit with the light at ") >= 6 and "placed at " in out, out
     (entry,) = json.loads((tmp_path / "params.light.json").read_text())["lights"]
     assert entry["frame"] == "frame.exr" and entry["size"] == [WIDTH, HEIGHT]
     assert np.linalg.norm(np.asarray(entry["light_px"]) - light) < 1.0, entry

@@ -13,6 +13,8 @@ from godrays_jax.app.fit_light import (
     first_light,
     found_lights_text,
     light_lines,
+    profile_line,
+    tried_line,
     write_text,
 )
 from godrays_jax.app.options import (
@@ -31,12 +33,12 @@ from godrays_jax.app.options import (
     model_presets,
     read_target,
     resolve_light_depth,
-    warn,
     split_lights,
     tints_text,
-    with_stored_lights,
+    warn,
     with_frame_camera,
     with_light_view,
+    with_stored_lights,
 )
 from godrays_jax.effects.fields import field_metadata, field_value
 from godrays_jax.effects.presets import preset
@@ -51,6 +53,7 @@ from godrays_jax.pipeline.frame_start import (
     ground_layer_start,
     thin_slabs_start,
 )
+from godrays_jax.pipeline.light_profile import PROFILE_STEP, profile_light
 from godrays_jax.pipeline.light_search import find_light
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
@@ -149,6 +152,30 @@ def run(args) -> int:
         found[path] = (search, frame)
         light_positions[index] = jnp.asarray(search.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(search.light_xy), path)
+    fit_options = {
+        "loss": args.loss, "space": args.space, "solver": args.solver, "fixed": fixed, "max_steps": args.max_steps,
+        "light_in_front": in_front, "light_depth": depths, "other_lights": others, "fit_light_tints": fit_tints,
+        "coarse_factor": coarse_factor, "coarse_jacobian": True, "starts": starts,
+    }  # fmt: skip
+    # The search's light lies where its few fields match best; the loss of whole fits places it (`light_profile`).
+    for index, (frame, _) in searched.items():
+        path = pairs[index][0]
+        _say(f"placing the light of {path} by whole fits around it")
+
+        def fitted_loss(xy, index=index, frame=frame, path=path):
+            lights_now, frames_now = list(light_positions), list(frames)
+            lights_now[index] = jnp.asarray(xy, jnp.float32)
+            frames_now[index] = ready_frame(effect, frame, tuple(xy), path)
+            loss = fit(effect, frames_now, lights_now, targets, **fit_options).loss_after
+            _say(tried_line(xy, loss))
+            return loss
+
+        side = max(frame.height, frame.width)
+        profile = profile_light(fitted_loss, np.asarray(light_positions[index]), step=PROFILE_STEP * side)
+        _say(profile_line(profile))
+        found[path] = (dataclasses.replace(found[path][0], light_xy=profile.light_xy), frame)
+        light_positions[index] = jnp.asarray(profile.light_xy, jnp.float32)
+        frames[index] = ready_frame(effect, frame, tuple(profile.light_xy), path)
     phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes
     bar = tqdm.tqdm(total=phases * args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
 
@@ -157,12 +184,7 @@ def run(args) -> int:
         bar.update(step - bar.n)
 
     try:
-        result = fit(
-            effect, frames, light_positions, targets, loss=args.loss, space=args.space, solver=args.solver,
-            fixed=fixed, max_steps=args.max_steps, light_in_front=in_front, light_depth=depths, other_lights=others,
-            fit_light_tints=fit_tints, progress=progress, coarse_factor=coarse_factor, coarse_jacobian=True,
-            starts=starts,
-        )  # fmt: skip
+        result = fit(effect, frames, light_positions, targets, progress=progress, **fit_options)
     finally:
         bar.close()
     chosen = result.effect if args.fractional_counts else result.rounded

@@ -7,6 +7,7 @@ import os
 import numpy as np
 
 from godrays_jax.app.options import LIGHT_AUTO, CommandError, resolve_light
+from godrays_jax.pipeline.light_profile import LightProfile
 from godrays_jax.pipeline.light_search import LightSearch, halo_starts
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.files import atomic_write
@@ -46,6 +47,16 @@ def light_lines(path: str, found: LightSearch, *, auto: bool, start_names: list[
             f"{shift[1]:.3g} px in y changes the frame by 0.001 RMS (at 1/{found.factor} resolution)"
         ),
     ]
+
+
+def tried_line(xy, loss: float) -> str:
+    """The command's line about one fit of `light_profile.profile_light`: the light tried and the loss reached."""
+    return f"  a fit with the light at {_pair(xy)} px: loss {loss:.6g}"
+
+
+def profile_line(profile: LightProfile) -> str:
+    """The command's line about the light `light_profile.profile_light` placed."""
+    return f"  placed at {_pair(profile.light_xy)} px: where the losses of the {len(profile.losses)} fits are lowest"
 
 
 def _pair(xy) -> str:

@@ -2,6 +2,7 @@
 
 import contextlib
 import dataclasses
+import math
 import os
 import sys
 
@@ -166,7 +167,10 @@ def run(args) -> int:
             lights_now, frames_now = list(light_positions), list(frames)
             lights_now[index] = jnp.asarray(xy, jnp.float32)
             frames_now[index] = ready_frame(effect, frame, tuple(xy), path)
-            loss = fit(effect, frames_now, lights_now, targets, **fit_options).loss_after
+            try:
+                loss = fit(effect, frames_now, lights_now, targets, **fit_options).loss_after
+            except ValueError:  # the fit diverged at this light: the highest loss (`profile_light`)
+                loss = math.inf
             _say(tried_line(xy, loss))
             return loss
 

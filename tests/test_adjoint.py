@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from frames import slow_where
 from jax.test_util import check_grads
 
 import godrays_jax as gr
@@ -58,7 +59,7 @@ def loops():
 
 
 @pytest.mark.parametrize("addressing", ["clamp", "zero"])
-@pytest.mark.parametrize("light", LIGHTS.values(), ids=LIGHTS.keys())
+@pytest.mark.parametrize("light", slow_where(LIGHTS.values(), {LIGHTS["on_screen"]}), ids=LIGHTS.keys())
 def test_adjoint_matches_the_transposed_loop(x64, rng, light, addressing):
     cotangent = rng.normal(size=(HEIGHT, WIDTH, 2))
     weights = rng.uniform(0.1, 1.0, len(SCALES))
@@ -114,6 +115,7 @@ def test_kernel_gradients_in_the_image_forward_and_reverse(x64, rng, light):
     check_grads(flares, (image,), order=1, modes=("fwd", "rev"), eps=1e-6)
 
 
+@pytest.mark.slow
 def test_gradients_in_the_image_and_every_scalar_together(x64, rng):
     image = jnp.asarray(rng.uniform(size=(HEIGHT, WIDTH, 3)))
 
@@ -156,7 +158,7 @@ KERNELS_OF_AN_IMAGE = {
 
 
 @pytest.mark.parametrize("kernel", KERNELS_OF_AN_IMAGE)
-@pytest.mark.parametrize("compiled", [False, True])
+@pytest.mark.parametrize("compiled", slow_where([False, True], {False}))
 def test_gradient_of_a_batch(kernel, compiled, rng):
     """`grad` of a loss over `vmap` (a training loop's first step) equals the per-example gradients.
 

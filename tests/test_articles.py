@@ -256,7 +256,7 @@ def test_vbex_bloom_blurs_the_glow_target(name):
     np.testing.assert_allclose(effect.layer(buffers, jnp.asarray(LIGHT)), float(effect.intensity) * glow, atol=1e-5)
 
 
-@pytest.mark.parametrize(("height", "width"), [(45, 83), (37, 200)])
+@pytest.mark.parametrize(("height", "width"), [(45, 83), pytest.param(37, 200, marks=pytest.mark.slow)])
 def test_vbex_bloom_levels_are_whole_pixel_render_targets_read_by_uv(height, width):
     """On a frame not divisible by 16 each level is `Fullsize / f` whole pixels, drawn and read back by UV."""
     rng = np.random.default_rng(5)

@@ -324,6 +324,7 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_same_files(tmp_path):
     count = 6  # three written, the fourth killed mid-write by the hook, two left
     inputs = _sequence(tmp_path / "in", count)
@@ -465,6 +466,7 @@ def test_written_files_get_the_users_normal_permissions(tmp_path):
         assert stat.S_IMODE(os.stat(tmp_path / name).st_mode) == 0o640
 
 
+@pytest.mark.slow
 def test_two_runs_on_one_folder_share_the_frames_and_replace_nothing(tmp_path):
     """Two processes started together on one output folder: each frame written once, by one of them, complete."""
     count = 12

@@ -103,6 +103,7 @@ def test_bloom_and_gaussian_presets_differ_in_shape(hdr):
     assert float(pyramid.max()) > 0 and float(gaussian.max()) > 0 and float(jnp.abs(pyramid - gaussian).max()) > 1e-3
 
 
+@pytest.mark.slow
 def test_bloom_gradients(x64, hdr):
     image = jnp.asarray(hdr[:8, 4:16])
 

@@ -39,6 +39,7 @@ def test_cache_folder_follows_the_environment(monkeypatch, tmp_path):
     assert compile_cache.cache_dir() == str(tmp_path / "xdg" / "godrays_jax")
 
 
+@pytest.mark.slow
 def test_apply_stores_its_program_and_a_second_run_reuses_it(tmp_path):
     """The effect's program is stored traced and compiled (no host callback keeps it out) and found by the next
     process, which neither traces nor compiles it."""

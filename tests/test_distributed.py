@@ -78,6 +78,7 @@ def test_two_processes_through_jax_distributed_write_what_one_process_writes(sho
     assert_same_outputs(folder, "two")
 
 
+@pytest.mark.slow
 def test_a_shell_fan_out_of_frame_chunks_writes_what_one_process_writes(shot):
     folder, pattern = shot
     done = subprocess.run(

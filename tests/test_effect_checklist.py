@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from closeness import assert_trees_close
-from frames import at_fit_counts, slow_where
+from frames import SLOW_PRESETS, at_fit_counts, slow_where
 
 import godrays_jax as gr
 
@@ -63,7 +63,7 @@ def _assert_close(actual, expected, rtol=1e-3):
     assert_trees_close(actual, expected, rtol=rtol)
 
 
-@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS), {*SLOW_PRESETS, "vbex_bloom"}))
 def test_jit_and_vmap_equal_eager_frames(name):
     effect = at_fit_counts(gr.preset(name))
     compiled = eqx.filter_jit(effect)

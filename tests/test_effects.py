@@ -12,12 +12,12 @@ from jax.test_util import check_grads
 
 import godrays_jax as gr
 from godrays_jax.effects.fields import field_value, parameter_bounds
-from frames import HEIGHT, LIGHT, WIDTH, make_frame, small
+from frames import HEIGHT, LIGHT, WIDTH, make_frame, slow_where, small
 
 LIGHT_DEPTH = 1000.0
 """The sun's distance in the XNA article's author's sample: the XNA preset's flare is `SunSize / z` of it (1.5 UV)."""
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 def test_preset_runs_jit_vmap_and_adds_light(name):
     # Eager execution of every kernel is covered in test_kernels.py; here one
     # compilation per preset keeps the suite fast.

@@ -154,6 +154,7 @@ def test_radial_rays_gradients_with_light_on_a_pixel_centre(x64, rng):
     check_grads(jax.jit(lambda l: gr.radial_rays(ramp, l, num_samples=4, **RAYS)), (light,), order=1, modes=("rev", "fwd"), eps=1e-6)
 
 
+@pytest.mark.slow
 def test_flare_and_fast_path_gradients_float64(x64, rng):
     masked = jnp.asarray(rng.random((6, 7, 2)))
     light = jnp.array([2.2, 4.1])

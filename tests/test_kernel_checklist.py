@@ -308,7 +308,7 @@ jax.monitoring.register_event_duration_secs_listener(
 )
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", slow_where(sorted(CASES), {"fast_radial_rays"}))
 def test_jit_equals_eager_and_eager_compiles_once(name):
     """Compiled equals op by op; and a second eager call on other values of the same shapes compiles nothing (a
     loop over a function defined in the call is traced and compiled again on every call unless it is jitted with
@@ -320,7 +320,7 @@ def test_jit_equals_eager_and_eager_compiles_once(name):
     assert _programs_lowered[True] == before
 
 
-@pytest.mark.parametrize("name", slow_where(sorted(CASES), {"volumetric_fog_terms"}))
+@pytest.mark.parametrize("name", slow_where(sorted(CASES), {"volumetric_fog_terms", "apply_volumetric_fog"}))
 def test_vmap_equals_a_loop(name):
     examples, batched = _batch(name)
     looped = jnp.stack([CASES[name].call(*example) for example in examples])
@@ -343,9 +343,9 @@ def _batched_gradients(name):
 
 SLOW_GRADIENTS = {
     "volumetric_fog_terms", "fast_radial_rays", "radial_rays_multipass", "segment_visibility_by_lines",
-    "apply_volumetric_fog",
+    "apply_volumetric_fog", "at_reduced_resolution", "radial_rays",
 }
-"""The kernels whose gradients of `vmap` take about ten seconds or more on a loaded empty-cache run: run with the slow
+"""The kernels whose gradients of `vmap` take about five seconds or more on an empty-cache run: run with the slow
 tests (README)."""
 
 

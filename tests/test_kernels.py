@@ -402,7 +402,7 @@ def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
 
 
 # Each count (below, between and at multiples of the step) and each addressing at least once; at a multiple both.
-@pytest.mark.parametrize(("copies", "addressing"), [(1, "clamp"), (11, "zero"), (16, "clamp"), (16, "zero")])
+@pytest.mark.parametrize(("copies", "addressing"), [(1, "clamp"), pytest.param(11, "zero", marks=pytest.mark.slow), (16, "clamp"), pytest.param(16, "zero", marks=pytest.mark.slow)])
 def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     """A GPU sums `COPIES_PER_STEP` copies per loop step from 2-D corner gathers, a CPU one copy per step through
     transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for
@@ -462,6 +462,7 @@ def test_scales_and_weights_share_the_few_numbers_budget():
     assert compiled.memory_analysis().temp_size_in_bytes < 20 * image.nbytes
 
 
+@pytest.mark.slow
 def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
     """Summed in blocks of rows, a gradient's memory must not grow by an image's worth per copy: a loop value
     that is the same for every block (once, a zero output of a never-taken branch) was stored once per copy."""
@@ -485,6 +486,7 @@ def test_cpu_blocks_of_rows_store_nothing_per_copy(monkeypatch):
     assert (temporaries[1] - temporaries[0]) / (256 - 32) < 0.15 * image.nbytes
 
 
+@pytest.mark.slow
 def test_cpu_copy_sums_in_blocks_of_rows_equal_the_whole(x64, rng, monkeypatch):
     """Large images are summed block by block of output rows on a CPU (`BLOCKED_SIZE`); forced here on small ones,
     with blocks of 3 rows, every sum equals the GPU loop's and the kernels' values and gradients are unchanged."""

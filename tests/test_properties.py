@@ -225,6 +225,7 @@ def test_blurs_keep_a_constant_image_constant(image, blur_power, passes, level):
 
 @SETTINGS
 @given(images(), st.floats(0.0, 0.3), st.floats(0.0, 3.0), st.floats(0.0, 4.0))
+@pytest.mark.slow
 def test_blurs_finite_jit_vmap_and_gradients(image, blur_power, passes, sigma):
     args = (image, jnp.float32(blur_power), jnp.float32(passes), jnp.float32(sigma))
     with jax.disable_jit():
@@ -277,6 +278,7 @@ def _small(name: str) -> gr.Effect:
 
 @settings(SETTINGS, max_examples=4)  # each preset compiles twice (value, gradient) per frame size
 @given(frames(), st.sampled_from(sorted(gr.PRESETS)), st.booleans(), st.data())
+@pytest.mark.slow
 def test_effects_finite_values_and_gradients_anywhere(buffers, name, in_front, data):
     light = data.draw(lights(buffers.height, buffers.width))
     effect = _small(name)
@@ -374,7 +376,7 @@ def test_fog_presets_finite_values_and_gradients_for_any_light_and_distance(name
     assert _finite(effect_grad) and _finite(light_grad), (light, light_depth, in_front)
 
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 def test_effects_vmap_over_frames_equals_loop(name):
     rng = np.random.default_rng(5)
     stacked = gr.Buffers(

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from frames import slow_where
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
@@ -109,7 +110,7 @@ def test_the_presets_table_names_every_preset():
     assert named == set(gr.PRESETS)
 
 
-@pytest.mark.parametrize("name", sorted(gr.PRESETS))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
 def test_every_preset_works_on_the_sample_frame(tmp_path, capsys, name):
     frame_path = ROOT / "examples" / "data" / "sample_frame.exr"
     out = tmp_path / f"{name}.png"

@@ -117,7 +117,7 @@ LIGHTS = {
 }
 
 
-@pytest.mark.parametrize("name", slow_where(LIGHTS, {"point light behind the camera"}))
+@pytest.mark.parametrize("name", slow_where(LIGHTS, {"point light behind the camera", "sun behind the camera", "sun far off screen"}))
 def test_matches_shadow_rays_traced_in_3d(name):
     point, sun, sky = LIGHTS[name]
     depth = _depth(sky)
@@ -151,7 +151,7 @@ CLOSED_LIGHTS = {
 }
 
 
-@pytest.mark.parametrize("name", CLOSED_LIGHTS)
+@pytest.mark.parametrize("name", slow_where(CLOSED_LIGHTS, {"sun far off the side"}))
 def test_a_closed_frame_shades_the_rays_that_leave_it_in_front_of_its_edge(name):
     """A room's frame (no sky), the light in front off screen: read closed (`enclosed=1`), a shadow ray that leaves
     the screen in front of the far face of the surface seen where it leaves is shaded, as the traced loop says; read
@@ -228,7 +228,7 @@ def _small(dtype):
             jnp.asarray(bounds[..., 1:], dtype))  # fmt: skip
 
 
-@pytest.mark.parametrize("light_depth", [40.0, math.inf])
+@pytest.mark.parametrize("light_depth", slow_where([40.0, math.inf], {40.0}))
 def test_gradients_float64(x64, light_depth):
     """The derivatives in the slabs, the light and the medium's reach against central differences (bins and lines
     held where they lie: a sampling choice)."""

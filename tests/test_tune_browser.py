@@ -20,6 +20,7 @@ from tune_support import SAMPLE, browser, fit_until_cancelled, small_effect, sma
 SCREENSHOT_COPY = "/tmp/godrays_tune_screenshot.png"
 
 
+@pytest.mark.slow
 def test_page_end_to_end_in_chromium(browser, tmp_path):
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By

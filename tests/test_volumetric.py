@@ -412,6 +412,7 @@ def test_composite_eager_jit_vmap(x64, rng):
         np.testing.assert_allclose(batched[index], compiled(image, depth, one), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_grad_of_vmap_matches_per_example(x64, rng):
     images = jnp.asarray(rng.uniform(0.0, 2.0, (2, HEIGHT, WIDTH, 3)))
     depth = jnp.asarray(_depth())
@@ -590,7 +591,7 @@ def test_reduced_resolution_matches_loop(x64):
     np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
 
 
-@pytest.mark.parametrize("case", ["no coverage", "beside the sky", "beside surfaces", "every pixel"])
+@pytest.mark.parametrize("case", slow_where(["no coverage", "beside the sky", "beside surfaces", "every pixel"], {"beside the sky", "every pixel"}))
 def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
     """With march rays between the pixels, a partly covered pixel reads them up to its surface's depth and up to
     what its uncovered part sees, and blends the two. A render that takes no derivatives (`values_only`) reads

@@ -320,6 +320,7 @@ def test_static_counts_are_checked():
         gr.VolumetricFog(thickness=-1.0)
 
 
+@pytest.mark.slow
 def test_fit_recovers_the_medium(rng):
     buffers = _frame(rng)
     truth = _fog()

@@ -101,7 +101,7 @@ def test_adjoint_equals_the_transpose_of_the_copies_sum(x64, rng):
     assert_close(vjp(cotangent)[0], scattered, 1e-12)
 
 
-@pytest.mark.parametrize("light", LIGHTS.values(), ids=LIGHTS.keys())
+@pytest.mark.parametrize("light", slow_where(LIGHTS.values(), {LIGHTS[n] for n in ("on_screen", "near_edge", "far_off_screen")}), ids=LIGHTS.keys())
 def test_kernel_gradients_in_the_image_forward_and_reverse(x64, rng, light):
     image = jnp.asarray(rng.uniform(size=(HEIGHT, WIDTH, 2)))
     light = jnp.asarray(light)
@@ -157,7 +157,7 @@ KERNELS_OF_AN_IMAGE = {
 }
 
 
-@pytest.mark.parametrize("kernel", KERNELS_OF_AN_IMAGE)
+@pytest.mark.parametrize("kernel", slow_where(KERNELS_OF_AN_IMAGE, {"radial_rays"}))
 @pytest.mark.parametrize("compiled", slow_where([False, True], {False}))
 def test_gradient_of_a_batch(kernel, compiled, rng):
     """`grad` of a loss over `vmap` (a training loop's first step) equals the per-example gradients.
@@ -181,6 +181,7 @@ def test_gradient_of_a_batch(kernel, compiled, rng):
         assert_close(one_light[i], jax.grad(example_loss)(images[i], lights[0]), 1e-5)
 
 
+@pytest.mark.slow
 def test_second_derivatives_through_the_adjoint(x64, rng):
     """The primitive's own JVP (the copies' derivative in the light) serves forward-over-reverse, e.g. a Hessian."""
     image = jnp.asarray(rng.uniform(size=(HEIGHT, WIDTH, 1)))

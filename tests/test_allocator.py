@@ -32,6 +32,7 @@ print(resident_mib() - before)
 
 @pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="the allocator is tuned through glibc's mallopt; on other C libraries (macOS, musl) "
                     "keep_freed_memory leaves it as it is and returns False")
+@pytest.mark.slow
 def test_freed_memory_stays_with_the_process_only_when_tuned():
     def kept(mode, **env):
         done = subprocess.run([sys.executable, "-c", _PROBE, mode], capture_output=True, text=True, check=True,
@@ -110,6 +111,7 @@ print(resident_mib() - before)
 
 @pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
                     reason="the heap is trimmed by glibc's malloc_trim; off glibc nothing is registered")  # fmt: skip
+@pytest.mark.slow
 def test_a_long_compile_hands_the_memory_it_freed_back():
     """What a compile of at least `TRIMMED_COMPILE_SECONDS` freed leaves the process, and what the process kept
     leaves it before a new program is compiled; after a short compile it stays."""

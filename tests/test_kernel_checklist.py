@@ -343,7 +343,8 @@ def _batched_gradients(name):
 
 SLOW_GRADIENTS = {
     "volumetric_fog_terms", "fast_radial_rays", "radial_rays_multipass", "segment_visibility_by_lines",
-    "apply_volumetric_fog", "at_reduced_resolution", "radial_rays",
+    "apply_volumetric_fog", "at_reduced_resolution", "radial_rays", "radial_rays_jittered", "scaled_copies",
+    "scale_iterated_flares",
 }
 """The kernels whose gradients of `vmap` take about five seconds or more on an empty-cache run: run with the slow
 tests (README)."""
@@ -366,7 +367,7 @@ its compiled one; every other kernel is JAX's own operations, the same eager or 
 issue's `grad` of `vmap` crash was, at trace time, with or without `jit`). Their gradient of `vmap` runs eager too."""
 
 
-@pytest.mark.parametrize("name", WITH_OWN_PRIMITIVE)
+@pytest.mark.parametrize("name", slow_where(WITH_OWN_PRIMITIVE, {"radial_rays"}))
 def test_eager_grad_of_vmap_equals_per_example_gradients(name):
     examples, batched, cotangents, gradient, batch_gradient = _batched_gradients(name)
     _assert_gradients_close([batch_gradient(cotangents, *batched)], jax.jit(gradient), cotangents, examples)

@@ -171,6 +171,7 @@ def nonzero_box(image):
     return (int(rows.min()), int(rows.max()) + 1), (int(columns.min()), int(columns.max()) + 1)
 
 
+@pytest.mark.slow
 def test_radial_rays_window_gradients(x64):
     height, width = 60, 90
     light = jnp.asarray([40.3, 22.6])
@@ -387,7 +388,7 @@ def test_sample_bilinear_pixel_centres_and_addressing():
 
 @pytest.mark.parametrize(
     "shape, copies",
-    [((2, 3, 1), 3), ((2, 2, 2), 6), ((6, 7, 3), 6)],
+    [((2, 3, 1), 3), ((2, 2, 2), 6), pytest.param((6, 7, 3), 6, marks=pytest.mark.slow)],
     ids=["tiny_image_few_copies", "tiny_image_many_weights", "large_image_many_weights"],
 )
 def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
@@ -402,7 +403,8 @@ def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
 
 
 # Each count (below, between and at multiples of the step) and each addressing at least once; at a multiple both.
-@pytest.mark.parametrize(("copies", "addressing"), [(1, "clamp"), pytest.param(11, "zero", marks=pytest.mark.slow), (16, "clamp"), pytest.param(16, "zero", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(("copies", "addressing"), [(1, "clamp"), pytest.param(11, "zero", marks=pytest.mark.slow), pytest.param(16, "clamp", marks=pytest.mark.slow),
+     pytest.param(16, "zero", marks=pytest.mark.slow)])
 def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     """A GPU sums `COPIES_PER_STEP` copies per loop step from 2-D corner gathers, a CPU one copy per step through
     transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for

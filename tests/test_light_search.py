@@ -87,6 +87,7 @@ def test_the_determination_is_small_for_a_sharp_halo_and_large_where_the_target_
     assert np.all(unchanged.standard_error > 100.0 * found.standard_error), unchanged.standard_error
 
 
+@pytest.mark.slow
 def test_more_fields_race_the_starts_given():
     """Beyond the colours, the light and `fields` descend again, from the effect and from each of `starts`: the
     start that shares the target's decay wins, and the light, decay and tint are the target's."""

@@ -161,6 +161,7 @@ def test_light_pass_centre_matches_projected_light():
     assert light.max() == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_gradients_with_respect_to_sphere_center_point_the_right_way():
     right_half = jnp.asarray(np.arange(WIDTH) >= WIDTH // 2, jnp.float32)[None, :]
 

@@ -69,6 +69,7 @@ def test_page_end_to_end_in_chromium(browser, tmp_path):
     print("browser timings:", json.dumps(stats))
 
 
+@pytest.mark.slow
 def test_page_fits_and_cancels_in_chromium(browser, monkeypatch):
     """The page starts a fit, follows it to its result, and cancels one (the button becomes "cancel fit")."""
     from selenium.webdriver.common.by import By

@@ -63,7 +63,7 @@ def _assert_close(actual, expected, rtol=1e-3):
     assert_trees_close(actual, expected, rtol=rtol)
 
 
-@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS), {*SLOW_PRESETS, "vbex_bloom"}))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS), {*SLOW_PRESETS, "vbex_bloom", "vbex_sun_spot"}))
 def test_jit_and_vmap_equal_eager_frames(name):
     effect = at_fit_counts(gr.preset(name))
     compiled = eqx.filter_jit(effect)

@@ -11,6 +11,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from frames import slow_where
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
@@ -138,7 +139,7 @@ def test_batch_frames_without_depth_and_a_medium_fail_each_frame(tmp_path, capsy
     assert "has no depth channel and ScatteringFog measures distance in it" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("command", ["apply", "batch"])
+@pytest.mark.parametrize("command", slow_where(["apply", "batch"], {"apply"}))
 def test_vbex_presets_take_the_frames_field_of_view(tmp_path, command):
     """The VBex sun spot is drawn with the frame's field of view (`godrays:fov_x_deg`), not the preset's 50 degrees."""
     from godrays_jax.primitives.camera_metadata import FOV_X_ATTR

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from frames import slow_where
 
 import godrays_jax as gr
 from godrays_jax.effects.serialization import load_effect, save_effect
@@ -87,7 +88,7 @@ def _filtered_edge(far_depth, covered):
 
 
 @pytest.mark.parametrize("read_pixels", [3, 1 << 16])
-@pytest.mark.parametrize("band_pixels", [16, 24, 40])
+@pytest.mark.parametrize("band_pixels", slow_where([16, 24, 40], {16}))
 def test_silhouettes_mixed_by_bands_of_rows_are_the_frames(rng, monkeypatch, band_pixels, read_pixels):
     """On a larger frame the silhouettes' sides are found a band of rows at a time, each with the rows around it,
     and their colours read a few silhouette pixels at a time: the same shares and depths as the whole frame at once
@@ -334,6 +335,7 @@ def test_fit_recovers_the_medium(rng):
     assert float(result.effect.medium.anisotropy) == pytest.approx(0.7, rel=0.02)
 
 
+@pytest.mark.slow
 def test_light_depth_reaches_the_effect_through_fit(rng):
     buffers = _frame(rng)
     effect = _fog()

@@ -101,7 +101,10 @@ def test_adjoint_equals_the_transpose_of_the_copies_sum(x64, rng):
     assert_close(vjp(cotangent)[0], scattered, 1e-12)
 
 
-@pytest.mark.parametrize("light", slow_where(LIGHTS.values(), {LIGHTS[n] for n in ("on_screen", "near_edge", "far_off_screen")}), ids=LIGHTS.keys())
+SLOW_LIGHTS = {LIGHTS[name] for name in ("on_screen", "near_edge", "far_off_screen")}
+
+
+@pytest.mark.parametrize("light", slow_where(LIGHTS.values(), SLOW_LIGHTS), ids=LIGHTS.keys())
 def test_kernel_gradients_in_the_image_forward_and_reverse(x64, rng, light):
     image = jnp.asarray(rng.uniform(size=(HEIGHT, WIDTH, 2)))
     light = jnp.asarray(light)
@@ -157,8 +160,9 @@ KERNELS_OF_AN_IMAGE = {
 }
 
 
-@pytest.mark.parametrize("kernel", slow_where(KERNELS_OF_AN_IMAGE, {"radial_rays"}))
-@pytest.mark.parametrize("compiled", slow_where([False, True], {False}))
+@pytest.mark.slow
+@pytest.mark.parametrize("kernel", KERNELS_OF_AN_IMAGE)
+@pytest.mark.parametrize("compiled", [False, True])
 def test_gradient_of_a_batch(kernel, compiled, rng):
     """`grad` of a loss over `vmap` (a training loop's first step) equals the per-example gradients.
 

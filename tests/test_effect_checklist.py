@@ -72,7 +72,7 @@ def test_jit_and_vmap_equal_eager_frames(name):
     _assert_close(eqx.filter_vmap(effect)(STACKED, LIGHTS), looped)
 
 
-@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS)))
+@pytest.mark.parametrize("name", slow_where(sorted(gr.PRESETS), {*SLOW_PRESETS, "vbex_sun_spot"}))
 def test_grad_of_vmap_and_vmap_of_grad_equal_per_frame_gradients(name):
     """Under `jit`, as a training step runs them (the kernels' checklist also takes the eager path): the gradient of
     a batched loss, and the per-frame gradient mapped over the batch. One test for both, so that the per-frame

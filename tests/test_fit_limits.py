@@ -134,7 +134,9 @@ def _wait_for_line(process, text, timeout=600):
     raise AssertionError(f"no line with {text!r} in {lines}")
 
 
-@pytest.mark.parametrize("stop", slow_where([signal.SIGINT, signal.SIGKILL], {signal.SIGINT}), ids=["interrupted", "killed"])
+@pytest.mark.parametrize(
+    "stop", slow_where([signal.SIGINT, signal.SIGKILL], {signal.SIGINT}), ids=["interrupted", "killed"]
+)
 @pytest.mark.parametrize("delay", slow_where([0.0, 0.5], {0.0}))
 def test_a_fit_stopped_after_it_converged_leaves_both_files_or_neither(stop, delay, tmp_path, environment):
     """Stopped once it has printed its result (while it checks the fit, renders the report and writes): the params

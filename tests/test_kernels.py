@@ -403,8 +403,13 @@ def test_scaled_copies_gradients_of_every_argument(x64, rng, shape, copies):
 
 
 # Each count (below, between and at multiples of the step) and each addressing at least once; at a multiple both.
-@pytest.mark.parametrize(("copies", "addressing"), [(1, "clamp"), pytest.param(11, "zero", marks=pytest.mark.slow), pytest.param(16, "clamp", marks=pytest.mark.slow),
-     pytest.param(16, "zero", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    ("copies", "addressing"),
+    [
+        (1, "clamp"),
+        *(pytest.param(*case, marks=pytest.mark.slow) for case in [(11, "zero"), (16, "clamp"), (16, "zero")]),
+    ],
+)
 def test_gpu_copy_sums_equal_cpu_copy_sums(x64, rng, copies, addressing):
     """A GPU sums `COPIES_PER_STEP` copies per loop step from 2-D corner gathers, a CPU one copy per step through
     transposes (`lax.platform_dependent` picks): every sum the derivatives use must agree, here on the CPU, for

@@ -96,7 +96,9 @@ def test_presets_without_depth():
     assert all(needs_depth(PRESETS[name]()) != (name in without) for name in PRESETS)
 
 
-@pytest.mark.parametrize("name", slow_where(["gpu_gems", "xna_crepuscular", "kbengine_flares", "sun_overcast"], {"gpu_gems"}))
+@pytest.mark.parametrize(
+    "name", slow_where(["gpu_gems", "xna_crepuscular", "kbengine_flares", "sun_overcast"], {"gpu_gems"})
+)
 def test_shaft_presets_run_on_a_photo(rng, name):
     photo = _photo(rng)
     light = jnp.asarray([19.5, 6.5])

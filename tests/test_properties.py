@@ -321,7 +321,7 @@ def any_finite_lights(draw, height: int, width: int):
     return jnp.asarray((coordinate(), coordinate()), jnp.float32)
 
 
-@pytest.mark.parametrize("name", sorted(set(gr.PRESETS) - set(FOGS)))
+@pytest.mark.parametrize("name", slow_where(sorted(set(gr.PRESETS) - set(FOGS)), {"vbex_sun_spot"}))
 @settings(SETTINGS, max_examples=6)
 @given(st.data())
 def test_every_preset_finite_values_and_gradients_for_any_finite_light(name, data):

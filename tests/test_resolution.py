@@ -113,6 +113,7 @@ def test_every_preset_gives_the_same_picture_at_three_times_the_resolution(frame
     assert float(jnp.max(jnp.abs(layers[0]))) > 1e-3  # each preset draws something here: the comparison is not vacuous
 
 
+@pytest.mark.slow
 def test_pixel_units_are_kept_for_a_caller_who_asks(frames):
     """`units="px"` holds sizes in pixels: the same numbers give a three times smaller flare on the large frame."""
     small, large = frames

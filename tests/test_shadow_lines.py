@@ -117,7 +117,11 @@ LIGHTS = {
 }
 
 
-@pytest.mark.parametrize("name", slow_where(LIGHTS, {"point light behind the camera", "sun behind the camera", "sun far off screen"}))
+@pytest.mark.parametrize(
+    "name",
+    slow_where(LIGHTS, {"point light in front", "point light behind the camera", "sun behind the camera",
+                        "sun far off screen"}),
+)
 def test_matches_shadow_rays_traced_in_3d(name):
     point, sun, sky = LIGHTS[name]
     depth = _depth(sky)

@@ -505,6 +505,7 @@ def test_gradients_float64(x64, rng, light_depth, monkeypatch):
     check_grads(jax.jit(fogged), start, order=1, modes=("fwd", "rev"), eps=1e-5, atol=1e-4, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_reduced_march_derivative_where_pixels_see_the_sky(x64):
     """A sky pixel reads each ray through its pieces' ends and takes them whole, with their own derivatives: the
     derivative in the medium's extent matches finite differences (a read at exactly the end counted half of it).
@@ -591,7 +592,10 @@ def test_reduced_resolution_matches_loop(x64):
     np.testing.assert_allclose(np.asarray(got), expected, rtol=2e-3, atol=1e-6)
 
 
-@pytest.mark.parametrize("case", slow_where(["no coverage", "beside the sky", "beside surfaces", "every pixel"], {"beside the sky", "every pixel"}))
+COVERAGE_CASES = ["no coverage", "beside the sky", "beside surfaces", "every pixel"]
+
+
+@pytest.mark.parametrize("case", slow_where(COVERAGE_CASES, set(COVERAGE_CASES) - {"no coverage"}))
 def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
     """With march rays between the pixels, a partly covered pixel reads them up to its surface's depth and up to
     what its uncovered part sees, and blends the two. A render that takes no derivatives (`values_only`) reads

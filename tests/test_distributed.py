@@ -2,10 +2,12 @@
 the render-farm examples (a shell fan-out of `--frames A-B` chunks, an OpenCue job), each against one process."""
 
 import os
+import random
 import shlex
 import socket
 import subprocess
 import sys
+import time
 import xml.dom.minidom
 from pathlib import Path
 
@@ -55,9 +57,23 @@ def assert_same_outputs(folder, name):
 
 
 def free_port():
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    """A port no socket holds, below Linux's range for the local ends of outgoing connections (32768-60999 by
+    default): a port from that range, free when probed, can be taken by another process's connection before the
+    coordinator binds it, and the other process then waits for a coordinator that never starts."""
+    ports = random.Random()
+    for _ in range(100):
+        port = ports.randrange(20000, 32768)
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free port in 20000-32767")
+
+
+ENDS_WITHIN = 120.0
+"""Seconds the two processes get to end (five frames of 12x16 each: seconds, under load)."""
 
 
 def test_two_processes_through_jax_distributed_write_what_one_process_writes(shot):
@@ -71,7 +87,18 @@ def test_two_processes_through_jax_distributed_write_what_one_process_writes(sho
         )  # fmt: skip
         for index in range(2)
     ]
-    answers = [process.communicate(timeout=300) for process in processes]
+    deadline = time.monotonic() + ENDS_WITHIN
+    answers = []
+    try:
+        for process in processes:
+            answers.append(process.communicate(timeout=max(deadline - time.monotonic(), 1.0)))
+    except subprocess.TimeoutExpired:
+        for process in processes[len(answers):]:
+            process.kill()
+            answers.append(process.communicate())
+        pytest.fail(f"the two processes did not end within {ENDS_WITHIN:g} s: exit statuses "
+                    f"{[process.returncode for process in processes]}, stderr "
+                    f"{[err[-1500:] for _, err in answers]}")  # fmt: skip
     for process, (out, err) in zip(processes, answers):
         assert process.returncode == 0, err[-2000:]
     assert answers[0][0].startswith("3 written") and answers[1][0].startswith("2 written")  # contiguous shares

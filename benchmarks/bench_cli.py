@@ -3,7 +3,7 @@
 Run as a script from the repository root: `python benchmarks/bench_cli.py [--repeats 5]`. Each
 command runs as a fresh process (what a render farm or a shell loop pays); the cache lives in a
 temporary folder (`GODRAYS_JAX_CACHE_DIR`; with it, `fit` also stores its traced programs,
-`pipeline/exported.py`). The sample frame's fit runs to convergence against the `xna_crepuscular`
+`pipeline/exported.py`). The sample frame is fitted with the default steps against the `xna_crepuscular`
 preset applied to it (written first). Prints per case the median wall and CPU seconds (user +
 system of the child) over the repeats, and the load average, since the machine may be shared.
 """
@@ -48,7 +48,7 @@ def main() -> None:
         "apply xna_crepuscular": [*cli, "apply", str(SAMPLE), "--preset", "xna_crepuscular", "-o", f"{out}/b.png"],
         "fit (ScatteringFog, 10 steps)": [*cli, "fit", str(COLONNADE), str(COLONNADE), "--preset", "participating_media",
                                           "--light", "142.84,84.85", "--max-steps", "10", "-o", f"{out}/p.json"],
-        "fit sample frame (ScatteringFog, to convergence)": [*cli, "fit", str(SAMPLE), target, "--preset",
+        "fit sample frame (ScatteringFog, default steps)": [*cli, "fit", str(SAMPLE), target, "--preset",
                                                              "participating_media", "-o", f"{out}/q.json"],
     }
     print(f"load average {os.getloadavg()[0]:.2f}; {args.repeats} runs each, medians (wall s / cpu s)")

@@ -49,7 +49,7 @@ def main() -> None:
         "fit (ScatteringFog, 10 steps)": [*cli, "fit", str(COLONNADE), str(COLONNADE), "--preset", "participating_media",
                                           "--light", "142.84,84.85", "--max-steps", "10", "-o", f"{out}/p.json"],
         "fit sample frame (ScatteringFog, default steps)": [*cli, "fit", str(SAMPLE), target, "--preset",
-                                                             "participating_media", "-o", f"{out}/q.json"],
+                                                            "participating_media", "-o", f"{out}/q.json"],
     }
     print(f"load average {os.getloadavg()[0]:.2f}; {args.repeats} runs each, medians (wall s / cpu s)")
     print(f"| command | no cache | cold cache (first run) | warm cache |\n|---|---|---|---|")

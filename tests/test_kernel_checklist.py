@@ -197,6 +197,10 @@ CASES = {
         lambda image, surface, light: gr.composite_fog(image, surface, light),
         lambda r, t: (_image(r, t), _plane(r, t, 0.0, 1.0), r.uniform(0.0, 1.0, (HEIGHT, WIDTH, 3)).astype(t)),
     ),
+    "scattered_aside": Case(
+        lambda image, surface, share: gr.scattered_aside(image, surface, surface_blur=share, sigma=4.5),
+        lambda r, t: (_image(r, t), _plane(r, t, 0.0, 1.0), _scalar(r, t, 0.1, 0.5)),
+    ),
     "fog_light": Case(
         lambda scattered, ambient, warmth: gr.fog_light(
             scattered, ambient, light_color=jnp.stack([1.0, warmth, 0.5]), ambient_color=(0.1, 0.2, 0.3)),

@@ -146,3 +146,22 @@ def test_a_step_linearises_only_the_points_it_accepts():
     rejected = sum(1 for before, after in losses if before is not None and after == before)
     assert rejected > 0
     np.testing.assert_allclose(linearised, accepted_losses, rtol=1e-12)
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("scaled", [False, True])
+def test_held_unknowns_stay_and_the_others_descend_as_without_them(scaled):
+    """`held` unknowns stay where they start, and the others take the steps of the same problem with the held
+    ones' values fixed (their columns left out of the normal equations)."""
+    y0 = np.asarray([1.0, 0.2, 0.5])
+    data = _data([1.0, 1.0, 1.0])
+    held = _iterates(LevenbergMarquardt(1e-10, 1e-12, scaled=scaled, held=(2,)), y0, data, 6)
+    assert all(y[2] == 0.5 for y in held)
+
+    def two(y, data):
+        return _curve(jnp.concatenate([y, jnp.asarray([0.5])]), data)
+
+    alone = _iterates(LevenbergMarquardt(1e-10, 1e-12, scaled=scaled), y0[:2], data, 6, residuals=two)
+    for ours, theirs in zip(held, alone):
+        np.testing.assert_allclose(ours[:2], theirs, rtol=1e-10, atol=1e-12)
+    assert np.linalg.norm(held[-1][:2] - y0[:2]) > 0.1  # they did descend

@@ -146,7 +146,8 @@ def run(args) -> int:
         _say(f"finding the light of {path} ({'from the target' if auto else 'refining its light'})")
         search = find_light(
             effect, frames[index], targets[index], start_xy=None if auto else np.asarray(light_positions[index]),
-            fields=tuple(fitted_bounds(effect, fixed=fixed)), starts=starts, light_depth=depths[index], space=args.space,
+            fields=tuple(name for name in fitted_bounds(effect, fixed=fixed) if name not in effect.POLISH_FIELDS),
+            starts=starts, light_depth=depths[index], space=args.space,
         )  # fmt: skip
         for line in light_lines(path, search, auto=auto, start_names=start_names):
             _say(line)

@@ -115,6 +115,10 @@ class Effect(Part):
     """The stages (of `FIELD_STAGES`) whose columns of `fit`'s Jacobian are central differences of two renders
     without derivatives (`values_only`) instead of forward-mode lanes: fields that reach a large intermediate the
     other fields of their stage do not, whose tangent would hold a copy of it per lane."""
+    POLISH_FIELDS: typing.ClassVar[tuple[str, ...]] = ()
+    """Fields a fit holds at their start's values while its starts race and descend, and fits in the polish alone
+    (Levenberg-Marquardt's, `fit`): fields that trade against the others where the fit is still far from its
+    minimum, and only refine it near there."""
     LIGHT_TINT_STAGE: typing.ClassVar[str] = ""
     """The stage (of `FIELD_STAGES`) where the tints of several lights enter (`effects.lights.lit_by` multiplies
     each light's part by its own): `fit`'s Jacobian takes a fitted tint's columns there."""

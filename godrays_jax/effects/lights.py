@@ -15,7 +15,8 @@ What each kind of effect adds:
 - `VolumetricFog`: every light's in-scattering times its tint, the
   ambient light once, and the surfaces dimmed by the medium toward each
   light in proportion to that light's share of the lights' tints (the
-  frame's direct light is split among them so);
+  frame's direct light is split among them so), and the frame's own light
+  the medium scatters aside once, from those dimmed surfaces;
 - `ScatteringFog`: the first light draws the fogged frame with the medium's
   ambient light, every other light adds its in-scattering alone.
 
@@ -120,7 +121,7 @@ def _volumetric_fog(effect: VolumetricFog, buffers, lights, tints):
         light = light + fog_light(
             scattered, jnp.zeros_like(ambient), light_color=medium.light_color * tint, ambient_color=ambient_color
         )  # fmt: skip
-    return composite_fog(buffers.color, surface, light)
+    return composite_fog(buffers.color, surface, light + effect.surface_light_aside(buffers.color, surface))
 
 
 def _scattering_fog(effect: ScatteringFog, buffers, lights, tints):

@@ -23,6 +23,7 @@ from godrays_jax.kernels.silhouettes import silhouette_mix
 from godrays_jax.kernels.volumetric import (
     composite_fog,
     fog_light,
+    scattered_aside,
     volumetric_fog_terms,
 )
 from godrays_jax.primitives.buffers import Buffers
@@ -31,6 +32,10 @@ from godrays_jax.primitives.checks import check_light
 # On frames larger than `REFERENCE_SIDE` the march rays keep their fraction of the frame, so a preset looks and costs
 # the same, up to this many times farther apart: a 1920-pixel frame samples as a 320-pixel one, a larger one finer.
 _MAX_SPACING_SCALE = 6.0
+SURFACE_BLUR_SIGMA = 0.02
+"""The spread of the frame's light the medium scatters aside (`surface_blur`), a Gaussian's standard deviation in
+the frame's larger side: where the haze of the rooms of the path-traced references puts its halo around a lit
+patch (benchmarks/README.md, "A sunbeam through a window behind the camera")."""
 # The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines, and
 # the share of the lines it reads (all the bins: with half, thin slats' shadows fit worse).
 _STAND_IN_FACTOR = 4
@@ -80,7 +85,13 @@ class VolumetricFog(Effect):
     `ambient` is the ray's opacity plus `ambient_rise` (per scene unit) times
     the height above the camera of its scattering; `direct_fraction`
     of the frame's own surface light comes from the light and is dimmed like
-    the medium's. `fov_x_deg` is the horizontal field of view in degrees.
+    the medium's. Of the frame's own light that the medium takes out of each
+    ray (`1 - surface`), `surface_blur` reaches the camera a little aside,
+    spread by a Gaussian of `SURFACE_BLUR_SIGMA` of the frame's larger side
+    (`kernels.volumetric.scattered_aside`: forward scattering, a halo around
+    bright surfaces seen through haze; 0, the presets', leaves the frame as
+    single scattering of the light and the sky alone draws it). `fov_x_deg`
+    is the horizontal field of view in degrees.
 
     The march runs on rays `resolution_factor` pixels apart on a frame of up
     to 320 pixels (on larger frames the same fraction of the frame, at most
@@ -104,6 +115,7 @@ class VolumetricFog(Effect):
     edge_softness: Float[Array, ""] = param(0.05, low=0.005, high=1.0)
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     ambient_rise: Float[Array, ""] = param(0.0, low=-1.0, high=2.0)
+    surface_blur: Float[Array, ""] = param(0.0, low=0.0, high=1.0)
     num_view_steps: int = static(16, low=1, high=256)
     num_shadow_samples: int = static(32, low=1, high=1024)
     shadows: Literal["samples", "lines"] = static("samples")
@@ -119,6 +131,7 @@ class VolumetricFog(Effect):
     # everything else (benchmarks/README.md, "The fit's Jacobian by stages").
     FIELD_STAGES: ClassVar[dict[str, str]] = {
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
+        "surface_blur": "sum",
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
         "fov_x_deg": "camera",
     }  # fmt: skip
@@ -128,6 +141,10 @@ class VolumetricFog(Effect):
     # docs/findings.md). Its column by differences costs two renders and a frame's memory.
     DIFFERENCED_STAGES: ClassVar[tuple[str, ...]] = ("camera",)
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
+    # Fitted from the start, the light scattered aside traded against the medium's extinction and light, and a room's
+    # descent ended in a thin medium reaching far, its beam gone (docs/findings.md, "The frame's light scattered
+    # aside"); from where the descent stops, the polish can only lower the loss.
+    POLISH_FIELDS: ClassVar[tuple[str, ...]] = ("surface_blur",)
     LIGHT_TINT_STAGE: ClassVar[str] = "sum"  # a light's tint multiplies its in-scattering and its share of the surface
 
     def same_on(self, frames: Sequence[Buffers]) -> "VolumetricFog":
@@ -182,12 +199,21 @@ class VolumetricFog(Effect):
     def _light(self, scattered, ambient):
         return fog_light(scattered, ambient, light_color=self.medium.light_color, ambient_color=self.medium.ambient_color)
 
+    def surface_light_aside(self, color: Float[Array, "H W C"], surface: Float[Array, "H W"]) -> Float[Array, "H W 3"]:
+        """The frame's own light `color` that the medium scatters a little aside, RGB (`surface_blur`; `surface`
+        as `terms` gives it): part of the light the medium adds (`layer`)."""
+        sigma = SURFACE_BLUR_SIGMA * max(color.shape[0], color.shape[1])
+        return scattered_aside(color, surface, surface_blur=self.surface_blur, sigma=sigma)
+
     def layer(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
-        """The scattered light alone, `(H, W, 3)`."""
-        _, scattered, ambient = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
-        return self._light(scattered, ambient).astype(buffers.color.dtype)
+        """The light the medium adds, `(H, W, 3)`: the light's and the sky's scattered toward the camera, and the
+        frame's own scattered aside (`surface_light_aside`)."""
+        surface, scattered, ambient = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
+        added = self._light(scattered, ambient) + self.surface_light_aside(buffers.color, surface)
+        return added.astype(buffers.color.dtype)
 
     def __call__(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
         """The fogged frame: `color * surface + layer` on the colour channels, alpha unchanged."""
         surface, scattered, ambient = self.terms(buffers, light_xy, light_in_front=light_in_front, light_depth=light_depth)
-        return composite_fog(buffers.color, surface, self._light(scattered, ambient))
+        added = self._light(scattered, ambient) + self.surface_light_aside(buffers.color, surface)
+        return composite_fog(buffers.color, surface, added)

@@ -72,6 +72,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from godrays_jax.kernels.blur import gaussian_blur
 from godrays_jax.kernels.bounded_medium import (
     BoundedMedium,
     is_static_sun,
@@ -107,6 +108,7 @@ from godrays_jax.primitives.checks import (
 )
 from godrays_jax.primitives.derivatives import values_are_only_needed
 from godrays_jax.primitives.light_view import LightView
+from godrays_jax.primitives.resample import downsample_box, upsample_bilinear
 
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
 _NEAREST_LIGHT = 1e-3
@@ -489,6 +491,37 @@ def composite_fog(
         light = jnp.mean(light, axis=-1, keepdims=True)
     colour = image[..., :channels] * surface[..., None].astype(dtype) + light[..., :channels].astype(dtype)
     return jnp.concatenate([colour, image[..., channels:]], axis=-1)
+
+
+def scattered_aside(
+    image: Float[Array, "H W C"],
+    surface: Float[Array, "H W"],
+    *,
+    surface_blur: Float[ArrayLike, ""],
+    sigma: float,
+) -> Float[Array, "H W 3"]:
+    """The frame's own light that the medium scatters a little aside on its way to the camera (RGB, linear):
+    `surface_blur * G * ((1 - surface) * image)`, `G` a Gaussian blur of `sigma` pixels (clamp-to-edge).
+
+    `1 - surface` of each pixel's light is taken out of its view ray by the medium (`volumetric_fog_terms`'
+    `surface`, in [0, 1]); a strongly forward phase function sends much of it on nearly the same way, so it reaches
+    the camera beside the pixel: a halo around bright surfaces seen through haze, as around a sunbeam's patch on a
+    room's floor. `surface_blur` in [0, 1] is that share. The blur runs on the image box-averaged by
+    `floor(sigma / 2)` pixels and read back bilinearly (`primitives.resample`), so its cost does not grow with
+    `sigma` and a blur that is a fixed fraction of the frame looks the same at any size. A 1-channel image's light
+    is its one channel in each of R, G and B (`composite_fog` then takes their mean back).
+    """
+    check_image(image)
+    check_plane(surface, "surface", image.shape[0], image.shape[1])
+    check_scalar(surface_blur, "surface_blur")
+    if not isinstance(sigma, numbers.Real) or isinstance(sigma, bool) or not sigma > 0:
+        raise ValueError(f"sigma must be a Python number > 0 (pixels), got {sigma!r}")
+    height, width = image.shape[:2]
+    colour = image[..., : min(image.shape[-1], 3)]
+    taken = (1.0 - jnp.asarray(surface, image.dtype))[..., None] * colour
+    factor = max(1, int(sigma // 2))
+    blurred = upsample_bilinear(gaussian_blur(downsample_box(taken, factor), sigma=sigma / factor), factor, height, width)
+    return jnp.asarray(surface_blur, image.dtype) * jnp.broadcast_to(blurred, (height, width, 3))
 
 
 def apply_volumetric_fog(

@@ -212,11 +212,12 @@ class _Run:
 
 def _descend(
     candidates, bounds, frame_data, counter, *, optimiser, least_squares, loss, space, max_steps, probe_steps,
-    plateau_steps, plateau_rtol, tint_high=None, own=None, coarse=None,
+    plateau_steps, plateau_rtol, tint_high=None, hold=(), own=None, coarse=None,
 ) -> tuple[list[_Run], int]:
     """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
-    goes on to `max_steps`. Returns the runs and the winner's index. `own`: as `host_evaluator`'s (Levenberg-
+    goes on to `max_steps`. Returns the runs and the winner's index. `hold`: fields that Levenberg-Marquardt on the
+    host leaves as they start (`Effect.POLISH_FIELDS` before the polish). `own`: as `host_evaluator`'s (Levenberg-
     Marquardt on the host only); `coarse`: a `CoarseLinearisation` of the residuals of `own` (or the problem's).
 
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
@@ -231,11 +232,15 @@ def _descend(
     data = (problems[0], frame_data)
     runs = []
     if isinstance(optimiser, LevenbergMarquardt):
+        held = problems[0].unknowns_of(hold)
+        optimiser = dataclasses.replace(optimiser, held=held)
         if coarse is not None and own is None:
             own = lambda positions: _fitted_effects(problems[0], positions)[0]  # noqa: E731
         evaluate = host_evaluator(problems[0], frame_data, dtype, own, coarse)
         for problem in problems:
             y = np.asarray(start_point(problem, dtype), np.float64)
+            # A held field stays as given, on a bound too (where the polish then starts it inside).
+            y[list(held)] = np.asarray(start_point(problem, dtype, inset=False), np.float64)[list(held)]
             # The first step's evaluation, the start's loss; linearised now (the first step accepts its point), so
             # that the starts waiting for their first step hold normal equations, not Jacobians.
             residuals, linearise = evaluate(y)
@@ -451,6 +456,9 @@ def fit(
     effect = given if chosen is requested else chosen.same_on(frame_data[0])
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
+    # Fields fitted in the polish alone are held as given until then, where there is a polish to fit them.
+    held = type(effect).POLISH_FIELDS if phases.polisher is not None else ()
+    phases = dataclasses.replace(phases, descend={**phases.descend, "hold": held})
     check_inside_bounds(effect)
     candidates, origins = _distinct_starts(effect, starts, bounds)
     counter = _StepCounter(progress)
@@ -551,7 +559,7 @@ def _polish_phase(
     sharp = type(run.problem.effect).SHARP_STAGES
     linearisation = (None if coarse is None or sharp is None
                      else dataclasses.replace(coarse, sharp=tuple(sharp), kept={}))  # fmt: skip
-    polish = {**phases.descend, "optimiser": phases.polisher, "own": own, "coarse": linearisation}
+    polish = {**phases.descend, "optimiser": phases.polisher, "own": own, "coarse": linearisation, "hold": ()}
     polished, _ = _descend([_effect_of_run(run)], bounds, frame_data, counter, **polish)
     return polished[0], polished[0].history, counter.steps - before
 

@@ -17,6 +17,9 @@ the fall is within 0.99 of it and shrinks 4 times on a rejection), damping
 `lambda = 1 / step size`, its first step the start's own evaluation, and the
 Cauchy termination on `rtol` and `atol` in the max norm.
 
+`held` unknowns take no step (`fit` holds the fields an effect fits in its
+polish alone, `Effect.POLISH_FIELDS`, while its starts race and descend).
+
 `scaled=True` damps each unknown by its own sensitivity, Marquardt's scaling:
 `(J^T J + lambda D) step = -J^T r` with `D = diag(J^T J)` instead of the
 identity, which makes the steps independent of how each unknown is scaled.
@@ -90,6 +93,9 @@ class LevenbergMarquardt:
     rtol: float
     atol: float
     scaled: bool = False
+    held: tuple[int, ...] = ()
+    """Unknowns (indices) its steps leave where they start: the others descend as in the problem with those fixed
+    (the damped normal equations of the others' columns alone)."""
 
     def init(self, y: np.ndarray, evaluation: tuple | None = None) -> MarquardtState:
         """The state at the start `y`; `evaluation`, the start's `Evaluate` if made already (the first step then
@@ -132,10 +138,13 @@ class LevenbergMarquardt:
             scale = np.maximum(columns, _SMALLEST_DAMPING_SHARE * np.max(columns) + np.finfo(np.float64).tiny)
         else:
             scale = np.ones(normal.shape[0])
+        free = np.setdiff1d(np.arange(len(gradient)), np.asarray(self.held, int))
+        step = np.zeros_like(gradient)
         try:
-            return -np.linalg.solve(normal + damping * np.diag(scale), gradient)
+            step[free] = -np.linalg.solve((normal + damping * np.diag(scale))[np.ix_(free, free)], gradient[free])
         except np.linalg.LinAlgError:
-            return np.zeros_like(gradient)
+            pass
+        return step
 
 
 def _converged(rtol, atol, y, y_difference, residuals, previous) -> bool:

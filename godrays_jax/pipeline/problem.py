@@ -293,6 +293,11 @@ class FitProblem(eqx.Module):
         differenced = type(self.effect).DIFFERENCED_STAGES
         return tuple(index for index, stage in enumerate(self.group_stages) if stage in differenced)
 
+    def unknowns_of(self, names) -> tuple[int, ...]:
+        """The indices of the unknowns of the fitted fields among `names`, in order."""
+        offsets = np.cumsum([0, *(math.prod(shape) for _, shape, _ in self.blocks)])
+        return tuple(i for k, name in enumerate(self.names) if name in names for i in range(offsets[k], offsets[k + 1]))
+
     def stage_unknowns(self, stages) -> tuple[int, ...]:
         """The indices of the unknowns whose fields belong to `stages`, in order."""
         chosen = (group for group, stage in zip(self.lane_groups, self.group_stages) if stage in stages)
@@ -418,10 +423,12 @@ def check_inside_bounds(effect: Effect) -> None:
 
 
 @eqx.filter_jit
-def start_point(problem, dtype):
-    """The flat unknowns of the starting effect (then tints); a value on a bound starts `START_INSET` inside it."""
+def start_point(problem, dtype, *, inset: bool = True):
+    """The flat unknowns of the starting effect (then tints); a value on a bound starts `START_INSET` inside it
+    (`inset`; else on the bound, where the fold's slope is 0 and a solver cannot move it)."""
+    low_end = START_INSET if inset else 0.0
     return jnp.concatenate([
-        jnp.ravel(jnp.clip(to_unit(value, low, high), START_INSET, 1.0 - START_INSET))
+        jnp.ravel(jnp.clip(to_unit(value, low, high), low_end, 1.0 - low_end))
         for value, ((low, high), _, _) in zip(problem.start_values(dtype), problem.blocks)
     ])  # fmt: skip
 

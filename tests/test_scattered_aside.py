@@ -12,7 +12,9 @@ from jax.test_util import check_grads
 
 import godrays_jax as gr
 from godrays_jax.effects.volumetric import SURFACE_BLUR_SIGMA
+from godrays_jax.kernels.blur import gaussian_blur, pooled_gaussian_matrices
 from godrays_jax.kernels.volumetric import scattered_aside
+from godrays_jax.primitives.resample import downsample_box, upsample_bilinear
 
 HEIGHT, WIDTH = 9, 13
 
@@ -80,6 +82,30 @@ def test_matches_loop(x64, rng, sigma, channels):
     got = scattered_aside(jnp.asarray(image), jnp.asarray(surface), surface_blur=0.3, sigma=sigma)
     assert got.shape == (HEIGHT, WIDTH, 3)
     np.testing.assert_allclose(np.asarray(got), _loop(image, surface, 0.3, sigma), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize(("height", "width", "sigma"), [(9, 13, 1.3), (17, 10, 4.0), (31, 47, 6.5), (12, 12, 9.9)])
+def test_the_blurs_matrices_are_the_pooled_gaussian_of_the_librarys_resamplers(x64, rng, height, width, sigma):
+    """`pooled_gaussian_matrices` along both axes equals `downsample_box`, `gaussian_blur` on the blocks and
+    `upsample_bilinear`, ragged last blocks included."""
+    image = rng.uniform(0.0, 1.0, (height, width, 2))
+    factor = max(1, int(sigma // 2))
+    expected = upsample_bilinear(
+        gaussian_blur(downsample_box(jnp.asarray(image), factor), sigma=sigma / factor), factor, height, width
+    )
+    (pool_h, read_h), (pool_w, read_w) = (pooled_gaussian_matrices(size, sigma) for size in (height, width))
+    assert pool_h.shape == (-(-height // factor), height) and read_w.shape == (width, -(-width // factor))
+    got = np.einsum("yj,jxc->yxc", read_h, np.einsum("xi,jic->jxc", read_w, np.einsum("iw,jwc->jic", pool_w,
+                    np.einsum("jh,hwc->jwc", pool_h, image))))  # fmt: skip
+    np.testing.assert_allclose(got, np.asarray(expected), rtol=1e-12, atol=1e-14)
+    for matrix in (pool_h, read_h, pool_w, read_w):  # a constant stays constant
+        np.testing.assert_allclose(matrix.sum(axis=1), 1.0, rtol=1e-12)
+
+
+def test_the_blurs_matrices_name_a_bad_argument():
+    for size, sigma, name in ((0, 2.0, "size"), (4.0, 2.0, "size"), (8, 0.0, "sigma"), (8, True, "sigma")):
+        with pytest.raises(ValueError, match=name):
+            pooled_gaussian_matrices(size, sigma)
 
 
 def test_spreads_a_patchs_light_around_it_and_keeps_its_amount_away_from_the_edges(x64):

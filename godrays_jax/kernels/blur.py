@@ -138,6 +138,42 @@ def gaussian_blur(
     return blur_axis(blur_axis(image, 0), 1)
 
 
+def pooled_gaussian_matrices(size: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """A wide Gaussian along one axis of `size` pixels as two constant matrices, `pool` (`n x size`) and
+    `read_back` (`size x n`), `n = ceil(size / factor)`, `factor = max(1, floor(sigma / 2))`.
+
+    `pool` averages blocks of `factor` pixels (the last completed with the edge pixel, as `primitives.box_pool`)
+    and blurs them with `gaussian_blur` of `sigma / factor` block widths (clamp-to-edge); `read_back` reads the
+    blocks back bilinearly at each pixel's centre (`primitives.upsample_bilinear`). Along both axes,
+    `read_back_h @ (pool_h @ X @ pool_w.T) @ read_back_w.T` is that blur of `X`: its cost does not grow with
+    `sigma`, and as products of matrices its derivatives in every forward-mode lane are products too, where the
+    same blur by gathers and a convolution costs each lane its own reads.
+    """
+    if not is_static_int(size) or size < 1:
+        raise ValueError(f"size must be a Python int >= 1, got {size!r}")
+    if not isinstance(sigma, (int, float)) or isinstance(sigma, bool) or not sigma > 0:
+        raise ValueError(f"sigma must be a Python number > 0 (pixels), got {sigma!r}")
+    factor = max(1, int(sigma // 2))
+    blocks = -(-size // factor)
+    average = np.zeros((blocks, size))
+    for offset in range(factor):
+        np.add.at(average, (np.arange(blocks), np.minimum(np.arange(blocks) * factor + offset, size - 1)), 1.0 / factor)
+    low_sigma = sigma / factor
+    reach = max(1, math.ceil(3 * low_sigma))
+    taps = np.arange(-reach, reach + 1)
+    weights = np.exp(-0.5 * (taps / max(low_sigma, 1e-6)) ** 2)
+    gaussian = np.zeros((blocks, blocks))
+    for tap, weight in zip(taps, weights / weights.sum()):
+        np.add.at(gaussian, (np.arange(blocks), np.clip(np.arange(blocks) + tap, 0, blocks - 1)), weight)
+    position = (np.arange(size) + 0.5) / factor - 0.5
+    left = np.floor(position)
+    fraction = position - left
+    read_back = np.zeros((size, blocks))
+    for neighbour, weight in ((left, 1.0 - fraction), (left + 1, fraction)):
+        np.add.at(read_back, (np.arange(size), np.clip(neighbour, 0, blocks - 1).astype(int)), weight)
+    return gaussian @ average, read_back
+
+
 BLOOM_LEVELS = (2, 4, 8, 16)
 """The VBex article's bloom pyramid: blurs at 1/2, 1/4, 1/8 and 1/16 of the full resolution."""
 

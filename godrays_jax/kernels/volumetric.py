@@ -72,7 +72,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from godrays_jax.kernels.blur import gaussian_blur
+from godrays_jax.kernels.blur import pooled_gaussian_matrices
 from godrays_jax.kernels.bounded_medium import (
     BoundedMedium,
     is_static_sun,
@@ -108,7 +108,6 @@ from godrays_jax.primitives.checks import (
 )
 from godrays_jax.primitives.derivatives import values_are_only_needed
 from godrays_jax.primitives.light_view import LightView
-from godrays_jax.primitives.resample import downsample_box, upsample_bilinear
 
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
 _NEAREST_LIGHT = 1e-3
@@ -507,9 +506,10 @@ def scattered_aside(
     `surface`, in [0, 1]); a strongly forward phase function sends much of it on nearly the same way, so it reaches
     the camera beside the pixel: a halo around bright surfaces seen through haze, as around a sunbeam's patch on a
     room's floor. `surface_blur` in [0, 1] is that share. The blur runs on the image box-averaged by
-    `floor(sigma / 2)` pixels and read back bilinearly (`primitives.resample`), so its cost does not grow with
-    `sigma` and a blur that is a fixed fraction of the frame looks the same at any size. A 1-channel image's light
-    is its one channel in each of R, G and B (`composite_fog` then takes their mean back).
+    `floor(sigma / 2)` pixels and read back bilinearly, as products of constant matrices
+    (`kernels.blur.pooled_gaussian_matrices`), so its cost does not grow with `sigma` and a blur that is a fixed
+    fraction of the frame looks the same at any size. A 1-channel image's light is its one channel in each of R, G
+    and B (`composite_fog` then takes their mean back).
     """
     check_image(image)
     check_plane(surface, "surface", image.shape[0], image.shape[1])
@@ -519,8 +519,14 @@ def scattered_aside(
     height, width = image.shape[:2]
     colour = image[..., : min(image.shape[-1], 3)]
     taken = (1.0 - jnp.asarray(surface, image.dtype))[..., None] * colour
-    factor = max(1, int(sigma // 2))
-    blurred = upsample_bilinear(gaussian_blur(downsample_box(taken, factor), sigma=sigma / factor), factor, height, width)
+    (pool_h, read_h), (pool_w, read_w) = (
+        (jnp.asarray(matrix, taken.dtype) for matrix in pooled_gaussian_matrices(size, float(sigma)))
+        for size in (height, width)
+    )
+    # Products with the full-size side of the frame go along its shorter side's few blocks: the cheaper order when
+    # the frame is wider than tall.
+    low = jnp.einsum("iw,jwc->jic", pool_w, jnp.einsum("jh,hwc->jwc", pool_h, taken))
+    blurred = jnp.einsum("yj,jxc->yxc", read_h, jnp.einsum("xi,jic->jxc", read_w, low))
     return jnp.asarray(surface_blur, image.dtype) * jnp.broadcast_to(blurred, (height, width, 3))
 
 

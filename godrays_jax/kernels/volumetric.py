@@ -525,8 +525,9 @@ def scattered_aside(
     )
     # Products with the full-size side of the frame go along its shorter side's few blocks: the cheaper order when
     # the frame is wider than tall.
-    low = jnp.einsum("iw,jwc->jic", pool_w, jnp.einsum("jh,hwc->jwc", pool_h, taken))
-    blurred = jnp.einsum("yj,jxc->yxc", read_h, jnp.einsum("xi,jic->jxc", read_w, low))
+    product = functools.partial(jnp.einsum, precision="highest")
+    low = product("iw,jwc->jic", pool_w, product("jh,hwc->jwc", pool_h, taken))
+    blurred = product("yj,jxc->yxc", read_h, product("xi,jic->jxc", read_w, low))
     return jnp.asarray(surface_blur, image.dtype) * jnp.broadcast_to(blurred, (height, width, 3))
 
 

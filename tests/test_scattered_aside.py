@@ -127,6 +127,22 @@ def test_nothing_is_scattered_aside_without_a_medium_or_a_share(x64, rng):
         np.testing.assert_array_equal(np.asarray(aside), 0.0)
 
 
+def test_a_share_known_to_be_zero_leaves_the_blur_out_and_a_traced_one_keeps_its_derivative(rng):
+    """A constant 0 (every preset's, in `apply`'s program) compiles no matrix products; a traced 0 keeps them,
+    and its derivative is the blur of the light taken out."""
+    image, surface = (jnp.asarray(a, jnp.float32) for a in _inputs(rng))
+
+    def products(function, *args):
+        return [e for e in jax.make_jaxpr(function)(*args).jaxpr.eqns if e.primitive.name == "dot_general"]
+
+    assert not products(lambda i, s: scattered_aside(i, s, surface_blur=0.0, sigma=3.0), image, surface)
+    assert len(products(lambda i, s, b: scattered_aside(i, s, surface_blur=b, sigma=3.0), image, surface, 0.0)) == 4
+    derivative = jax.jacfwd(lambda b: scattered_aside(image, surface, surface_blur=b, sigma=3.0))(jnp.float32(0.0))
+    expected = scattered_aside(image, surface, surface_blur=1.0, sigma=3.0)
+    np.testing.assert_allclose(np.asarray(derivative), np.asarray(expected), rtol=1e-6, atol=1e-7)
+    assert float(jnp.max(derivative)) > 0.0
+
+
 def test_gradients_float64(x64, rng):
     image, surface = _inputs(rng)
 

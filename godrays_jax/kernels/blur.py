@@ -161,7 +161,7 @@ def pooled_gaussian_matrices(size: int, sigma: float) -> tuple[np.ndarray, np.nd
     low_sigma = sigma / factor
     reach = max(1, math.ceil(3 * low_sigma))
     taps = np.arange(-reach, reach + 1)
-    weights = np.exp(-0.5 * (taps / max(low_sigma, 1e-6)) ** 2)
+    weights = np.exp(-0.5 * (taps / low_sigma) ** 2)
     gaussian = np.zeros((blocks, blocks))
     for tap, weight in zip(taps, weights / weights.sum()):
         np.add.at(gaussian, (np.arange(blocks), np.clip(np.arange(blocks) + tap, 0, blocks - 1)), weight)

@@ -70,6 +70,7 @@ import numbers
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from godrays_jax.kernels.blur import pooled_gaussian_matrices
@@ -509,7 +510,9 @@ def scattered_aside(
     `floor(sigma / 2)` pixels and read back bilinearly, as products of constant matrices
     (`kernels.blur.pooled_gaussian_matrices`), so its cost does not grow with `sigma` and a blur that is a fixed
     fraction of the frame looks the same at any size. A 1-channel image's light is its one channel in each of R, G
-    and B (`composite_fog` then takes their mean back).
+    and B (`composite_fog` then takes their mean back). A `surface_blur` known to be 0 when traced (a Python or
+    NumPy number, a constant) gives zeros without the blur; a traced one always runs it, so its derivative at 0
+    is the blur.
     """
     check_image(image)
     check_plane(surface, "surface", image.shape[0], image.shape[1])
@@ -517,6 +520,9 @@ def scattered_aside(
     if not isinstance(sigma, numbers.Real) or isinstance(sigma, bool) or not sigma > 0:
         raise ValueError(f"sigma must be a Python number > 0 (pixels), got {sigma!r}")
     height, width = image.shape[:2]
+    if not isinstance(surface_blur, jax.core.Tracer) and not np.any(np.asarray(surface_blur)):
+        # Known to be 0 when traced (every preset's, a constant of `apply`'s program): no blur in the program.
+        return jnp.zeros((height, width, 3), image.dtype)
     colour = image[..., : min(image.shape[-1], 3)]
     taken = (1.0 - jnp.asarray(surface, image.dtype))[..., None] * colour
     (pool_h, read_h), (pool_w, read_w) = (

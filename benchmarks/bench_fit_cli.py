@@ -3,7 +3,7 @@ and then a warm one, peak memory.
 
     python benchmarks/bench_fit_cli.py [--sizes 320x180 960x540 1920x1080] [--apply] [--tests] [--json FILE]
 
-Each case runs the command line in a child process (`_child.py` below: the command's own `console_main`, with a
+Each case runs the command line in a child process (`_child.py` below: the command's own `script`, with a
 `jax.monitoring` listener that sums the time JAX spends compiling or loading compiled programs, and timers around
 `fit` and what follows it), twice: first with `GODRAYS_JAX_CACHE_DIR` an empty folder (cold), then again on the
 folder the first run filled (warm). Recorded: wall seconds, seconds compiling (XLA's compilation or a load from
@@ -36,7 +36,7 @@ REFERENCE = HERE / "references" / "hidden_sun"
 
 CHILD = textwrap.dedent(
     """
-    import json, sys, time
+    import atexit, json, sys, time
     import jax
     compiling = [0.0]
     jax.monitoring.register_event_duration_secs_listener(
@@ -55,12 +55,16 @@ CHILD = textwrap.dedent(
             times["fit_end"] = time.perf_counter()
     fit_command.fit = timed_fit
     record_path = sys.argv.pop(1)
-    status = cli.console_main()  # as the `godrays-jax` script runs it
-    end = time.perf_counter()
-    record = {"status": status, "compiling": compiling[0], "fit": times.get("fit"),
-              "after_fit": end - times["fit_end"] if "fit_end" in times else None}
-    with open(record_path, "w") as stream:
-        json.dump(record, stream)
+    console_main, status = cli.console_main, []
+    cli.console_main = lambda: status.append(console_main()) or status[0]
+    def write_record():  # `cli.script` ends the process after the exit handlers
+        end = time.perf_counter()
+        record = {"status": status[0] if status else None, "compiling": compiling[0], "fit": times.get("fit"),
+                  "after_fit": end - times["fit_end"] if "fit_end" in times else None}
+        with open(record_path, "w") as stream:
+            json.dump(record, stream)
+    atexit.register(write_record)
+    cli.script()  # as the `godrays-jax` script runs it
     """
 )
 

@@ -1,7 +1,5 @@
 """`python -m godrays_jax`: the command line, as the `godrays-jax` script."""
 
-import sys
+from godrays_jax.app.cli import script
 
-from godrays_jax.app.cli import console_main
-
-sys.exit(console_main())
+script()

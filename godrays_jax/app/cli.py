@@ -7,11 +7,14 @@ is `run(args)` in `godrays_jax.app.<command>_command`.
 """
 
 import argparse
+import atexit
 import importlib
 import os
 import re
 import sys
+import threading
 import traceback
+import typing
 import warnings
 from collections.abc import Callable
 
@@ -408,9 +411,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def console_main() -> int:
-    """The `godrays-jax` script and `python -m godrays_jax`: `main` in a process whose allocator keeps the memory
-    XLA frees where the command calls the same programs over and over (`repeats_programs`)."""
+    """`main` as the `godrays-jax` script runs it (`script`): in a process whose allocator keeps the memory XLA frees
+    where the command calls the same programs over and over (`repeats_programs`)."""
     return main(keep_freed_memory=True)
+
+
+def script() -> typing.NoReturn:
+    """The `godrays-jax` script and `python -m godrays_jax`: `console_main`, then the process ends without the
+    interpreter's teardown.
+
+    Tearing the interpreter down frees, one by one and through a last collection of cycles, every object JAX's
+    caches hold: a large share of a short command's time (benchmarks/README.md, "Command start-up and the
+    compilation cache"). Every file the command writes is closed by then, and the exit handlers still run (JAX's
+    wait for its effects and its distributed shutdown among them). A thread still running that is not a daemon
+    (none of the commands leaves one) gets the interpreter's own exit, which waits for it."""
+    status = console_main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    main_thread = threading.main_thread()
+    if any(thread is not main_thread and not thread.daemon for thread in threading.enumerate()):
+        sys.exit(status)
+    atexit._run_exitfuncs()  # what the interpreter's exit runs first; `os._exit` alone would skip them
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def repeats_programs(args: argparse.Namespace) -> bool:

@@ -426,15 +426,22 @@ def script() -> typing.NoReturn:
     wait for its effects and its distributed shutdown among them). A thread still running that is not a daemon
     (none of the commands leaves one) gets the interpreter's own exit, which waits for it."""
     status = console_main()
-    sys.stdout.flush()
-    sys.stderr.flush()
+    _flush_output()
     main_thread = threading.main_thread()
     if any(thread is not main_thread and not thread.daemon for thread in threading.enumerate()):
         sys.exit(status)
     atexit._run_exitfuncs()  # what the interpreter's exit runs first; `os._exit` alone would skip them
-    sys.stdout.flush()
-    sys.stderr.flush()
+    _flush_output()
     os._exit(status)
+
+
+def _flush_output() -> None:
+    """Flush stdout and stderr; a reader that has gone (`godrays-jax ... | head`) is no error of the command's."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe, or a stream closed already
+            pass
 
 
 def repeats_programs(args: argparse.Namespace) -> bool:

@@ -56,8 +56,11 @@ CHILD = textwrap.dedent(
     fit_command.fit = timed_fit
     record_path = sys.argv.pop(1)
     console_main, status = cli.console_main, []
-    cli.console_main = lambda: status.append(console_main()) or status[0]
-    def write_record():  # `cli.script` ends the process after the exit handlers
+    def recorded_console_main():
+        status.append(console_main())
+        return status[-1]
+    cli.console_main = recorded_console_main
+    def write_record():  # `cli.script` ends the process after the exit handlers, so the record is written by one
         end = time.perf_counter()
         record = {"status": status[0] if status else None, "compiling": compiling[0], "fit": times.get("fit"),
                   "after_fit": end - times["fit_end"] if "fit_end" in times else None}

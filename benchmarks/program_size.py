@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 import godrays_jax as gr
@@ -30,6 +31,7 @@ from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.pipeline.fit_programs import residuals_and_jacobian
 from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds
 from godrays_jax.pipeline.reduced import downsample_frames
+from godrays_jax.primitives.checks import ranges_guaranteed
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "references"))
 from baseline import read_rgb  # noqa: E402  (the references' folder joins the path first)
@@ -54,7 +56,8 @@ def lowered_jacobian(scene_name: str, fixed: tuple[str, ...]):
     bounds = fitted_bounds(start, fixed=("fov_x_deg", *fixed))
     problem = FitProblem.of(start, bounds, frame_data[0], loss="mse", space="display")
     positions = problem.positions(jnp.float32)
-    return residuals_and_jacobian.lower(problem, positions, frame_data), len(positions)
+    with jax.default_matmul_precision("highest"), ranges_guaranteed():  # as `fit` traces its programs
+        return residuals_and_jacobian.lower(problem, positions, frame_data), len(positions)
 
 
 def operations_by_line(text: str) -> tuple[int, collections.Counter, collections.Counter]:

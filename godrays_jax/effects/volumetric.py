@@ -125,15 +125,14 @@ class VolumetricFog(Effect):
 
     NEEDS_DEPTH: ClassVar[bool] = True
     CAMERA_FIELDS: ClassVar[tuple[str, ...]] = ("fov_x_deg",)
-    # The colours and the terms' weights enter the final sum alone; the slabs' fields reach the shadows, which the
-    # medium's own fields do not (read along lines, the shadows' table is most of the work: its derivatives are taken
-    # for these two alone). The medium's fields reach everything else, its ends (`max_distance`, `layer_top`) with
-    # them: in a stage of their own their two lanes through the march compiled as long as all the march's lanes
-    # did, and beside them they run in the same time (benchmarks/README.md, "The fit's Jacobian by stages").
+    # The colours and the terms' weights enter the final sum alone; the medium's ends only where each piece of a
+    # ray stops; the slabs' fields reach the shadows, which the medium's own fields do not (read along lines, the
+    # shadows' table is most of the work: its derivatives are taken for these two alone). The march's fields reach
+    # everything else (benchmarks/README.md, "The fit's Jacobian by stages").
     FIELD_STAGES: ClassVar[dict[str, str]] = {
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
         "surface_blur": "sum",
-        "thickness": "shadows", "edge_softness": "shadows",
+        "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
         "fov_x_deg": "camera",
     }  # fmt: skip
     # The field of view moves every shadow's line, as the slabs' fields do, and every ray of the march: in the march's

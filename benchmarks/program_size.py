@@ -1,6 +1,6 @@
 """Where the race's Jacobian program comes from: its operations by the kernel line that traced them, and its compile.
 
-    python benchmarks/program_size.py [SCENE] [--fixed NAME,...] [--lines 25] [--compile]
+    python benchmarks/program_size.py [SCENE] [--fixed NAME,...] [--lines 25] [--compile [--calls N]]
 
 The program that a cold `godrays-jax fit` spends most of its compiling on is the race's Jacobian
 (`fit_programs.residuals_and_jacobian`, benchmarks/README.md, "The fit as users run it"). XLA's time follows the
@@ -9,7 +9,8 @@ command does at its coarse resolution (`volumetric_haze`'s stand-in, `Effect.fit
 view, the fields in their bounds, the frames downsampled by `auto_coarse_factor`) and counts the StableHLO operations
 of the lowered program by where they were traced: by kernel file, and by the innermost line of this package with the
 two calls above it. `--fixed` leaves fields out (a stage's columns gone: `FitProblem.lane_groups`), `--compile`
-also compiles it (XLA's default options, as the command) and prints the seconds.
+also compiles it (XLA's default options, as the command) and prints the seconds, and `--calls N` the median of `N`
+calls of the compiled program after a first one.
 
 Operations are a proxy: a line traced inside every stage's JVP counts once per stage, and XLA fuses elementwise
 operations into one kernel, while each gather stays one.
@@ -18,6 +19,7 @@ operations into one kernel, while each gather stays one.
 import argparse
 import collections
 import re
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -42,7 +44,7 @@ _PACKAGE_LINE = re.compile(r'"[^"]*godrays_jax/([^"]+)":(\d+)|(#loc\d+)')
 
 
 def lowered_jacobian(scene_name: str, fixed: tuple[str, ...]):
-    """The race's Jacobian of `scene_name`'s default fit, lowered (equinox's `Lowered`), and its unknowns."""
+    """The race's Jacobian of `scene_name`'s default fit, lowered (equinox's `Lowered`), and its arguments."""
     scene = BY_NAME[scene_name]
     frame = gr.read_buffers(scene.clean)
     start = eqx.tree_at(lambda effect: effect.fov_x_deg, gr.preset("volumetric_haze"), jnp.float32(scene.fov_x_deg))
@@ -57,7 +59,7 @@ def lowered_jacobian(scene_name: str, fixed: tuple[str, ...]):
     problem = FitProblem.of(start, bounds, frame_data[0], loss="mse", space="display")
     positions = problem.positions(jnp.float32)
     with jax.default_matmul_precision("highest"), ranges_guaranteed():  # as `fit` traces its programs
-        return residuals_and_jacobian.lower(problem, positions, frame_data), len(positions)
+        return residuals_and_jacobian.lower(problem, positions, frame_data), (problem, positions, frame_data)
 
 
 def operations_by_line(text: str) -> tuple[int, collections.Counter, collections.Counter]:
@@ -98,9 +100,11 @@ def main() -> None:
     parser.add_argument("--fixed", default="", help="fields left out of the fit, comma-separated")
     parser.add_argument("--lines", type=int, default=25, help="how many call sites to print")
     parser.add_argument("--compile", action="store_true", help="also compile the program and print the seconds")
+    parser.add_argument("--calls", type=int, default=0, help="with --compile: time this many calls, print the median")
     args = parser.parse_args()
     fixed = tuple(name for name in args.fixed.split(",") if name)
-    lowered, unknowns = lowered_jacobian(args.scene, fixed)
+    lowered, arguments = lowered_jacobian(args.scene, fixed)
+    unknowns = len(arguments[1])
     total, files, sites = operations_by_line(lowered.lowered.as_text(debug_info=True))
     print(f"{args.scene}: the race's Jacobian in {unknowns} unknowns, {total} StableHLO operations")
     print("\n| kernel file | operations | share |\n|---|---|---|")
@@ -111,8 +115,17 @@ def main() -> None:
         print(f"| {site} | {count} |")
     if args.compile:
         start = time.perf_counter()
-        lowered.lowered.compile()
+        compiled = lowered.compile()
         print(f"\ncompiled in {time.perf_counter() - start:.1f} s")
+        if args.calls > 0:
+            with jax.default_matmul_precision("highest"), ranges_guaranteed():
+                jax.block_until_ready(compiled(*arguments))
+                seconds = []
+                for _ in range(args.calls):
+                    start = time.perf_counter()
+                    jax.block_until_ready(compiled(*arguments))
+                    seconds.append(time.perf_counter() - start)
+            print(f"a call in {statistics.median(seconds):.3f} s (median of {args.calls})")
 
 
 if __name__ == "__main__":

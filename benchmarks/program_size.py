@@ -1,6 +1,6 @@
 """Where the race's Jacobian program comes from: its operations by the kernel line that traced them, and its compile.
 
-    python benchmarks/program_size.py [SCENE] [--fixed NAME,...] [--lines 25] [--compile [--calls N]]
+    python benchmarks/program_size.py [SCENE] [--fixed NAME,...] [--lines 25] [--compile] [--calls N]
 
 The program that a cold `godrays-jax fit` spends most of its compiling on is the race's Jacobian
 (`fit_programs.residuals_and_jacobian`, benchmarks/README.md, "The fit as users run it"). XLA's time follows the
@@ -9,8 +9,8 @@ command does at its coarse resolution (`volumetric_haze`'s stand-in, `Effect.fit
 view, the fields in their bounds, the frames downsampled by `auto_coarse_factor`) and counts the StableHLO operations
 of the lowered program by where they were traced: by kernel file, and by the innermost line of this package with the
 two calls above it. `--fixed` leaves fields out (a stage's columns gone: `FitProblem.lane_groups`), `--compile`
-also compiles it (XLA's default options, as the command) and prints the seconds, and `--calls N` the median of `N`
-calls of the compiled program after a first one.
+also compiles it (XLA's default options, as the command) and prints the seconds; `--calls N` compiles it too and
+prints the median of `N` calls of the compiled program after a first one.
 
 Operations are a proxy: a line traced inside every stage's JVP counts once per stage, and XLA fuses elementwise
 operations into one kernel, while each gather stays one.
@@ -100,7 +100,7 @@ def main() -> None:
     parser.add_argument("--fixed", default="", help="fields left out of the fit, comma-separated")
     parser.add_argument("--lines", type=int, default=25, help="how many call sites to print")
     parser.add_argument("--compile", action="store_true", help="also compile the program and print the seconds")
-    parser.add_argument("--calls", type=int, default=0, help="with --compile: time this many calls, print the median")
+    parser.add_argument("--calls", type=int, default=0, help="compile it and time this many calls, print the median")
     args = parser.parse_args()
     fixed = tuple(name for name in args.fixed.split(",") if name)
     lowered, arguments = lowered_jacobian(args.scene, fixed)
@@ -113,7 +113,7 @@ def main() -> None:
     print("\n| where traced (innermost first) | operations |\n|---|---|")
     for site, count in sites.most_common(args.lines):
         print(f"| {site} | {count} |")
-    if args.compile:
+    if args.compile or args.calls > 0:
         start = time.perf_counter()
         compiled = lowered.compile()
         print(f"\ncompiled in {time.perf_counter() - start:.1f} s")

@@ -216,21 +216,42 @@ class _Loop:
         transmittance = [math.exp(-self.optical_depth(np.zeros(3), view, b)) for b in bounds]
         lit = []
         for j in range(len(bounds) - 1):
-            # The shadow, the angle to the light and the light's way in are taken where the segment's light is
-            # halved: its middle for the sun, near a point light its closest approach.
+            # The shadow and the light's way in are taken where the segment's light is halved: its middle for the
+            # sun, near a point light its closest approach; a point light's phase is its mean over the segment,
+            # weighted by the irradiance.
             middle = 0.5 * (bounds[j] + bounds[j + 1])
             irradiance = 1.0
+            point = middle * view
+            direction, _ = self.to_light(point)
+            phase = _hg(view @ direction, self.g)
             if math.isfinite(self.light_depth) and bounds[j + 1] > bounds[j]:
                 ts, cumulative = self.irradiance_along(view, bounds[j], bounds[j + 1])
                 irradiance = cumulative[-1] / (bounds[j + 1] - bounds[j])
                 middle = np.interp(0.5 * cumulative[-1], cumulative, ts)
-            point = middle * view
-            direction, _ = self.to_light(point)
+                point = middle * view
+                phase = self.mean_phase(view, bounds[j], bounds[j + 1])
             lit.append(
                 (transmittance[j] - transmittance[j + 1]) * self.visibility(x, y, view, middle)
-                * self.light_transmittance(point) * _hg(view @ direction, self.g) * irradiance
+                * self.light_transmittance(point) * phase * irradiance
             )  # fmt: skip
         return view, bounds, transmittance, lit
+
+    def mean_phase(self, view, start, end, n=4000):
+        """A point light's phase over `[start, end]` along the unit ray `view`, weighted by its irradiance (its size
+        as in the kernel): midpoint sums of `n` steps on each side of the ray's closest approach, where a ray through
+        the light turns from looking at it to looking away."""
+        along = self.light_depth * float(self.toward @ view)
+        cuts = [start, *([along] if start < along < end else []), end]
+        total = weight = 0.0
+        for low, high in zip(cuts[:-1], cuts[1:]):
+            ts = low + (np.arange(n) + 0.5) * (high - low) / n
+            offsets = self.light_depth * self.toward - ts[:, None] * view
+            squared = np.sum(offsets**2, axis=-1)
+            irradiance = self.light_depth**2 / (squared + (1e-3 * self.light_depth) ** 2)
+            step = (high - low) / n
+            total += step * np.sum(_hg(offsets @ view / np.sqrt(squared), self.g) * irradiance)
+            weight += step * np.sum(irradiance)
+        return total / weight
 
     def irradiance_along(self, view, start, end):
         """Distances from `start` to `end` along the unit ray `view` and the point light's irradiance

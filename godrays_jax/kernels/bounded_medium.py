@@ -232,6 +232,17 @@ def irradiance_coordinate(distance, along, miss, inverse):
     return jnp.where(inverse > 0, jnp.arctan((distance - along) / miss), distance)
 
 
+def light_cosine(coordinate, miss, inverse):
+    """The cosine of the angle between a view ray and the direction to a point light, from the ray's point at
+    `irradiance_coordinate` `coordinate` (the ray's `light_approach` `miss`; 1 looking at the light). The angle is
+    the point's own: `miss` also holds the floor on the light's size, which the angle does not take."""
+    light_depth = safe_divide(1.0, inverse, 1.0)
+    across = jnp.maximum(miss * miss - (_POINT_LIGHT_RADIUS * light_depth) ** 2, 0.0)  # the ray's own miss, squared
+    # (t - along) / |S - t * view| with t - along = miss * tan(coordinate), times cos(coordinate) > 0 above and below.
+    offset = miss * jnp.sin(coordinate)
+    return -offset / jnp.sqrt(jnp.maximum(offset * offset + across * jnp.cos(coordinate) ** 2, 1e-30))
+
+
 def irradiance_median(start, end, along, miss, inverse):
     """The distance along a view ray that halves the light's irradiance over `[start, end]` (the ray's
     `light_approach`): where a segment's light comes from, the geometric middle for the sun."""

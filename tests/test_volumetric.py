@@ -12,7 +12,7 @@ from frames import slow_where
 from jax.test_util import check_grads
 
 from godrays_jax.kernels import fog_march, volumetric
-from godrays_jax.kernels.bounded_medium import BoundedMedium
+from godrays_jax.kernels.bounded_medium import BoundedMedium, light_approach
 from godrays_jax.kernels.fog_march import march_grid
 from godrays_jax.kernels.shadow_lines import segment_visibility_by_lines
 from godrays_jax.kernels.shadow_reading import ENCLOSED_SKY, ShadowLines, ShadowSamples, Slabs, enclosure
@@ -736,6 +736,28 @@ def test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives(x64, monke
     for got, expected in zip(banded, whole):
         np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-10, atol=1e-12)
     assert np.all(np.isfinite(np.asarray(banded[0]))) and float(jnp.max(jnp.abs(banded[0]))) > 0
+
+
+@pytest.mark.parametrize("anisotropy, tolerance", [(-0.5, 1e-4), (0.3, 1e-5), (0.7, 3e-3), (0.9, 0.1)])
+def test_a_segments_phase_is_its_mean_weighted_by_the_light(x64, anisotropy, tolerance):
+    """`fog_march.segment_phase` against the irradiance-weighted mean of the phase along segments of a ray that
+    passes a point light 0.3 units off (before it, across it, after it) and one through it, by midpoint sums of
+    200000 steps on each side of the closest approach; the sun's phase at one distance is left as it was."""
+    toward, depth = np.array([0.0, 0.0, 1.0]), 10.0
+    medium = BoundedMedium(extinction=0.05, max_distance=40.0, anisotropy=anisotropy)
+    for miss in (0.3, 0.0):
+        view = np.array([miss, 0.0, depth]) / np.hypot(miss, depth)
+        along, across = light_approach(jnp.asarray(view), jnp.asarray(toward), 1.0 / depth)
+        lower, upper = np.array([2.0, 8.0, 9.7, 10.5]), np.array([8.0, 12.0, 10.2, 30.0])
+        got = fog_march.segment_phase(jnp.asarray(lower), jnp.asarray(upper), along, across, 1.0 / depth, medium)
+        loop = _Loop(np.full((1, 1), np.inf), (0.5, 0.5), light_depth=depth, in_front=True, **MEDIUM)
+        loop.toward, loop.g = toward, anisotropy
+        want = [loop.mean_phase(view, a, b, n=200000) for a, b in zip(lower, upper)]
+        np.testing.assert_allclose(np.asarray(got), want, rtol=tolerance, err_msg=f"miss {miss}")
+    midpoint = _hg(np.cos(np.pi / 2), anisotropy)  # the angle across the ray, where the phase was read
+    assert anisotropy <= 0.3 or want[1] > 2 * midpoint, "the segment across the light must weigh its forward part"
+    check_grads(lambda g: fog_march.segment_phase(jnp.asarray(lower), jnp.asarray(upper), along, across, 0.1,
+                                                  BoundedMedium(0.05, 40.0, g)), (anisotropy,), order=1, modes=["fwd", "rev"])  # fmt: skip
 
 
 def test_march_rays_ride_with_the_light(x64):

@@ -116,11 +116,17 @@ def segment_phase(lower, upper, along, miss, inverse, medium: BoundedMedium):
     # Split where the ray passes the light: a ray through it turns from looking at the light to looking away there.
     closest = jnp.clip(0.0, start, end)
     nodes, weights = (jnp.asarray(value, lower.dtype) for value in np.polynomial.legendre.leggauss(PHASE_NODES))
-    total = 0.0
-    for low, high in ((start, closest), (closest, end)):
-        middle, half = 0.5 * (low + high), 0.5 * (high - low)
-        cosines = light_cosine(middle[..., None] + half[..., None] * nodes, miss[..., None], inverse)
-        total = total + half * jnp.sum(weights * henyey_greenstein(cosines, anisotropy=medium.anisotropy), axis=-1)
+
+    def add(index, total):  # one node a pass, so that no array a node deep is held (nor one per lane in a fit)
+        node, weight = nodes[index % PHASE_NODES], weights[index % PHASE_NODES]
+        before = index < PHASE_NODES
+        low, high = jnp.where(before, start, closest), jnp.where(before, closest, end)
+        half = 0.5 * (high - low)
+        cosine = light_cosine(0.5 * (low + high) + half * node, miss, inverse)
+        return total + weight * half * henyey_greenstein(cosine, anisotropy=medium.anisotropy)
+
+    zero = jnp.zeros(jnp.broadcast_shapes(start.shape, miss.shape), start.dtype)
+    total = jax.lax.fori_loop(0, 2 * PHASE_NODES, add, zero)
     at_start = henyey_greenstein(light_cosine(start, miss, inverse), anisotropy=medium.anisotropy)
     return safe_divide(total, end - start, at_start, tiny=1e-12)
 
@@ -174,16 +180,19 @@ def scattered_pieces(
                                                                   [b[..., 1:] for b in all_bounds]))  # fmt: skip
     attenuated = jnp.concatenate(attenuated, axis=-1)
     along, miss = light_approach(view, toward, inverse)
-    # What varies along a segment (the angle to the light, the shadow, the light's way in) is taken where its
-    # light comes from: near a point light that is the ray's closest approach, not the segment's middle.
+    # What varies along a segment (the shadow, the light's way in; the sun's angle) is taken where its light comes
+    # from: near a point light that is the ray's closest approach, not the segment's middle. A point light's angle
+    # sweeps too far across a segment for one reading: its phase is the segment's mean (`segment_phase`).
     middles = irradiance_median(lower, upper, along[..., None], miss[..., None], inverse)
     points = view[..., None, :] * middles[..., None]
     dimmed = light_transmittance(points, toward, light_depth=light_depth, **medium.density, **medium.extent)
     to_light, _ = toward_light(points, toward, inverse)
     phase = henyey_greenstein(dot(view[..., None, :], to_light), anisotropy=medium.anisotropy)
-    if not is_static_sun(light_depth):  # the sun's angle is the same all along a ray
-        averaged = segment_phase(lower, upper, along[..., None], miss[..., None], inverse, medium)
-        phase = jnp.where(inverse > 0, averaged, phase)
+    if not is_static_sun(light_depth):  # the sun's angle is the same all along a ray: a sun traced skips the mean
+        phase = jax.lax.cond(
+            inverse > 0, lambda: segment_phase(lower, upper, along[..., None], miss[..., None], inverse, medium),
+            lambda: phase,
+        )  # fmt: skip
     irradiance = segment_irradiance(view, lower, upper, toward, inverse)
     visible = visibility(pixel_xy, lower, upper, middles)
     lit = attenuated * visible * dimmed * phase * irradiance

@@ -183,6 +183,31 @@ def test_a_closed_frame_shades_the_rays_that_leave_it_in_front_of_its_edge(name)
     assert np.mean(open_reading - half) > 0.05 and np.mean(half - got) > 0.05
 
 
+@pytest.mark.xfail(strict=True, reason="the lines' table keeps each cell's maximum, not their union (docs/findings.md)")
+def test_a_wall_of_thin_slabs_between_the_points_and_the_sun_shades_them_at_the_default_table():
+    """A wall that fills the frame, receding to the right, the sun beyond it: every point in front of it is in its
+    shadow, as a traced ray says. Its slabs are thin (a room's walls, as a fit of one finds them) against the default
+    table's bins, so each cell's interval of `s` is narrower than a bin and the wall's cover is the union of
+    consecutive cells' intervals: with the faces inside each interval the wall reads as a sawtooth, and a third of
+    the segments see a twentieth of the light or more (docs/findings.md, "A room's walls read along lines let a
+    sawtooth of light through")."""
+    x = (np.arange(WIDTH) + 0.5) / WIDTH
+    depth = np.broadcast_to(30.0 + 20.0 * x, (HEIGHT, WIDTH)).copy()
+    pixel_xy, lower, upper = _segments(depth)
+    lower, upper = 0.1 * depth[..., None] + 0.8 * lower, 0.1 * depth[..., None] + 0.8 * upper  # in front of it
+    light_xy, _, _ = _light((0.1, 0.05, 1.0))
+    got = np.asarray(segment_visibility_by_lines(
+        jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
+        thickness=0.02, edge_softness=0.05, max_distance=MAX_DISTANCE,
+    ))  # fmt: skip
+    # Thick slabs, the same table: the wall shades every segment (the test's geometry is right).
+    assert np.max(np.asarray(segment_visibility_by_lines(
+        jnp.asarray(depth), light_xy, jnp.asarray(pixel_xy), jnp.asarray(lower), jnp.asarray(upper), fov_x_deg=FOV,
+        thickness=0.2, edge_softness=0.05, max_distance=MAX_DISTANCE,
+    ))) < 0.05  # fmt: skip
+    assert np.mean(got) < 0.01 and np.mean(got > 0.05) < 0.01, (np.mean(got), np.mean(got > 0.05))
+
+
 @pytest.mark.slow
 def test_many_pixels_read_at_once_as_each_alone():
     """A frame's worth of pixels (more than the kernel reads in one chunk, and not a multiple of it) reads as the

@@ -51,16 +51,11 @@ def _finished(*arguments, env, data_limit, timeout):
         return process.returncode, err.read(), usage.ru_maxrss << 10
 
 
-def _command(*arguments, env, limit=None, **options):
-    """`godrays-jax ARGUMENTS` in a fresh interpreter, its data limited to `limit` bytes (None: no limit)."""
-
-    def limited():
-        if limit is not None:
-            resource.setrlimit(resource.RLIMIT_DATA, (limit, limit))
-
+def _command(*arguments, env, **options):
+    """`godrays-jax ARGUMENTS` started in a fresh interpreter, its stdout and stderr piped."""
     return subprocess.Popen(
-        [sys.executable, "-m", "godrays_jax", *arguments], env=env, preexec_fn=limited, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, **options,
+        [sys.executable, "-m", "godrays_jax", *arguments], env=env, text=True, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, **options,
     )  # fmt: skip
 
 

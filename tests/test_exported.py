@@ -271,3 +271,21 @@ def test_the_folder_is_created_for_its_user_alone(tmp_path):
     assert (tmp_path / "new" / "programs").stat().st_mode & 0o777 == 0o700
     exported.call("scaled", _scaled, jnp.arange(3.0), 2.0)
     assert all(p.stat().st_mode & 0o077 == 0 for p in (tmp_path / "new" / "programs").iterdir())
+
+
+@pytest.mark.parametrize("cache_on", [False, True])
+def test_exporting_drops_jaxs_traces_only_where_the_compilation_cache_keeps_what_was_compiled(
+    folder, tmp_path, cache_on
+):
+    """A program's trace is not needed once it is exported, and JAX's caches would hold it under the compile that
+    follows; they are cleared only where the persistent cache gives back what they held compiled (the command's)."""
+    earlier = jax.jit(lambda x: x + 1.0)
+    earlier(jnp.arange(3.0))
+    previous = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path / "compiled") if cache_on else None)
+    try:
+        np.testing.assert_array_equal(exported.call("scaled", _scaled, jnp.arange(5.0), 4.0), 4.0 * np.arange(5))
+        assert earlier._cache_size() == (0 if cache_on else 1)
+        np.testing.assert_array_equal(earlier(jnp.arange(3.0)), [1.0, 2.0, 3.0])
+    finally:
+        jax.config.update("jax_compilation_cache_dir", previous)

@@ -31,6 +31,11 @@ A file that cannot be read back is exported again; a folder that cannot be
 written to only means the program is not stored. The folder is kept under
 `MAX_BYTES`, least recently used programs first.
 
+With JAX's persistent compilation cache on (the command line's), exporting a
+program clears JAX's in-memory caches (`jax.clear_caches`): the trace it no
+longer needs would otherwise stay beside the compile that follows, and what
+they held compiled is read back from the persistent cache when next called.
+
 A stored program is code the process runs, so the folder must be this
 user's alone (`primitives.files.private_folder`: created 0700, refused when
 another user owns it or may write to it), and a file in it is read only if
@@ -227,6 +232,11 @@ def _exported(name, key, function, static, tree, leaves) -> jax.export.Exported 
         data = jax.export.export(jax.jit(of_leaves))(*shapes).serialize()
     except Exception:  # noqa: BLE001 - e.g. a host callback, or an output pytree JAX cannot serialise
         return None
+    if jax.config.jax_enable_compilation_cache and jax.config.jax_compilation_cache_dir:
+        # The program runs from its export from now on, but JAX's caches would keep its trace (the jaxpr and its
+        # lowering) for the rest of the process, under the compile that comes next: a cold fit's peak
+        # (benchmarks/README.md, "The fit as users run it"). What they held compiled comes back from the cache.
+        jax.clear_caches()
     try:
         with atomic_write(_path(name, key), sync=False, mode=0o600) as temporary:
             Path(temporary).write_bytes(data)

@@ -85,6 +85,7 @@ from godrays_jax.kernels.volumetric import apply_volumetric_fog as apply_volumet
 from godrays_jax.kernels.shadow_samples import segment_visibility as segment_visibility
 from godrays_jax.kernels.volumetric import composite_fog as composite_fog
 from godrays_jax.kernels.volumetric import fog_light as fog_light
+from godrays_jax.kernels.volumetric import scattered_again as scattered_again
 from godrays_jax.kernels.volumetric import scattered_aside as scattered_aside
 from godrays_jax.kernels.volumetric import volumetric_fog_terms as volumetric_fog_terms
 

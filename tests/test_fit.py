@@ -533,6 +533,19 @@ def test_the_fit_stops_once_the_loss_stops_moving():
     assert result.polish_steps == 3  # and the polish after it, each at its third step
 
 
+def test_the_race_at_the_coarse_resolution_stops_on_its_own_plateau():
+    """`coarse_plateau_steps` and `coarse_plateau_rtol` stop the coarse phase (any fall under 100 % over N steps: it
+    stops at its step N + 1), `plateau_steps` the full resolution's after it."""
+    frame = _frame()
+    target = _rays(**TRUTH)(frame, LIGHT)
+    common = dict(fixed=FIXED_RAYS, max_steps=30, coarse_factor=2, coarse_plateau_rtol=1.0)
+    for steps in (2, 4):
+        result = fit(_rays(**START), frame, LIGHT, target, coarse_plateau_steps=steps, **common)
+        assert result.coarse_steps == steps + 1
+    with pytest.raises(ValueError, match="coarse_plateau_steps"):
+        fit(_rays(**START), frame, LIGHT, target, coarse_plateau_steps=-1, **common)
+
+
 def test_steps_rejected_before_the_loss_first_falls_are_no_plateau():
     """ground_fog from a layer top of 10: the solver's start loss, five rejected steps, then the fall (13:38 note)."""
     start, fallen = 0.012738488614559174, 0.011144778691232204

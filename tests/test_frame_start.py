@@ -17,6 +17,7 @@ from godrays_jax.pipeline.frame_start import (
     closed_room_start,
     enclosed_start,
     ground_layer_start,
+    thin_slabs_room_start,
     thin_slabs_start,
 )
 
@@ -109,7 +110,8 @@ def test_a_frame_without_sky_starts_a_medium_bounded_to_its_room():
 
 def test_a_frame_with_a_light_view_starts_from_thin_slabs():
     """Thin slabs and every other field the start given's, for frames of which one has a light view; none without,
-    or for an effect without slabs; `fit_starts` races it last."""
+    or for an effect without slabs; `fit_starts` races it before the same slabs in a medium ending at the
+    farthest wall."""
     frame, _ = _frame()
     view = gr.LightView(depth=jnp.full((8, 8), jnp.inf), from_camera=jnp.eye(3, 4), scale=1.0)
     seen = dataclasses.replace(frame, light_view=view)
@@ -119,8 +121,29 @@ def test_a_frame_with_a_light_view_starts_from_thin_slabs():
     assert float(start.medium.extinction) == float(effect.medium.extinction)
     assert thin_slabs_start(effect, [frame]) is None and thin_slabs_start(gr.preset("xna_crepuscular"), seen) is None
     names, starts = fit_starts(effect, [seen], FOV)
-    assert names[-1].startswith("thin slabs") and float(starts[-1].thickness) == pytest.approx(THIN_SLABS)
+    assert names[-2].startswith("thin slabs (the light view") and _values(starts[-2]) == _values(start)
     assert not any(name.startswith("thin slabs") for name in fit_starts(effect, [frame], FOV)[0])
+
+
+def test_a_frame_with_a_light_view_also_starts_from_thin_slabs_in_a_medium_ending_at_its_farthest_wall():
+    """`thin_slabs_room_start`: `thin_slabs_start` with `medium.max_distance` the farthest finite depth above 0 of
+    the frames (clipped into its bounds); none without a light view or without such a depth; raced last."""
+    frame, _ = _frame()
+    view = gr.LightView(depth=jnp.full((8, 8), jnp.inf), from_camera=jnp.eye(3, 4), scale=1.0)
+    seen = dataclasses.replace(frame, light_view=view)
+    effect = gr.preset("volumetric_haze")
+    start = thin_slabs_room_start(effect, [frame, seen])
+    depth = np.concatenate([np.asarray(f.ray_depth(jnp.asarray(effect.fov_x_deg))).ravel() for f in (frame, seen)])
+    farthest = np.max(depth[np.isfinite(depth) & (depth > 0)])
+    assert float(start.medium.max_distance) == pytest.approx(farthest, rel=1e-6) and farthest < 100.0
+    assert float(start.thickness) == pytest.approx(THIN_SLABS)
+    assert float(start.medium.extinction) == float(effect.medium.extinction)
+    assert thin_slabs_room_start(effect, [frame]) is None
+    sky = dataclasses.replace(seen, depth=jnp.full_like(seen.depth, jnp.inf))
+    assert thin_slabs_room_start(effect, [sky]) is None
+    names, starts = fit_starts(effect, [seen], FOV)
+    assert names[-1].startswith("thin slabs and a medium ending at the farthest wall (the light view")
+    assert _values(starts[-1]) == _values(start)
 
 
 def test_a_room_read_as_closed_starts_from_thin_slabs_and_its_farthest_wall():

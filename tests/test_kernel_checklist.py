@@ -201,6 +201,10 @@ CASES = {
         lambda image, surface, share: gr.scattered_aside(image, surface, surface_blur=share, sigma=4.5),
         lambda r, t: (_image(r, t), _plane(r, t, 0.0, 1.0), _scalar(r, t, 0.1, 0.5)),
     ),
+    "scattered_again": Case(
+        lambda scattered, share: gr.scattered_again(scattered, scattered_blur=share, sigma=4.5),
+        lambda r, t: (_plane(r, t, 0.0, 1.0), _scalar(r, t, 0.1, 0.5)),
+    ),
     "fog_light": Case(
         lambda scattered, ambient, warmth: gr.fog_light(
             scattered, ambient, light_color=jnp.stack([1.0, warmth, 0.5]), ambient_color=(0.1, 0.2, 0.3)),

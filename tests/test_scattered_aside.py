@@ -1,5 +1,6 @@
 """The frame's own light scattered aside by the medium (`kernels.volumetric.scattered_aside`, `VolumetricFog`'s
-`surface_blur`) against a slow NumPy loop, and in the effect."""
+`surface_blur`) and the light scattered again (`scattered_again`, its `scattered_blur`) against slow NumPy loops,
+and in the effect."""
 
 import dataclasses
 import math
@@ -11,9 +12,9 @@ import pytest
 from jax.test_util import check_grads
 
 import godrays_jax as gr
-from godrays_jax.effects.volumetric import SURFACE_BLUR_SIGMA
+from godrays_jax.effects.volumetric import SCATTERED_BLUR_SIGMA, SURFACE_BLUR_SIGMA
 from godrays_jax.kernels.blur import gaussian_blur, pooled_gaussian_matrices
-from godrays_jax.kernels.volumetric import scattered_aside
+from godrays_jax.kernels.volumetric import scattered_again, scattered_aside
 from godrays_jax.primitives.resample import downsample_box, upsample_bilinear
 
 HEIGHT, WIDTH = 9, 13
@@ -216,3 +217,74 @@ def test_a_fit_finds_the_surface_blur_in_its_polish(rng):
     result = gr.fit(start, buffers, light, target, fixed=fixed, max_steps=20)
     assert abs(float(result.effect.surface_blur) - 0.3) < 0.01
     assert result.polish_steps > 0
+
+
+def _again_loop(scattered, scattered_blur, sigma):
+    return (1.0 - scattered_blur) * scattered + scattered_blur * _blurred_loop(scattered[..., None], sigma)[..., 0]
+
+
+@pytest.mark.parametrize("sigma", [1.3, 4.0, 6.5])
+def test_the_light_scattered_again_matches_loop(x64, rng, sigma):
+    _, scattered = _inputs(rng)
+    scattered[3:5, 6:8] = 5.0  # a beam's bright core
+    got = scattered_again(jnp.asarray(scattered), scattered_blur=0.35, sigma=sigma)
+    assert got.shape == (HEIGHT, WIDTH)
+    np.testing.assert_allclose(np.asarray(got), _again_loop(scattered, 0.35, sigma), rtol=1e-10, atol=1e-12)
+
+
+def test_the_light_scattered_again_moves_light_beside_a_beam_and_adds_none(x64):
+    scattered = np.zeros((41, 41))
+    scattered[:, 19:22] = 2.0  # a vertical beam
+    again = np.asarray(scattered_again(jnp.asarray(scattered), scattered_blur=0.5, sigma=2.5))
+    assert again[20, 20] < 2.0 and again[20, 25] > 0.0 and again[20, 30] < again[20, 25]  # a glow beside it
+    np.testing.assert_allclose(again.sum(), scattered.sum(), rtol=1e-6)
+
+
+def test_a_share_of_zero_scattered_again_leaves_the_blur_out_and_a_traced_one_keeps_its_derivative(rng):
+    scattered = jnp.asarray(_inputs(rng)[1], jnp.float32)
+
+    def products(function, *args):
+        return [e for e in jax.make_jaxpr(function)(*args).jaxpr.eqns if e.primitive.name == "dot_general"]
+
+    assert scattered_again(scattered, scattered_blur=0.0, sigma=3.0) is scattered
+    assert len(products(lambda s, b: scattered_again(s, scattered_blur=b, sigma=3.0), scattered, 0.0)) == 4
+    traced = jax.jit(lambda s, b: scattered_again(s, scattered_blur=b, sigma=3.0))(scattered, jnp.float32(0.0))
+    np.testing.assert_array_equal(np.asarray(traced), np.asarray(scattered))  # a traced 0 changes nothing either
+    derivative = jax.jacfwd(lambda b: scattered_again(scattered, scattered_blur=b, sigma=3.0))(jnp.float32(0.0))
+    expected = scattered_again(scattered, scattered_blur=1.0, sigma=3.0) - scattered
+    np.testing.assert_allclose(np.asarray(derivative), np.asarray(expected), rtol=1e-5, atol=1e-6)
+
+
+def test_the_light_scattered_again_gradients_float64(x64, rng):
+    scattered = jnp.asarray(_inputs(rng)[1])
+    again = lambda s, share: scattered_again(s, scattered_blur=share, sigma=4.5)  # noqa: E731
+    check_grads(again, (scattered, jnp.asarray(0.3)), order=1, modes=("fwd", "rev"))
+
+
+def test_the_light_scattered_again_names_a_bad_argument(rng):
+    scattered = jnp.asarray(_inputs(rng)[1], jnp.float32)
+    for options, name in ((dict(sigma=0.0), "sigma"), (dict(scattered_blur=jnp.ones(2)), "scattered_blur")):
+        with pytest.raises(ValueError, match=name):
+            scattered_again(scattered, **{"scattered_blur": 0.2, "sigma": 2.0, **options})
+    with pytest.raises(ValueError, match="scattered"):
+        scattered_again(scattered[..., None], scattered_blur=0.2, sigma=2.0)
+
+
+def test_the_fog_scatters_its_beams_light_again(rng):
+    """`VolumetricFog` with `scattered_blur` draws the light it scatters toward the camera through
+    `scattered_again`, spread over `SCATTERED_BLUR_SIGMA` of the frame's larger side, for every light alike
+    (`lit_by`); at 0 (the presets') the frame is single scattering's to the bit."""
+    buffers, light = _fog_frame(rng)
+    plain = gr.VolumetricFog(medium=gr.Medium(extinction=0.05, max_distance=40.0), num_view_steps=4)
+    again = dataclasses.replace(plain, scattered_blur=jnp.asarray(0.4, jnp.float32))
+    surface, scattered, ambient = plain.terms(buffers, light)
+    spread = scattered_again(scattered, scattered_blur=0.4, sigma=SCATTERED_BLUR_SIGMA * 40)
+    expected = gr.composite_fog(buffers.color, surface, plain._light(spread, ambient))
+    np.testing.assert_allclose(np.asarray(again(buffers, light)), np.asarray(expected), rtol=1e-5, atol=1e-6)
+    assert float(jnp.max(jnp.abs(again(buffers, light) - plain(buffers, light)))) > 1e-3
+    traced_zero = jax.jit(lambda share: dataclasses.replace(plain, scattered_blur=share)(buffers, light))
+    single = jax.jit(lambda: plain(buffers, light))
+    np.testing.assert_array_equal(np.asarray(traced_zero(jnp.float32(0.0))), np.asarray(single()))
+    lit = gr.lit_by(again, buffers, [gr.Light(xy=light)])
+    np.testing.assert_allclose(np.asarray(lit), np.asarray(again(buffers, light)), rtol=1e-5, atol=1e-6)
+    assert "scattered_blur" in type(plain).POLISH_FIELDS and gr.parameter_bounds(plain)["scattered_blur"] == (0.0, 1.0)

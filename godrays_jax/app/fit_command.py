@@ -52,6 +52,7 @@ from godrays_jax.pipeline.frame_start import (
     closed_room_start,
     enclosed_start,
     ground_layer_start,
+    thin_slabs_room_start,
     thin_slabs_start,
 )
 from godrays_jax.pipeline.light_profile import PROFILE_STEP, profile_light
@@ -285,7 +286,8 @@ def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
     """The other starts `fit` races beside `effect`, and their names: the model's presets (`model_presets`),
     then a fog layer read from the frames (`ground_layer_start`) on the fields of `effect` and of each preset, and
     in frames with no sky a medium bounded to the room they show (`enclosed_start`) on `effect`'s, in frames
-    with a light view thin slabs (`thin_slabs_start`) on `effect`'s, and in frames the fog reads as closed beyond
+    with a light view thin slabs (`thin_slabs_start`), then thin slabs and a medium ending at the farthest wall
+    (`thin_slabs_room_start`) on `effect`'s, and in frames the fog reads as closed beyond
     their edges thin slabs and a medium ending at the farthest wall (`closed_room_start`) on `effect`'s.
 
     So the result does not hang on the start given (`benchmarks/fit_volumetric.py --starts`); the presets take
@@ -306,6 +308,13 @@ def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
     if thin is not None:
         names.append("thin slabs (the light view casts the frames' shadows), on the other fields of the start given")
         starts.append(thin)
+    walled = thin_slabs_room_start(effect, frames)
+    if walled is not None:
+        names.append(
+            "thin slabs and a medium ending at the farthest wall (the light view casts the frames' shadows), on the "
+            "other fields of the start given"
+        )
+        starts.append(walled)
     closed = closed_room_start(effect, frames)
     if closed is not None:
         names.append(

@@ -23,6 +23,7 @@ from godrays_jax.kernels.silhouettes import silhouette_mix
 from godrays_jax.kernels.volumetric import (
     composite_fog,
     fog_light,
+    scattered_again,
     scattered_aside,
     volumetric_fog_terms,
 )
@@ -36,6 +37,10 @@ SURFACE_BLUR_SIGMA = 0.02
 """The spread of the frame's light the medium scatters aside (`surface_blur`), a Gaussian's standard deviation in
 the frame's larger side: where the haze of the rooms of the path-traced references puts its halo around a lit
 patch (benchmarks/README.md, "A sunbeam through a window behind the camera")."""
+SCATTERED_BLUR_SIGMA = 0.05
+"""The spread of the light scattered again on its way to the camera (`scattered_blur`), a Gaussian's standard
+deviation in the frame's larger side: a glow wider than the surfaces' halo, beside the beams of the path-traced
+references (benchmarks/README.md, "Light scattered again, and a race that waits for the room")."""
 # The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines, and
 # the share of the lines it reads (all the bins: with half, thin slats' shadows fit worse).
 _STAND_IN_FACTOR = 4
@@ -90,8 +95,13 @@ class VolumetricFog(Effect):
     spread by a Gaussian of `SURFACE_BLUR_SIGMA` of the frame's larger side
     (`kernels.volumetric.scattered_aside`: forward scattering, a halo around
     bright surfaces seen through haze; 0, the presets', leaves the frame as
-    single scattering of the light and the sky alone draws it). `fov_x_deg`
-    is the horizontal field of view in degrees.
+    single scattering of the light and the sky alone draws it). Of the
+    light scattered toward the camera, `scattered_blur` scatters again and
+    reaches it beside its pixel, spread by a Gaussian of
+    `SCATTERED_BLUR_SIGMA` of the frame's larger side
+    (`kernels.volumetric.scattered_again`: a glow beside a beam; 0, the
+    presets', draws none). `fov_x_deg` is the horizontal field of view in
+    degrees.
 
     The march runs on rays `resolution_factor` pixels apart on a frame of up
     to 320 pixels (on larger frames the same fraction of the frame, at most
@@ -116,6 +126,7 @@ class VolumetricFog(Effect):
     fov_x_deg: Float[Array, ""] = param(50.0, low=1.0, high=170.0)
     ambient_rise: Float[Array, ""] = param(0.0, low=-1.0, high=2.0)
     surface_blur: Float[Array, ""] = param(0.0, low=0.0, high=1.0)
+    scattered_blur: Float[Array, ""] = param(0.0, low=0.0, high=1.0)
     num_view_steps: int = static(16, low=1, high=256)
     num_shadow_samples: int = static(32, low=1, high=1024)
     shadows: Literal["samples", "lines"] = static("samples")
@@ -131,7 +142,7 @@ class VolumetricFog(Effect):
     # everything else (benchmarks/README.md, "The fit's Jacobian by stages").
     FIELD_STAGES: ClassVar[dict[str, str]] = {
         "medium.light_color": "sum", "medium.ambient_color": "sum", "direct_fraction": "sum", "ambient_rise": "sum",
-        "surface_blur": "sum",
+        "surface_blur": "sum", "scattered_blur": "sum",
         "medium.max_distance": "ends", "layer_top": "ends", "thickness": "shadows", "edge_softness": "shadows",
         "fov_x_deg": "camera",
     }  # fmt: skip
@@ -143,8 +154,8 @@ class VolumetricFog(Effect):
     SHARP_STAGES: ClassVar[tuple[str, ...]] = ("shadows",)  # the slabs' depth and faces: a shadow's edges
     # Fitted from the start, the light scattered aside traded against the medium's extinction and light, and a room's
     # descent ended in a thin medium reaching far, its beam gone (docs/findings.md, "The frame's light scattered
-    # aside"); from where the descent stops, the polish can only lower the loss.
-    POLISH_FIELDS: ClassVar[tuple[str, ...]] = ("surface_blur",)
+    # aside"); from where the descent stops, the polish can only lower the loss. The light scattered again likewise.
+    POLISH_FIELDS: ClassVar[tuple[str, ...]] = ("surface_blur", "scattered_blur")
     LIGHT_TINT_STAGE: ClassVar[str] = "sum"  # a light's tint multiplies its in-scattering and its share of the surface
 
     def same_on(self, frames: Sequence[Buffers]) -> "VolumetricFog":
@@ -172,12 +183,13 @@ class VolumetricFog(Effect):
         return dataclasses.replace(self, resolution_factor=_STAND_IN_FACTOR, num_shadow_lines=lines)
 
     def terms(self, buffers, light_xy, *, light_in_front=True, light_depth=math.inf):
-        """`(surface, scattered, ambient)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`)."""
+        """`(surface, scattered, ambient)`, each `(H, W)` (`kernels.volumetric.volumetric_fog_terms`), `scattered`
+        with its share `scattered_blur` scattered again (`kernels.volumetric.scattered_again`)."""
         light_xy = check_light(light_xy)
         depth = frame_ray_depth(self, buffers)
         factor = march_factor(buffers.height, buffers.width, self.resolution_factor)
         coverage, uncovered_depth = silhouette_mix(buffers.coverage, depth, buffers.color)
-        return volumetric_fog_terms(
+        surface, scattered, ambient = volumetric_fog_terms(
             depth, light_xy, fov_x_deg=self.fov_x_deg, light_depth=light_depth, light_in_front=light_in_front,
             medium=BoundedMedium(
                 extinction=self.medium.extinction, max_distance=self.medium.max_distance,
@@ -188,6 +200,8 @@ class VolumetricFog(Effect):
             resolution_factor=factor, coverage=coverage, uncovered_depth=uncovered_depth,
             light_view=buffers.light_view,
         )  # fmt: skip
+        sigma = SCATTERED_BLUR_SIGMA * max(buffers.height, buffers.width)
+        return surface, scattered_again(scattered, scattered_blur=self.scattered_blur, sigma=sigma), ambient
 
     @property
     def shadow_reading(self) -> ShadowReading:

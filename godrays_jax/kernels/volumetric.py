@@ -537,6 +537,33 @@ def scattered_aside(
     return jnp.asarray(surface_blur, image.dtype) * jnp.broadcast_to(blurred, (height, width, 3))
 
 
+def scattered_again(
+    scattered: Float[Array, "H W"],
+    *,
+    scattered_blur: Float[ArrayLike, ""],
+    sigma: float,
+) -> Float[Array, "H W"]:
+    """The light scattered toward the camera (`volumetric_fog_terms`' `scattered`) of which a share scatters once
+    more on its way and reaches the camera beside its pixel: `scattered + scattered_blur * (G * scattered -
+    scattered)`, `G` `scattered_aside`'s Gaussian blur of `sigma` pixels (pooled, clamp-to-edge, a cost that does
+    not grow with `sigma`).
+
+    The march scatters each ray's light once; in a haze thick enough to show a beam, some of the beam's light
+    scatters again before it reaches the camera, a glow beside the beam that no single-scattering term draws.
+    `scattered_blur` in [0, 1] is that share; it moves light, it adds none (the blur sums to 1 away from the frame's
+    edges). A `scattered_blur` known to be 0 when traced (a Python or NumPy number, a constant) returns `scattered`
+    itself, without the blur; a traced one always runs it, so its derivative at 0 is the blur's change.
+    """
+    if jnp.ndim(scattered) != 2:
+        raise ValueError(f"scattered must be an (H, W) plane, got shape {jnp.shape(scattered)}")
+    check_scalar(scattered_blur, "scattered_blur")
+    if not isinstance(scattered_blur, jax.core.Tracer) and not np.any(np.asarray(scattered_blur)):
+        return scattered  # every preset's: no blur in the program
+    scattered = jnp.asarray(scattered)
+    blurred = scattered_aside(scattered[..., None], jnp.zeros_like(scattered), surface_blur=1.0, sigma=sigma)[..., 0]
+    return scattered + jnp.asarray(scattered_blur, scattered.dtype) * (blurred - scattered)
+
+
 def apply_volumetric_fog(
     image: Float[Array, "H W C"],
     depth: Float[Array, "H W"],

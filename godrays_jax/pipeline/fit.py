@@ -339,6 +339,7 @@ def fit(
     plateau_steps: int = 5,
     plateau_rtol: float = 1e-3,
     coarse_plateau_rtol: float = 2e-2,
+    coarse_plateau_steps: int = 10,
     coarse_jacobian: bool = False,
     stand_in: bool = True,
 ) -> FitResult:
@@ -408,9 +409,12 @@ def fit(
             fell below the phase's start (steps the solver rejected before
             that do not count); `plateau_steps=0` runs until the solver
             converges or `max_steps`.
-        coarse_plateau_rtol: `plateau_rtol` of the coarse phase: its result
-            only starts the full resolution, which then starts near its own
-            minimum and ends on `plateau_rtol`.
+        coarse_plateau_rtol, coarse_plateau_steps: `plateau_rtol` and
+            `plateau_steps` of the coarse phase: its result only starts the
+            full resolution, which then starts near its own minimum and ends
+            on `plateau_rtol`. Over fewer steps a race stopped where the loss
+            fell slowly on a long way to its minimum (a room's medium shrinking
+            to its walls; docs/findings.md, "Where a room's fit ends").
         coarse_jacobian: with a coarse phase and Levenberg-Marquardt, the
             full resolution's descent before the polish takes its Jacobian
             from the coarse resolution (each pixel's derivatives its block's,
@@ -446,6 +450,7 @@ def fit(
         loss=loss, space=space, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol, probe_steps=probe_steps,
         coarse_factor=coarse_factor, plateau_steps=plateau_steps, plateau_rtol=plateau_rtol,
         coarse_plateau_rtol=coarse_plateau_rtol, coarse_jacobian=coarse_jacobian,
+        coarse_plateau_steps=coarse_plateau_steps,
         tint_high=None if tints is None else tint_range(tints),
     )  # fmt: skip
     # Weakly typed fields (`eqx.tree_at(lambda e: e.density, effect, jnp.asarray(0.5))`) would make the
@@ -535,7 +540,8 @@ def _coarse_phase(
     reduced = downsample_frames(frame_data, factor)
     scaled = [scale_pixel_fields(candidate, 1.0 / factor) for candidate in candidates]
     coarse_runs, winner = _descend(
-        scaled, bounds, reduced, counter, **{**phases.descend, "plateau_rtol": phases.coarse_plateau_rtol}
+        scaled, bounds, reduced, counter,
+        **{**phases.descend, "plateau_rtol": phases.coarse_plateau_rtol, "plateau_steps": phases.coarse_plateau_steps},
     )  # fmt: skip
     fine_start = _effect_of_run(coarse_runs[winner])
     linearises = phases.coarse_jacobian and isinstance(phases.optimiser, LevenbergMarquardt)

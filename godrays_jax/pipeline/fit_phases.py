@@ -49,15 +49,17 @@ class Phases:
     coarse_factor: int
     coarse_plateau_rtol: float
     coarse_jacobian: bool
+    coarse_plateau_steps: int
 
     @classmethod
     def of(cls, *, loss, space, solver, max_steps, rtol, atol, probe_steps, coarse_factor, plateau_steps,
-           plateau_rtol, coarse_plateau_rtol, coarse_jacobian, tint_high=None) -> "Phases":  # fmt: skip
+           plateau_rtol, coarse_plateau_rtol, coarse_jacobian, coarse_plateau_steps, tint_high=None) -> "Phases":  # fmt: skip
         """`tint_high`: the fitted tints' upper bound (`problem.tint_range`), None where no tint is fitted."""
         if loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}; got {loss!r}")
         for name, value, least in (("max_steps", max_steps, 0), ("probe_steps", probe_steps, 1),
-                                   ("coarse_factor", coarse_factor, 1), ("plateau_steps", plateau_steps, 0)):  # fmt: skip
+                                   ("coarse_factor", coarse_factor, 1), ("plateau_steps", plateau_steps, 0),
+                                   ("coarse_plateau_steps", coarse_plateau_steps, 0)):  # fmt: skip
             if not (isinstance(value, int) and value >= least):
                 raise ValueError(f"{name} must be an int >= {least}, got {value!r}")
         if not (plateau_rtol >= 0 and coarse_plateau_rtol >= 0):
@@ -70,4 +72,6 @@ class Phases:
             plateau_rtol=plateau_rtol, tint_high=tint_high,
         )  # fmt: skip
         polisher = LevenbergMarquardt(rtol=rtol, atol=atol, scaled=True) if polishes(solver, loss) else None
-        return cls(optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol, bool(coarse_jacobian))
+        return cls(
+            optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol, bool(coarse_jacobian), coarse_plateau_steps
+        )

@@ -9,7 +9,8 @@ with no sky (a room) the presets' medium reaches far beyond the walls, and the
 light crosses all of it on its way in: `enclosed_start` bounds the medium to
 the surfaces seen, with no top (a beam from a high window crosses the whole
 room). Where a depth map seen from the light casts the shadows, `thin_slabs_start`
-keeps the depth buffer's own from shading what the light reaches. A room whose
+keeps the depth buffer's own from shading what the light reaches, and
+`thin_slabs_room_start` also ends the medium at the farthest wall. A room whose
 windows show the sky, which the fog reads as closed beyond its edges, lets the
 light in only through them: `closed_room_start` gives it thin slabs and a medium
 that ends at the farthest wall.
@@ -133,6 +134,31 @@ def thin_slabs_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Eff
     if "thickness" not in field_metadata(effect) or all(frame.light_view is None for frame in frames):
         return None
     return _with_values(effect, {"thickness": THIN_SLABS})
+
+
+def thin_slabs_room_start(effect: Effect, frames: Buffers | Sequence[Buffers]) -> Effect | None:
+    """`thin_slabs_start` with the medium ending at the farthest surface its frames show (finite depth above 0):
+    a second start for `fit(..., starts=...)` where a frame carries a depth map seen from the light.
+
+    A room lit through its windows, the map casting their shadows, holds its haze within its walls; from the
+    presets' medium, which reaches several rooms beyond them, a fit has far to go and may stop in a thin medium
+    reaching far (benchmarks/README.md, "A sunbeam through a window behind the camera"). `medium.max_distance`
+    is clipped into its bounds; every other field is `thin_slabs_start`'s. `None` where that is, for an effect
+    without one of `CLOSED_ROOM_FIELDS`, a frame without depth or frames with no finite depth above 0. Not
+    differentiable: a start, read once on the host.
+    """
+    thin = thin_slabs_start(effect, frames)
+    frames = [frames] if isinstance(frames, Buffers) else list(frames)
+    if thin is None or any(name not in field_metadata(effect) for name in CLOSED_ROOM_FIELDS):
+        return None
+    if any(frame.depth is None for frame in frames):
+        return None
+    fov = jnp.asarray(field_value(effect, "fov_x_deg"), jnp.float32)
+    depths = [np.asarray(frame.ray_depth(fov)) for frame in frames]
+    finite = np.concatenate([depth[np.isfinite(depth) & (depth > 0)] for depth in depths])
+    if finite.size == 0:
+        return None
+    return _with_values(thin, {"medium.max_distance": float(np.max(finite))})
 
 
 CLOSED_ROOM_FIELDS: tuple[str, ...] = ("thickness", "medium.max_distance", "fov_x_deg")

@@ -300,28 +300,19 @@ def fit_starts(effect, frames, fov_x_deg) -> tuple[list[str], list]:
         if layer is not None:
             names.append(f"the ground layer estimated from the frame, on the other fields of {name}")
             starts.append(layer)
-    room = enclosed_start(effect, frames)
-    if room is not None:
-        names.append("the medium of the room the frames show (no sky), on the other fields of the start given")
-        starts.append(room)
-    thin = thin_slabs_start(effect, frames)
-    if thin is not None:
-        names.append("thin slabs (the light view casts the frames' shadows), on the other fields of the start given")
-        starts.append(thin)
-    walled = thin_slabs_room_start(effect, frames)
-    if walled is not None:
-        names.append(
-            "thin slabs and a medium ending at the farthest wall (the light view casts the frames' shadows), on the "
-            "other fields of the start given"
-        )
-        starts.append(walled)
-    closed = closed_room_start(effect, frames)
-    if closed is not None:
-        names.append(
-            "thin slabs and a medium ending at the farthest wall (a room read as closed beyond the frame), on the "
-            "other fields of the start given"
-        )
-        starts.append(closed)
+    beside_given = (
+        (enclosed_start, "the medium of the room the frames show (no sky)"),
+        (thin_slabs_start, "thin slabs (the light view casts the frames' shadows)"),
+        (thin_slabs_room_start, "thin slabs and a medium ending at the farthest wall (the light view casts the frames' "
+                                "shadows)"),
+        (closed_room_start, "thin slabs and a medium ending at the farthest wall (a room read as closed beyond the "
+                            "frame)"),
+    )  # fmt: skip
+    for estimate, what in beside_given:
+        start = estimate(effect, frames)
+        if start is not None:
+            names.append(f"{what}, on the other fields of the start given")
+            starts.append(start)
     return names, starts
 
 

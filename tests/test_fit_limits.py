@@ -124,7 +124,7 @@ def test_a_default_fit_of_a_frame_without_a_camera_stays_within_two_gigabytes(ki
         frame, params = tmp_path / f"{case}.exr", tmp_path / f"{case}.json"
         gr.write_buffers(frame, _frame(make_depth(*FRAME_SIZE)))
         code, err, peak = _finished("fit", str(frame), str(target), "--light", light, "-o", str(params),
-                                    "--max-steps", "2", env=environment, data_limit=DATA_LIMIT, timeout=900)  # fmt: skip
+                                    "--max-steps", "1", env=environment, data_limit=DATA_LIMIT, timeout=900)  # fmt: skip
         assert code == 0, (case, err)
         assert peak <= RESIDENT_LIMIT, (case, peak >> 20)
         values = json.loads(params.read_text())  # the effect's name and its fields, as `apply --params` reads them

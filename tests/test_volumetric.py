@@ -669,8 +669,7 @@ def test_partly_covered_pixels_at_reduced_resolution_match_loop(x64, case):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("shadows", ["samples", "lines"])
-@pytest.mark.parametrize("resolution_factor", [1, 2.5])
+@pytest.mark.parametrize("shadows, resolution_factor", [("samples", 1), ("lines", 2.5)])  # each reading, each spacing
 def test_a_sun_known_when_traced_gives_the_traced_suns_terms_and_derivatives(x64, shadows, resolution_factor):
     """A sun given as a Python `inf` drops the point light's branches from the program (`light_geometry`): the
     terms and their derivatives are those of the sun given as a traced `inf`, in a render that takes derivatives

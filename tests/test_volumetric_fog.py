@@ -2,6 +2,7 @@
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -296,11 +297,13 @@ def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(
     def total(candidate, fov_x_deg, light, front):
         return jnp.sum(gr.replace_fields(candidate, {"fov_x_deg": fov_x_deg})(sky, light, light_in_front=front))
 
+    # Compiled once per effect, the light and its side traced: eagerly each light compiled the preset's loops again.
+    drawn = eqx.filter_jit(lambda candidate, light, front: candidate(sky, light, light_in_front=front))
+    fov_gradient = eqx.filter_jit(jax.grad(total, argnums=1))
     for light, front in [((7.3, 1.6), True), ((900.0, -400.0), True), ((7.3, 1.6), False)]:
-        light = jnp.asarray(light, jnp.float32)
-        np.testing.assert_allclose(cheaper(sky, light, light_in_front=front), effect(sky, light, light_in_front=front),
-                                   atol=1e-5)  # fmt: skip
-        gradients = [jax.grad(total, argnums=1)(e, effect.fov_x_deg, light, front) for e in (cheaper, effect)]
+        light, front = jnp.asarray(light, jnp.float32), jnp.asarray(front)
+        np.testing.assert_allclose(drawn(cheaper, light, front), drawn(effect, light, front), atol=1e-5)
+        gradients = [fov_gradient(e, effect.fov_x_deg, light, front) for e in (cheaper, effect)]
         np.testing.assert_allclose(*gradients, rtol=1e-4)
     if preset != "volumetric_haze":
         return  # the fit below restores any effect's statics alike; one compiles its programs

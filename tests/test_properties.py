@@ -276,18 +276,18 @@ def _small(name: str) -> gr.Effect:
     return at_fit_counts(effect)
 
 
-@settings(SETTINGS, max_examples=4)  # each preset compiles twice (value, gradient) per frame size
+@settings(SETTINGS, max_examples=4)  # each preset compiles once (its gradient and frame) per frame size
 @given(frames(), st.sampled_from(sorted(gr.PRESETS)), st.booleans(), st.data())
 @pytest.mark.slow
 def test_effects_finite_values_and_gradients_anywhere(buffers, name, in_front, data):
     light = data.draw(lights(buffers.height, buffers.width))
     effect = _small(name)
-    out = _apply_effect(effect, buffers, light, jnp.asarray(in_front))
+    gradient, out = _effect_grad((effect, light), buffers, jnp.asarray(in_front))
     assert out.shape == buffers.color.shape and _finite(out)
-    assert _finite(_effect_grad((effect, light), buffers, jnp.asarray(in_front)))
-    # Documented: a light behind the camera gives no screen-space effect. Bloom does not
-    # depend on the light and ScatteringFog keeps its backward-scattering lobe.
-    if not in_front and not isinstance(effect, (gr.Bloom, gr.ScatteringFog)):
+    assert _finite(gradient)
+    # Documented: a light behind the camera gives no screen-space effect. Bloom does not depend on the light,
+    # ScatteringFog keeps its backward-scattering lobe and VolumetricFog its medium, lit from behind.
+    if not in_front and not isinstance(effect, (gr.Bloom, gr.ScatteringFog, gr.VolumetricFog)):
         _close(out, buffers.color, rtol=0, atol=0)
 
 
@@ -295,14 +295,13 @@ def _effect_on_frame(effect, buffers, light, in_front):
     return effect(buffers, light, light_in_front=in_front)
 
 
-_apply_effect = eqx.filter_jit(_effect_on_frame)
-
-
 @eqx.filter_jit
-@eqx.filter_grad
+@functools.partial(eqx.filter_grad, has_aux=True)
 def _effect_grad(effect_and_light, buffers, in_front):
+    """The gradient of a loss of the frame, and the frame: one program per frame size."""
     effect, light = effect_and_light
-    return jnp.sum(effect(buffers, light, light_in_front=in_front) ** 2)
+    out = effect(buffers, light, light_in_front=in_front)
+    return jnp.sum(out**2), out
 
 
 FOGS = ("participating_media", "volumetric_haze", "physically_based")
@@ -330,9 +329,8 @@ def test_every_preset_finite_values_and_gradients_for_any_finite_light(name, dat
     buffers = data.draw(frames())
     light = data.draw(any_finite_lights(buffers.height, buffers.width))
     effect = _small(name)
-    out = _apply_effect(effect, buffers, light, jnp.asarray(True))
+    (effect_grad, light_grad), out = _effect_grad((effect, light), buffers, jnp.asarray(True))
     assert out.shape == buffers.color.shape and _finite(out)
-    effect_grad, light_grad = _effect_grad((effect, light), buffers, jnp.asarray(True))
     checked = [field for field in ("offscreen_fade", "flare_size") if hasattr(effect, field)]
     for field in checked:
         assert _finite(getattr(effect_grad, field)), (field, light)
@@ -344,15 +342,12 @@ LIGHT_DEPTHS = (0.0, 1e-30, 1e-3, 1.0, 1e3, 1e12, 1e30, np.inf)
 
 
 @eqx.filter_jit
-def _fog_with_depth(effect, buffers, light, in_front, light_depth):
-    return effect(buffers, light, light_in_front=in_front, light_depth=light_depth)
-
-
-@eqx.filter_jit
-@eqx.filter_grad
+@functools.partial(eqx.filter_grad, has_aux=True)
 def _fog_grad(effect_and_light, buffers, in_front, light_depth):
+    """The gradient of a loss of the fogged frame, and the frame: one program per frame size."""
     effect, light = effect_and_light
-    return jnp.sum(effect(buffers, light, light_in_front=in_front, light_depth=light_depth) ** 2)
+    out = effect(buffers, light, light_in_front=in_front, light_depth=light_depth)
+    return jnp.sum(out**2), out
 
 
 @pytest.mark.parametrize("name", slow_where(FOGS))
@@ -370,9 +365,8 @@ def test_fog_presets_finite_values_and_gradients_for_any_light_and_distance(name
     in_front = jnp.asarray(data.draw(st.booleans()))
     light_depth = jnp.float32(data.draw(st.sampled_from(LIGHT_DEPTHS)))
     effect = _small(name)
-    out = _fog_with_depth(effect, buffers, light, in_front, light_depth)
+    (effect_grad, light_grad), out = _fog_grad((effect, light), buffers, in_front, light_depth)
     assert out.shape == buffers.color.shape and _finite(out), (light, light_depth)
-    effect_grad, light_grad = _fog_grad((effect, light), buffers, in_front, light_depth)
     assert _finite(effect_grad) and _finite(light_grad), (light, light_depth, in_front)
 
 
@@ -389,7 +383,7 @@ def test_effects_vmap_over_frames_equals_loop(name):
     effect = _small(name)
     visible = jnp.ones(3, bool)
     batched = eqx.filter_jit(jax.vmap(_effect_on_frame, in_axes=(None, 0, 0, 0)))(effect, stacked, lights_xy, visible)
-    one_frame = eqx.filter_jit(_apply_effect)  # compiled too: what differs is the batching, not XLA's fusion
+    one_frame = eqx.filter_jit(_effect_on_frame)  # compiled too: what differs is the batching, not XLA's fusion
     for i in range(3):
         frame = jax.tree.map(lambda leaf: leaf[i], stacked)
         # VolumetricFog's march amplifies float32 rounding (up to 3e-5 here, by the light on the frame's corner);

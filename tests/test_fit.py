@@ -464,6 +464,12 @@ def test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolutio
             for sign in (1, -1)
         )  # fmt: skip
         mixed[:, index] = (above - below) / (2 * DIFFERENCE_STEP)
+    # Forward mode's sharp columns, by one JVP each (no Jacobian by stages of the full resolution to compile).
+    residuals_at = lambda at: problem.residuals_of(problem.effect_at_positions(at), frame_data)  # noqa: E731
+    tangents = jnp.eye(len(positions), dtype=jnp.float32)[jnp.asarray(sharp)]
+    forward = jax.jit(jax.vmap(lambda tangent: jax.jvp(residuals_at, (positions,), (tangent,))[1]))(tangents)
+    forward = np.asarray(forward, np.float64).T
+    assert np.linalg.norm(mixed[:, sharp] - forward) < 0.5 * np.linalg.norm(forward)  # forward mode's
     linearisation = dataclasses.replace(CoarseLinearisation.of(coarse_problem, reduced, 2), sharp=("shadows",))
     normal, gradient = linearisation.normal_equations(positions, residuals, problem, frame_data)
     np.testing.assert_allclose(normal, mixed.T @ mixed, rtol=2e-3, atol=1e-6 * np.abs(mixed.T @ mixed).max())

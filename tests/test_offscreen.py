@@ -90,6 +90,7 @@ def test_lights_beyond_float32_reach_are_drawn_as_at_the_bound(name):
     """A light past `MAX_LIGHT_PX` is moved along its direction to it: finite values and gradients, faded out."""
     effect = gr.preset(name)
     buffers = _buffers()
+
     def loss(light):
         drawn = effect.layer(buffers, light)
         return jnp.sum(drawn**2), drawn

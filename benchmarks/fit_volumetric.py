@@ -1,6 +1,6 @@
 """`VolumetricFog` against the path-traced references, through the command line with its defaults.
 
-    python benchmarks/fit_volumetric.py [SCENE ...] [--report DIR]
+    python benchmarks/fit_volumetric.py [SCENE ...] [--report DIR] [--jitter K]
 
 Per scene (`benchmarks/references/scenes.py`): `godrays-jax fit CLEAN FOG_A -o
 params.json` (the default model, `VolumetricFog` from `volumetric_haze`; light,
@@ -11,9 +11,14 @@ MSE (`x / (1 + |x|)` per channel, the fit's loss) of `out.exr` against both
 fog renders as ratios to the scene's noise floor, beside `ScatteringFog`'s
 (`references/baseline.json`, the same commands on the previous default).
 Robustness: `--starts` also fits from `physically_based` and `participating`
-starts given as presets and prints the spread of the final losses. Results go
-to `fit_volumetric.json` beside this script; `uptime` is printed first (the
-machine is shared: times are wall seconds under that load).
+starts given as presets and prints the spread of the final losses. Rounding:
+`--jitter K` also fits `K` copies of fog A, each times `1 + 2^-22 n` with `n`
+standard normal noise of its own seed (a float32 rounding of the target, which
+no render or loss can tell apart), and prints the ratios' range and mean: how
+far a fit's end moves when nothing but rounding does, the yardstick for a change
+that moves a scene's ratio a little. Results go to `fit_volumetric.json` beside
+this script; `uptime` is printed first (the machine is shared: times are wall
+seconds under that load).
 """
 
 import argparse
@@ -24,6 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
@@ -41,7 +47,12 @@ def _run(*arguments: str, log: Path | None = None) -> float:
     return time.perf_counter() - start
 
 
-def fit_scene(scene, folder: Path, preset: str | None, report: Path | None) -> dict:
+JITTER = 2.0**-22
+"""`--jitter`'s relative noise on the target: a float32 rounding (its spacing is 2^-23 to 2^-24 of a value)."""
+
+
+def fit_scene(scene, folder: Path, preset: str | None, report: Path | None, target: Path | None = None) -> dict:
+    """Fit `scene`'s fog A (or `target` in its place) and apply the fit: its ratios to the noise floor."""
     folder = folder if report is None else report  # the report's folder also keeps the parameters and the frame
     params, output = folder / f"{scene.name}_{preset or 'default'}.json", folder / f"{scene.name}.exr"
     options = ["--preset", preset] if preset else []
@@ -52,7 +63,8 @@ def fit_scene(scene, folder: Path, preset: str | None, report: Path | None) -> d
     light_view = scene.clean.with_name(f"{scene.name}_light_view.exr")
     light += ["--light-view", str(light_view)] if light_view.exists() else []
     log = None if report is None else report / f"fit_{scene.name}.txt"  # what the command printed: steps, start
-    seconds = _run("fit", str(scene.clean), str(scene.fog_a), "-o", str(params), *options, *light, log=log)
+    target = scene.fog_a if target is None else target
+    seconds = _run("fit", str(scene.clean), str(target), "-o", str(params), *options, *light, log=log)
     seconds += _run("apply", str(scene.clean), "--params", str(params), "-o", str(output), *light)
     fogged = read_rgb(output)
     return {
@@ -69,6 +81,7 @@ def main() -> None:
     parser.add_argument(
         "--report", type=Path, help="write each fit's report PNG, printed lines, parameters and fogged frame here"
     )
+    parser.add_argument("--jitter", type=int, default=0, help="also fit this many copies of fog A at rounding noise")
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)
@@ -83,6 +96,10 @@ def main() -> None:
             entry = fit_scene(scene, Path(folder), None, args.report)
             for preset in args.starts:
                 entry[f"ratio_fog_a_from_{preset}"] = fit_scene(scene, Path(folder), preset, None)["ratio_fog_a"]
+            jittered = [fit_scene(scene, Path(folder), None, None, _jittered(scene, seed, Path(folder)))
+                        for seed in range(1, args.jitter + 1)]  # fmt: skip
+            for fog in ("a", "b") if jittered else ():
+                entry[f"ratio_fog_{fog}_jittered"] = [round(fit[f"ratio_fog_{fog}"], 4) for fit in jittered]
             results[scene.name] = entry
             RESULTS.write_text(json.dumps(results, indent=1) + "\n")
             old = baseline.get(scene.name, {})
@@ -93,6 +110,22 @@ def main() -> None:
             if starts:
                 spread = (max([entry["ratio_fog_a"], *starts]) / min([entry["ratio_fog_a"], *starts]) - 1) * 100
                 print(f"  from {', '.join(args.starts)}: {', '.join(f'{s:.3f}' for s in starts)}; spread {spread:.1f} %")
+            if jittered:
+                ratios = [entry["ratio_fog_a"], *entry["ratio_fog_a_jittered"]]
+                print(f"  fog A and {len(jittered)} roundings of it: {min(ratios):.3f}-{max(ratios):.3f}, "
+                      f"mean {np.mean(ratios):.3f}", flush=True)  # fmt: skip
+
+
+def _jittered(scene, seed: int, folder: Path) -> Path:
+    """Fog A times `1 + JITTER n` (`n` standard normal noise of `seed`), written beside the fit's files."""
+    import godrays_jax as gr
+    from godrays_jax.app.options import read_target
+
+    target = np.asarray(read_target(str(scene.fog_a)), np.float32)
+    noise = np.random.default_rng(seed).standard_normal(target.shape).astype(np.float32)
+    path = folder / f"{scene.name}_fog_a_jittered_{seed}.exr"
+    gr.write_image(path, target * (1 + np.float32(JITTER) * noise))
+    return path
 
 
 if __name__ == "__main__":

@@ -160,7 +160,9 @@ def as_frames(buffers, light_xy, target, light_in_front, light_depth=math.inf, o
         depth = np.asarray(depth, np.float64)
         if depth.shape != () or not depth > 0:
             raise ValueError(f"light_depth[{index}] must be a distance > 0 in scene units (inf: the sun), got {depth}")
-        depths.append(jnp.asarray(np.asarray(depth, frame.color.dtype)))
+        # The sun as a Python number: static in every compiled program, which then drops the point light's branches
+        # (`kernels.bounded_medium.light_geometry`), as `apply`'s render does.
+        depths.append(math.inf if np.isinf(depth) else jnp.asarray(np.asarray(depth, frame.color.dtype)))
     others = [_other_lights(frame_lights, frame.color.dtype, index) for index, (frame, frame_lights)
               in enumerate(zip(buffers, other_lights))]  # fmt: skip
     # Python bools: static in every compiled program, so an effect that reads the light's side (the shadows read

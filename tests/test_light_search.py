@@ -101,6 +101,22 @@ def test_more_fields_race_the_starts_given():
     np.testing.assert_allclose(np.asarray(gr.field_value(found.effect, "tint")), TINT, atol=1e-3)
 
 
+def test_the_fog_finds_the_sun_where_it_finds_a_point_light_far_beyond_the_scene():
+    """The search takes the sun as a Python number (its programs without the point light's branches, as `fit`'s)
+    and a point light's distance as an array: the light drawn as the sun is found from 3.6 px away, and as a lamp a
+    million units away too."""
+    effect = gr.VolumetricFog(medium=gr.Medium(extinction=0.05, light_color=(2.0, 2.0, 2.0)), fov_x_deg=60.0,
+                              shadows="lines", num_shadow_lines=24, num_shadow_bins=12)  # fmt: skip
+    light = np.asarray(LIGHTS["on screen"])
+    target = gr.replace_fields(effect, {"medium.light_color": TINT})(_frame(), jnp.asarray(light, jnp.float32))
+    found = {
+        depth: gr.find_light(effect, _frame(), target, start_xy=light + (3.0, 2.0), light_depth=depth, max_steps=8)
+        for depth in (np.inf, 1e6)
+    }
+    for depth, search in found.items():
+        assert np.linalg.norm(search.light_xy - light) < 0.1, (depth, search.light_xy)
+
+
 @pytest.mark.parametrize(
     ("arguments", "named"),
     [

@@ -259,7 +259,7 @@ def find_light(
     lights = lights / factor / side
     box = (np.min(lights, axis=0) - LIGHT_REACH, np.max(lights, axis=0) + LIGHT_REACH)
     descend = functools.partial(
-        _descend, frame=frame, reference=reference, light_depth=jnp.asarray(light_depth, frame.color.dtype),
+        _descend, frame=frame, reference=reference, light_depth=_static_sun(light_depth, frame.color.dtype),
         space=space, side=float(side), box=box, max_steps=max_steps,
     )  # fmt: skip
     first = tuple(name for name in names if name in colours)
@@ -278,6 +278,13 @@ def find_light(
         effect=replace_fields(effect, {name: field_value(drawn, name) for name in names}), fields=names,
         loss=run.loss, factor=factor, steps=steps,
     )  # fmt: skip
+
+
+def _static_sun(light_depth, dtype):
+    """The light's distance as the search's programs take it: the sun (`inf`) as a Python number, static in them, so
+    that they drop the point light's branches as `fit`'s programs do (`problem.as_frames`); a point light's as an
+    array, so that one program serves every distance."""
+    return math.inf if math.isinf(float(light_depth)) else jnp.asarray(light_depth, dtype)
 
 
 def _reduced(effect: Effect, factor: int) -> Effect:

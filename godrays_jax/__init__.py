@@ -155,6 +155,8 @@ _ON_FIRST_USE = {
     "find_light": "godrays_jax.pipeline.light_search",
     "halo_starts": "godrays_jax.pipeline.light_search",
     "LightSearch": "godrays_jax.pipeline.light_search",
+    "seen_lights": "godrays_jax.pipeline.light_seen",
+    "SeenLight": "godrays_jax.pipeline.light_seen",
     "profile_light": "godrays_jax.pipeline.light_profile",
     "LightProfile": "godrays_jax.pipeline.light_profile",
     "DirectionalLight": "godrays_jax.raster",

@@ -291,14 +291,16 @@ def _add_fit(subparsers) -> None:
     parser.add_argument(
         "--light", type=parse_fit_light, action="append", metavar="X,Y[,behind][;X,Y...]|auto",
         help="the light's pixel position, once per frame in order (',behind': behind the camera; several lights "
-        "separated by ';', every one drawn and the fitted fields shared by all), or 'auto': one light found from "
-        "the frame and its target before the fit (once for every frame); default: each frame's godrays:lights or "
+        "separated by ';', every one drawn and the fitted fields shared by all), or 'auto': one light found before "
+        "the fit (once for every frame), by its own pixels where it is in view (a sun's disc, a lamp's bulb, its "
+        "distance with it), else from the frame and its target; default: each frame's godrays:lights or "
         "godrays:light_px metadata; a light found is written beside -o (PARAMS.light.json) for apply --params",
     )  # fmt: skip
     parser.add_argument("--light-view", action="append", metavar="EXR", help=f"{LIGHT_VIEW_HELP}; once per frame, in order")
     parser.add_argument(
         "--fit-light", action="store_true",
-        help="refine each given or stored light (one a frame) as --light auto finds one, from it, before the fit",
+        help="refine each given or stored light (one a frame) as --light auto finds one, from it, before the fit "
+        "(the light in view nearest it, where one is)",
     )  # fmt: skip
     _add_light_depth_and_tint(
         parser, depth_default="each frame's godrays:lights_depth or godrays:light_depth metadata, else inf",

@@ -15,6 +15,7 @@ from godrays_jax.app.fit_light import (
     found_lights_text,
     light_lines,
     profile_line,
+    seen_lines,
     tried_line,
     write_text,
 )
@@ -56,10 +57,12 @@ from godrays_jax.pipeline.frame_start import (
     thin_slabs_start,
 )
 from godrays_jax.pipeline.light_profile import PROFILE_STEP, profile_light
-from godrays_jax.pipeline.light_search import find_light
+from godrays_jax.pipeline.light_search import LIGHT_REACH, find_light
+from godrays_jax.pipeline.light_seen import nearest_seen, seen_lights
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
+from godrays_jax.primitives.light_metadata import read_light_depth
 from godrays_jax.primitives.images import write_image
 
 
@@ -86,6 +89,7 @@ def run(args) -> int:
     effect = with_frame_camera(effect, args, args.buffers)
     frames, light_positions, in_front, targets, depths, others = [], [], [], [], [], []
     searched = {}  # frame index -> (the frame as read, whether from the target alone) for each light searched for
+    found = {}  # frame path -> (the light found, `LightSearch` or `SeenLight`, the frame as read)
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = with_light_view(read_buffers(buffers_path, **frame_reading(args)), light_views[index])
         effect = effect_for_frame("fit", effect, frame, buffers_path)
@@ -97,7 +101,20 @@ def run(args) -> int:
         given, depth, beside = _frame_lights(args, lights[index] if lights else None, buffers_path)
         (light, front) = first_light(given, frame, target, buffers_path, fit_light=args.fit_light, space=args.space)
         if given == LIGHT_AUTO or args.fit_light:
-            searched[index] = (frame, given == LIGHT_AUTO)
+            in_view, start = _lights_in_view(frame, effect, fov, buffers_path), None if given == LIGHT_AUTO else light
+            seen = in_view[0] if start is None and in_view else None
+            if start is not None:  # the light given, where one is in view near it
+                seen = nearest_seen(in_view, start, LIGHT_REACH * max(frame.height, frame.width))
+            if seen is None:
+                searched[index] = (frame, given == LIGHT_AUTO)
+            else:  # its own pixels place it: no search, no fits around it
+                light, front = tuple(float(v) for v in seen.light_xy), True
+                if math.isfinite(seen.depth) and not _light_depth_given(args, buffers_path):
+                    depth = seen.depth
+                others = [other for other in in_view if other is not seen]
+                for line in seen_lines(buffers_path, seen, others, given_xy=start, depth=depth):
+                    _say(line)
+                found[buffers_path] = (seen, frame)
         try:
             frame = ready_frame(effect, frame, light, buffers_path)
         except ValueError as error:
@@ -141,7 +158,6 @@ def run(args) -> int:
         effect, start_names, starts = room, [], []
         _say("the frames are read as closed beyond their edges (a room, its windows): the fit starts from thin slabs "
              "and a medium ending at the farthest wall, on the other fields of the start given, and races no other")
-    found = {}
     for index, (frame, auto) in searched.items():
         path = pairs[index][0]
         _say(f"finding the light of {path} ({'from the target' if auto else 'refining its light'})")
@@ -254,6 +270,21 @@ def _frame_lights(args, given, path: str) -> tuple:
         raise CommandError(f"--light-tint: the first light's tint must be above 0 in every channel, got {tint}")
     beside = [dataclasses.replace(light, tint=np.asarray(light.tint / first_tint, np.float32)) for light in beside]
     return first, depth, beside
+
+
+def _lights_in_view(frame, effect, fov, path: str) -> list:
+    """The lights in view of `frame` (`light_seen.seen_lights`), their distances along rays from the frame's field
+    of view (or the effect's) where its depth is planar."""
+    fov_x_deg = fov if fov is not None else getattr(effect, "fov_x_deg", None)
+    try:
+        return seen_lights(frame, fov_x_deg=None if fov_x_deg is None else float(fov_x_deg))
+    except ValueError as error:
+        raise CommandError(f"finding the light of {path}: {error}; --fov-x-deg gives it") from None
+
+
+def _light_depth_given(args, path: str) -> bool:
+    """Whether the first light's distance is given, by `--light-depth` or the frame's header."""
+    return (args.light_depth or [None])[0] is not None or read_light_depth(path) is not None
 
 
 def _say(line: str) -> None:

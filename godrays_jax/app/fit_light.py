@@ -2,6 +2,7 @@
 the command prints about it, and the file beside the parameters that `apply --params` reads (`found_lights_path`)."""
 
 import json
+import math
 import os
 
 import numpy as np
@@ -9,6 +10,7 @@ import numpy as np
 from godrays_jax.app.options import LIGHT_AUTO, CommandError, resolve_light
 from godrays_jax.pipeline.light_profile import LightProfile
 from godrays_jax.pipeline.light_search import LightSearch, halo_starts
+from godrays_jax.pipeline.light_seen import SeenLight
 from godrays_jax.primitives.buffers import Buffers
 from godrays_jax.primitives.files import atomic_write
 
@@ -49,6 +51,34 @@ def light_lines(path: str, found: LightSearch, *, auto: bool, start_names: list[
     ]
 
 
+def seen_lines(path: str, seen: SeenLight, others: list[SeenLight], *, given_xy=None, depth: float) -> list[str]:
+    """The command's lines about a light placed by its own pixels in view (`light_seen.seen_lights`): where, how
+    (`given_xy`: the light it refines, else None), how well, the distance drawn (`depth`), and the other lights in
+    view with the options that draw them all."""
+    x, y = seen.light_xy
+    shape = "a few pixels across" if math.isnan(seen.radius) else f"a disc of radius {seen.radius:.3g} px"
+    how = "partly hidden: the centre of its edge's unhidden arc" if seen.hidden else "its pixels' centroid"
+    where = "in the sky" if math.isinf(seen.depth) else f"its pixels at a distance of {seen.depth:.4g}"
+    if depth != seen.depth:
+        where += f" (drawn at the distance given, {depth:.4g})"
+    moved = "" if given_xy is None else f", {np.linalg.norm(seen.light_xy - np.asarray(given_xy)):.3g} px from {_pair(given_xy)}"
+    error = seen.standard_error
+    lines = [
+        f"light of {path}: {x:.6g},{y:.6g} px, in view ({shape}, {how}), {where}{moved}",
+        (
+            f"  standard error {error[0]:.3g} px in x, {error[1]:.3g} px in y (its edge about a circle)"
+            if np.all(np.isfinite(error))
+            else "  standard error not measured (no circle fits its edge)"
+        ),
+    ]
+    if others:
+        every = [seen, *others]
+        positions = ";".join(_pair(light.light_xy) for light in every)
+        depths = ";".join("inf" if math.isinf(light.depth) else f"{light.depth:.4g}" for light in every)
+        lines.append(f"  {len(others)} more in view; to draw them all: --light '{positions}' --light-depth '{depths}'")
+    return lines
+
+
 def tried_line(xy, loss: float) -> str:
     """The command's line about one fit of `light_profile.profile_light`: the light tried and the loss reached."""
     return f"  a fit with the light at {_pair(xy)} px: loss {loss:.6g}"
@@ -63,7 +93,7 @@ def _pair(xy) -> str:
     return f"{xy[0]:.6g},{xy[1]:.6g}"
 
 
-def found_lights_text(found: dict[str, tuple[LightSearch, Buffers]], tints=None) -> str:
+def found_lights_text(found: dict[str, tuple[LightSearch | SeenLight, Buffers]], tints=None) -> str:
     """The file of the lights found (`options.found_lights_path`): for each frame (by file name, as `apply` finds
     it) the light in pixels, the frame's size and the light's standard error; and the fitted tints of the lights
     beside the first (`tints`, `(K, 3)`, over the first's), which `apply --params` takes; as JSON."""

@@ -155,3 +155,30 @@ def test_fit_light_auto_places_a_light_in_view_by_its_pixels_without_a_search(tm
     assert "in view" in line and "px from 45,20" in line, line
     (entry,) = json.loads((tmp_path / "params.light.json").read_text())["lights"]
     assert np.linalg.norm(np.asarray(entry["light_px"]) - centre) < 0.05, entry
+
+
+def test_fit_light_auto_draws_a_lamp_in_view_at_its_distance_and_apply_params_takes_it(tmp_path, capsys):
+    centre, distance = (70.4, 30.3), 8.0
+    share = _coverage(centre, 2.5)
+    depth = np.where(share > 0.0, distance, 30.0)
+    buffers = _frame(0.05 * (1.0 - share) + 900.0 * share, depth)
+    frame, target = tmp_path / "frame.exr", tmp_path / "target.exr"
+    gr.write_buffers(frame, buffers)  # no light and no distance in its header
+    effect = gr.replace_fields(gr.preset("xna_crepuscular"), {"tint": (0.9, 0.7, 0.45)})
+    gr.write_image(target, np.asarray(effect(buffers, jnp.asarray(centre, jnp.float32), light_depth=distance)))
+    params = tmp_path / "params.json"
+    assert main(["fit", str(frame), str(target), "-o", str(params), "--light", "auto", *FIT]) == 0
+    (line,) = [line for line in capsys.readouterr().out.splitlines() if line.startswith("light of")]
+    assert "its pixels at a distance of" in line and "drawn at" not in line, line
+    (entry,) = json.loads((tmp_path / "params.light.json").read_text())["lights"]
+    assert abs(entry["light_depth"] - distance) < 0.1 and np.linalg.norm(np.subtract(entry["light_px"], centre)) < 0.05
+
+    output = tmp_path / "applied.exr"
+    assert main(["apply", str(frame), "--params", str(params), "-o", str(output)]) == 0
+    assert f"at a distance of {entry['light_depth']:.6g} from" in capsys.readouterr().out
+    drawn = gr.load_effect(params)(
+        gr.read_buffers(frame), jnp.asarray(entry["light_px"], jnp.float32), light_depth=entry["light_depth"]
+    )
+    np.testing.assert_allclose(np.asarray(gr.read_image(output))[..., :3], np.asarray(drawn)[..., :3], atol=2e-3)
+    elsewhere = gr.load_effect(params)(gr.read_buffers(frame), jnp.asarray(entry["light_px"], jnp.float32))
+    assert np.max(np.abs(np.asarray(elsewhere) - np.asarray(drawn))) > 0.01  # the distance matters to this frame

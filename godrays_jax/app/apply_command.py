@@ -35,8 +35,11 @@ def run(args) -> int:
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
     buffers = with_light_view(buffers, args.light_view)
     effect = with_frame_camera(effect, args, args.buffers)
-    light = light_of_params(None, args.params, args.buffers, buffers) if args.light is None else None
+    found = light_of_params(args.params, args.buffers, buffers) if args.light is None else None
+    light, found_depth = found or (None, None)
     lights, depths, tints = args.light, args.light_depth, args.light_tint
+    if depths is None and found_depth is not None:  # the distance `fit` drew it at (a lamp in view: its pixels')
+        depths = [found_depth]
     if light is None:  # else the light `fit` found, alone
         lights, depths, tints = with_stored_lights(args.buffers, lights, depths, tints)
         tints = tints_of_params(args.light_tint, args.params, lights) or tints

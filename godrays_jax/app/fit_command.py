@@ -89,7 +89,7 @@ def run(args) -> int:
     effect = with_frame_camera(effect, args, args.buffers)
     frames, light_positions, in_front, targets, depths, others = [], [], [], [], [], []
     searched = {}  # frame index -> (the frame as read, whether from the target alone) for each light searched for
-    found = {}  # frame path -> (the light found, `LightSearch` or `SeenLight`, the frame as read)
+    found = {}  # frame path -> (the light found, `LightSearch` or `SeenLight`; the frame as read; its distance)
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = with_light_view(read_buffers(buffers_path, **frame_reading(args)), light_views[index])
         effect = effect_for_frame("fit", effect, frame, buffers_path)
@@ -114,7 +114,7 @@ def run(args) -> int:
                 others = [other for other in in_view if other is not seen]
                 for line in seen_lines(buffers_path, seen, others, given_xy=start, depth=depth):
                     _say(line)
-                found[buffers_path] = (seen, frame)
+                found[buffers_path] = (seen, frame, depth)
         try:
             frame = ready_frame(effect, frame, light, buffers_path)
         except ValueError as error:
@@ -168,7 +168,7 @@ def run(args) -> int:
         )  # fmt: skip
         for line in light_lines(path, search, auto=auto, start_names=start_names):
             _say(line)
-        found[path] = (search, frame)
+        found[path] = (search, frame, depths[index])
         light_positions[index] = jnp.asarray(search.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(search.light_xy), path)
     fit_options = {
@@ -195,7 +195,7 @@ def run(args) -> int:
         side = max(frame.height, frame.width)
         profile = profile_light(fitted_loss, np.asarray(light_positions[index]), step=PROFILE_STEP * side)
         _say(profile_line(profile))
-        found[path] = (dataclasses.replace(found[path][0], light_xy=profile.light_xy), frame)
+        found[path] = (dataclasses.replace(found[path][0], light_xy=profile.light_xy), frame, depths[index])
         light_positions[index] = jnp.asarray(profile.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(profile.light_xy), path)
     phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes

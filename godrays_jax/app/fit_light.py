@@ -93,18 +93,20 @@ def _pair(xy) -> str:
     return f"{xy[0]:.6g},{xy[1]:.6g}"
 
 
-def found_lights_text(found: dict[str, tuple[LightSearch | SeenLight, Buffers]], tints=None) -> str:
+def found_lights_text(found: dict[str, tuple[LightSearch | SeenLight, Buffers, float]], tints=None) -> str:
     """The file of the lights found (`options.found_lights_path`): for each frame (by file name, as `apply` finds
-    it) the light in pixels, the frame's size and the light's standard error; and the fitted tints of the lights
-    beside the first (`tints`, `(K, 3)`, over the first's), which `apply --params` takes; as JSON."""
+    it) the light in pixels, the frame's size, the light's standard error and, for a light at a finite distance,
+    the distance the fit drew it at (a lamp in view: its pixels'); and the fitted tints of the lights beside the
+    first (`tints`, `(K, 3)`, over the first's), which `apply --params` takes; as JSON."""
     lights = [
         {
             "frame": os.path.basename(path),
             "size": [frame.width, frame.height],
-            "light_px": [float(v) for v in search.light_xy],
-            "standard_error_px": [float(v) if np.isfinite(v) else None for v in search.standard_error],
+            "light_px": [float(v) for v in light.light_xy],
+            "standard_error_px": [float(v) if np.isfinite(v) else None for v in light.standard_error],
+            **({"light_depth": float(depth)} if math.isfinite(depth) else {}),
         }
-        for path, (search, frame) in found.items()
+        for path, (light, frame, depth) in found.items()
     ]
     fitted = {} if tints is None else {"light_tints": [[float(v) for v in tint] for tint in tints]}
     return json.dumps({"lights": lights, **fitted}, indent=2) + "\n"

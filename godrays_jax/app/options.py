@@ -183,23 +183,24 @@ def found_lights_path(params_path: str) -> str:
 
 
 def light_of_params(
-    light: tuple[tuple[float, float], bool] | None, params_path: str | None, frame_path: str, buffers: Buffers
-) -> tuple[tuple[float, float], bool] | None:
-    """`light` (`--light`) if given; else the light `fit` found for this frame (by its file name) beside the
-    parameters `params_path` (`found_lights_path`), its position scaled to the frame's size and said on stdout;
-    else None (the frame's header then, `resolve_light`)."""
-    if light is not None or params_path is None or not os.path.exists(path := found_lights_path(params_path)):
-        return light
+    params_path: str | None, frame_path: str, buffers: Buffers
+) -> tuple[tuple[tuple[float, float], bool], float | None] | None:
+    """The light `fit` found for this frame (by its file name) beside the parameters `params_path`
+    (`found_lights_path`), its position scaled to the frame's size, and its distance where the file gives one
+    (else None), said on stdout; None where there is no such light (the frame's header then, `resolve_light`)."""
+    if params_path is None or not os.path.exists(path := found_lights_path(params_path)):
+        return None
     try:
         found = _found_light(path, os.path.basename(frame_path))
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise CommandError(f"{path} is not the lights `fit` writes: {error_line(error)}") from None
     if found is None:
         return None
-    (x, y), (width, height) = found
+    (x, y), (width, height), depth = found
     position = tuple(float(v) for v in check_light((x * buffers.width / width, y * buffers.height / height)))
-    print(f"light {position[0]:.6g},{position[1]:.6g} from {path} (found by fit)", flush=True)
-    return position, True
+    at = "" if depth is None else f" at a distance of {depth:.6g}"
+    print(f"light {position[0]:.6g},{position[1]:.6g}{at} from {path} (found by fit)", flush=True)
+    return (position, True), depth
 
 
 def tints_text(tints) -> str:
@@ -229,9 +230,10 @@ def tints_of_params(tints: list | None, params_path: str | None, lights: list | 
     return [(1.0, 1.0, 1.0), *fitted]
 
 
-def _found_light(path: str, frame_name: str) -> tuple[tuple[float, float], tuple[int, int]] | None:
-    """The position and frame size of the light `fit` found for the frame named `frame_name`, from the file at
-    `path`; None when it holds none for that frame."""
+def _found_light(path: str, frame_name: str) -> tuple[tuple[float, float], tuple[int, int], float | None] | None:
+    """The position, frame size and distance (None where the file gives none: the header's or `inf`) of the light
+    `fit` found for the frame named `frame_name`, from the file at `path`; None when it holds none for that
+    frame."""
     with open(path, "rb") as stream:
         entries = parse_json_object(stream.read(MAX_EFFECT_FILE_BYTES + 1))["lights"]
     entry = next((entry for entry in entries if entry["frame"] == frame_name), None)
@@ -240,7 +242,10 @@ def _found_light(path: str, frame_name: str) -> tuple[tuple[float, float], tuple
     (x, y), (width, height) = (float(v) for v in entry["light_px"]), (int(v) for v in entry["size"])
     if not (math.isfinite(x) and math.isfinite(y) and width > 0 and height > 0):
         raise ValueError(f"the light of {frame_name} must be finite on a frame of positive size, got {entry}")
-    return (x, y), (width, height)
+    depth = entry.get("light_depth")
+    if depth is not None and not (isinstance(depth, (int, float)) and math.isfinite(depth) and depth > 0):
+        raise ValueError(f"the light_depth of {frame_name} must be a number > 0, got {depth!r}")
+    return (x, y), (width, height), None if depth is None else float(depth)
 
 
 def parse_light_depth(text: str) -> float:

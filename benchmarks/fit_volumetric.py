@@ -1,6 +1,6 @@
 """`VolumetricFog` against the path-traced references, through the command line with its defaults.
 
-    python benchmarks/fit_volumetric.py [SCENE ...] [--report DIR] [--jitter K]
+    python benchmarks/fit_volumetric.py [SCENE ...] [--report DIR] [--jitter K] [--light-auto]
 
 Per scene (`benchmarks/references/scenes.py`): `godrays-jax fit CLEAN FOG_A -o
 params.json` (the default model, `VolumetricFog` from `volumetric_haze`; light,
@@ -16,7 +16,8 @@ starts given as presets and prints the spread of the final losses. Rounding:
 standard normal noise of its own seed (a float32 rounding of the target, which
 no render or loss can tell apart), and prints the ratios' range and mean: how
 far a fit's end moves when nothing but rounding does, the yardstick for a change
-that moves a scene's ratio a little. Results go to `fit_volumetric.json` beside
+that moves a scene's ratio a little. `--light-auto` also fits with the light found by `fit --light auto`
+(none read from the headers) and prints its ratios and how far that light lies from the header's. Results go to `fit_volumetric.json` beside
 this script; `uptime` is printed first (the machine is shared: times are wall
 seconds under that load).
 """
@@ -51,20 +52,25 @@ JITTER = 2.0**-22
 """`--jitter`'s relative noise on the target: a float32 rounding (its spacing is 2^-23 to 2^-24 of a value)."""
 
 
-def fit_scene(scene, folder: Path, preset: str | None, report: Path | None, target: Path | None = None) -> dict:
-    """Fit `scene`'s fog A (or `target` in its place) and apply the fit: its ratios to the noise floor."""
+def fit_scene(
+    scene, folder: Path, preset: str | None, report: Path | None, target: Path | None = None, light_auto: bool = False
+) -> dict:
+    """Fit `scene`'s fog A (or `target` in its place) and apply the fit: its ratios to the noise floor.
+    `light_auto`: the light found by `fit --light auto` (which `apply --params` then reads), not given."""
     folder = folder if report is None else report  # the report's folder also keeps the parameters and the frame
     params, output = folder / f"{scene.name}_{preset or 'default'}.json", folder / f"{scene.name}.exr"
     options = ["--preset", preset] if preset else []
     if report is not None:
         options += ["--report", str(report / f"fit_report_{scene.name}.png")]
     light = [] if scene.renderer == "mitsuba" else light_options(scene)  # Blender's headers lack the light
+    light = [] if light_auto else light
     # A scene whose shadows are cast from outside the frame ships the depth map seen from its light beside it.
     light_view = scene.clean.with_name(f"{scene.name}_light_view.exr")
     light += ["--light-view", str(light_view)] if light_view.exists() else []
     log = None if report is None else report / f"fit_{scene.name}.txt"  # what the command printed: steps, start
     target = scene.fog_a if target is None else target
-    seconds = _run("fit", str(scene.clean), str(target), "-o", str(params), *options, *light, log=log)
+    found = ["--light", "auto"] if light_auto else []
+    seconds = _run("fit", str(scene.clean), str(target), "-o", str(params), *options, *light, *found, log=log)
     seconds += _run("apply", str(scene.clean), "--params", str(params), "-o", str(output), *light)
     fogged = read_rgb(output)
     return {
@@ -82,6 +88,10 @@ def main() -> None:
         "--report", type=Path, help="write each fit's report PNG, printed lines, parameters and fogged frame here"
     )
     parser.add_argument("--jitter", type=int, default=0, help="also fit this many copies of fog A at rounding noise")
+    parser.add_argument(
+        "--light-auto", action="store_true",
+        help="also fit with the light found by fit --light auto (its ratios and the light's distance from the header's)",
+    )  # fmt: skip
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     scenes = [BY_NAME[name] for name in args.scenes] if args.scenes else list(SCENES)
@@ -100,6 +110,10 @@ def main() -> None:
                         for seed in range(1, args.jitter + 1)]  # fmt: skip
             for fog in ("a", "b") if jittered else ():
                 entry[f"ratio_fog_{fog}_jittered"] = [round(fit[f"ratio_fog_{fog}"], 4) for fit in jittered]
+            if args.light_auto:
+                auto = fit_scene(scene, Path(folder), None, None, light_auto=True)
+                entry.update({f"{key}_light_auto": value for key, value in auto.items()})
+                entry["light_auto_px_off"] = round(_light_off(scene, Path(folder)), 3)
             results[scene.name] = entry
             RESULTS.write_text(json.dumps(results, indent=1) + "\n")
             old = baseline.get(scene.name, {})
@@ -110,10 +124,20 @@ def main() -> None:
             if starts:
                 spread = (max([entry["ratio_fog_a"], *starts]) / min([entry["ratio_fog_a"], *starts]) - 1) * 100
                 print(f"  from {', '.join(args.starts)}: {', '.join(f'{s:.3f}' for s in starts)}; spread {spread:.1f} %")
+            if args.light_auto:
+                print(f"  --light auto: {entry['ratio_fog_a_light_auto']:.2f}, {entry['ratio_fog_b_light_auto']:.2f}, "
+                      f"the light {entry['light_auto_px_off']} px from the header's, "
+                      f"{entry['seconds_light_auto']} s", flush=True)  # fmt: skip
             if jittered:
                 ratios = [entry["ratio_fog_a"], *entry["ratio_fog_a_jittered"]]
                 print(f"  fog A and {len(jittered)} roundings of it: {min(ratios):.3f}-{max(ratios):.3f}, "
                       f"mean {np.mean(ratios):.3f}", flush=True)  # fmt: skip
+
+
+def _light_off(scene, folder: Path) -> float:
+    """How far, in pixels, the light `--light auto` found for `scene` lies from the one its header stores."""
+    found = json.loads((folder / f"{scene.name}_default.light.json").read_text())["lights"][0]["light_px"]
+    return float(np.linalg.norm(np.subtract(found, scene.light_px)))
 
 
 def _jittered(scene, seed: int, folder: Path) -> Path:

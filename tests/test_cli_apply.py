@@ -262,7 +262,7 @@ def test_fit_of_a_frame_of_two_lights_fits_under_both_and_refuses_what_draws_one
     assert not (tmp_path / "p.light.json").exists()  # a fit that fits no tint leaves none for apply to read
     for extra, message in (
         (["--light", "5.5,3;16,2", "--fit-light"], "--fit-light refines one light"),
-        (["--light", "auto", "--light-tint", "1;0.5"], "--light auto finds one light"),
+        (["--light", "auto", "--light-tint", "1;0.5"], "--light auto finds the lights"),
         (["--light", "5.5,3;16,2", "--light-depth", "inf;2;3"], "--light-depth gives 3 values for 2 lights"),
     ):
         output = tmp_path / "refused.json"

@@ -182,3 +182,36 @@ def test_fit_light_auto_draws_a_lamp_in_view_at_its_distance_and_apply_params_ta
     np.testing.assert_allclose(np.asarray(gr.read_image(output))[..., :3], np.asarray(drawn)[..., :3], atol=2e-3)
     elsewhere = gr.load_effect(params)(gr.read_buffers(frame), jnp.asarray(entry["light_px"], jnp.float32))
     assert np.max(np.abs(np.asarray(elsewhere) - np.asarray(drawn))) > 0.01  # the distance matters to this frame
+
+
+def test_fit_light_auto_draws_every_lamp_in_view_and_apply_params_draws_them_all(tmp_path, capsys):
+    lamps = [((40.6, 28.2), 3.0, 8.0, 1500.0), ((116.3, 61.7), 2.0, 14.0, 800.0)]
+    color, depth = np.full((HEIGHT, WIDTH), 0.05), np.full((HEIGHT, WIDTH), 30.0)
+    for centre, radius, distance, radiance in lamps:
+        share = _coverage(centre, radius)
+        color, depth = color * (1.0 - share) + radiance * share, np.where(share > 0.0, distance, depth)
+    buffers = _frame(color, depth)
+    frame, target = tmp_path / "frame.exr", tmp_path / "target.exr"
+    gr.write_buffers(frame, buffers)
+    effect = gr.replace_fields(gr.preset("xna_crepuscular"), {"tint": (0.9, 0.7, 0.45)})
+    drawn = [gr.Light(jnp.asarray(c, jnp.float32), depth=d, tint=(t, t, t)) for (c, _, d, _), t in zip(lamps, (1, 0.5))]
+    gr.write_image(target, np.asarray(gr.lit_by(effect, buffers, drawn)))
+    params = tmp_path / "params.json"
+    assert main(["fit", str(frame), str(target), "-o", str(params), "--light", "auto", *FIT]) == 0
+    out = capsys.readouterr().out
+    assert "1 more in view, drawn beside it (their tints fitted): 116.29" in out, out
+    stored = json.loads((tmp_path / "params.light.json").read_text())
+    (entry,), (tint,) = stored["lights"], stored["light_tints"]
+    (other,) = entry["beside"]
+    assert abs(entry["light_depth"] - 8.0) < 0.1 and abs(other["light_depth"] - 14.0) < 0.1, entry
+    assert np.linalg.norm(np.subtract(other["light_px"], lamps[1][0])) < 0.05, other
+
+    output = tmp_path / "applied.exr"
+    assert main(["apply", str(frame), "--params", str(params), "-o", str(output)]) == 0
+    assert "lights 40.6" in capsys.readouterr().out
+    lights = [
+        gr.Light(jnp.asarray(entry["light_px"], jnp.float32), depth=entry["light_depth"]),
+        gr.Light(jnp.asarray(other["light_px"], jnp.float32), depth=other["light_depth"], tint=tint),
+    ]
+    expected = gr.lit_by(gr.load_effect(params), gr.read_buffers(frame), lights)
+    np.testing.assert_allclose(np.asarray(gr.read_image(output))[..., :3], np.asarray(expected)[..., :3], atol=2e-3)

@@ -11,7 +11,7 @@ from godrays_jax.app.options import (
     effect_option,
     frame_for_command,
     frame_reading,
-    light_of_params,
+    lights_of_params,
     resolve_light_depth,
     split_lights,
     tints_of_params,
@@ -35,22 +35,23 @@ def run(args) -> int:
     buffers, frame_file = read_frame(args.buffers, **frame_reading(args))
     buffers = with_light_view(buffers, args.light_view)
     effect = with_frame_camera(effect, args, args.buffers)
-    found = light_of_params(args.params, args.buffers, buffers) if args.light is None else None
-    light, found_depth = found or (None, None)
+    found = lights_of_params(args.params, args.buffers, buffers) if args.light is None else None
     lights, depths, tints = args.light, args.light_depth, args.light_tint
-    if depths is None and found_depth is not None:  # the distance `fit` drew it at (a lamp in view: its pixels')
-        depths = [found_depth]
-    if light is None:  # else the light `fit` found, alone
+    if found is not None:  # the lights `fit` found, at the distances it drew them at
+        lights = found.lights
+        if depths is None:
+            depths = [resolve_light_depth(None, args.buffers) if depth is None else depth for depth in found.depths]
+    else:
         lights, depths, tints = with_stored_lights(args.buffers, lights, depths, tints)
-        tints = tints_of_params(args.light_tint, args.params, lights) or tints
-    if args.layer_only and args.light is None and lights:
-        raise CommandError(f"{args.buffers} stores {len(lights)} lights (godrays:lights) and --layer-only draws one: "
+    tints = tints_of_params(args.light_tint, args.params, lights) or tints
+    if args.layer_only and args.light is None and lights and len(lights) > 1:
+        where = "has {} lights found by fit" if found is not None else "stores {} lights (godrays:lights)"
+        raise CommandError(f"{args.buffers} {where.format(len(lights))} and --layer-only draws one: "
                            "pass --light X,Y to choose it")  # fmt: skip
     first, light_depth, light_tint, beside = split_lights(
         lights, depths, tints, lambda: resolve_light_depth(None, args.buffers), layer_only=args.layer_only
     )
-    light = light if first is None else first
-    effect, buffers, light_xy, in_front = frame_for_command("apply", effect, buffers, args.buffers, light)
+    effect, buffers, light_xy, in_front = frame_for_command("apply", effect, buffers, args.buffers, first)
     several = bool(beside) or light_tint is not None
     # The program `batch` runs, on a group of one frame, stored traced: a later `apply` neither traces nor compiles it.
     apply = frames_function(

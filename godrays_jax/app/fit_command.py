@@ -43,6 +43,7 @@ from godrays_jax.app.options import (
     with_stored_lights,
 )
 from godrays_jax.effects.fields import field_metadata, field_value
+from godrays_jax.effects.lights import Light
 from godrays_jax.effects.presets import preset
 from godrays_jax.effects.serialization import effect_to_dict, save_effect
 from godrays_jax.pipeline.batch import ready_frame
@@ -89,7 +90,9 @@ def run(args) -> int:
     effect = with_frame_camera(effect, args, args.buffers)
     frames, light_positions, in_front, targets, depths, others = [], [], [], [], [], []
     searched = {}  # frame index -> (the frame as read, whether from the target alone) for each light searched for
-    found = {}  # frame path -> (the light found, `LightSearch` or `SeenLight`; the frame as read; its distance)
+    # frame path -> (the light found, `LightSearch` or `SeenLight`; the frame as read; its distance; the lights in
+    # view drawn beside it)
+    found = {}
     for index, (buffers_path, target_path) in enumerate(pairs):
         frame = with_light_view(read_buffers(buffers_path, **frame_reading(args)), light_views[index])
         effect = effect_for_frame("fit", effect, frame, buffers_path)
@@ -109,12 +112,14 @@ def run(args) -> int:
                 searched[index] = (frame, given == LIGHT_AUTO)
             else:  # its own pixels place it: no search, no fits around it
                 light, front = tuple(float(v) for v in seen.light_xy), True
-                if math.isfinite(seen.depth) and not _light_depth_given(args, buffers_path):
+                if math.isfinite(seen.depth) and not _light_depth_given(args, buffers_path, header=start is not None):
                     depth = seen.depth
-                others = [other for other in in_view if other is not seen]
-                for line in seen_lines(buffers_path, seen, others, given_xy=start, depth=depth):
+                also = [other for other in in_view if other is not seen]
+                if start is None:  # `--light auto`: every light in view drawn, the others' tints fitted
+                    beside = [Light(np.asarray(other.light_xy, np.float32), depth=other.depth) for other in also]
+                for line in seen_lines(buffers_path, seen, also, given_xy=start, depth=depth):
                     _say(line)
-                found[buffers_path] = (seen, frame, depth)
+                found[buffers_path] = (seen, frame, depth, also if start is None else [])
         try:
             frame = ready_frame(effect, frame, light, buffers_path)
         except ValueError as error:
@@ -127,6 +132,11 @@ def run(args) -> int:
         depths.append(depth)
         others.append(beside)
         targets.append(target)
+    if len({len(beside) for beside in others}) > 1 and LIGHT_AUTO in lights:
+        # One tint a light beside the first, shared by every frame: frames with as many lights in view.
+        _say("the frames show different numbers of lights in view: each is drawn with its brightest alone")
+        others = [[] for _ in others]
+        found = {path: (*entry[:3], []) for path, entry in found.items()}
     fixed = tuple(name for name in (args.fixed or "").split(",") if name)
     fit_tints = LIGHT_TINTS not in fixed  # the tints of the lights beside the first: not a field of the effect
     if fit_tints and any(others):  # written beside the parameters, for `apply --params`
@@ -168,7 +178,7 @@ def run(args) -> int:
         )  # fmt: skip
         for line in light_lines(path, search, auto=auto, start_names=start_names):
             _say(line)
-        found[path] = (search, frame, depths[index])
+        found[path] = (search, frame, depths[index], [])
         light_positions[index] = jnp.asarray(search.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(search.light_xy), path)
     fit_options = {
@@ -195,7 +205,7 @@ def run(args) -> int:
         side = max(frame.height, frame.width)
         profile = profile_light(fitted_loss, np.asarray(light_positions[index]), step=PROFILE_STEP * side)
         _say(profile_line(profile))
-        found[path] = (dataclasses.replace(found[path][0], light_xy=profile.light_xy), frame, depths[index])
+        found[path] = (dataclasses.replace(found[path][0], light_xy=profile.light_xy), frame, depths[index], [])
         light_positions[index] = jnp.asarray(profile.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(profile.light_xy), path)
     phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes
@@ -259,7 +269,7 @@ def _frame_lights(args, given, path: str) -> tuple:
     `light_color` is the first light's), from `--light`, `--light-depth`, `--light-tint` or the frame's header."""
     if given == LIGHT_AUTO:
         if args.light_tint is not None or (args.light_depth or [0])[1:]:
-            raise CommandError("--light auto finds one light: give --light-depth once and no --light-tint")
+            raise CommandError("--light auto finds the lights: give --light-depth once (the first's) and no --light-tint")
         return given, resolve_light_depth((args.light_depth or [None])[0], path), []
     lights, depths, tints = with_stored_lights(path, given, args.light_depth, args.light_tint)
     first, depth, tint, beside = split_lights(lights, depths, tints, lambda: resolve_light_depth(None, path))
@@ -282,9 +292,11 @@ def _lights_in_view(frame, effect, fov, path: str) -> list:
         raise CommandError(f"finding the light of {path}: {error}; --fov-x-deg gives it") from None
 
 
-def _light_depth_given(args, path: str) -> bool:
-    """Whether the first light's distance is given, by `--light-depth` or the frame's header."""
-    return (args.light_depth or [None])[0] is not None or read_light_depth(path) is not None
+def _light_depth_given(args, path: str, *, header: bool) -> bool:
+    """Whether the first light's distance is given: by `--light-depth`, or (`header`: the light refined is the
+    header's or `--light`'s, `--fit-light`) by the frame's header. `--light auto` reads a lamp in view's from its
+    pixels before the header's, whose position it does not read either."""
+    return (args.light_depth or [None])[0] is not None or (header and read_light_depth(path) is not None)
 
 
 def _say(line: str) -> None:

@@ -71,12 +71,19 @@ def seen_lines(path: str, seen: SeenLight, others: list[SeenLight], *, given_xy=
             else "  standard error not measured (no circle fits its edge)"
         ),
     ]
-    if others:
+    if others and given_xy is None:
+        listed = "; ".join(_pair(light.light_xy) + _distance(light.depth) for light in others)
+        lines.append(f"  {len(others)} more in view, drawn beside it (their tints fitted): {listed}")
+    elif others:
         every = [seen, *others]
         positions = ";".join(_pair(light.light_xy) for light in every)
         depths = ";".join("inf" if math.isinf(light.depth) else f"{light.depth:.4g}" for light in every)
         lines.append(f"  {len(others)} more in view; to draw them all: --light '{positions}' --light-depth '{depths}'")
     return lines
+
+
+def _distance(depth: float) -> str:
+    return " in the sky" if math.isinf(depth) else f" at a distance of {depth:.4g}"
 
 
 def tried_line(xy, loss: float) -> str:
@@ -93,23 +100,35 @@ def _pair(xy) -> str:
     return f"{xy[0]:.6g},{xy[1]:.6g}"
 
 
-def found_lights_text(found: dict[str, tuple[LightSearch | SeenLight, Buffers, float]], tints=None) -> str:
+def found_lights_text(
+    found: dict[str, tuple[LightSearch | SeenLight, Buffers, float, list[SeenLight]]], tints=None
+) -> str:
     """The file of the lights found (`options.found_lights_path`): for each frame (by file name, as `apply` finds
-    it) the light in pixels, the frame's size, the light's standard error and, for a light at a finite distance,
-    the distance the fit drew it at (a lamp in view: its pixels'); and the fitted tints of the lights beside the
-    first (`tints`, `(K, 3)`, over the first's), which `apply --params` takes; as JSON."""
+    it) the light in pixels, the frame's size, the light's standard error, the distance the fit drew it at
+    (`null`: infinite, the sun) and the lights in view drawn beside it (`"beside"`: each position and distance);
+    and the fitted tints of the lights beside the first (`tints`, `(K, 3)`, over the first's), which `apply
+    --params` takes; as JSON."""
     lights = [
         {
             "frame": os.path.basename(path),
             "size": [frame.width, frame.height],
             "light_px": [float(v) for v in light.light_xy],
             "standard_error_px": [float(v) if np.isfinite(v) else None for v in light.standard_error],
-            **({"light_depth": float(depth)} if math.isfinite(depth) else {}),
-        }
-        for path, (light, frame, depth) in found.items()
+            "light_depth": _depth_value(depth),
+            **({"beside": [
+                {"light_px": [float(v) for v in other.light_xy], "light_depth": _depth_value(other.depth)}
+                for other in beside
+            ]} if beside else {}),
+        }  # fmt: skip
+        for path, (light, frame, depth, beside) in found.items()
     ]
     fitted = {} if tints is None else {"light_tints": [[float(v) for v in tint] for tint in tints]}
     return json.dumps({"lights": lights, **fitted}, indent=2) + "\n"
+
+
+def _depth_value(depth: float) -> float | None:
+    """A distance as the file holds it: `null` for infinity, which JSON has no number for."""
+    return float(depth) if math.isfinite(depth) else None
 
 
 def write_text(path: str, text: str) -> None:

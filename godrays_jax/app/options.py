@@ -182,25 +182,40 @@ def found_lights_path(params_path: str) -> str:
     return f"{root}.light{extension or '.json'}"
 
 
-def light_of_params(
-    params_path: str | None, frame_path: str, buffers: Buffers
-) -> tuple[tuple[tuple[float, float], bool], float | None] | None:
-    """The light `fit` found for this frame (by its file name) beside the parameters `params_path`
-    (`found_lights_path`), its position scaled to the frame's size, and its distance where the file gives one
-    (else None), said on stdout; None where there is no such light (the frame's header then, `resolve_light`)."""
+@dataclasses.dataclass(frozen=True)
+class FoundLights:
+    """The lights `fit --light auto` / `--fit-light` found for a frame (`lights_of_params`): positions in the
+    frame's pixels, each in front of the camera (`parse_lights`' pairs), the first the light found and the rest the
+    lights in view drawn beside it; each one's distance (None where the file does not say: the header's, else
+    `inf`)."""
+
+    lights: list[tuple[tuple[float, float], bool]]
+    depths: list[float | None]
+
+
+def lights_of_params(params_path: str | None, frame_path: str, buffers: Buffers) -> FoundLights | None:
+    """The lights `fit` found for this frame (by its file name) beside the parameters `params_path`
+    (`found_lights_path`), positions scaled to the frame's size, said on stdout; None where there are none (the
+    frame's header then, `resolve_light`)."""
     if params_path is None or not os.path.exists(path := found_lights_path(params_path)):
         return None
     try:
-        found = _found_light(path, os.path.basename(frame_path))
+        found = _found_lights(path, os.path.basename(frame_path))
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise CommandError(f"{path} is not the lights `fit` writes: {error_line(error)}") from None
     if found is None:
         return None
-    (x, y), (width, height), depth = found
-    position = tuple(float(v) for v in check_light((x * buffers.width / width, y * buffers.height / height)))
-    at = "" if depth is None else f" at a distance of {depth:.6g}"
-    print(f"light {position[0]:.6g},{position[1]:.6g}{at} from {path} (found by fit)", flush=True)
-    return (position, True), depth
+    positions, (width, height), depths = found
+    lights = [
+        (tuple(float(v) for v in check_light((x * buffers.width / width, y * buffers.height / height))), True)
+        for x, y in positions
+    ]
+    described = "; ".join(
+        f"{xy[0]:.6g},{xy[1]:.6g}" + ("" if depth is None else f" at a distance of {depth:.6g}")
+        for (xy, _), depth in zip(lights, depths)
+    )
+    print(f"light{'s' if len(lights) > 1 else ''} {described} from {path} (found by fit)", flush=True)
+    return FoundLights(lights, depths)
 
 
 def tints_text(tints) -> str:
@@ -230,22 +245,32 @@ def tints_of_params(tints: list | None, params_path: str | None, lights: list | 
     return [(1.0, 1.0, 1.0), *fitted]
 
 
-def _found_light(path: str, frame_name: str) -> tuple[tuple[float, float], tuple[int, int], float | None] | None:
-    """The position, frame size and distance (None where the file gives none: the header's or `inf`) of the light
-    `fit` found for the frame named `frame_name`, from the file at `path`; None when it holds none for that
-    frame."""
+def _found_lights(path: str, frame_name: str) -> tuple[list, tuple[int, int], list[float | None]] | None:
+    """The positions (the light found, then those beside it), frame size and distances (None where the file does
+    not say; `null` in it: infinite) of the lights `fit` found for the frame named `frame_name`, from the file at
+    `path`; None when it holds none for that frame."""
     with open(path, "rb") as stream:
         entries = parse_json_object(stream.read(MAX_EFFECT_FILE_BYTES + 1))["lights"]
     entry = next((entry for entry in entries if entry["frame"] == frame_name), None)
     if entry is None:
         return None
-    (x, y), (width, height) = (float(v) for v in entry["light_px"]), (int(v) for v in entry["size"])
-    if not (math.isfinite(x) and math.isfinite(y) and width > 0 and height > 0):
-        raise ValueError(f"the light of {frame_name} must be finite on a frame of positive size, got {entry}")
-    depth = entry.get("light_depth")
-    if depth is not None and not (isinstance(depth, (int, float)) and math.isfinite(depth) and depth > 0):
-        raise ValueError(f"the light_depth of {frame_name} must be a number > 0, got {depth!r}")
-    return (x, y), (width, height), None if depth is None else float(depth)
+    width, height = (int(v) for v in entry["size"])
+    if not (width > 0 and height > 0):
+        raise ValueError(f"the frame of {frame_name} must have a positive size, got {entry['size']}")
+    positions, depths = [], []
+    for light in [entry, *entry.get("beside", [])]:
+        x, y = (float(v) for v in light["light_px"])
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"the lights of {frame_name} must be finite, got {light['light_px']}")
+        positions.append((x, y))
+        if "light_depth" not in light:  # a file of an earlier fit: the header's distance, else infinity
+            depths.append(None)
+            continue
+        depth = light["light_depth"]
+        if depth is not None and not (isinstance(depth, (int, float)) and math.isfinite(depth) and depth > 0):
+            raise ValueError(f"a light_depth of {frame_name} must be a number > 0 or null, got {depth!r}")
+        depths.append(math.inf if depth is None else float(depth))
+    return positions, (width, height), depths
 
 
 def parse_light_depth(text: str) -> float:

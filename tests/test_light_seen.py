@@ -215,3 +215,20 @@ def test_fit_light_auto_draws_every_lamp_in_view_and_apply_params_draws_them_all
     ]
     expected = gr.lit_by(gr.load_effect(params), gr.read_buffers(frame), lights)
     np.testing.assert_allclose(np.asarray(gr.read_image(output))[..., :3], np.asarray(expected)[..., :3], atol=2e-3)
+
+
+def test_fit_light_auto_lists_a_glint_far_fainter_than_the_light_without_drawing_it(tmp_path, capsys):
+    color, depth = _sky_with_sun((60.3, 20.6))
+    color[70, 100] = 2.0 * SUN  # a glint on the ground: one pixel, a small share of the sun's pixels
+    buffers = _frame(color, depth)
+    frame, target = tmp_path / "frame.exr", tmp_path / "target.exr"
+    gr.write_buffers(frame, buffers)
+    effect = gr.replace_fields(gr.preset("xna_crepuscular"), {"tint": (0.9, 0.7, 0.45)})
+    gr.write_image(target, np.asarray(effect(buffers, jnp.asarray((60.3, 20.6), jnp.float32))))
+    params = tmp_path / "params.json"
+    assert len(gr.seen_lights(buffers)) == 2
+    assert main(["fit", str(frame), str(target), "-o", str(params), "--light", "auto", *FIT]) == 0
+    out = capsys.readouterr().out
+    assert "1 fainter more in view; to draw them all: --light '60.29" in out and "drawn beside it" not in out, out
+    (entry,) = json.loads((tmp_path / "params.light.json").read_text())["lights"]
+    assert "beside" not in entry and "light_tints" not in json.loads((tmp_path / "params.light.json").read_text())

@@ -59,7 +59,7 @@ from godrays_jax.pipeline.frame_start import (
 )
 from godrays_jax.pipeline.light_profile import PROFILE_STEP, profile_light
 from godrays_jax.pipeline.light_search import LIGHT_REACH, find_light
-from godrays_jax.pipeline.light_seen import nearest_seen, seen_lights
+from godrays_jax.pipeline.light_seen import DRAWN_SHARE, nearest_seen, seen_lights
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
 from godrays_jax.primitives.frame_reading import read_buffers
@@ -115,11 +115,13 @@ def run(args) -> int:
                 if math.isfinite(seen.depth) and not _light_depth_given(args, buffers_path, header=start is not None):
                     depth = seen.depth
                 also = [other for other in in_view if other is not seen]
-                if start is None:  # `--light auto`: every light in view drawn, the others' tints fitted
-                    beside = [Light(np.asarray(other.light_xy, np.float32), depth=other.depth) for other in also]
-                for line in seen_lines(buffers_path, seen, also, given_xy=start, depth=depth):
+                drawn = [other for other in also if other.flux >= DRAWN_SHARE * seen.flux] if start is None else []
+                # `--light auto`: the bright lights in view drawn beside the first, their tints fitted
+                beside = [Light(np.asarray(other.light_xy, np.float32), depth=other.depth) for other in drawn]
+                for line in seen_lines(buffers_path, seen, drawn, [o for o in also if o not in drawn], given_xy=start,
+                                       depth=depth):  # fmt: skip
                     _say(line)
-                found[buffers_path] = (seen, frame, depth, also if start is None else [])
+                found[buffers_path] = (seen, frame, depth, drawn)
         try:
             frame = ready_frame(effect, frame, light, buffers_path)
         except ValueError as error:

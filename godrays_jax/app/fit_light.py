@@ -51,10 +51,12 @@ def light_lines(path: str, found: LightSearch, *, auto: bool, start_names: list[
     ]
 
 
-def seen_lines(path: str, seen: SeenLight, others: list[SeenLight], *, given_xy=None, depth: float) -> list[str]:
+def seen_lines(
+    path: str, seen: SeenLight, drawn: list[SeenLight], listed: list[SeenLight], *, given_xy=None, depth: float
+) -> list[str]:
     """The command's lines about a light placed by its own pixels in view (`light_seen.seen_lights`): where, how
-    (`given_xy`: the light it refines, else None), how well, the distance drawn (`depth`), and the other lights in
-    view with the options that draw them all."""
+    (`given_xy`: the light it refines, else None), how well, the distance drawn (`depth`), the other lights in
+    view `drawn` beside it, and those `listed` only, with the options that draw them all."""
     x, y = seen.light_xy
     shape = "a few pixels across" if math.isnan(seen.radius) else f"a disc of radius {seen.radius:.3g} px"
     how = "partly hidden: the centre of its edge's unhidden arc" if seen.hidden else "its pixels' centroid"
@@ -71,14 +73,15 @@ def seen_lines(path: str, seen: SeenLight, others: list[SeenLight], *, given_xy=
             else "  standard error not measured (no circle fits its edge)"
         ),
     ]
-    if others and given_xy is None:
-        listed = "; ".join(_pair(light.light_xy) + _distance(light.depth) for light in others)
-        lines.append(f"  {len(others)} more in view, drawn beside it (their tints fitted): {listed}")
-    elif others:
-        every = [seen, *others]
+    if drawn:
+        described = "; ".join(_pair(light.light_xy) + _distance(light.depth) for light in drawn)
+        lines.append(f"  {len(drawn)} more in view, drawn beside it (their tints fitted): {described}")
+    if listed:
+        every = [seen, *drawn, *listed]
         positions = ";".join(_pair(light.light_xy) for light in every)
         depths = ";".join("inf" if math.isinf(light.depth) else f"{light.depth:.4g}" for light in every)
-        lines.append(f"  {len(others)} more in view; to draw them all: --light '{positions}' --light-depth '{depths}'")
+        fainter = "fainter " if given_xy is None else ""
+        lines.append(f"  {len(listed)} {fainter}more in view; to draw them all: --light '{positions}' --light-depth '{depths}'")
     return lines
 
 

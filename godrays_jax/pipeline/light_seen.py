@@ -39,6 +39,11 @@ LEAST_EDGE_POINTS = 8
 """The fewest points on a light's edge that a circle is fitted to; a light of fewer, a few pixels across, is placed
 by the centroid of its pixels alone."""
 
+DRAWN_SHARE = 0.1
+"""`fit --light auto` draws a light in view beside the brightest where its `flux` is at least this share of the
+brightest's: each light drawn costs the fit a render, and a glint on a car or a wet street (a reflection as
+bright as the light, a few pixels across) is a small share of it."""
+
 NEARER = 0.98
 """A pixel beside a light whose depth is below this fraction of the light's (its pixels at half its peak or more,
 their 10th percentile: an edge pixel may hold what hides it) hides part of it (a slat, a branch, a lamp's

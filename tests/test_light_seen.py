@@ -232,3 +232,16 @@ def test_fit_light_auto_lists_a_glint_far_fainter_than_the_light_without_drawing
     assert "1 fainter more in view; to draw them all: --light '60.29" in out and "drawn beside it" not in out, out
     (entry,) = json.loads((tmp_path / "params.light.json").read_text())["lights"]
     assert "beside" not in entry and "light_tints" not in json.loads((tmp_path / "params.light.json").read_text())
+
+
+def test_of_many_glints_the_brightest_groups_are_read_the_sun_first():
+    shape = (2 * HEIGHT, 2 * WIDTH)  # the sun and the glints under 1 % of it
+    depth = np.where(np.arange(shape[0])[:, None] >= 120, 20.0, np.inf) * np.ones(shape)
+    share = _coverage((60.3, 20.6), 5.0, shape)
+    color = np.where(np.isfinite(depth), 0.05, SKY) * (1.0 - share) + SUN * share
+    rows = np.random.default_rng(0).integers(124, shape[0], 200)
+    columns = np.random.default_rng(1).integers(0, shape[1], 200)
+    color[rows, columns] = 0.5 * SUN  # sunlit water: a glint a pixel, each a light of its own
+    lights = gr.seen_lights(_frame(color, depth))
+    assert len(lights) == gr.pipeline.light_seen.MOST_GROUPS
+    assert np.linalg.norm(lights[0].light_xy - (60.3, 20.6)) < 0.03 and lights[0].pixels > 60

@@ -44,6 +44,10 @@ DRAWN_SHARE = 0.1
 brightest's: each light drawn costs the fit a render, and a glint on a car or a wet street (a reflection as
 bright as the light, a few pixels across) is a small share of it."""
 
+MOST_GROUPS = 32
+"""The most groups of bright pixels read, those of the largest sums: sunlit water or a wet street holds
+thousands of glints, and each group read costs a contour and a circle."""
+
 NEARER = 0.98
 """A pixel beside a light whose depth is below this fraction of the light's (its pixels at half its peak or more,
 their 10th percentile: an edge pixel may hold what hides it) hides part of it (a slat, a branch, a lamp's
@@ -103,17 +107,34 @@ def seen_lights(buffers: Buffers, *, fov_x_deg: float | None = None) -> list[See
     luminance = np.mean(np.asarray(buffers.color, np.float64)[..., :3], axis=-1)
     level = SEEN_CONTRAST * float(np.percentile(luminance, 99.0))
     groups, count = scipy.ndimage.label(luminance > max(level, 0.0), structure=np.ones((3, 3)))
+    if count == 0:
+        return []
+    fluxes = scipy.ndimage.sum_labels(luminance, groups, np.arange(1, count + 1))
+    brightest = np.argsort(-fluxes)[:MOST_GROUPS] + 1
     depth = None if buffers.depth is None else np.asarray(buffers.depth, np.float64)
     ray_depth = depth
     if depth is not None and buffers.depth_kind == "planar" and np.any(np.isfinite(depth[groups > 0])):
         ray_depth = np.asarray(buffers.ray_depth(fov_x_deg), np.float64)  # a lamp's distance, not its depth
-    lights = [_seen_light(luminance, depth, ray_depth, groups == index) for index in range(1, count + 1)]
+    boxes = scipy.ndimage.find_objects(groups)
+    lights = []
+    for index in brightest:
+        rows, columns = boxes[index - 1]
+        cut = rows.start == 0 or columns.start == 0 or rows.stop == groups.shape[0] or columns.stop == groups.shape[1]
+        # Two pixels around the group: its partly covered edge, and the contour's half-way points beyond it.
+        box = (slice(max(rows.start - 2, 0), rows.stop + 2), slice(max(columns.start - 2, 0), columns.stop + 2))
+        light = _seen_light(
+            luminance[box], None if depth is None else depth[box], None if depth is None else ray_depth[box],
+            groups[box] == index, cut=cut, corner=(box[1].start, box[0].start),
+        )  # fmt: skip
+        lights.append(light)
     return sorted([light for light in lights if light is not None], key=lambda light: -light.flux)
 
 
-def _seen_light(luminance: np.ndarray, depth, ray_depth, group: np.ndarray) -> SeenLight | None:
-    """One group of bright pixels read as a light, or None where it is not one (its edge not round); `depth` as
-    the frame stores it (which pixel is nearer), `ray_depth` along the camera's rays (the light's distance)."""
+def _seen_light(luminance: np.ndarray, depth, ray_depth, group: np.ndarray, *, cut: bool, corner) -> SeenLight | None:
+    """One group of bright pixels read as a light, or None where it is not one (its edge not round), from a crop
+    of the frame around it whose top left pixel is `corner` (x, y) in the frame; `cut`: whether it touches the
+    frame's edge. `depth` as the frame stores it (which pixel is nearer), `ray_depth` along the camera's rays (the
+    light's distance)."""
     peak = float(np.max(luminance[group]))
     around = scipy.ndimage.binary_dilation(group, np.ones((3, 3)))  # its edge's pixels partly covered as well
     share = np.where(around, np.clip(luminance / peak, 0.0, 1.0), 0.0)
@@ -122,7 +143,6 @@ def _seen_light(luminance: np.ndarray, depth, ray_depth, group: np.ndarray) -> S
     nearer = np.zeros(group.shape, bool)
     if depth is not None:
         nearer = around & (depth < NEARER * _quantile(depth[own], 0.1))
-    cut = bool(group[0].any() or group[-1].any() or group[:, 0].any() or group[:, -1].any())
     edge = _edge_points(share, nearer)
     hides = edge[:, 2].astype(bool)
     hidden = cut or bool(np.any(hides))
@@ -137,7 +157,7 @@ def _seen_light(luminance: np.ndarray, depth, ray_depth, group: np.ndarray) -> S
     centroid = np.asarray([np.sum(share * columns), np.sum(share * rows)]) / total
     centre, error, radius = (centroid, np.full(2, np.nan), math.nan) if circle is None else circle
     return SeenLight(
-        light_xy=centroid if not hidden else centre,
+        light_xy=(centroid if not hidden else centre) + np.asarray(corner, np.float64),
         standard_error=error,
         radius=radius,
         depth=light_depth,
@@ -154,7 +174,8 @@ def _quantile(values: np.ndarray, share: float) -> float:
 
 def _edge_points(share: np.ndarray, nearer: np.ndarray) -> np.ndarray:
     """`(N, 3)`: the points where `share` crosses a half (x, y in pixels) and, third, 1 where a pixel around the
-    point is `nearer` (the edge there is an occluder's) or the point lies on the frame's border, else 0."""
+    point is `nearer` (the edge there is an occluder's) or the point lies on the border (of a crop that the group
+    comes within two pixels of only at the frame's edge), else 0."""
     padded = np.pad(share, 1)  # a light cut by the frame's edge closes along it
     contours = skimage.measure.find_contours(padded, 0.5)
     if not contours:

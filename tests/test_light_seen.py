@@ -133,7 +133,7 @@ def _files(tmp_path, centre):
     return frame, target
 
 
-FIT = ["--preset", "xna_crepuscular", "--max-steps", "1", "--fixed",
+FIT = ["--preset", "xna_crepuscular", "--max-steps", "1", "--coarse-factor", "1", "--fixed",
        "flare_size,offscreen_fade,fov_x_deg,density,decay,weight,exposure,sun_size,threshold,num_samples"]  # fmt: skip
 
 
@@ -184,6 +184,7 @@ def test_fit_light_auto_draws_a_lamp_in_view_at_its_distance_and_apply_params_ta
     assert np.max(np.abs(np.asarray(elsewhere) - np.asarray(drawn))) > 0.01  # the distance matters to this frame
 
 
+@pytest.mark.slow
 def test_fit_light_auto_draws_every_lamp_in_view_and_apply_params_draws_them_all(tmp_path, capsys):
     lamps = [((40.6, 28.2), 3.0, 8.0, 1500.0), ((116.3, 61.7), 2.0, 14.0, 800.0)]
     color, depth = np.full((HEIGHT, WIDTH), 0.05), np.full((HEIGHT, WIDTH), 30.0)

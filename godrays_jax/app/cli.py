@@ -293,8 +293,9 @@ def _add_fit(subparsers) -> None:
         help="the light's pixel position, once per frame in order (',behind': behind the camera; several lights "
         "separated by ';', every one drawn and the fitted fields shared by all), or 'auto': found before the fit "
         "(once for every frame): every light in view by its own pixels (a sun's disc, a lamp's bulb, its distance "
-        "with it; the others' tints fitted), else one light from the frame and its target; default: each frame's godrays:lights or "
-        "godrays:light_px metadata; a light found is written beside -o (PARAMS.light.json) for apply --params",
+        "with it; the others' tints fitted), else one light from the frame and its target; default: each frame's "
+        "godrays:lights or godrays:light_px metadata; a light found is written beside -o (PARAMS.light.json) for "
+        "apply --params",
     )  # fmt: skip
     parser.add_argument("--light-view", action="append", metavar="EXR", help=f"{LIGHT_VIEW_HELP}; once per frame, in order")
     parser.add_argument(

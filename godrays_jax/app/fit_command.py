@@ -271,7 +271,9 @@ def _frame_lights(args, given, path: str) -> tuple:
     `light_color` is the first light's), from `--light`, `--light-depth`, `--light-tint` or the frame's header."""
     if given == LIGHT_AUTO:
         if args.light_tint is not None or (args.light_depth or [0])[1:]:
-            raise CommandError("--light auto finds the lights: give --light-depth once (the first's) and no --light-tint")
+            raise CommandError(
+                "--light auto finds the lights: give --light-depth once (the first's) and no --light-tint"
+            )
         return given, resolve_light_depth((args.light_depth or [None])[0], path), []
     lights, depths, tints = with_stored_lights(path, given, args.light_depth, args.light_tint)
     first, depth, tint, beside = split_lights(lights, depths, tints, lambda: resolve_light_depth(None, path))

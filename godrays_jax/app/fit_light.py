@@ -63,7 +63,9 @@ def seen_lines(
     where = "in the sky" if math.isinf(seen.depth) else f"its pixels at a distance of {seen.depth:.4g}"
     if depth != seen.depth:
         where += f" (drawn at the distance given, {depth:.4g})"
-    moved = "" if given_xy is None else f", {np.linalg.norm(seen.light_xy - np.asarray(given_xy)):.3g} px from {_pair(given_xy)}"
+    moved = ""
+    if given_xy is not None:
+        moved = f", {np.linalg.norm(seen.light_xy - np.asarray(given_xy)):.3g} px from {_pair(given_xy)}"
     error = seen.standard_error
     lines = [
         f"light of {path}: {x:.6g},{y:.6g} px, in view ({shape}, {how}), {where}{moved}",
@@ -81,7 +83,9 @@ def seen_lines(
         positions = ";".join(_pair(light.light_xy) for light in every)
         depths = ";".join("inf" if math.isinf(light.depth) else f"{light.depth:.4g}" for light in every)
         fainter = "fainter " if given_xy is None else ""
-        lines.append(f"  {len(listed)} {fainter}more in view; to draw them all: --light '{positions}' --light-depth '{depths}'")
+        lines.append(
+            f"  {len(listed)} {fainter}more in view; to draw them all: --light '{positions}' --light-depth '{depths}'"
+        )
     return lines
 
 

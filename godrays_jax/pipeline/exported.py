@@ -33,8 +33,10 @@ written to only means the program is not stored. The folder is kept under
 
 With JAX's persistent compilation cache on (the command line's), exporting a
 program clears JAX's in-memory caches (`jax.clear_caches`): the trace it no
-longer needs would otherwise stay beside the compile that follows, and what
-they held compiled is read back from the persistent cache when next called.
+longer needs would otherwise stay beside the compile that follows. The
+programs `call` runs are compiled ahead of their first call and held by this
+module, out of those caches' reach; what else they held compiled (the small
+programs around) is read back from the persistent cache when next called.
 
 A stored program is code the process runs, so the folder must be this
 user's alone (`primitives.files.private_folder`: created 0700, refused when
@@ -81,8 +83,8 @@ _SUFFIX = ".jaxexport"
 
 _directory: Path | None = None
 _programs: dict[str, Callable[..., Any] | None] = {}
-"""This process's programs by key, called with the arguments' arrays; None marks a program that cannot be stored
-(its plain call is used)."""
+"""This process's compiled programs by key, called with the arguments' arrays; None marks a program that cannot be
+stored (its plain call is used)."""
 
 
 def use_directory(directory: str | os.PathLike | None) -> None:
@@ -121,8 +123,10 @@ def call(name: str, function: Callable[..., Any], *args: Any, closed_over: Any =
     leaves, tree = jax.tree.flatten(dynamic)
     if key not in _programs:
         program = _read(name, key) or _exported(name, key, function, static, tree, leaves)
-        # Under `jit` a call dispatches like any compiled function; a bare `Exported.call` goes through Python.
-        _programs[key] = None if program is None else jax.jit(program.call)
+        # Compiled ahead of its call and held here, where the next export's `jax.clear_caches` cannot drop it: a
+        # program jitted lazily is compiled, or read back from the compilation cache, again after every export.
+        # It dispatches like any compiled function; a bare `Exported.call` goes through Python.
+        _programs[key] = None if program is None else jax.jit(program.call).lower(*leaves).compile()
     program = _programs[key]
     return function(*args) if program is None else program(*leaves)
 
@@ -235,7 +239,7 @@ def _exported(name, key, function, static, tree, leaves) -> jax.export.Exported 
     if jax.config.jax_enable_compilation_cache and jax.config.jax_compilation_cache_dir:
         # The program runs from its export from now on, but JAX's caches would keep its trace (the jaxpr and its
         # lowering) for the rest of the process, under the compile that comes next: a cold fit's peak
-        # (benchmarks/README.md, "The fit as users run it"). What they held compiled comes back from the cache.
+        # (benchmarks/README.md, "The fit as users run it"). The programs `call` holds stay compiled.
         jax.clear_caches()
     try:
         with atomic_write(_path(name, key), sync=False, mode=0o600) as temporary:

@@ -1,6 +1,6 @@
 """Where the race's Jacobian program comes from: its operations by the kernel line that traced them, and its compile.
 
-    python benchmarks/program_size.py [SCENE] [--fixed NAME,...] [--lines 25] [--compile] [--calls N]
+    python benchmarks/program_size.py [SCENE] [--fixed NAME,...] [--lines 25] [--compile] [--calls N] [--xla-defaults]
 
 The program that a cold `godrays-jax fit` spends most of its compiling on is the race's Jacobian
 (`fit_programs.residuals_and_jacobian`, benchmarks/README.md, "The fit as users run it"). XLA's time follows the
@@ -9,8 +9,10 @@ command does at its coarse resolution (`volumetric_haze`'s stand-in, `Effect.fit
 view, the fields in their bounds, the frames downsampled by `auto_coarse_factor`) and counts the StableHLO operations
 of the lowered program by where they were traced: by kernel file, and by the innermost line of this package with the
 two calls above it. `--fixed` leaves fields out (a stage's columns gone: `FitProblem.lane_groups`), `--compile`
-also compiles it (XLA's default options, as the command) and prints the seconds; `--calls N` compiles it too and
-prints the median of `N` calls of the compiled program after a first one.
+also compiles it (with the command's options, `exported.COMPILER_OPTIONS`) and prints the seconds; `--calls N`
+compiles it too and prints the median of `N` calls of the compiled program after a first one. `--xla-defaults` also
+compiles it with XLA's default options and times the two programs' calls in turn, and prints how far their
+results lie apart.
 
 Operations are a proxy: a line traced inside every stage's JVP counts once per stage, and XLA fuses elementwise
 operations into one kernel, while each gather stays one.
@@ -30,6 +32,7 @@ import jax.numpy as jnp
 
 import godrays_jax as gr
 from godrays_jax.app.options import auto_coarse_factor
+from godrays_jax.pipeline.exported import COMPILER_OPTIONS
 from godrays_jax.pipeline.fit_programs import residuals_and_jacobian
 from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds
 from godrays_jax.pipeline.reduced import downsample_frames
@@ -101,6 +104,7 @@ def main() -> None:
     parser.add_argument("--lines", type=int, default=25, help="how many call sites to print")
     parser.add_argument("--compile", action="store_true", help="also compile the program and print the seconds")
     parser.add_argument("--calls", type=int, default=0, help="compile it and time this many calls, print the median")
+    parser.add_argument("--xla-defaults", action="store_true", help="also compile it with XLA's defaults, compare")
     args = parser.parse_args()
     fixed = tuple(name for name in args.fixed.split(",") if name)
     lowered, arguments = lowered_jacobian(args.scene, fixed)
@@ -113,19 +117,29 @@ def main() -> None:
     print("\n| where traced (innermost first) | operations |\n|---|---|")
     for site, count in sites.most_common(args.lines):
         print(f"| {site} | {count} |")
-    if args.compile or args.calls > 0:
-        start = time.perf_counter()
-        compiled = lowered.compile()
-        print(f"\ncompiled in {time.perf_counter() - start:.1f} s")
+    if args.compile or args.calls > 0 or args.xla_defaults:
+        options = {"the command's options": COMPILER_OPTIONS, **({"XLA's defaults": None} if args.xla_defaults else {})}
+        compiled = {}
+        for name, option in options.items():
+            start = time.perf_counter()
+            compiled[name] = lowered.compile(compiler_options=option)
+            print(f"\ncompiled with {name} in {time.perf_counter() - start:.1f} s")
         if args.calls > 0:
+            seconds, results = {name: [] for name in compiled}, {}
             with jax.default_matmul_precision("highest"), ranges_guaranteed():
-                jax.block_until_ready(compiled(*arguments))
-                seconds = []
+                for name, program in compiled.items():
+                    results[name] = jax.block_until_ready(program(*arguments))
                 for _ in range(args.calls):
-                    start = time.perf_counter()
-                    jax.block_until_ready(compiled(*arguments))
-                    seconds.append(time.perf_counter() - start)
-            print(f"a call in {statistics.median(seconds):.3f} s (median of {args.calls})")
+                    for name, program in compiled.items():  # in turn: the machine's speed moves
+                        start = time.perf_counter()
+                        jax.block_until_ready(program(*arguments))
+                        seconds[name].append(time.perf_counter() - start)
+            for name in compiled:
+                print(f"a call with {name} in {statistics.median(seconds[name]):.3f} s (median of {args.calls})")
+            if len(results) == 2:
+                for label, ours, theirs in zip(("residuals", "Jacobian"), *results.values()):
+                    difference = float(jnp.max(jnp.abs(ours - theirs))) / float(jnp.max(jnp.abs(theirs)))
+                    print(f"{label}: largest difference {difference:.1e} of the largest value")
 
 
 if __name__ == "__main__":

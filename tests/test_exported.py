@@ -48,6 +48,32 @@ def test_a_stored_program_is_read_back_without_tracing(folder):
     assert len(_stored(folder, "scaled")) == 1
 
 
+def test_a_program_stays_compiled_through_the_next_programs_export(folder, monkeypatch):
+    """With the persistent compilation cache on, an export clears JAX's caches: a program `call` ran before is held
+    compiled (with `COMPILER_OPTIONS`), not compiled or read back again. Each program is compiled once."""
+    assert jax.config.jax_compilation_cache_dir  # the suite's (conftest.py)
+    compiles = []
+    compile_as_jax = jax.stages.Lowered.compile
+
+    def counted(self, **options):
+        compiles.append(options)
+        return compile_as_jax(self, **options)
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", counted)
+    x = jnp.arange(3.0)
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, x, 2.0), [0.0, 2.0, 4.0])
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, x, 3.0), [0.0, 3.0, 6.0])  # exported, caches cleared
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, x + 1, 2.0), [2.0, 4.0, 6.0])
+    assert compiles == [{"compiler_options": exported.COMPILER_OPTIONS}] * 2
+
+
+def test_a_jaxlib_without_the_compiler_options_compiles_without_them(folder, monkeypatch):
+    monkeypatch.setattr(exported, "COMPILER_OPTIONS", {"xla_no_such_option_anywhere": ""})
+    monkeypatch.setattr(exported, "_options_known", True)
+    np.testing.assert_array_equal(exported.call("scaled", _scaled, jnp.arange(3.0), 5.0), [0.0, 5.0, 10.0])
+    assert exported._options_known is False  # asked once: the next programs compile with XLA's defaults straight away
+
+
 def test_static_values_shapes_dtypes_and_settings_each_get_their_own_program(folder):
     x = jnp.arange(3.0)
     cases = [

@@ -126,9 +126,30 @@ def call(name: str, function: Callable[..., Any], *args: Any, closed_over: Any =
         # Compiled ahead of its call and held here, where the next export's `jax.clear_caches` cannot drop it: a
         # program jitted lazily is compiled, or read back from the compilation cache, again after every export.
         # It dispatches like any compiled function; a bare `Exported.call` goes through Python.
-        _programs[key] = None if program is None else jax.jit(program.call).lower(*leaves).compile()
+        _programs[key] = None if program is None else _compiled(jax.jit(program.call).lower(*leaves))
     program = _programs[key]
     return function(*args) if program is None else program(*leaves)
+
+
+COMPILER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+"""XLA's options for every program `call` compiles: on the CPU, elementwise work left to XLA's own code rather than
+YNNPACK's fusions, which ran the fit's Jacobian more slowly and with less accurate transcendental functions
+(benchmarks/README.md, "The fit as users run it"). A jaxlib that lacks an option compiles without it."""
+
+_options_known = True
+
+
+def _compiled(lowered):
+    """`lowered` compiled with `COMPILER_OPTIONS`, or with XLA's defaults where this jaxlib does not know them."""
+    global _options_known
+    if _options_known:
+        try:
+            return lowered.compile(compiler_options=COMPILER_OPTIONS)
+        except jax.errors.JaxRuntimeError as error:
+            if "No such compile option" not in str(error):
+                raise
+            _options_known = False
+    return lowered.compile()
 
 
 class _NotDescribable(Exception):

@@ -133,8 +133,8 @@ def call(name: str, function: Callable[..., Any], *args: Any, closed_over: Any =
 
 COMPILER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 """XLA's options for every program `call` compiles: on the CPU, elementwise work left to XLA's own code rather than
-YNNPACK's fusions, which ran the fit's Jacobian more slowly and with less accurate transcendental functions
-(benchmarks/README.md, "The fit as users run it"). A jaxlib that lacks an option compiles without it."""
+YNNPACK's fusions, which ran the fit's Jacobian more slowly (benchmarks/README.md, "The fit's programs without
+YNNPACK's fusions"). A jaxlib that lacks an option compiles without it."""
 
 _options_known = True
 

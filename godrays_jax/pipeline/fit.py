@@ -209,6 +209,11 @@ class _Run:
         """The fitted fields' positions in their ranges at the last accepted point."""
         return folded_positions(np.asarray(self.state.y if self.on_host else self.state[0]))[0]
 
+    def positions_as(self, dtype) -> jax.Array:
+        """`positions` as a JAX array of `dtype`, cast on the host and put on the device as it is (`jnp.asarray`
+        compiles a program per size)."""
+        return jax.device_put(np.asarray(self.positions(), dtype))
+
 
 def _descend(
     candidates, bounds, frame_data, counter, *, optimiser, least_squares, loss, space, max_steps, probe_steps,
@@ -291,13 +296,12 @@ def _descend(
 def _effect_of_run(run: _Run) -> Effect:
     """The effect at a run's last accepted point."""
     dtype = np.asarray(field_value(run.problem.effect, run.problem.names[0])).dtype
-    return _fitted_effects(run.problem, jnp.asarray(np.asarray(run.positions(), dtype)))[0]
+    return _fitted_effects(run.problem, run.positions_as(dtype))[0]
 
 
 def _frames_of_run(run: _Run, frame_data) -> tuple:
     """`frame_data` with the lights' tints at a run's last accepted point (as they are where it fits none)."""
-    positions = np.asarray(run.positions(), frame_data[0][0].color.dtype)  # cast on the host: no program per size
-    return run.problem.frames_at_positions(jnp.asarray(positions), frame_data)
+    return run.problem.frames_at_positions(run.positions_as(frame_data[0][0].color.dtype), frame_data)
 
 
 def plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
@@ -488,7 +492,7 @@ def fit(
             phases, run, bounds, frame_data, counter, None if given is effect else own, coarse
         )  # fmt: skip
         history = [*history, *polish_history]
-        positions = jnp.asarray(np.asarray(run.positions(), np.dtype(frame_data[0][0].color.dtype)))
+        positions = run.positions_as(frame_data[0][0].color.dtype)
         frame_data = _frames_of_run(run, frame_data)
         fitted_effect, rounded = (_as_given(given, effect, e, names) for e in _fitted_effects(run.problem, positions))
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):

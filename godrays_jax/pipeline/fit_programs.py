@@ -283,7 +283,7 @@ def host_evaluator(problem: FitProblem, frame_data, dtype, own=None, coarse: Coa
 
     def evaluate(y):
         positions, slope = folded_positions(y)
-        positions = jnp.asarray(np.asarray(positions, dtype))  # cast on the host: no program per size
+        positions = jax.device_put(np.asarray(positions, dtype))  # cast on the host: `jnp.asarray` compiles per size
 
         def linearise(jacobian=None, residuals=None):
             if coarse is not None:

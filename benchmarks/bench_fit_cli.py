@@ -1,7 +1,8 @@
 """`godrays-jax fit ... --report` and `apply` timed as users run them: fresh processes, an empty compilation cache
 and then a warm one, peak memory.
 
-    python benchmarks/bench_fit_cli.py [--sizes 320x180 960x540 1920x1080] [--apply] [--tests] [--json FILE]
+    python benchmarks/bench_fit_cli.py [--sizes 320x180 960x540 1920x1080] [--scenes SCENE ...] [--apply] [--tests]
+        [--json FILE]
 
 Each case runs the command line in a child process (`_child.py` below: the command's own `script`, with a
 `jax.monitoring` listener that sums the time JAX spends compiling or loading compiled programs, and timers around
@@ -12,7 +13,10 @@ the fit's steps, the child's peak RSS (`resource.getrusage(RUSAGE_CHILDREN)`, a 
 many of XLA's slow-compile banners its stderr held (summed in a line after the table).
 
 Frames: the `hidden_sun` reference at its own 320x180, and pairs made from it at other sizes (each pixel repeated,
-the light's position scaled, its field of view kept in the header). `--apply`: `godrays-jax apply` of the default
+the light's position scaled, its field of view kept in the header). `--scenes`: other references
+(`benchmarks/references/SCENE_clean.exr`, `SCENE_fog_a.exr`) made the first size's in the same way (every light of
+the header scaled, their distances and tints kept), fitted with their depth map seen from the light
+(`SCENE_light_view.exr`, `--light-view`) where they ship one. `--apply`: `godrays-jax apply` of the default
 fog (`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 5 after one that
 compiles): the effect jitted inside `values_only()` (its fields constants), `apply`'s program (`frames_function`
 on a group of one frame), a fit's render (`render_compiled`: the fields and the light's distance its arguments),
@@ -72,28 +76,33 @@ CHILD = textwrap.dedent(
 )
 
 
-def frame_pair(folder: Path, height: int, width: int) -> tuple[Path, Path]:
-    """The reference's clean frame and fog render at `height x width` (pixels repeated), light and camera kept."""
+def frame_pair(folder: Path, height: int, width: int, reference: Path = REFERENCE) -> tuple[Path, Path]:
+    """The reference's clean frame and fog render at `height x width` (pixels repeated), its header kept: every
+    light (positions scaled), their distances and tints, the field of view."""
     import godrays_jax as gr
     from godrays_jax.app.options import read_target
-    from godrays_jax.primitives.light_metadata import read_light
+    from godrays_jax.primitives.image_files import read_header
+    from godrays_jax.primitives.light_metadata import lights_metadata, read_light, read_lights
 
-    clean, fog = Path(f"{REFERENCE}_clean.exr"), Path(f"{REFERENCE}_fog_a.exr")
+    clean, fog = Path(f"{reference}_clean.exr"), Path(f"{reference}_fog_a.exr")
     frame = gr.read_buffers(clean)
     if (frame.height, frame.width) == (height, width):
         return clean, fog
     rows = np.arange(height) * frame.height // height
     cols = np.arange(width) * frame.width // width
     pick = lambda image: np.asarray(image)[rows][:, cols]  # noqa: E731
+    scaled_xy = lambda xy: (xy[0] * width / frame.width, xy[1] * height / frame.height)  # noqa: E731
     (x, y), in_front = read_light(clean)
+    spec = read_header(clean)
+    # The camera and the lights' distances as the reference's header has them (the field of view, `inf` for the sun).
+    header = {name: spec.getattribute(name) for name in ("godrays:fov_x_deg", "godrays:light_depth")}
+    header = {name: value for name, value in header.items() if value is not None}
+    lights = read_lights(clean)
+    if lights is not None:
+        header.update(lights_metadata([light._replace(xy=scaled_xy(light.xy)) for light in lights]))
     scaled = gr.Buffers(color=pick(frame.color), depth=pick(frame.depth), coverage=pick(frame.coverage))
     frame_path, target_path = folder / f"clean_{width}x{height}.exr", folder / f"fog_{width}x{height}.exr"
-    # The camera and the light's distance as the reference's header has them (the field of view, `inf` for the sun).
-    header = {"godrays:fov_x_deg": 50.0, "godrays:light_depth": float("inf")}
-    gr.write_buffers(
-        frame_path, scaled, light_xy=(x * width / frame.width, y * height / frame.height), light_in_front=in_front,
-        metadata=header,
-    )  # fmt: skip
+    gr.write_buffers(frame_path, scaled, light_xy=scaled_xy((x, y)), light_in_front=in_front, metadata=header)
     gr.write_image(target_path, pick(read_target(str(fog))))
     return frame_path, target_path
 
@@ -139,17 +148,24 @@ def steps_of(stdout: str) -> str:
     return line[line.find("(") + 1 : line.rfind(")")]
 
 
-def fit_rows(sizes: list[str], folder: Path) -> list[dict]:
+def fit_rows(sizes: list[str], folder: Path, scenes: tuple[str, ...] = ()) -> list[dict]:
+    """The README's fit at each size, then each of `scenes` (reference names) at the first size."""
     rows = []
-    for size in sizes:
+    cases = [(size, REFERENCE) for size in sizes] + [(sizes[0], REFERENCE.with_name(scene)) for scene in scenes]
+    for size, reference in cases:
         width, height = (int(n) for n in size.split("x"))
-        case = folder / f"fit_{size}"
+        name = "" if reference == REFERENCE else f" {reference.name}"
+        case = folder / f"fit_{size}{name.replace(' ', '_')}"
         case.mkdir()
-        frame, target = frame_pair(case, height, width)
-        arguments = ["fit", str(frame), str(target), "-o", str(case / "params.json"), "--report", str(case / "report.png")]
+        frame, target = frame_pair(case, height, width, reference)
+        # A scene whose shadows are cast from outside the frame ships the depth map seen from its light.
+        light_view = reference.with_name(f"{reference.name}_light_view.exr")
+        light_view = ["--light-view", str(light_view)] if light_view.exists() else []
+        arguments = ["fit", str(frame), str(target), "-o", str(case / "params.json"), "--report", str(case / "report.png"),
+                     *light_view]  # fmt: skip
         for label, record in zip(("cold", "warm"), measured(arguments, case)):
             loss = next((line for line in record["stdout"].splitlines() if line.startswith("loss before")), "")
-            rows.append(dict(case=f"fit {size} + report", cache=label, wall=record["wall"], compiling=record["compiling"],
+            rows.append(dict(case=f"fit{name} {size} + report", cache=label, wall=record["wall"], compiling=record["compiling"],
                              fit=record["fit"], after_fit=record["after_fit"], steps=steps_of(record["stdout"]),
                              peak_rss_mib=record["peak_rss_mib"], loss=loss,
                              slow_compile_banners=record["slow_compile_banners"]))  # fmt: skip
@@ -236,6 +252,10 @@ def _row(row: dict) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="*", default=["320x180", "960x540", "1920x1080"])
+    parser.add_argument(
+        "--scenes", nargs="*", default=[],
+        help="also fit these references (benchmarks/references/SCENE_*.exr, with its light view) at the first size",
+    )  # fmt: skip
     parser.add_argument("--apply", action="store_true", help="also time apply of volumetric_haze at 1920x1080")
     parser.add_argument("--tests", action="store_true", help="also time the README's test command")
     parser.add_argument("--json", type=Path, help="write the rows here as JSON")
@@ -244,7 +264,7 @@ def main() -> None:
     print("| case | cache | wall s | compiling s | fit s | after the fit s | steps | peak RSS MiB |")
     print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as folder:
-        rows = fit_rows(args.sizes, Path(folder))
+        rows = fit_rows(args.sizes, Path(folder), tuple(args.scenes))
         if args.apply:
             rows += apply_rows(Path(folder))
     banners = sum(row.get("slow_compile_banners", 0) for row in rows)

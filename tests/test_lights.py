@@ -76,6 +76,34 @@ def test_the_volumetric_fog_under_two_lights_from_its_terms():
     np.testing.assert_allclose(eqx.filter_jit(gr.lit_by)(effect, frame, lights), both, rtol=1e-5, atol=1e-6)
 
 
+def test_lights_of_one_kind_are_traced_once_with_each_lights_own_terms(monkeypatch):
+    """Two lamps (both point lights, both in front as Python bools) go through one loop: the terms are traced once,
+    and each light's are the terms `effect.terms` gives it alone. A sun beside a lamp is traced apart."""
+    effect, frame = cheap_volumetric(), make_frame()
+    lamps = [gr.Light(LIGHT, depth=30.0), gr.Light(SECOND, depth=20.0, tint=RED)]
+    alone = [[np.asarray(term) for term in effect.terms(frame, light.xy, light_depth=light.depth)] for light in lamps]
+    traced = []
+    terms = type(effect).terms
+
+    def counted(self, *args, **kwargs):
+        traced.append(kwargs["light_depth"])
+        return terms(self, *args, **kwargs)
+
+    monkeypatch.setattr(type(effect), "terms", counted)
+    both = np.asarray(gr.lit_by(effect, frame, lamps), np.float64)
+    assert len(traced) == 1 and isinstance(traced[0], jax.core.Tracer)
+    shares = np.asarray([1.0, np.mean(RED)]) / (1.0 + np.mean(RED))
+    light_color = np.asarray(effect.medium.light_color, np.float64)
+    added = (alone[0][1][..., None] * light_color + alone[1][1][..., None] * light_color * np.asarray(RED)
+             + alone[0][2][..., None] * np.asarray(effect.medium.ambient_color, np.float64))  # fmt: skip
+    surface = shares[0] * alone[0][0] + shares[1] * alone[1][0]
+    np.testing.assert_allclose(both, np.asarray(frame.color, np.float64) * surface[..., None] + added,
+                               rtol=1e-5, atol=1e-6)  # fmt: skip
+    traced.clear()
+    gr.lit_by(effect, frame, [gr.Light(LIGHT), lamps[1]])
+    assert len(traced) == 2  # the sun as a Python number drops the point light's branches: a program of its own
+
+
 def test_the_scattering_fog_counts_its_ambient_light_once():
     effect, frame = small(gr.preset("participating_media")), make_frame()
     both = np.asarray(gr.lit_by(effect, frame, [gr.Light(LIGHT), gr.Light(SECOND, tint=RED)]), np.float64)
@@ -115,12 +143,11 @@ def test_lights_are_refused_where_they_do_not_add():
 def test_lights_under_jit_and_vmap_with_finite_gradients_in_their_positions_and_tints():
     effect, frame = cheap_volumetric(), make_frame()
 
-    def loss(first, second, tint):
-        lights = [gr.Light(first), gr.Light(second, depth=20.0, tint=tint)]
+    def loss(first, second, tint):  # two lamps: one loop over both (the sun beside a lamp is compiled above)
+        lights = [gr.Light(first, depth=30.0), gr.Light(second, depth=20.0, tint=tint)]
         return jnp.mean(gr.lit_by(effect, frame, lights) ** 2)
 
-    # These lights' eager frame, and the same compiled, are checked in
-    # `test_the_volumetric_fog_under_two_lights_from_its_terms`; eager again here it would compile op by op.
+    # These lights' eager frame is checked in `test_lights_of_one_kind_are_traced_once_with_each_lights_own_terms`.
     jitted = jax.jit(loss)(LIGHT, SECOND, jnp.asarray(RED))
     seconds = jnp.stack([SECOND, SECOND + 1.0])
     batched = jax.jit(jax.vmap(loss, in_axes=(None, 0, None)))(LIGHT, seconds, jnp.asarray(RED))

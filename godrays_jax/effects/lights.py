@@ -38,9 +38,11 @@ from godrays_jax.effects.base import Effect
 from godrays_jax.effects.fog import ScatteringFog
 from godrays_jax.effects.glow import Bloom
 from godrays_jax.effects.volumetric import VolumetricFog
+from godrays_jax.kernels.bounded_medium import is_static_sun
 from godrays_jax.kernels.composite import blend
 from godrays_jax.kernels.volumetric import composite_fog, fog_light
 from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.checks import check_light
 
 
 class Light(eqx.Module):
@@ -106,8 +108,31 @@ def _tinted(layer: Float[Array, "H W L"], tint: Float[Array, "3"]) -> Float[Arra
     return jnp.concatenate([layer[..., :channels] * scale, layer[..., channels:]], axis=-1)
 
 
+def _terms_of_each(effect: VolumetricFog, buffers, lights) -> list[tuple]:
+    """`effect.terms` under each light. Lights alike in what the kernel reads when it is traced (their side given as
+    a Python bool or not, the sun given as a Python number or not) are traced once, in a loop over them: a fit under
+    several lamps then compiles smaller programs and holds less memory, for slower calls of its Jacobian
+    (benchmarks/README.md, "Several lights, light views and rooms at 480x270")."""
+    kinds = {(light.in_front if isinstance(light.in_front, bool) else None, is_static_sun(light.depth)) for light in lights}
+    if len(lights) == 1 or len(kinds) > 1:
+        return [effect.terms(buffers, light.xy, **_side(light)) for light in lights]
+    (static_front, static_sun), dtype = kinds.pop(), buffers.color.dtype
+    stacked = {"xy": jnp.stack([jnp.asarray(check_light(light.xy), dtype) for light in lights])}
+    if static_front is None:
+        stacked["in_front"] = jnp.stack([jnp.asarray(light.in_front) for light in lights])
+    if not static_sun:
+        stacked["depth"] = jnp.stack([jnp.asarray(light.depth, dtype) for light in lights])
+
+    def terms(light):
+        side = {"light_in_front": light.get("in_front", static_front), "light_depth": light.get("depth", math.inf)}
+        return effect.terms(buffers, light["xy"], **side)
+
+    surface, scattered, ambient = jax.lax.map(terms, stacked)
+    return [(surface[index], scattered[index], ambient[index]) for index in range(len(lights))]
+
+
 def _volumetric_fog(effect: VolumetricFog, buffers, lights, tints):
-    terms = [effect.terms(buffers, light.xy, **_side(light)) for light in lights]
+    terms = _terms_of_each(effect, buffers, lights)
     # The surfaces' direct light, dimmed toward each light, split among the lights by their tints' means.
     means = jnp.stack([jnp.mean(tint) for tint in tints])
     total = jnp.sum(means)

@@ -53,6 +53,19 @@ def test_one_light_of_tint_one_is_the_volumetric_fog_itself():
     np.testing.assert_allclose(np.asarray(alone), np.asarray(expected), rtol=1e-5, atol=1e-6)
 
 
+def fog_from_terms(effect, frame, terms, tints):
+    """The fogged frame in float64 from each light's `(surface, scattered, ambient)` and tint, as `effects.lights`
+    says: each light's in-scattering times its tint, the ambient once, the surfaces dimmed toward each light by its
+    share of the tints' means."""
+    terms = [[np.asarray(term, np.float64) for term in each] for each in terms]
+    means = np.asarray([np.mean(tint) for tint in tints])
+    surface = sum(share * each[0] for share, each in zip(means / means.sum(), terms))
+    light_color = np.asarray(effect.medium.light_color, np.float64)
+    added = sum(each[1][..., None] * light_color * np.asarray(tint) for each, tint in zip(terms, tints))
+    added = added + terms[0][2][..., None] * np.asarray(effect.medium.ambient_color, np.float64)
+    return np.asarray(frame.color, np.float64) * surface[..., None] + added
+
+
 def test_the_volumetric_fog_under_two_lights_from_its_terms():
     """Each light's in-scattering times its tint, the ambient once, the surfaces dimmed toward each light by its
     share of the tints' means."""
@@ -62,13 +75,7 @@ def test_the_volumetric_fog_under_two_lights_from_its_terms():
     terms = [[np.asarray(term, np.float64) for term in effect.terms(frame, light.xy, light_depth=light.depth)]
              for light in lights]  # fmt: skip
     np.testing.assert_allclose(terms[0][2], terms[1][2], rtol=1e-6)  # the ambient does not depend on the light
-    shares = np.asarray([1.0, np.mean(RED)]) / (1.0 + np.mean(RED))
-    surface = shares[0] * terms[0][0] + shares[1] * terms[1][0]
-    light_color = np.asarray(effect.medium.light_color, np.float64)
-    added = (terms[0][1][..., None] * light_color + terms[1][1][..., None] * light_color * np.asarray(RED)
-             + terms[0][2][..., None] * np.asarray(effect.medium.ambient_color, np.float64))  # fmt: skip
-    expected = np.asarray(frame.color, np.float64) * surface[..., None] + added
-    np.testing.assert_allclose(both, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(both, fog_from_terms(effect, frame, terms, [(1.0, 1.0, 1.0), RED]), rtol=1e-5, atol=1e-6)
     # The order of the lights changes nothing.
     swapped = np.asarray(gr.lit_by(effect, frame, lights[::-1]), np.float64)
     np.testing.assert_allclose(swapped, both, rtol=1e-5, atol=1e-6)
@@ -92,13 +99,7 @@ def test_lights_of_one_kind_are_traced_once_with_each_lights_own_terms(monkeypat
     monkeypatch.setattr(type(effect), "terms", counted)
     both = np.asarray(gr.lit_by(effect, frame, lamps), np.float64)
     assert len(traced) == 1 and isinstance(traced[0], jax.core.Tracer)
-    shares = np.asarray([1.0, np.mean(RED)]) / (1.0 + np.mean(RED))
-    light_color = np.asarray(effect.medium.light_color, np.float64)
-    added = (alone[0][1][..., None] * light_color + alone[1][1][..., None] * light_color * np.asarray(RED)
-             + alone[0][2][..., None] * np.asarray(effect.medium.ambient_color, np.float64))  # fmt: skip
-    surface = shares[0] * alone[0][0] + shares[1] * alone[1][0]
-    np.testing.assert_allclose(both, np.asarray(frame.color, np.float64) * surface[..., None] + added,
-                               rtol=1e-5, atol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(both, fog_from_terms(effect, frame, alone, [(1.0, 1.0, 1.0), RED]), rtol=1e-5, atol=1e-6)
     traced.clear()
     gr.lit_by(effect, frame, [gr.Light(LIGHT), lamps[1]])
     assert len(traced) == 2  # the sun as a Python number drops the point light's branches: a program of its own

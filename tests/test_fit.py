@@ -16,7 +16,7 @@ from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.effects.fields import round_counts
 from godrays_jax.pipeline import fit_programs
-from godrays_jax.pipeline.fit import fit, plateaued
+from godrays_jax.pipeline.fit import fit, plateaued, stalled
 from godrays_jax.pipeline.fit_programs import (
     DIFFERENCE_STEP,
     CoarseLinearisation,
@@ -24,6 +24,7 @@ from godrays_jax.pipeline.fit_programs import (
     rendered_differences,
     residuals_and_jacobian,
 )
+from godrays_jax.pipeline.marquardt import MarquardtState
 from godrays_jax.pipeline.problem import (
     FOLD_ROUNDING,
     START_INSET,
@@ -549,6 +550,27 @@ def test_the_race_at_the_coarse_resolution_stops_on_its_own_plateau():
         assert result.coarse_steps == steps + 1
     with pytest.raises(ValueError, match="coarse_plateau_steps"):
         fit(_rays(**START), frame, LIGHT, target, coarse_plateau_steps=-1, **common)
+
+
+def test_a_rejected_step_that_leaves_little_to_gain_stalls_the_fit():
+    """`stalled`: after a rejected step whose next proposal the linear model gives less than `plateau_rtol /
+    plateau_steps` of the loss, once the loss has fallen; not after an accepted step, nor while a larger fall is
+    predicted, nor before the loss first falls."""
+    losses = [1.0, 0.5, 0.5]
+
+    def state(slope, rejected=True):
+        """At a loss of 0.5 with `J^T J = I`, the proposal the model's minimum along `slope`: half the loss falls by
+        `slope^2 / 2` there, the loss by `2 slope^2` of itself."""
+        y, gradient = np.zeros(2), np.asarray([-slope, 0.0])
+        return MarquardtState(y=y, residuals=np.full(2, 0.5), normal=np.eye(2), gradient=gradient,
+                              proposal=y - gradient, rejected=rejected)  # fmt: skip
+
+    assert state(0.01).predicted_fall == pytest.approx(2e-4)
+    assert stalled(state(0.01), losses, 5, 1.1e-3)
+    assert not stalled(state(0.01), losses, 5, 0.9e-3)  # more than the model predicts is still asked
+    assert not stalled(state(0.01, rejected=False), losses, 5, 1.1e-3)
+    assert not stalled(state(0.1), losses, 5, 1.1e-3)
+    assert not stalled(state(0.01), [1.0, 1.0, 1.0], 5, 1.1e-3)
 
 
 def test_steps_rejected_before_the_loss_first_falls_are_no_plateau():

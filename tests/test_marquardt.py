@@ -143,6 +143,7 @@ def test_a_step_linearises_only_the_points_it_accepts():
         losses.append((before, state.loss))
         if before is None or state.loss != before:
             accepted_losses.append(state.loss)
+        assert state.rejected == (before is not None and state.loss == before)
     rejected = sum(1 for before, after in losses if before is not None and after == before)
     assert rejected > 0
     np.testing.assert_allclose(linearised, accepted_losses, rtol=1e-12)
@@ -165,3 +166,21 @@ def test_held_unknowns_stay_and_the_others_descend_as_without_them(scaled):
     for ours, theirs in zip(held, alone):
         np.testing.assert_allclose(ours[:2], theirs, rtol=1e-10, atol=1e-12)
     assert np.linalg.norm(held[-1][:2] - y0[:2]) > 0.1  # they did descend
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("scaled", [False, True])
+def test_the_fall_predicted_for_a_linear_problem_is_the_proposals_own(scaled):
+    """Residuals linear in the unknowns: the linear model is the loss itself, so the fall it predicts for the next
+    proposal is the one the proposal's loss shows, as a fraction of the loss at the last accepted point."""
+    rng = np.random.default_rng(0)
+    matrix, target = rng.normal(size=(12, 3)), rng.normal(size=12)
+    evaluate = _evaluator(None, lambda y, data: jnp.asarray(matrix) @ y - jnp.asarray(target))
+    solver = LevenbergMarquardt(1e-10, 1e-12, scaled=scaled)
+    state = solver.init(np.asarray([5.0, -3.0, 2.0]))
+    assert state.predicted_fall == 0.0  # nothing linearised yet
+    for _ in range(3):
+        state = solver.step(state, evaluate)
+        at_proposal = float(np.sum(np.square(matrix @ state.proposal - target)))
+        assert 0.0 < state.predicted_fall < 1.0
+        np.testing.assert_allclose(state.predicted_fall, 1.0 - at_proposal / state.loss, rtol=1e-9)

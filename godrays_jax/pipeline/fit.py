@@ -279,7 +279,10 @@ def _descend(
             if run.steps > 1:  # after the first step the state holds the start's loss, already recorded
                 run.history.append(run.solver_losses[-1])
             counter(run.history[-1])
-            run.plateaued = bool(plateau_steps) and plateaued(run.solver_losses, plateau_steps, plateau_rtol)
+            run.plateaued = bool(plateau_steps) and (
+                plateaued(run.solver_losses, plateau_steps, plateau_rtol)
+                or (run.on_host and stalled(run.state, run.solver_losses, plateau_steps, plateau_rtol))
+            )
 
     alive, budget = list(range(len(runs))), probe_steps
     while len(alive) > 1:
@@ -302,6 +305,17 @@ def _effect_of_run(run: _Run) -> Effect:
 def _frames_of_run(run: _Run, frame_data) -> tuple:
     """`frame_data` with the lights' tints at a run's last accepted point (as they are where it fits none)."""
     return run.problem.frames_at_positions(run.positions_as(frame_data[0][0].color.dtype), frame_data)
+
+
+def stalled(state: MarquardtState, solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
+    """Whether Levenberg-Marquardt has stopped before the plateau's window shows it: its last step was rejected,
+    and its linear model promises the next one less than `plateau_rtol / plateau_steps` of the loss, a step's share
+    of the fall the window asks for. A rejection shrinks the trust region fourfold, so the steps after it promise
+    less still: a phase's last steps were mostly such rejections, each a render or a Jacobian (docs/findings.md, "A
+    phase that stalls"). As `plateaued`, only once the loss has first fallen."""
+    if not state.rejected or not any(value < solver_losses[0] for value in solver_losses):
+        return False
+    return state.predicted_fall < plateau_rtol / plateau_steps
 
 
 def plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
@@ -412,8 +426,10 @@ def fit(
             fallen by less than `plateau_rtol` of itself over the last
             `plateau_steps` steps, every one of them taken since the loss first
             fell below the phase's start (steps the solver rejected before
-            that do not count); `plateau_steps=0` runs until the solver
-            converges or `max_steps`.
+            that do not count), or, for Levenberg-Marquardt on the host,
+            once a step it rejected leaves its next step a predicted fall
+            below `plateau_rtol / plateau_steps` of the loss (`stalled`);
+            `plateau_steps=0` runs until the solver converges or `max_steps`.
         coarse_plateau_rtol, coarse_plateau_steps: `plateau_rtol` and
             `plateau_steps` of the coarse phase: its result only starts the
             full resolution, which then starts near its own minimum and ends

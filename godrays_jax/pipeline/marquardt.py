@@ -79,11 +79,22 @@ class MarquardtState:
     first_step: bool = True
     done: bool = False
     evaluated: tuple | None = None  # the proposal's `Evaluate`, when made already
+    rejected: bool = False  # whether the last step rejected its point
 
     @property
     def loss(self) -> float:
         """The sum of squared residuals at the last accepted point (the fit's loss)."""
         return float(np.sum(np.square(self.residuals, dtype=np.float64)))
+
+    @property
+    def predicted_fall(self) -> float:
+        """The fall of the loss that the linear model at the last accepted point predicts for the proposal, as a
+        fraction of the loss (0 before the first step)."""
+        if self.normal is None:
+            return 0.0
+        difference = self.proposal - self.y
+        half_change = difference @ self.gradient + 0.5 * difference @ self.normal @ difference
+        return float(-2.0 * half_change / max(self.loss, np.finfo(np.float64).tiny))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,7 +137,7 @@ class LevenbergMarquardt:
             done = False
         proposal = state.y + self._damped_step(state.normal, state.gradient, step_size)
         return dataclasses.replace(
-            state, proposal=proposal, step_size=step_size, first_step=False, evaluated=None,
+            state, proposal=proposal, step_size=step_size, first_step=False, evaluated=None, rejected=not accept,
             done=done or not np.all(np.isfinite(proposal)),
         )  # fmt: skip
 

@@ -87,14 +87,19 @@ class MarquardtState:
         return float(np.sum(np.square(self.residuals, dtype=np.float64)))
 
     @property
+    def predicted_half_change(self) -> float:
+        """The change of half the loss that the linear model at the last accepted point predicts for the proposal:
+        `0.5 (|J d + r|^2 - |r|^2)`, `d` the proposal's step."""
+        difference = self.proposal - self.y
+        return difference @ self.gradient + 0.5 * difference @ self.normal @ difference
+
+    @property
     def predicted_fall(self) -> float:
-        """The fall of the loss that the linear model at the last accepted point predicts for the proposal, as a
-        fraction of the loss (0 before the first step)."""
+        """The fall of the loss that the linear model predicts for the proposal, as a fraction of the loss at the
+        last accepted point (0 before the first step)."""
         if self.normal is None:
             return 0.0
-        difference = self.proposal - self.y
-        half_change = difference @ self.gradient + 0.5 * difference @ self.normal @ difference
-        return float(-2.0 * half_change / max(self.loss, np.finfo(np.float64).tiny))
+        return float(-2.0 * self.predicted_half_change / max(self.loss, np.finfo(np.float64).tiny))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,9 +126,7 @@ class LevenbergMarquardt:
         if state.first_step:
             accept, good = True, False
         else:
-            difference = state.proposal - state.y
-            # The linear model's change of half the loss: 0.5 (|J d + r|^2 - |r|^2).
-            predicted = difference @ state.gradient + 0.5 * difference @ state.normal @ difference
+            predicted = state.predicted_half_change
             fall = 0.5 * (loss - state.loss)
             accept = bool(fall <= _LOW_CUTOFF * predicted)
             good = bool(fall < _HIGH_CUTOFF * predicted and predicted < 0)

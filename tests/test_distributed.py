@@ -4,6 +4,7 @@ the render-farm examples (a shell fan-out of `--frames A-B` chunks, an OpenCue j
 import os
 import random
 import shlex
+import signal
 import socket
 import subprocess
 import sys
@@ -79,11 +80,14 @@ ENDS_WITHIN = 120.0
 def test_two_processes_through_jax_distributed_write_what_one_process_writes(shot):
     folder, pattern = shot
     coordinator = f"127.0.0.1:{free_port()}"
+    # Should a process not end, its stderr says where: the coordination service's own log lines (connected, at
+    # the shutdown barrier, shut down) and, on the SIGABRT that then stops it, the stacks of its Python threads.
+    traced = {**environment(folder), "TF_CPP_MIN_LOG_LEVEL": "0", "PYTHONFAULTHANDLER": "1"}
     processes = [
         subprocess.Popen(
             ["godrays-jax", "batch", pattern, "-o", str(folder / "two"), "--preset", "kbengine_flares", "-q",
              "--distributed", "--coordinator", coordinator, "--num-processes", "2", "--process-id", str(index)],
-            env=environment(folder), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env=traced, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         for index in range(2)
     ]
@@ -94,11 +98,16 @@ def test_two_processes_through_jax_distributed_write_what_one_process_writes(sho
             answers.append(process.communicate(timeout=max(deadline - time.monotonic(), 1.0)))
     except subprocess.TimeoutExpired:
         for process in processes[len(answers):]:
-            process.kill()
-            answers.append(process.communicate())
+            process.send_signal(signal.SIGABRT)  # the Python stacks of its threads (faulthandler), then its end
+            try:
+                answers.append(process.communicate(timeout=30))
+            except subprocess.TimeoutExpired:
+                process.kill()
+                answers.append(process.communicate())
+        written = sorted(os.listdir(folder / "two")) if (folder / "two").exists() else []
         pytest.fail(f"the two processes did not end within {ENDS_WITHIN:g} s: exit statuses "
-                    f"{[process.returncode for process in processes]}, stderr "
-                    f"{[err[-1500:] for _, err in answers]}")  # fmt: skip
+                    f"{[process.returncode for process in processes]}, frames written {written}, stdout "
+                    f"{[out for out, _ in answers]}, stderr {[err[-4000:] for _, err in answers]}")  # fmt: skip
     for process, (out, err) in zip(processes, answers):
         assert process.returncode == 0, err[-2000:]
     assert answers[0][0].startswith("3 written") and answers[1][0].startswith("2 written")  # contiguous shares

@@ -80,7 +80,18 @@ def run(args) -> int:
         jax.distributed.initialize(
             coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
         )
-        shard = (jax.process_index(), jax.process_count())
+        # Left here, at its frames' end, not at the interpreter's exit, where JAX leaves only after it has dropped
+        # its backends: every process waits at the shutdown barrier until the last has written its share, so that
+        # process 0, which holds the coordination service, takes it down only when no other process needs it.
+        try:
+            return _run_share(args, light, (jax.process_index(), jax.process_count()))
+        finally:
+            jax.distributed.shutdown()
+    return _run_share(args, light, shard)
+
+
+def _run_share(args, light: LightSource, shard: tuple[int, int] | None) -> int:
+    """`run` past the cluster: the frames of `shard` (this process's share, or every frame where None)."""
     effect = effect_option(args.preset, args.params)
     inputs = expand_frames(args.pattern)
     # The camera and the light's distance come from the first frame: one compiled program for the shot.

@@ -33,14 +33,15 @@ from godrays_jax.primitives.checks import check_light
 # On frames larger than `REFERENCE_SIDE` the march rays keep their fraction of the frame, so a preset looks and costs
 # the same, up to this many times farther apart: a 1920-pixel frame samples as a 320-pixel one, a larger one finer.
 _MAX_SPACING_SCALE = 6.0
-SURFACE_BLUR_SIGMA = 0.02
+SURFACE_BLUR_SIGMA = 0.08
 """The spread of the frame's light the medium scatters aside (`surface_blur`), a Gaussian's standard deviation in
-the frame's larger side: where the haze of the rooms of the path-traced references puts its halo around a lit
-patch (benchmarks/README.md, "A sunbeam through a window behind the camera")."""
+the frame's larger side: how far the haze of the rooms of the path-traced references, lit by a sunbeam's patch on
+the floor, spreads its halo around the patch (benchmarks/README.md, "A sunbeam through a window behind the
+camera")."""
 SCATTERED_BLUR_SIGMA = 0.05
 """The spread of the light scattered again on its way to the camera (`scattered_blur`), a Gaussian's standard
-deviation in the frame's larger side: a glow wider than the surfaces' halo, beside the beams of the path-traced
-references (benchmarks/README.md, "Light scattered again, and a race that waits for the room")."""
+deviation in the frame's larger side: a glow beside the beams of the path-traced references, narrower than the
+surfaces' halo (benchmarks/README.md, "Light scattered again, and a race that waits for the room")."""
 # The march rays' spacing (`resolution_factor`) of the stand-in `fit` fits in place of shadows read along lines, and
 # the share of the lines it reads (all the bins: with half, thin slats' shadows fit worse).
 _STAND_IN_FACTOR = 4

@@ -54,32 +54,14 @@ def _memory_maps() -> int:
         return 0
 
 
-# pytest-xdist (`--dist load`) hands the tests out in their order, so a long test handed out last runs alone while
-# the other worker waits. The slow step's longest, half a minute or more from an empty cache, go first, longest first
-# (the fits without a camera, two commands each under a memory limit; benchmarks/README.md, "The test suite on CI").
-LONGEST_FIRST = (
-    "tests/test_fit_limits.py::test_a_default_fit_of_a_frame_without_a_camera",
-    "tests/test_fit.py::test_the_fits_jacobian_by_stages_is_reverse_modes_on_volumetric_fog",
-    "tests/test_effect_checklist.py::test_grad_of_vmap_and_vmap_of_grad_equal_per_frame_gradients[volumetric_haze]",
-    "tests/test_volumetric_fog.py::test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows",
-    "tests/test_properties.py::test_fog_presets_finite_values_and_gradients_for_any_light_and_distance",
-    "tests/test_volumetric.py::test_reads_by_bands_of_rows_are_the_frames_values_and_derivatives",
-    "tests/test_fit.py::test_the_field_of_views_column_is_a_central_difference_of_renders_without_derivatives",
-    "tests/test_effect_checklist.py::test_grad_of_vmap_and_vmap_of_grad_equal_per_frame_gradients[physically_based]",
-    "tests/test_fit.py::test_optimistixs_linearisation_differences_the_field_of_view_too",
-    "tests/test_docs.py::test_the_shell_commands_of_a_page_run_in_order[rasterizer.md]",
-    "tests/test_fit.py::test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolution",
-)
-
-
-def _rank(item) -> int:
-    """The test's place in `LONGEST_FIRST`, after all of them for the rest."""
-    ranks = (rank for rank, prefix in enumerate(LONGEST_FIRST) if item.nodeid.startswith(prefix))
-    return next(ranks, len(LONGEST_FIRST))
+# pytest-xdist (`--dist load`) hands the tests out in their order, so a test of minutes handed out last runs alone
+# while the other worker waits: the slow step's longest, each fitting a 320x180 frame twice from an empty cache, go
+# first (benchmarks/README.md, "The test suite on CI").
+LONGEST_FIRST = ("tests/test_fit_limits.py::test_a_default_fit_of_a_frame_without_a_camera",)
 
 
 def pytest_collection_modifyitems(items):
-    items.sort(key=_rank)  # stable: the rest keep their order
+    items.sort(key=lambda item: not item.nodeid.startswith(LONGEST_FIRST))  # stable: the rest keep their order
 
 
 @pytest.fixture(autouse=True)

@@ -233,6 +233,8 @@ def run(args) -> int:
                   for beside in others]  # fmt: skip
     if result.start:
         _say(f"started from the fitted fields of {start_names[result.start - 1]} (a lower loss than the start given)")
+    if result.kept_start:
+        _say("the start given fits the frames better than where the fit ended: its parameters are kept")
     if effect.fit_stand_in() is not effect:
         cheaper = _statics_line(effect.fit_stand_in(), effect)
         _say(f"fitted through its stand-in (cheaper: {cheaper}); the losses and parameters written are the effect's own")

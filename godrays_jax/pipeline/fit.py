@@ -44,6 +44,8 @@ How the parameters are fitted:
   residuals and their Jacobian (`residuals_and_jacobian`), shared by the race, the descents, the polish and
   `determination`, kept by the persistent cache (`app.compile_cache`); with `coarse_jacobian` the full resolution
   linearises at the coarse one, its sharp fields by differences of its renders (`fit_programs.rendered_differences`).
+- A fit never ends above its start: where the reduced frames and the stand-in lead it to a higher loss than the
+  effect given (a start already at the frames' minimum), it returns the effect given (`FitResult.kept_start`).
 """
 
 import dataclasses
@@ -115,6 +117,8 @@ class FitResult:
             (`plateau_steps`, `plateau_rtol`; in the last phase).
         coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`), every start's.
         start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
+        kept_start: whether the fit ended above the loss of the effect given, which it then returns (`effect`,
+            `rounded`, their losses, images and light tints are the start's; `loss_history` is the fit's path).
         polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt).
         images_before, images_after, images_rounded: each frame as the effect given, `effect` and `rounded`
             render it (`(H, W, C)` linear, as `apply` renders it), from which the losses were taken.
@@ -134,6 +138,7 @@ class FitResult:
     plateaued: bool = False
     coarse_steps: int = 0
     start: int = 0
+    kept_start: bool = False
     polish_steps: int = 0
     light_tints: np.ndarray | None = None
     images_before: list = dataclasses.field(default_factory=list, repr=False)
@@ -493,6 +498,7 @@ def fit(
     # no run-time range check: without its host callback, JAX's persistent cache can store them.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
         problem = FitProblem.of(effect, bounds, frame_data[0], loss=loss, space=space)
+        frames_given = frame_data
         loss_before, images_before = effect_loss(problem, given, frame_data)
         candidates, coarse_start, coarse, frame_data = _coarse_phase(phases, candidates, bounds, frame_data, counter)
         coarse_steps = counter.steps
@@ -514,6 +520,13 @@ def fit(
         if not all(np.all(np.isfinite(np.asarray(field_value(fitted_effect, n)))) for n in names):
             raise ValueError("the fit diverged (non-finite parameters); try fewer free parameters or another start")
         loss_after, images_after = effect_loss(problem, fitted_effect, frame_data)
+        # The phases descend on reduced frames and through the stand-in, whose minima are near the effect's own but
+        # not at them: from a start at the frames' own minimum, or nearer it than they lead, a fit would end above
+        # where it began. It hands back the start given instead.
+        kept_start = bool(loss_before < loss_after)
+        if kept_start:
+            frame_data, fitted_effect, rounded = frames_given, given, round_counts(given)
+            loss_after, images_after = loss_before, images_before
         same = _same_values(fitted_effect, rounded, names)
         loss_rounded, images_rounded = (loss_after, images_after) if same else effect_loss(problem, rounded, frame_data)
     return FitResult(
@@ -531,7 +544,8 @@ def fit(
         converged=bool(run.converged),
         plateaued=run.plateaued,
         coarse_steps=coarse_steps,
-        start=start_index,
+        start=0 if kept_start else start_index,
+        kept_start=kept_start,
         polish_steps=polish_steps,
         light_tints=None if tints is None else np.asarray(light_tints(frame_data)),
     )

@@ -118,7 +118,8 @@ class FitResult:
         coarse_steps: solver steps taken at the reduced resolution first (`coarse_factor`), every start's.
         start: which start the fit began from: 0 the effect given, `i` `starts[i - 1]`.
         kept_start: whether the fit ended above the loss of the effect given, which it then returns (`effect`,
-            `rounded`, their losses, images and light tints are the start's; `loss_history` is the fit's path).
+            `rounded`, their losses, images and light tints are the start's; `loss_history` is the fit's path, then
+            the start's loss).
         polish_steps: of `steps`, those of the polish phase (Marquardt's scaling, after Levenberg-Marquardt).
         images_before, images_after, images_rounded: each frame as the effect given, `effect` and `rounded`
             render it (`(H, W, C)` linear, as `apply` renders it), from which the losses were taken.
@@ -527,6 +528,7 @@ def fit(
         if kept_start:
             frame_data, fitted_effect, rounded = frames_given, given, round_counts(given)
             loss_after, images_after = loss_before, images_before
+            history = [*history, loss_before]
         same = _same_values(fitted_effect, rounded, names)
         loss_rounded, images_rounded = (loss_after, images_after) if same else effect_loss(problem, rounded, frame_data)
     return FitResult(

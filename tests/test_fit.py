@@ -16,7 +16,8 @@ from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.effects.fields import round_counts
 from godrays_jax.pipeline import fit_programs
-from godrays_jax.pipeline.fit import fit, plateaued, stalled
+from godrays_jax.pipeline.fit import fit
+from godrays_jax.pipeline.fit_phases import plateaued, stalled
 from godrays_jax.pipeline.fit_programs import (
     DIFFERENCE_STEP,
     CoarseLinearisation,

@@ -1,12 +1,13 @@
-"""How a fit runs: its solver (`SOLVERS`), whether a polish follows (`polishes`), and the settings of its phases
-(`Phases`), from `fit`'s keyword arguments, checked."""
+"""How a fit runs: its solver (`SOLVERS`), whether a polish follows (`polishes`), the settings of its phases
+(`Phases`), from `fit`'s keyword arguments, checked, and when a phase stops (`plateaued`, `stalled`)."""
 
 import dataclasses
+from collections.abc import Sequence
 
 import optimistix as optx
 
 from godrays_jax.kernels.losses import LOSSES, check_space
-from godrays_jax.pipeline.marquardt import LevenbergMarquardt
+from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
 
@@ -75,3 +76,30 @@ class Phases:
         return cls(
             optimiser, polisher, descend, coarse_factor, coarse_plateau_rtol, bool(coarse_jacobian), coarse_plateau_steps
         )
+
+
+def stalled(state: MarquardtState, solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
+    """Whether Levenberg-Marquardt has stopped before the plateau's window shows it: its last step was rejected,
+    and its linear model promises the next one less than `plateau_rtol / plateau_steps` of the loss, a step's share
+    of the fall the window asks for. A rejection shrinks the trust region fourfold, so the steps after it promise
+    less still: a phase's last steps were mostly such rejections, each a render or a Jacobian (docs/findings.md, "A
+    phase that stalls"). As `plateaued`, only once the loss has first fallen."""
+    if not state.rejected or not any(value < solver_losses[0] for value in solver_losses):
+        return False
+    return state.predicted_fall < plateau_rtol / plateau_steps
+
+
+def plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: float) -> bool:
+    """Whether the loss has stopped moving: it fell by less than `plateau_rtol` of itself over the last
+    `plateau_steps` steps, all taken since it first fell.
+
+    `solver_losses[i]` is the loss at the solver's last accepted point after step `i + 1`; the first is the
+    start's, as the solver computes it (the loss evaluated before the fit may differ in its last bits). Steps
+    before the first fall do not count: Levenberg-Marquardt may reject its first steps and BFGS backtrack
+    its first, the loss unchanged, while the solver is still looking for a way down.
+    """
+    first_fall = next((i for i, value in enumerate(solver_losses) if value < solver_losses[0]), None)
+    earlier = len(solver_losses) - 1 - plateau_steps
+    if first_fall is None or earlier < first_fall - 1:
+        return False
+    return solver_losses[earlier] - solver_losses[-1] <= plateau_rtol * solver_losses[earlier]

@@ -8,7 +8,7 @@ The JSON API, `GET_API` and `POST_API` below (every answer is JSON; errors are `
 | `POST /api/render` | `{"params", "light", "other_lights", "light_in_front", "quality", "view", "tonemap"}`, all optional | `{"image": "data:image/png;base64,...", "width", "height", "quality", "render_ms", "encode_ms"}` |
 | `POST /api/preset` | `{"name"}` | the new state (the effect becomes the preset) |
 | `POST /api/fit` | `{"params", "light", "light_in_front", "fixed"}` | starts a fit in the background and answers at once with its progress (409 if one is running) |
-| `GET /api/fit` | | the fit's progress `{"running", "step", "loss", "result", "error", "cancelled"}`; `result` is `{"effect", "loss_before", "loss_after", "steps", "fitted"}` once it is done |
+| `GET /api/fit` | | the fit's progress `{"running", "step", "loss", "result", "error", "cancelled"}`; `result` is `{"effect", "loss_before", "loss_after", "steps", "fitted", "kept_start"}` once it is done (`kept_start`: the fit ended above the start, which it kept) |
 | `POST /api/fit/cancel` | `{}` | asks the running fit to stop after its current step; its progress |
 | `POST /api/save` | `{"params"}` | `{"path", "effect"}`: writes what `apply --params` reads |
 

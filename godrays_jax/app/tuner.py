@@ -544,6 +544,7 @@ class Tuner:
                 "loss_after": result.loss_after if fractional else result.loss_rounded,
                 "steps": result.steps,
                 "fitted": list(result.fitted),
+                "kept_start": result.kept_start,
             }}  # fmt: skip
         except FitCancelled:
             outcome = {"cancelled": True}

@@ -15,6 +15,7 @@ import godrays_jax as gr
 from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.effects.fields import round_counts
+from godrays_jax.pipeline import fit as fit_module
 from godrays_jax.pipeline import fit_programs
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.fit_phases import plateaued, stalled
@@ -25,16 +26,19 @@ from godrays_jax.pipeline.fit_programs import (
     rendered_differences,
     residuals_and_jacobian,
 )
-from godrays_jax.pipeline.marquardt import MarquardtState
+from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState
 from godrays_jax.pipeline.problem import (
     FOLD_ROUNDING,
     START_INSET,
     FitProblem,
     as_frames,
     fitted_bounds,
+    folded_positions,
     from_unit,
     start_point,
     to_unit,
+    warp_of,
+    warped_start,
 )
 from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
 
@@ -620,6 +624,46 @@ def test_reparameterisation_stays_in_bounds_smoothly_and_a_start_on_a_bound_move
         slope = float(jax.grad(lambda u: from_unit(u, 0.5, 1.0))(unit))
         assert slope == pytest.approx(0.5 * 0.25 / (1.0 - FOLD_ROUNDING), rel=1e-5)
         assert min(float(from_unit(unit, 0.5, 1.0)) - 0.5, 1.0 - float(from_unit(unit, 0.5, 1.0))) < 0.5 * FOLD_ROUNDING / 30
+
+
+def test_the_race_runs_each_start_again_with_the_medium_reach_by_ratios():
+    """`medium.max_distance` (a room's tens of units, a sky's thousands) spans four decades: the race runs each start
+    a second time with it moved by ratios, the fold's position `t` spread as `expm1(k t) / expm1(k)` on the host,
+    each second run starting where its first does."""
+    fog = gr.ScatteringFog(num_samples=2.0, max_samples=2, medium=gr.Medium(extinction=0.05, max_distance=16.0))
+    warp = warp_of(fog, "medium.max_distance")
+    assert warp == pytest.approx(4.0 * np.log(10.0))
+    assert warp_of(fog, "medium.extinction") == 0.0
+    units = np.linspace(-1.5, 2.5, 801)
+    spread = lambda u: np.expm1(warp * _rounded_fold_loop(u, FOLD_ROUNDING)) / np.expm1(warp)  # noqa: E731
+    positions, slopes = folded_positions(units, np.full(units.shape, warp))
+    np.testing.assert_allclose(positions, [spread(u) for u in units], rtol=1e-12, atol=1e-15)
+    assert positions.min() >= 0.0 and positions.max() <= 1.0
+    step = 1e-6
+    differences = [(spread(u + step) - spread(u - step)) / (2 * step) for u in units]
+    np.testing.assert_allclose(slopes, differences, rtol=1e-4, atol=1e-6)  # the fold's joins: differences across a kink
+    # Equal steps along the fold's straight part scale the position (plus a constant) by one ratio.
+    shifted = folded_positions(np.array([0.1, 0.2, 0.5, 0.6, 0.8, 0.9]), np.full(6, warp))[0] + 1.0 / np.expm1(warp)
+    np.testing.assert_allclose(shifted[1::2] / shifted[::2], np.exp(warp * 0.1 / (1.0 - FOLD_ROUNDING)), rtol=1e-9)
+    # Each start's run by ratios starts at its fields' own values, and both runs of it race.
+    frame = _frame()
+    target = fog(frame, LIGHT)
+    frame_data = as_frames(frame, LIGHT, target, True)
+    bounds = fitted_bounds(fog, fixed=("fov_x_deg", "num_samples"))
+    problem = FitProblem.of(fog, bounds, frame_data[0], loss="mse", space="display")
+    assert np.count_nonzero(problem.warps) == 1 and problem.warps[problem.unknowns_of(("medium.max_distance",))[0]] == warp
+    linear = np.asarray(start_point(problem, jnp.float32), np.float64)
+    np.testing.assert_allclose(folded_positions(warped_start(linear, problem.warps), problem.warps)[0],
+                               folded_positions(linear)[0], rtol=1e-5, atol=1e-7)  # fmt: skip
+    common = dict(optimiser=LevenbergMarquardt(rtol=1e-6, atol=1e-9), least_squares=True, loss="mse", space="display",
+                  max_steps=2, probe_steps=1, plateau_steps=0, plateau_rtol=0.0)  # fmt: skip
+    counter = fit_module._StepCounter(None)
+    for by_ratios, count in ((False, 1), (True, 2)):
+        runs, winner = fit_module._descend([fog], bounds, frame_data, counter, by_ratios=by_ratios, **common)
+        assert len(runs) == count and runs[0].warps is None and winner in range(count)
+    assert np.array_equal(runs[1].warps, problem.warps)
+    np.testing.assert_allclose(runs[1].history[0], runs[0].history[0], rtol=1e-4)
+    assert runs[1].steps > 0 and runs[1].history[-1] <= runs[1].history[0]
 
 
 def test_bounds_are_capped_by_static_loop_lengths():

@@ -2,10 +2,12 @@
 
     DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-19.so \\
         python benchmarks/references/render_references.py [SCENE ...] [--spp 256] [--variant llvm_ad_rgb]
-            [--geometry-only] [--light-view]
+            [--geometry-only] [--light-view] [--size 320x180] [--out FOLDER]
 
-Every scene is 320x180, camera looking along -z with a horizontal field of
-view of 50 degrees, ground at y = 0. Per scene NAME it writes into this folder:
+Every scene is 320x180 (`--size WxH` renders it at another size, to fit a
+frame as a user renders it rather than one made larger by repeating pixels),
+camera looking along -z with a horizontal field of view of 50 degrees, ground
+at y = 0. Per scene NAME it writes into this folder:
 
 - `NAME_clean.exr`: the frame without a medium (path tracer, max depth 3,
   four times the fog's samples per pixel): `R, G, B` (linear), `A` (the
@@ -701,12 +703,14 @@ def record(scene: Scene, spp: int, seconds: dict, floor: float, variant: str) ->
 
 
 def main() -> None:
+    global WIDTH, HEIGHT
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("scenes", nargs="*", help=f"default: all of {', '.join(SCENES)}")
     parser.add_argument("--spp", type=int, default=256, help="fog samples per pixel (clean: 4x)")
     parser.add_argument("--variant", default="llvm_ad_rgb")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=HERE)
+    parser.add_argument("--size", default=f"{WIDTH}x{HEIGHT}", help="the frames' width x height in pixels")
     parser.add_argument("--geometry-only", action="store_true",
                         help="rewrite the clean frames' coverage and depth, keeping their stored colour")
     parser.add_argument("--light-view", action="store_true",
@@ -714,6 +718,10 @@ def main() -> None:
                              "scenes without a sun (with --geometry-only: both)")
     args = parser.parse_args()
 
+    try:
+        WIDTH, HEIGHT = (int(side) for side in args.size.lower().split("x"))
+    except ValueError:
+        parser.error(f"--size must be WIDTHxHEIGHT in pixels, got {args.size!r}")
     unknown = [name for name in args.scenes if name not in SCENES]
     if unknown:
         parser.error(f"unknown scene {', '.join(unknown)}; scenes: {', '.join(SCENES)}")

@@ -162,6 +162,8 @@ class FieldInfo:
         cap: the static field that caps its value (a count's loop length, a morphology's reach), or `None`.
         choices: the values a static name may take (its `Literal` annotation), or `None`.
         formerly: its old names, which params files may still use.
+        decades: how many decades of its range a fittable field's values of interest span: `fit` then also races
+            its starts with that field moved by ratios (0: by differences alone).
     """
 
     name: str
@@ -173,17 +175,24 @@ class FieldInfo:
     cap: str | None = None
     choices: tuple[str, ...] | None = None
     formerly: tuple[str, ...] = ()
+    decades: float = 0.0
 
 
-def param(default, *, low: float, high: float, cap: str | None = None, formerly: tuple[str, ...] = ()):
+def param(
+    default, *, low: float, high: float, cap: str | None = None, formerly: tuple[str, ...] = (), decades: float = 0.0
+):
     """A fittable field, stored as a floating JAX array whatever number or list is given.
 
     `[low, high]` is its valid range (every element, for a vector): fitting keeps
     the value inside it and the tuner's sliders span it; `cap` names a static
     field whose value lowers `high` for fitting. `formerly`: the field's old
-    names, which params files may still use.
+    names, which params files may still use. `decades`: for a range whose
+    values of interest span orders of magnitude, how many (the top `decades`
+    decades of the range): `fit` races its starts a second time with the field
+    moved by ratios there (`pipeline.problem.folded_positions`), where a step
+    from 300 to 16 is as long as one from 3000 to 160; 0: by differences alone.
     """
-    metadata = {"kind": "fittable", "bounds": (low, high), "cap": cap, "formerly": formerly}
+    metadata = {"kind": "fittable", "bounds": (low, high), "cap": cap, "formerly": formerly, "decades": decades}
     return eqx.field(converter=_array, default=default, metadata=metadata)
 
 
@@ -273,7 +282,7 @@ def _own_field_infos(cls) -> dict[str, FieldInfo]:
         infos[field.name] = FieldInfo(
             name=field.name, kind=kind, bounds=bounds, px_bounds=metadata.get("px_bounds"),
             size=metadata.get("size", False), count=metadata.get("count", False), cap=metadata.get("cap"),
-            choices=choices, formerly=formerly,
+            choices=choices, formerly=formerly, decades=metadata.get("decades", 0.0),
         )  # fmt: skip
     return infos
 

@@ -18,7 +18,9 @@ class Medium(Part):
     """
 
     extinction: Float[Array, ""] = param(0.01, low=0.0, high=1.0)
-    max_distance: Float[Array, ""] = param(100.0, low=0.0, high=1e4)
+    # A room's medium ends within tens of units, an open sky's thousands: the fit also races it by ratios
+    # (docs/findings.md, "A medium's reach raced by ratios").
+    max_distance: Float[Array, ""] = param(100.0, low=0.0, high=1e4, decades=4.0)
     anisotropy: Float[Array, ""] = param(0.76, low=-0.95, high=0.95)
     light_color: Float[Array, "3"] = param((1.0, 0.9, 0.75), low=0.0, high=100.0)
     ambient_color: Float[Array, "3"] = param((0.05, 0.06, 0.08), low=0.0, high=10.0)

@@ -20,7 +20,8 @@ How the parameters are fitted:
   `decay` at 1.0) begins `START_INSET` inside it, so it still moves; unlike
   the triangle wave it has no corner where a field whose best value is its
   bound would jump from side to side every step; and the solver's unknowns
-  all have the same unit scale.
+  all have the same unit scale. The race also runs each start with a field
+  whose values span decades (`FieldInfo.decades`) moved by ratios.
 - Levenberg-Marquardt's damping is the same for every unknown, but the frame
   is not equally sensitive to each (a unit of `max_distance` is 10^4 scene
   units), and where its descent stops the loss may still fall slowly along
@@ -49,6 +50,7 @@ How the parameters are fitted:
 """
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Callable, Sequence
 from typing import Literal
@@ -87,6 +89,7 @@ from godrays_jax.pipeline.problem import (
     start_point,
     strongly_typed,
     tint_range,
+    warped_start,
     with_light_tints,
 )
 from godrays_jax.pipeline.reduced import clip_to_bounds, downsample_frames, scale_pixel_fields
@@ -194,6 +197,8 @@ class _Run:
     solver_losses: list[float] = dataclasses.field(default_factory=list)
     steps: int = 0
     plateaued: bool = False
+    warps: np.ndarray | None = None  # the host's map by ratios (`problem.folded_positions`), or None
+    evaluate: Callable | None = None  # the host's `marquardt.Evaluate` of its unknowns
 
     @property
     def on_host(self) -> bool:
@@ -213,7 +218,7 @@ class _Run:
 
     def positions(self) -> np.ndarray:
         """The fitted fields' positions in their ranges at the last accepted point."""
-        return folded_positions(np.asarray(self.state.y if self.on_host else self.state[0]))[0]
+        return folded_positions(np.asarray(self.state.y if self.on_host else self.state[0]), self.warps)[0]
 
     def positions_as(self, dtype) -> jax.Array:
         """`positions` as a JAX array of `dtype`, cast on the host and put on the device as it is (`jnp.asarray`
@@ -223,13 +228,15 @@ class _Run:
 
 def _descend(
     candidates, bounds, frame_data, counter, *, optimiser, least_squares, loss, space, max_steps, probe_steps,
-    plateau_steps, plateau_rtol, tint_high=None, hold=(), own=None, coarse=None,
+    plateau_steps, plateau_rtol, tint_high=None, hold=(), own=None, coarse=None, by_ratios=False,
 ) -> tuple[list[_Run], int]:
     """Fit from each of `candidates` by successive halving: every start takes `probe_steps` steps, the better
     half (by the loss at its last accepted point) goes on to twice as many, and so on until one is left, which
     goes on to `max_steps`. Returns the runs and the winner's index. `hold`: fields that Levenberg-Marquardt on the
     host leaves as they start (`Effect.POLISH_FIELDS` before the polish). `own`: as `host_evaluator`'s (Levenberg-
     Marquardt on the host only); `coarse`: a `CoarseLinearisation` of the residuals of `own` (or the problem's).
+    `by_ratios` (Levenberg-Marquardt on the host, fields with `FieldInfo.decades`): each start races twice, then
+    moved by ratios (`FitProblem.warps`), its runs after the others' (index `i + len(candidates)`).
 
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
     keeps its own solver state, so a start that goes on is not started again.
@@ -247,20 +254,23 @@ def _descend(
         optimiser = dataclasses.replace(optimiser, held=held)
         if coarse is not None and own is None:
             own = lambda positions: _fitted_effects(problems[0], positions)[0]  # noqa: E731
-        evaluate = host_evaluator(problems[0], frame_data, dtype, own, coarse)
-        for problem in problems:
-            y = np.asarray(start_point(problem, dtype), np.float64)
-            # A held field stays as given, on a bound too (where the polish then starts it inside).
-            y[list(held)] = np.asarray(start_point(problem, dtype, inset=False), np.float64)[list(held)]
+        maps = [None, problems[0].warps] if by_ratios and np.any(problems[0].warps) else [None]
+        for warps, problem in itertools.product(maps, problems):
+            evaluate = host_evaluator(problems[0], frame_data, dtype, own, coarse, warps)
+            y, given = (np.asarray(start_point(problem, dtype, inset=inset), np.float64) for inset in (True, False))
+            if warps is not None:
+                y, given = warped_start(y, warps), warped_start(given, warps, inset=False)
+            y[list(held)] = given[list(held)]  # a held field stays as given, on a bound too (the polish insets it)
             # The first step's evaluation, the start's loss; linearised now (the first step accepts its point), so
             # that the starts waiting for their first step hold normal equations, not Jacobians.
             residuals, linearise = evaluate(y)
             normal_equations = linearise()
             first = (residuals, lambda normal_equations=normal_equations: normal_equations)
-            runs.append(_Run(problems[0], optimiser.init(y, first), [float(np.sum(np.square(residuals, dtype=np.float64)))]))
+            loss = float(np.sum(np.square(residuals, dtype=np.float64)))
+            runs.append(_Run(problems[0], optimiser.init(y, first), [loss], warps=warps, evaluate=evaluate))
 
         def step(run):
-            run.state = optimiser.step(run.state, evaluate)
+            run.state = optimiser.step(run.state, run.evaluate)
             return run.state.loss
 
     else:
@@ -552,12 +562,13 @@ def _coarse_phase(
     coarse_runs, winner = _descend(
         scaled, bounds, reduced, counter,
         **{**phases.descend, "plateau_rtol": phases.coarse_plateau_rtol, "plateau_steps": phases.coarse_plateau_steps},
+        by_ratios=True,
     )  # fmt: skip
     fine_start = _effect_of_run(coarse_runs[winner])
     linearises = phases.coarse_jacobian and isinstance(phases.optimiser, LevenbergMarquardt)
     linearisation = CoarseLinearisation.of(coarse_runs[winner].problem, reduced, factor) if linearises else None
     fine_start = clip_to_bounds(scale_pixel_fields(fine_start, float(factor)), bounds)
-    return [fine_start], winner, linearisation, _frames_of_run(coarse_runs[winner], frame_data)
+    return [fine_start], winner % len(candidates), linearisation, _frames_of_run(coarse_runs[winner], frame_data)
 
 
 def _polish_phase(

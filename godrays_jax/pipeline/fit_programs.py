@@ -271,7 +271,9 @@ class _Blocks(NamedTuple):
     sums: Callable[[np.ndarray], np.ndarray]
 
 
-def host_evaluator(problem: FitProblem, frame_data, dtype, own=None, coarse: CoarseLinearisation | None = None):
+def host_evaluator(
+    problem: FitProblem, frame_data, dtype, own=None, coarse: CoarseLinearisation | None = None, warps=None
+):
     """`marquardt.Evaluate` of the unknowns `y`: the residuals, and their normal equations in `y` (the positions'
     Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`.
 
@@ -279,10 +281,11 @@ def host_evaluator(problem: FitProblem, frame_data, dtype, own=None, coarse: Coa
     stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in), computed only when
     the step accepts the point. `coarse`: the normal equations from the coarse resolution's Jacobian instead, of
     `own`'s residuals (required then: the problem's own effect at the positions when it is not a polish).
+    `warps`: the unknowns' map by ratios (`FitProblem.warps`), else None.
     """
 
     def evaluate(y):
-        positions, slope = folded_positions(y)
+        positions, slope = folded_positions(y, warps)
         positions = jax.device_put(np.asarray(positions, dtype))  # cast on the host: `jnp.asarray` compiles per size
 
         def linearise(jacobian=None, residuals=None):

@@ -76,9 +76,17 @@ def to_unit(value, low, high):
     return jnp.where(position < edge, near_low, jnp.where(position > 1.0 - edge, near_high, inside))
 
 
-def folded_positions(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def warp_of(effect: Effect | type[Effect], name: str) -> float:
+    """Field `name`'s warp where it is moved by ratios (`folded_positions`): its `FieldInfo.decades` in natural-log
+    units, 0 for a field moved by differences alone."""
+    return field_metadata(effect)[name].decades * math.log(10.0)
+
+
+def folded_positions(unit: np.ndarray, warps: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`from_unit`'s map of the unknowns to positions in their ranges (0 on the lower bound, 1 on the upper) and its
-    slope, in NumPy float64: for the solver that runs on the host (`marquardt`)."""
+    slope, in NumPy float64: for the solver that runs on the host (`marquardt`). `warps` (`FitProblem.warps`, per
+    unknown): the map by ratios, each position `t` spread over the range as `expm1(warp t) / expm1(warp)`, where
+    equal steps scale the value by equal ratios over the top `warp / ln 10` decades (a warp of 0: as without)."""
     folded = np.mod(np.asarray(unit, np.float64), 2.0)
     mirrored = folded > 1.0
     inside = np.where(mirrored, 2.0 - folded, folded)
@@ -89,7 +97,21 @@ def folded_positions(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         np.where(near_high, 1.0 - slope * (1.0 - inside) ** 2 / (2.0 * rounding), slope * (inside - rounding / 2.0)),
     )  # fmt: skip
     gradient = np.where(near_low, slope * inside / rounding, np.where(near_high, slope * (1.0 - inside) / rounding, slope))
+    if warps is not None and np.any(warps):
+        warp = np.where(warps > 0, warps, 1.0)  # a warp of 0 is the identity: any other value, then not taken
+        gradient = gradient * np.where(warps > 0, warp * np.exp(warp * position) / np.expm1(warp), 1.0)
+        position = np.where(warps > 0, np.expm1(warp * position) / np.expm1(warp), position)
     return position, np.where(mirrored, -gradient, gradient)
+
+
+def warped_start(unit: np.ndarray, warps: np.ndarray, *, inset: bool = True) -> np.ndarray:
+    """The unknowns of `folded_positions` by `warps` at the positions of the unknowns `unit` (`start_point`'s, of the
+    map without warps); a start on a bound `START_INSET` inside it (`inset`), as `start_point`'s."""
+    warp = np.where(warps > 0, warps, 1.0)
+    positions = folded_positions(unit)[0]
+    along = np.where(warps > 0, np.log1p(positions * np.expm1(warp)) / warp, positions)
+    low_end = START_INSET if inset else 0.0
+    return np.clip(np.asarray(to_unit(along, 0.0, 1.0), np.float64), low_end, 1.0 - low_end)
 
 
 def _linear(position, low, high):
@@ -283,6 +305,12 @@ class FitProblem(eqx.Module):
         if self.light_tints is not None:
             blocks.append(((0.0, self.tint_high), tuple(self.light_tints.shape), type(self.effect).LIGHT_TINT_STAGE))
         return blocks
+
+    @property
+    def warps(self) -> np.ndarray:
+        """Each unknown's warp where the fields are moved by ratios (`warp_of`; the tints' 0), in order."""
+        warps = [warp_of(self.effect, name) for name in self.names] + [0.0]
+        return np.concatenate([np.full(math.prod(shape), warp) for warp, (_, shape, _) in zip(warps, self.blocks)])
 
     @property
     def group_stages(self) -> tuple[str, ...]:

@@ -235,8 +235,8 @@ def _descend(
     goes on to `max_steps`. Returns the runs and the winner's index. `hold`: fields that Levenberg-Marquardt on the
     host leaves as they start (`Effect.POLISH_FIELDS` before the polish). `own`: as `host_evaluator`'s (Levenberg-
     Marquardt on the host only); `coarse`: a `CoarseLinearisation` of the residuals of `own` (or the problem's).
-    `by_ratios` (Levenberg-Marquardt on the host, fields with `FieldInfo.decades`): each start races twice, then
-    moved by ratios (`FitProblem.warps`), its runs after the others' (index `i + len(candidates)`).
+    `by_ratios` (Levenberg-Marquardt on the host, fields with `FieldInfo.decades`): each start races twice, the
+    second time with those fields moved by ratios (`FitProblem.warps`); run `i + len(candidates)` is start `i`'s.
 
     The starts differ only in their fitted fields, so they share one problem and its compiled program; each
     keeps its own solver state, so a start that goes on is not started again.

@@ -255,8 +255,8 @@ def _descend(
         if coarse is not None and own is None:
             own = lambda positions: _fitted_effects(problems[0], positions)[0]  # noqa: E731
         maps = [None, problems[0].warps] if by_ratios and np.any(problems[0].warps) else [None]
-        for warps, problem in itertools.product(maps, problems):
-            evaluate = host_evaluator(problems[0], frame_data, dtype, own, coarse, warps)
+        maps = [(warps, host_evaluator(problems[0], frame_data, dtype, own, coarse, warps)) for warps in maps]
+        for (warps, evaluate), problem in itertools.product(maps, problems):
             y, given = (np.asarray(start_point(problem, dtype, inset=inset), np.float64) for inset in (True, False))
             if warps is not None:
                 y, given = warped_start(y, warps), warped_start(given, warps, inset=False)

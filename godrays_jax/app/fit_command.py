@@ -14,7 +14,7 @@ from godrays_jax.app.fit_light import (
     first_light,
     found_lights_text,
     light_lines,
-    profile_line,
+    profile_lines,
     seen_lines,
     tried_line,
     write_text,
@@ -58,7 +58,7 @@ from godrays_jax.pipeline.frame_start import (
     thin_slabs_start,
 )
 from godrays_jax.pipeline.light_profile import PROFILE_STEP, profile_light
-from godrays_jax.pipeline.light_search import LIGHT_REACH, find_light
+from godrays_jax.pipeline.light_search import LIGHT_REACH, VISIBLE_CHANGE, find_light
 from godrays_jax.pipeline.light_seen import DRAWN_SHARE, nearest_seen, seen_lights
 from godrays_jax.pipeline.problem import fitted_bounds
 from godrays_jax.pipeline.report import fit_report_image, image_metrics
@@ -204,10 +204,17 @@ def run(args) -> int:
             _say(tried_line(xy, loss))
             return loss
 
-        side = max(frame.height, frame.width)
-        profile = profile_light(fitted_loss, np.asarray(light_positions[index]), step=PROFILE_STEP * side)
-        _say(profile_line(profile))
-        found[path] = (dataclasses.replace(found[path][0], light_xy=profile.light_xy), frame, depths[index], [])
+        step, rise = PROFILE_STEP * max(frame.height, frame.width), VISIBLE_CHANGE**2 if args.loss == "mse" else None
+        profile = profile_light(fitted_loss, np.asarray(light_positions[index]), step=step, visible_rise=rise)
+        for line in profile_lines(profile, visible_rise=rise, step=step):
+            _say(line)
+        # The search's standard error and covariance were its light's, with its few fields: not the light placed.
+        unknown = np.full(2, np.nan)
+        placed = dataclasses.replace(
+            found[path][0], light_xy=profile.light_xy, standard_error=unknown, covariance=np.full((2, 2), np.nan),
+            visible_shift=profile.visible_shift,
+        )  # fmt: skip
+        found[path] = (placed, frame, depths[index], [])
         light_positions[index] = jnp.asarray(profile.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(profile.light_xy), path)
     phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes

@@ -98,9 +98,25 @@ def tried_line(xy, loss: float) -> str:
     return f"  a fit with the light at {_pair(xy)} px: loss {loss:.6g}"
 
 
-def profile_line(profile: LightProfile) -> str:
-    """The command's line about the light `light_profile.profile_light` placed."""
-    return f"  placed at {_pair(profile.light_xy)} px: where the losses of the {len(profile.losses)} fits are lowest"
+def profile_lines(profile: LightProfile, *, visible_rise: float | None, step: float) -> list[str]:
+    """The command's lines about the light `light_profile.profile_light` placed (its first round's `step`, pixels)
+    and how well the fits place it (`LightProfile.visible_shift`, a rise of `visible_rise` in a fit's loss; None: a
+    loss that is not the MSE)."""
+    placed = f"  placed at {_pair(profile.light_xy)} px: where the losses of the {len(profile.losses)} fits are lowest"
+    if visible_rise is None:
+        return [placed, "  how well the fits place it is measured for --loss mse only"]
+    if np.all(np.isnan(profile.visible_shift)):
+        return [placed, f"  how well the fits place it is not measured: fewer than six fits within {step:.3g} px of it"]
+    shifts = dict(zip("xy", profile.visible_shift))
+    seen = " or ".join(f"{shift:.3g} px in {axis}" for axis, shift in shifts.items() if np.isfinite(shift))
+    unseen = " or ".join(axis for axis, shift in shifts.items() if not np.isfinite(shift))
+    rises = f"raises a whole fit's loss by {visible_rise:.3g} (the fitted frame changes by {math.sqrt(visible_rise):.3g} RMS)"
+    unplaced = f"the frames do not place the light along {unseen}"
+    if not unseen:
+        return [placed, f"  a move of {seen} {rises}"]
+    if not seen:
+        return [placed, f"  no move within {step:.3g} px in {unseen} {rises}: {unplaced}"]
+    return [placed, f"  a move of {seen} {rises}; no move within {step:.3g} px in {unseen} does: {unplaced}"]
 
 
 def _pair(xy) -> str:
@@ -111,7 +127,9 @@ def found_lights_text(
     found: dict[str, tuple[LightSearch | SeenLight, Buffers, float, list[SeenLight]]], tints=None
 ) -> str:
     """The file of the lights found (`options.found_lights_path`): for each frame (by file name, as `apply` finds
-    it) the light in pixels, the frame's size, the light's standard error, the distance the fit drew it at
+    it) the light in pixels, the frame's size, the light's standard error (`null` where not measured: a light placed
+    by whole fits), the move that changes its fitted frame visibly where it was measured (`"visible_shift_px"`,
+    `null` for an axis along which no move does), the distance the fit drew it at
     (`null`: infinite, the sun) and the lights in view drawn beside it (`"beside"`: each position and distance);
     and the fitted tints of the lights beside the first (`tints`, `(K, 3)`, over the first's), which `apply
     --params` takes; as JSON."""
@@ -121,6 +139,8 @@ def found_lights_text(
             "size": [frame.width, frame.height],
             "light_px": [float(v) for v in light.light_xy],
             "standard_error_px": [float(v) if np.isfinite(v) else None for v in light.standard_error],
+            **({"visible_shift_px": [float(v) if np.isfinite(v) else None for v in light.visible_shift]}
+               if np.any(np.isfinite(getattr(light, "visible_shift", np.nan))) else {}),
             "light_depth": _depth_value(depth),
             **({"beside": [
                 {"light_px": [float(v) for v in other.light_xy], "light_depth": _depth_value(other.depth)}

@@ -7,7 +7,8 @@ field refitted, as a function of the light, is lowest near the light the target 
 stops where its own stopping rule says, so that function is noisy on the scale of a few pixels
 (benchmarks/README.md, "Finding the light"). `profile_light` walks it along y, then x, with a few fits each
 (where a side is lower it moves there), and goes to the minimum of a quadratic in x and y fitted by least squares
-to the losses near the lowest; then the same again at a third of the step.
+to the losses near the lowest; then the same again at a third of the step. How well the fits place it is how far
+it moves before a whole fit's loss rises visibly (`LightProfile.visible_shift`).
 """
 
 import dataclasses
@@ -35,11 +36,16 @@ class LightProfile:
         light_xy: `(2,)` the light placed.
         tried: `(N, 2)` every light a fit was run at, in order.
         losses: `(N,)` the loss each of those fits reached.
+        visible_shift: `(2,)` the move in x (in y) that raises a whole fit's loss by `visible_rise`, pixels: the
+            curvature of a quadratic fitted to the losses of the lights tried within the first round's step of
+            `light_xy`. `inf` where they do not rise that much within the step along that axis (the frames do
+            not place the light along it), `nan` where it was not measured (no `visible_rise`, or fewer than six such fits).
     """
 
     light_xy: np.ndarray
     tried: np.ndarray
     losses: np.ndarray
+    visible_shift: np.ndarray
 
 
 def profile_light(
@@ -49,6 +55,7 @@ def profile_light(
     step: float,
     rounds: int = PROFILE_ROUNDS,
     max_moves: int = MAX_MOVES,
+    visible_rise: float | None = None,
 ) -> LightProfile:
     """The light near `start_xy` (pixels) whose fit reaches the lowest loss, from the losses `fitted_loss(xy)` of a
     few fits: at most three per axis and round (the light and a step either side, each light fitted once), and one
@@ -62,15 +69,21 @@ def profile_light(
     coordinate): one fit's loss is noisy on the scale of a few pixels. Each next round's step is a third of the
     one before. A loss that is not finite counts as higher than any other.
 
+    `visible_rise`: the rise of a fit's loss taken as visible, for `LightProfile.visible_shift` (for the MSE, the
+    square of the RMS change of the fitted frame: a fit at a light that far off can do no better than a frame
+    that much unlike the one at the light placed); None leaves it unmeasured.
+
     Raises:
         ValueError: `step` not positive, `rounds` or `max_moves` not a non-negative int, `start_xy` not two finite
-            numbers.
+            numbers, `visible_rise` not positive.
     """
     if not (isinstance(step, (int, float)) and step > 0):
         raise ValueError(f"step must be > 0 pixels, got {step!r}")
     for name, value in (("rounds", rounds), ("max_moves", max_moves)):
         if not (isinstance(value, int) and value >= 0):
             raise ValueError(f"{name} must be an int >= 0, got {value!r}")
+    if visible_rise is not None and not (isinstance(visible_rise, (int, float)) and visible_rise > 0):
+        raise ValueError(f"visible_rise must be > 0 or None, got {visible_rise!r}")
     light = np.asarray(start_xy, np.float64)
     if light.shape != (2,) or not np.all(np.isfinite(light)):
         raise ValueError(f"start_xy must be two finite numbers (x, y) in pixels, got {start_xy!r}")
@@ -103,7 +116,35 @@ def profile_light(
                     above = loss_at(light + along)
             light = light + along * _vertex(below, middle, above)
         light = _quadratic_minimum(np.asarray(tried), np.asarray(losses), size)
-    return LightProfile(light, np.asarray(tried).reshape(-1, 2), np.asarray(losses))
+    tried, losses = np.asarray(tried).reshape(-1, 2), np.asarray(losses)
+    shift = np.full(2, np.nan) if visible_rise is None else _visible_shift(tried, losses, light, step, visible_rise)
+    return LightProfile(light, tried, losses, shift)
+
+
+def _quadratic(tried: np.ndarray, losses: np.ndarray, centre: np.ndarray, size: float, least: int):
+    """The coefficients of `a + b x + c y + d x^2 + e y^2` (`x`, `y` in units of `size` from `centre`) fitted by least
+    squares to the finite losses of the lights tried within `size` of `centre` in x and in y; None with fewer than
+    `least` of them."""
+    offsets = (tried - centre) / size
+    near = np.isfinite(losses) & np.all(np.abs(offsets) <= 1.0 + 1e-9, axis=1)
+    if near.sum() < least:
+        return None
+    dx, dy = offsets[near].T
+    design = np.stack([np.ones_like(dx), dx, dy, dx * dx, dy * dy], axis=1)
+    return np.linalg.lstsq(design, losses[near], rcond=None)[0]
+
+
+def _visible_shift(tried: np.ndarray, losses: np.ndarray, light: np.ndarray, size: float, rise: float) -> np.ndarray:
+    """`LightProfile.visible_shift`: from the curvature of the quadratic of the losses within `size` of `light`
+    along each axis (six fits at least, one more than its coefficients, so that their noise shows); `inf` beyond
+    `size`, where no fit measured it."""
+    coefficients = _quadratic(tried, losses, light, size, least=6)
+    if coefficients is None:
+        return np.full(2, np.nan)
+    curvature = coefficients[3:] / size**2  # loss per pixel squared
+    with np.errstate(divide="ignore"):
+        shift = np.sqrt(rise / np.maximum(curvature, 0.0))
+    return np.where(shift <= size, shift, np.inf)
 
 
 def _quadratic_minimum(tried: np.ndarray, losses: np.ndarray, size: float) -> np.ndarray:
@@ -112,13 +153,9 @@ def _quadratic_minimum(tried: np.ndarray, losses: np.ndarray, size: float) -> np
     quadratic has no minimum within a step of the lowest keeps the lowest's coordinate."""
     finite = np.isfinite(losses)
     best = tried[finite][np.argmin(losses[finite])] if np.any(finite) else tried[0]
-    offsets = (tried - best) / size
-    near = finite & np.all(np.abs(offsets) <= 1.0 + 1e-9, axis=1)
-    dx, dy = offsets[near].T
-    if near.sum() < 5:
+    coefficients = _quadratic(tried, losses, best, size, least=5)
+    if coefficients is None:
         return best
-    design = np.stack([np.ones_like(dx), dx, dy, dx * dx, dy * dy], axis=1)
-    coefficients, *_ = np.linalg.lstsq(design, losses[near], rcond=None)
     light = best.astype(np.float64).copy()
     for axis, (slope, curvature) in enumerate([(coefficients[1], coefficients[3]), (coefficients[2], coefficients[4])]):
         if curvature > 0 and abs(slope / (2.0 * curvature)) <= 1.0:

@@ -256,6 +256,7 @@ def _descend(
             own = lambda positions: _fitted_effects(problems[0], positions)[0]  # noqa: E731
         maps = [None, problems[0].warps] if by_ratios and np.any(problems[0].warps) else [None]
         maps = [(warps, host_evaluator(problems[0], frame_data, dtype, own, coarse, warps)) for warps in maps]
+        starts = {} if len(maps) > 1 else None  # each start's first point, which both maps take: taken once
         for (warps, evaluate), problem in itertools.product(maps, problems):
             y, given = (np.asarray(start_point(problem, dtype, inset=inset), np.float64) for inset in (True, False))
             if warps is not None:
@@ -263,7 +264,7 @@ def _descend(
             y[list(held)] = given[list(held)]  # a held field stays as given, on a bound too (the polish insets it)
             # The first step's evaluation, the start's loss; linearised now (the first step accepts its point), so
             # that the starts waiting for their first step hold normal equations, not Jacobians.
-            residuals, linearise = evaluate(y)
+            residuals, linearise = host_evaluator(problems[0], frame_data, dtype, own, coarse, warps, starts)(y)
             normal_equations = linearise()
             first = (residuals, lambda normal_equations=normal_equations: normal_equations)
             loss = float(np.sum(np.square(residuals, dtype=np.float64)))

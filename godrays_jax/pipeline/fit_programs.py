@@ -272,7 +272,7 @@ class _Blocks(NamedTuple):
 
 
 def host_evaluator(
-    problem: FitProblem, frame_data, dtype, own=None, coarse: CoarseLinearisation | None = None, warps=None
+    problem: FitProblem, frame_data, dtype, own=None, coarse: CoarseLinearisation | None = None, warps=None, shared=None
 ):
     """`marquardt.Evaluate` of the unknowns `y`: the residuals, and their normal equations in `y` (the positions'
     Jacobian times the fold's slope, `problem.folded_positions`), from `residuals_and_jacobian`.
@@ -281,12 +281,16 @@ def host_evaluator(
     stand-in's), which then gives the Jacobian alone (the polish of a fit through a stand-in), computed only when
     the step accepts the point. `coarse`: the normal equations from the coarse resolution's Jacobian instead, of
     `own`'s residuals (required then: the problem's own effect at the positions when it is not a polish).
-    `warps`: the unknowns' map by ratios (`FitProblem.warps`), else None.
+    `warps`: the unknowns' map by ratios (`FitProblem.warps`), else None. `shared`: a dict of the problem's
+    residuals and Jacobian by the positions they were taken at, which evaluators whose points repeat once share (a
+    start raced by both maps begins at the same positions): an entry is taken out by the point that repeats it.
     """
 
     def evaluate(y):
         positions, slope = folded_positions(y, warps)
-        positions = jax.device_put(np.asarray(positions, dtype))  # cast on the host: `jnp.asarray` compiles per size
+        positions = np.asarray(positions, dtype)
+        key = positions.tobytes()
+        positions = jax.device_put(positions)  # cast on the host: `jnp.asarray` compiles per size
 
         def linearise(jacobian=None, residuals=None):
             if coarse is not None:
@@ -301,8 +305,13 @@ def host_evaluator(
             frames_now = problem.frames_at_positions(positions, frame_data)
             residuals = np.asarray(effect_residuals(problem, own(positions), frames_now))
             return residuals, lambda: linearise(residuals=residuals)
-        residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
-        residuals = np.asarray(residuals)
+        if shared is not None and key in shared:
+            residuals, jacobian = shared.pop(key)
+        else:
+            residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)
+            residuals = np.asarray(residuals)
+            if shared is not None:
+                shared[key] = residuals, jacobian
         return residuals, lambda: linearise(jacobian, residuals)
 
     return evaluate

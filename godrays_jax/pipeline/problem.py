@@ -67,13 +67,17 @@ def _rounded_fold(unit):
 
 def to_unit(value, low, high):
     """The unknown whose `from_unit` is `value` (in `[low, high]`), in `[0, 1]`; a bound maps to 0 or 1."""
-    position = (value - low) / (high - low)
+    return _unfolded((value - low) / (high - low), jnp)
+
+
+def _unfolded(position, xp):
+    """`_rounded_fold`'s inverse on `[0, 1]`, in the array module `xp` (`jnp`, or `np` for the host's float64)."""
     rounding, slope = FOLD_ROUNDING, 1.0 / (1.0 - FOLD_ROUNDING)
     edge = slope * rounding / 2.0  # the position where the parabola meets the line
-    near_low = jnp.sqrt(jnp.maximum(2.0 * rounding * position / slope, 0.0))
-    near_high = 1.0 - jnp.sqrt(jnp.maximum(2.0 * rounding * (1.0 - position) / slope, 0.0))
+    near_low = xp.sqrt(xp.maximum(2.0 * rounding * position / slope, 0.0))
+    near_high = 1.0 - xp.sqrt(xp.maximum(2.0 * rounding * (1.0 - position) / slope, 0.0))
     inside = position / slope + rounding / 2.0
-    return jnp.where(position < edge, near_low, jnp.where(position > 1.0 - edge, near_high, inside))
+    return xp.where(position < edge, near_low, xp.where(position > 1.0 - edge, near_high, inside))
 
 
 def warp_of(effect: Effect | type[Effect], name: str) -> float:
@@ -106,12 +110,13 @@ def folded_positions(unit: np.ndarray, warps: np.ndarray | None = None) -> tuple
 
 def warped_start(unit: np.ndarray, warps: np.ndarray, *, inset: bool = True) -> np.ndarray:
     """The unknowns of `folded_positions` by `warps` at the positions of the unknowns `unit` (`start_point`'s, of the
-    map without warps); a start on a bound `START_INSET` inside it (`inset`), as `start_point`'s."""
+    map without warps; the unknowns without a warp as they are), in float64, so that both maps start at the same
+    positions to float32's last bit; a start on a bound `START_INSET` inside it (`inset`), as `start_point`'s."""
     warp = np.where(warps > 0, warps, 1.0)
     positions = folded_positions(unit)[0]
-    along = np.where(warps > 0, np.log1p(positions * np.expm1(warp)) / warp, positions)
+    along = _unfolded(np.log1p(positions * np.expm1(warp)) / warp, np)
     low_end = START_INSET if inset else 0.0
-    return np.clip(np.asarray(to_unit(along, 0.0, 1.0), np.float64), low_end, 1.0 - low_end)
+    return np.where(warps > 0, np.clip(along, low_end, 1.0 - low_end), unit)
 
 
 def _linear(position, low, high):

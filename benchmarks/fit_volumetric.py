@@ -65,7 +65,7 @@ def fit_scene(
     light = [] if scene.renderer == "mitsuba" else light_options(scene)  # Blender's headers lack the light
     light = [] if light_auto else light
     # A scene whose shadows are cast from outside the frame ships the depth map seen from its light beside it.
-    light_view = scene.clean.with_name(f"{scene.name}_light_view.exr")
+    light_view = scene.clean.with_name(scene.clean.name.replace("_clean.exr", "_light_view.exr"))
     light += ["--light-view", str(light_view)] if light_view.exists() else []
     log = None if report is None else report / f"fit_{scene.name}.txt"  # what the command printed: steps, start
     target = scene.fog_a if target is None else target

@@ -44,9 +44,11 @@ def read_rgb(path: Path) -> np.ndarray:
 
 
 def light_options(scene) -> list[str]:
-    """`--light X,Y --light-depth D` from the scene's record, for frames whose header does not carry them."""
+    """`--light X,Y --light-depth D` from the scene's record, for frames whose header does not carry them
+    (`X,Y,behind` for a light behind the camera)."""
     x, y = scene.light_px
-    return ["--light", f"{x:.4f},{y:.4f}", "--light-depth", f"{scene.light_depth:g}"]
+    side = "" if scene.light_in_front else ",behind"
+    return ["--light", f"{x:.4f},{y:.4f}{side}", "--light-depth", f"{scene.light_depth:g}"]
 
 
 def display_mse(a: np.ndarray, b: np.ndarray) -> float:

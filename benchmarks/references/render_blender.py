@@ -1,7 +1,7 @@
 """Render reference scenes with Blender Cycles (CPU) as Blender multilayer EXR: a clean frame and two fog frames.
 
     python benchmarks/references/render_blender.py [SCENE ...] [--samples 256] [--blender blender] [--out DIR]
-        [--volume-bounces 1]
+        [--volume-bounces 1] [--threads 1] [--light-view]
 
 The scenes are `render_references.py`'s (same camera, shapes, light and
 medium), built in Blender (its z up: our `(x, y, z)` is Blender's
@@ -9,6 +9,12 @@ medium), built in Blender (its z up: our `(x, y, z)` is Blender's
 
 - `NAME_clean.exr`: without a medium, four times the fog's samples;
 - `NAME_fog_a.exr`, `NAME_fog_b.exr`: inside the medium, Cycles seeds 1 and 2;
+
+- `NAME_light_view.exr` (`--light-view`, a sun scene): the depth seen from the sun, made as
+  docs/file_formats.md tells a Blender user to: an orthographic camera with the sun lamp's rotation,
+  `render_references.LIGHT_VIEW_DISTANCE` up-sun of the frame's camera, `LIGHT_VIEW_SPAN` across in
+  `LIGHT_VIEW_PIXELS` square, its `Z` pass without the medium, and the three `godrays:light_view_*`
+  attributes set afterwards with OpenImageIO from both cameras' `matrix_world`;
 
 each as Blender writes it (`OPEN_EXR_MULTILAYER`, half floats, zip):
 `ViewLayer.Combined.R/G/B/A` and `ViewLayer.Depth.Z`, Cycles' Z pass, the
@@ -24,7 +30,7 @@ the medium, for a diagnosis in another `--out` folder), the medium a
 `Volume Scatter` (anisotropy g) plus `Volume Absorption` in a closed sphere
 around the camera (homogeneous), the sun a sun lamp of the disc's angle and
 irradiance (Cycles does not show a sun lamp to the camera: the scenes here
-hide it or use a lamp), the lamp an emitting sphere. One render thread.
+hide it or use a lamp), the lamp an emitting sphere. One render thread (`--threads`).
 
 Run by Python, it calls `blender -b --factory-startup --python THIS -- ...`
 once per frame (seconds: wall and CPU of that call); run by Blender (`bpy` importable), it builds and renders one.
@@ -129,9 +135,14 @@ def _add(bpy, kind, matrix, material):
     return thing
 
 
-def build_and_render(description: dict, output: str, seed: int, samples: int, fog: bool, volume_bounces: int) -> None:
+def build_and_render(
+    description: dict, output: str, seed: int, samples: int, fog: bool, volume_bounces: int, threads: int = 1,
+    light_view: dict | None = None,
+) -> None:
+    """Render the frame (or, with `light_view`'s `pixels`, `span` and `distance`, the sun's depth map, and write
+    its camera beside it as `OUTPUT.json`: the docs' `light_view_from_camera` and `light_view_scale`)."""
     import bpy
-    from mathutils import Vector
+    from mathutils import Matrix, Vector
 
     scene = bpy.context.scene
     for thing in list(bpy.data.objects):
@@ -146,7 +157,7 @@ def build_and_render(description: dict, output: str, seed: int, samples: int, fo
     cycles.sample_clamp_direct = cycles.sample_clamp_indirect = 0.0
     cycles.max_bounces = cycles.diffuse_bounces = cycles.glossy_bounces = 1
     cycles.transmission_bounces, cycles.volume_bounces = 1, volume_bounces
-    render.threads_mode, render.threads = "FIXED", 1
+    render.threads_mode, render.threads = "FIXED", threads
     render.resolution_x, render.resolution_y, render.resolution_percentage = description["width"], description["height"], 100
     for view_layer in scene.view_layers:
         view_layer.cycles.use_denoising = False
@@ -194,9 +205,28 @@ def build_and_render(description: dict, output: str, seed: int, samples: int, fo
                                              location=_point(description["camera"]))
         bpy.context.active_object.data.materials.append(_medium(bpy, medium["sigma_t"], medium["albedo"], medium["g"]))
 
+    if light_view is not None:  # the sun's orthographic camera, as docs/file_formats.md has a Blender user add it
+        view = bpy.data.cameras.new("light_view")
+        view.type, view.ortho_scale, view.clip_end = "ORTHO", light_view["span"], 10.0 * light_view["distance"]
+        light_camera = bpy.data.objects.new("light_view", view)
+        scene.collection.objects.link(light_camera)
+        light_camera.rotation_euler = lamp.rotation_euler  # both look down their own -z
+        light_camera.location = camera.location - light_view["distance"] * (lamp.rotation_euler.to_matrix() @ Vector((0, 0, -1)))
+        scene.camera = light_camera
+        render.resolution_x = render.resolution_y = light_view["pixels"]
+        cycles.samples, cycles.filter_width = 1, 0.01  # one ray through each pixel's centre
+        bpy.context.view_layer.update()
+        flip = Matrix.Diagonal((1, 1, -1, 1))  # Blender camera axes -> x right, y up, z forward
+        from_camera = flip @ light_camera.matrix_world.inverted() @ camera.matrix_world @ flip
+        Path(output + ".json").write_text(json.dumps({
+            "from_camera": [list(row) for row in from_camera[:3]], "scale": light_view["pixels"] / view.ortho_scale,
+        }))  # fmt: skip
+
     render.use_stamp_lens = True
     settings = render.image_settings
     settings.file_format, settings.color_depth, settings.exr_codec = "OPEN_EXR_MULTILAYER", "16", "ZIP"
+    if light_view is not None:
+        settings.color_depth = "32"  # depths of hundreds of units: half floats keep 0.1-0.25 of a unit
     render.filepath = output
     bpy.ops.render.render(write_still=True)
 
@@ -236,6 +266,8 @@ def main() -> None:
     parser.add_argument("--blender", default="blender")
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--volume-bounces", type=int, default=1, help="Cycles' volume bounces (0: light scattered once)")
+    parser.add_argument("--threads", type=int, default=1, help="Cycles' render threads")
+    parser.add_argument("--light-view", action="store_true", help="also render a sun scene's depth seen from the sun")
     args = parser.parse_args()
 
     import numpy as np
@@ -250,14 +282,25 @@ def main() -> None:
     for name in args.scenes or SCENE_NAMES:
         description = describe(name)
         seconds = {}
-        for key, seed in SEEDS.items():
-            samples = args.samples * (CLEAN_SAMPLES_FACTOR if key == "clean" else 1)
-            job = json.dumps({"description": description, "output": str(out / f"{name}_{key}.exr"), "seed": seed,
-                              "samples": samples, "fog": key != "clean", "volume_bounces": args.volume_bounces})
+
+        def run_blender(key, **job):
+            job = json.dumps({"description": description, "output": str(out / f"{name}_{key}.exr"),
+                              "volume_bounces": args.volume_bounces, "threads": args.threads, **job})  # fmt: skip
             start, cpu = time.perf_counter(), _children_cpu()
             subprocess.run([args.blender, "-b", "--factory-startup", "--python", __file__, "--", job],
                            check=True, capture_output=True, text=True)
             seconds[key] = [round(time.perf_counter() - start, 1), round(_children_cpu() - cpu, 1)]
+
+        if args.light_view:
+            if "direction" not in description["light"]:
+                raise SystemExit(f"{name}: --light-view is for a sun scene")
+            view = {"pixels": mitsuba_scenes.LIGHT_VIEW_PIXELS, "span": mitsuba_scenes.LIGHT_VIEW_SPAN,
+                    "distance": mitsuba_scenes.LIGHT_VIEW_DISTANCE}  # fmt: skip
+            run_blender("light_view", seed=0, samples=1, fog=False, light_view=view)
+            _set_light_view_attributes(out / f"{name}_light_view.exr")
+        for key, seed in SEEDS.items():
+            samples = args.samples * (CLEAN_SAMPLES_FACTOR if key == "clean" else 1)
+            run_blender(key, seed=seed, samples=samples, fog=key != "clean")
 
         def rgb(key):
             buffer = oiio.ImageBuf(str(out / f"{name}_{key}.exr"))
@@ -278,6 +321,24 @@ def main() -> None:
         print(f"{PREFIX}{name}: {seconds} s, noise floor {floor:.3e}", flush=True)
 
 
+def _set_light_view_attributes(path: Path) -> None:
+    """The three `godrays:light_view_*` attributes a Blender user sets with OpenImageIO (docs/file_formats.md), from
+    the camera Blender wrote beside the map (`PATH.json`, then removed), on the map's depth channel."""
+    import OpenImageIO as oiio
+
+    camera_path = Path(f"{path}.json")
+    camera = json.loads(camera_path.read_text())
+    # Its depth channel alone (Blender writes the colour too, which no reader of the map takes): a smaller file.
+    buffer = oiio.ImageBufAlgo.channels(oiio.ImageBuf(str(path)), ("ViewLayer.Depth.Z",))
+    spec = buffer.specmod()
+    spec.attribute("godrays:light_view_projection", "orthographic")
+    spec.attribute("godrays:light_view_from_camera", " ".join(repr(float(v)) for row in camera["from_camera"] for v in row))
+    spec.attribute("godrays:light_view_scale", repr(float(camera["scale"])))
+    if not buffer.write(str(path)):
+        raise SystemExit(f"{path}: {buffer.geterror()}")
+    camera_path.unlink()
+
+
 def _children_cpu() -> float:
     times = os.times()
     return times.children_user + times.children_system
@@ -295,4 +356,7 @@ if __name__ == "__main__":
         main()
     else:
         job = json.loads(sys.argv[sys.argv.index("--") + 1])
-        build_and_render(job["description"], job["output"], job["seed"], job["samples"], job["fog"], job["volume_bounces"])
+        build_and_render(
+            job["description"], job["output"], job["seed"], job["samples"], job["fog"], job["volume_bounces"],
+            job.get("threads", 1), job.get("light_view"),
+        )  # fmt: skip

@@ -45,7 +45,10 @@ def read_rgb(path: Path) -> np.ndarray:
 
 def light_options(scene) -> list[str]:
     """`--light X,Y --light-depth D` from the scene's record, for frames whose header does not carry them
-    (`X,Y,behind` for a light behind the camera)."""
+    (`X,Y,behind` for a light behind the camera; a scene of several lights, each, and their tints)."""
+    if scene.lights:
+        lights = scene.lights
+        return ["--light", lights["lights"], "--light-depth", lights["lights_depth"], "--light-tint", lights["lights_tint"]]
     x, y = scene.light_px
     side = "" if scene.light_in_front else ",behind"
     return ["--light", f"{x:.4f},{y:.4f}{side}", "--light-depth", f"{scene.light_depth:g}"]

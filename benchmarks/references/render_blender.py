@@ -193,11 +193,11 @@ def build_and_render(
         lamp = bpy.data.objects.new("sun", sun)
         scene.collection.objects.link(lamp)
         lamp.rotation_euler = Vector(_point(light["direction"])).to_track_quat("Z", "Y").to_euler()  # emits along -z
-    else:
-        bpy.ops.mesh.primitive_uv_sphere_add(segments=32, ring_count=16, radius=light["radius"],
-                                             location=_point(light["position"]))
+    for lamp_light in ([] if "direction" in light else [light]) + description.get("more_lights", []):
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=32, ring_count=16, radius=lamp_light["radius"],
+                                             location=_point(lamp_light["position"]))
         bpy.ops.object.shade_smooth()
-        bpy.context.active_object.data.materials.append(_emission(bpy, light["radiance"]))
+        bpy.context.active_object.data.materials.append(_emission(bpy, lamp_light["radiance"]))
 
     if fog:
         medium = description["medium"]
@@ -249,11 +249,15 @@ def describe(name: str) -> dict:
         light_json = {"position": list(light.position), "radius": light.radius, "radiance": list(light.radiance)}
     if isinstance(scene.medium.extent, tuple):
         raise ValueError(f"{name}: only a medium sphere around the camera is built in Blender here")
+    if any(isinstance(other, mitsuba_scenes.Sun) for other in scene.more_lights):
+        raise ValueError(f"{name}: only lamps beside the first light are built in Blender here")
+    more = [{"position": list(other.position), "radius": other.radius, "radiance": list(other.radiance)}
+            for other in scene.more_lights]  # fmt: skip
     return {
         "width": mitsuba_scenes.WIDTH, "height": mitsuba_scenes.HEIGHT, "fov_x_deg": mitsuba_scenes.FOV_X_DEG,
         "camera": list(scene.camera), "sky": list(light.sky), "ground": list(mitsuba_scenes.GROUND_REFLECTANCE),
         "shapes": [(kind, matrix, list(reflectance)) for kind, matrix, reflectance in scene.shapes],
-        "light": light_json,
+        "light": light_json, "more_lights": more,
         "medium": {"sigma_t": scene.medium.sigma_t, "albedo": scene.medium.albedo, "g": scene.medium.g,
                    "extent": scene.medium.extent},
     }

@@ -209,10 +209,9 @@ def run(args) -> int:
         for line in profile_lines(profile, visible_rise=rise, step=step):
             _say(line)
         # The search's standard error and covariance were its light's, with its few fields: not the light placed.
-        unknown = np.full(2, np.nan)
         placed = dataclasses.replace(
-            found[path][0], light_xy=profile.light_xy, standard_error=unknown, covariance=np.full((2, 2), np.nan),
-            visible_shift=profile.visible_shift,
+            found[path][0], light_xy=profile.light_xy, visible_shift=profile.visible_shift,
+            standard_error=np.full(2, np.nan), covariance=np.full((2, 2), np.nan),
         )  # fmt: skip
         found[path] = (placed, frame, depths[index], [])
         light_positions[index] = jnp.asarray(profile.light_xy, jnp.float32)

@@ -289,7 +289,7 @@ def host_evaluator(
     def evaluate(y):
         positions, slope = folded_positions(y, warps)
         positions = np.asarray(positions, dtype)
-        key = positions.tobytes()
+        key = None if shared is None else positions.tobytes()
         positions = jax.device_put(positions)  # cast on the host: `jnp.asarray` compiles per size
 
         def linearise(jacobian=None, residuals=None):
@@ -305,7 +305,7 @@ def host_evaluator(
             frames_now = problem.frames_at_positions(positions, frame_data)
             residuals = np.asarray(effect_residuals(problem, own(positions), frames_now))
             return residuals, lambda: linearise(residuals=residuals)
-        if shared is not None and key in shared:
+        if key in (shared or {}):
             residuals, jacobian = shared.pop(key)
         else:
             residuals, jacobian = exported.call("fit_jacobian", residuals_and_jacobian, problem, positions, frame_data)

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+from godrays_jax.app import fit_command
 from godrays_jax.app.cli import main
+from godrays_jax.pipeline.light_profile import LightProfile
 
 HEIGHT, WIDTH = 36, 64
 TINT = (0.9, 0.7, 0.45)
@@ -177,6 +179,39 @@ def test_fit_light_auto_finds_the_light_and_apply_params_uses_it(tmp_path, capsy
     assert "from " + str(tmp_path / "params.light.json") in capsys.readouterr().out
     drawn = gr.load_effect(params)(gr.read_buffers(frame), jnp.asarray(entry["light_px"], jnp.float32))
     np.testing.assert_allclose(np.asarray(gr.read_image(output))[..., :3], np.asarray(drawn)[..., :3], atol=2e-3)
+
+
+@pytest.mark.parametrize("placed_at_a_fit", [True, False])
+def test_fit_light_auto_keeps_the_fit_at_the_light_placed_where_it_ran_one(tmp_path, capsys, monkeypatch, placed_at_a_fit):
+    # The command's fit at the light placed is the fit the profile ran there, when it ran one: not run again.
+    frame, target = _files(tmp_path, np.asarray(LIGHTS["on screen"]))
+    calls = []
+
+    def counted_fit(*arguments, **options):
+        calls.append(arguments[2])
+        return fit(*arguments, **options)
+
+    def two_fits(fitted_loss, start_xy, *, step, visible_rise):
+        tried = np.asarray([start_xy, np.asarray(start_xy) + [step, 0.0]], np.float64)
+        losses = np.asarray([fitted_loss(xy) for xy in tried])
+        light = tried[np.argmin(losses)] if placed_at_a_fit else tried[0] + [step / 2, 0.0]
+        return LightProfile(light, tried, losses, np.full(2, np.nan))
+
+    fit = fit_command.fit
+    monkeypatch.setattr(fit_command, "fit", counted_fit)
+    monkeypatch.setattr(fit_command, "profile_light", two_fits)
+    params = tmp_path / "params.json"
+    assert main([*_fit(frame, target, "-o", params), "--light", "auto"]) == 0
+    out = capsys.readouterr().out
+    losses = [float(v) for v in re.findall(r"a fit with the light at \S+ px: loss (\S+)", out)]
+    after = float(re.search(r"loss before \S+, after (\S+) ", out).group(1))
+    assert len(losses) == 2 and len(calls) == (2 if placed_at_a_fit else 3), out
+    assert ("its result is kept" in out) == placed_at_a_fit, out
+    if placed_at_a_fit:
+        assert after == pytest.approx(min(losses), rel=1e-5), out  # the rounded counts' loss: the same fields
+    (entry,) = json.loads((tmp_path / "params.light.json").read_text())["lights"]
+    kept = calls[int(np.argmin(losses))] if placed_at_a_fit else calls[2]
+    np.testing.assert_allclose(entry["light_px"], np.asarray(kept[0]), atol=1e-4)
 
 
 def test_fit_light_refines_the_light_given_and_a_later_fit_without_it_removes_the_file(tmp_path, capsys):

@@ -189,6 +189,8 @@ def run(args) -> int:
         "coarse_factor": coarse_factor, "coarse_jacobian": True, "starts": starts,
     }  # fmt: skip
     # The search's light lies where its few fields match best; the loss of whole fits places it (`light_profile`).
+    # The lowest of those fits, by every frame's light: the command's own fit where the lights are placed at them.
+    lowest = {"loss": math.inf, "lights": None, "result": None}
     for index, (frame, _) in searched.items():
         path = pairs[index][0]
         _say(f"placing the light of {path} by whole fits around it")
@@ -198,9 +200,12 @@ def run(args) -> int:
             lights_now[index] = jnp.asarray(xy, jnp.float32)
             frames_now[index] = ready_frame(effect, frame, tuple(xy), path)
             try:
-                loss = fit(effect, frames_now, lights_now, targets, **fit_options).loss_after
+                fitted = fit(effect, frames_now, lights_now, targets, **fit_options)
+                loss = fitted.loss_after
             except ValueError:  # the fit diverged at this light: the highest loss (`profile_light`)
                 loss = math.inf
+            if loss < lowest["loss"]:
+                lowest.update(loss=loss, lights=_lights_key(lights_now), result=fitted)
             _say(tried_line(xy, loss))
             return loss
 
@@ -216,17 +221,11 @@ def run(args) -> int:
         found[path] = (placed, frame, depths[index], [])
         light_positions[index] = jnp.asarray(profile.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(profile.light_xy), path)
-    phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes
-    bar = tqdm.tqdm(total=phases * args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
-
-    def progress(step, value):
-        bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
-        bar.update(step - bar.n)
-
-    try:
-        result = fit(effect, frames, light_positions, targets, progress=progress, **fit_options)
-    finally:
-        bar.close()
+    if lowest["lights"] is not None and lowest["lights"] == _lights_key(light_positions):
+        result = lowest["result"]  # the same fit again: `fit` is deterministic
+        _say("the fit at the light placed is the lowest of those around it: its result is kept")
+    else:
+        result = _fit_with_progress(effect, frames, light_positions, targets, args, coarse_factor, fit_options)
     chosen = result.effect if args.fractional_counts else result.rounded
     values = effect_to_dict(chosen)
     _say(f"fitted {type(chosen).__name__} ({_steps_line(result, coarse_factor)}):")
@@ -267,6 +266,26 @@ def run(args) -> int:
         _say(f"wrote {args.report}")
     _say(f"wrote {args.output}")
     return 0
+
+
+def _fit_with_progress(effect, frames, light_positions, targets, args, coarse_factor: int, fit_options: dict):
+    """`fit` under a progress bar of its steps (both phases' where a coarse phase or a polish makes two)."""
+    phases = 2 if coarse_factor > 1 or polishes(args.solver, args.loss) else 1  # a coarse phase's fine one polishes
+    bar = tqdm.tqdm(total=phases * args.max_steps, desc="fit", unit="step", file=sys.stderr, dynamic_ncols=True)
+
+    def progress(step, value):
+        bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
+        bar.update(step - bar.n)
+
+    try:
+        return fit(effect, frames, light_positions, targets, progress=progress, **fit_options)
+    finally:
+        bar.close()
+
+
+def _lights_key(light_positions) -> tuple:
+    """Every frame's light, exactly, as a key: two fits at the same lights (and frames, options) are the same fit."""
+    return tuple(tuple(np.asarray(xy, np.float32).tolist()) for xy in light_positions)
 
 
 LIGHT_TINTS = "light_tints"

@@ -13,6 +13,17 @@ memory is still that of its largest call; memory is only handed back when
 the process ends, which for a command is soon (benchmarks/README.md, "The
 fit as users run it", measures both).
 
+One arena serialises the threads that allocate: XLA's compiler (two code
+generator threads and the thread that emits the program) allocates heavily,
+and a first fit's compiles waited on that arena's lock for a good share of
+their time. So a fit whose programs the compilation cache does not hold yet
+(`cli.compiles_first`) takes `COMPILING_ARENAS` arenas instead. Its calls
+then fault their largest temporaries in again (glibc maps a block too large
+for a thread's own arena apart, whatever `mmap` is allowed, and unmaps it on
+`free`), which a run that mostly compiles pays back many times over; a run
+whose programs are read back from the cache keeps the one arena. glibc fixes
+the count once a thread first allocates, so it is chosen before JAX starts.
+
 The price is memory: each compiled program's temporaries stay resident
 after its call, so a fit that alternates two programs (the polish: the
 effect's render and the stand-in's Jacobian) holds both at once where it
@@ -59,13 +70,26 @@ OPT_OUT = "GODRAYS_JAX_KEEP_FREED_MEMORY"
 """The environment variable that, set to `0`, leaves the allocator as it is."""
 
 
-def keep_freed_memory() -> bool:
-    """Tune glibc's allocator as the module's docstring says; returns whether it was (False off glibc, or with
-    `GODRAYS_JAX_KEEP_FREED_MEMORY=0`)."""
+COMPILING_ARENAS = 4
+"""The arenas of a process that compiles its programs first (`keep_freed_memory`): its compiler's threads each
+allocate from their own. Four kept a first fit's peak near one arena's, where glibc's own count (eight a core)
+raised it for no faster compile (benchmarks/README.md, "The fit as users run it")."""
+
+
+def keep_freed_memory(*, arenas: int = 1) -> bool:
+    """Tune glibc's allocator as the module's docstring says, with at most `arenas` malloc arenas (1 for a process
+    that mostly calls its programs, `COMPILING_ARENAS` for one that compiles them first); returns whether it was
+    (False off glibc, or with `GODRAYS_JAX_KEEP_FREED_MEMORY=0`). Call it before JAX starts its threads.
+
+    Raises:
+        ValueError: `arenas` not an int >= 1.
+    """
+    if not (isinstance(arenas, int) and arenas >= 1):
+        raise ValueError(f"arenas must be an int >= 1, got {arenas!r}")
     mallopt = _glibc_function("mallopt")
     if os.environ.get(OPT_OUT, "1") == "0" or mallopt is None:
         return False
-    settings = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, _LARGEST_INT))
+    settings = ((_M_ARENA_MAX, arenas), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, _LARGEST_INT))
     return all(mallopt(parameter, value) == 1 for parameter, value in settings)
 
 

@@ -18,6 +18,8 @@ import typing
 import warnings
 from collections.abc import Callable
 
+import jax
+
 import godrays_jax
 from godrays_jax.app import allocator, compile_cache
 from godrays_jax.app.options import (
@@ -467,6 +469,32 @@ def repeats_programs(args: argparse.Namespace) -> bool:
     return sum(width * height for width, height in sizes) <= allocator.KEPT_FIT_PIXELS
 
 
+_FIT_FILES = frozenset({"buffers", "target", "frames", "output", "report", "params", "light_view", "verbose", "no_cache"})
+"""`fit`'s arguments that name files, or change nothing it compiles: left out of `fit_signature`."""
+
+
+def fit_signature(args: argparse.Namespace) -> str | None:
+    """What decides the programs a `fit` compiles, as text: its frames' sizes, its other options, whether a
+    params file and light views are given, the package's source and JAX's version; None where a frame's size
+    cannot be read. Two fits of frames alike (another shot of the same size) share it."""
+    try:
+        sizes = [image_size(path) for path in [args.buffers, *(pair[0] for pair in args.frames or ())]]
+    except (OSError, ValueError, IndexError):
+        return None
+    options = sorted((name, value) for name, value in vars(args).items() if name not in _FIT_FILES)
+    given = (args.params is not None, len(args.light_view or ()))
+    return repr((sizes, given, options, exported.source_digest(), jax.__version__))
+
+
+def compiles_first(args: argparse.Namespace) -> bool:
+    """Whether the command will compile its large programs before it runs them: a fit that the compilation cache
+    has not seen finish (`compile_cache.holds_fit` of its `fit_signature`), or any fit without the cache."""
+    if args.command != "fit":
+        return False
+    signature = None if args.no_cache else fit_signature(args)
+    return signature is None or not compile_cache.holds_fit(signature)
+
+
 def main(argv: list[str] | None = None, *, keep_freed_memory: bool = False) -> int:
     """Run the CLI; returns the exit status (0 success, 1 error, 2 usage, 130 interrupted). `keep_freed_memory`:
     tune the process's allocator for the commands that repeat their programs (`repeats_programs`), and hand
@@ -477,7 +505,8 @@ def main(argv: list[str] | None = None, *, keep_freed_memory: bool = False) -> i
     if keep_freed_memory:
         allocator.hand_back_after_compiling()
         if repeats_programs(args):
-            allocator.keep_freed_memory()
+            allocator.keep_freed_memory(arenas=allocator.COMPILING_ARENAS if compiles_first(args) else 1)
+    cached = False
     try:
         with warnings.catch_warnings():
             # The library's warnings (a params file's old field name) as one line each, like every other message.
@@ -485,11 +514,15 @@ def main(argv: list[str] | None = None, *, keep_freed_memory: bool = False) -> i
             if not args.no_cache:
                 try:
                     compile_cache.enable()
+                    cached = True
                 except compile_cache.CacheUnavailable as error:
                     warn(args.command, f"{error}; running without a cache")
             module, function = args.handler.split(":")
             # Only the chosen command's module is imported: `apply` never loads the rasterizer or the solver.
-            return getattr(importlib.import_module(module), function)(args)
+            status = getattr(importlib.import_module(module), function)(args)
+            if status == 0 and cached and args.command == "fit" and (signature := fit_signature(args)) is not None:
+                compile_cache.remember_fit(signature)
+            return status
     except KeyboardInterrupt:
         print(f"{PROGRAM} {args.command}: interrupted", file=sys.stderr)
         return 130

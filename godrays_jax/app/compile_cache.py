@@ -8,7 +8,11 @@ subfolder `EXPORTED_FOLDER`), so a later run does not trace them again
 either. Where: the environment variable `GODRAYS_JAX_CACHE_DIR`, else the
 user's cache folder (`cache_dir`). Its size is capped (`MAX_BYTES`; least
 recently used entries go first); `godrays-jax cache` shows it and `godrays-jax cache --clear`
-removes the entries the library wrote; `--no-cache` on any command leaves it alone.
+removes the entries the library wrote; `--no-cache` on any command leaves it alone. The
+fits that finished with the cache on are remembered by what decides their
+programs (`remember_fit`, in the subfolder `FITS_FOLDER`), so that a later
+process knows before JAX starts whether it will compile them
+(`app.allocator`).
 
 The entries are programs (JAX's hold machine code) that later runs execute,
 so the cache is used only from a folder that this user alone can write to
@@ -18,6 +22,7 @@ path that cannot be a folder; the command then runs without a cache
 (`enable` raises `CacheUnavailable`, the command line warns in one line).
 """
 
+import hashlib
 import os
 import re
 import warnings
@@ -35,6 +40,10 @@ MAX_BYTES = 1 << 30
 
 EXPORTED_FOLDER = "exported"
 """The subfolder of traced programs (`pipeline.exported`, capped at its own `MAX_BYTES`)."""
+
+FITS_FOLDER = "fits"
+"""The subfolder of the fits that finished with the cache on: an empty file named by each one's digest
+(`remember_fit`)."""
 
 
 def cache_dir() -> str:
@@ -65,6 +74,7 @@ def enable(directory: str | None = None) -> str:
     try:
         private_folder(directory)
         private_folder(stored)
+        private_folder(os.path.join(directory, FITS_FOLDER))
     except OSError as error:
         reason = error.strerror or str(error)
         raise CacheUnavailable(f"cache folder {error.filename or directory} not used: {reason}") from None
@@ -86,11 +96,41 @@ _COMPILED = re.compile(r"[^/]+-[0-9a-f]{64}-(?:cache|atime)|\.lockfile")
 _STORED = re.compile(r"[^/]+\.jaxexport")
 """The names of stored traced programs, and of their temporaries (`pipeline.exported`)."""
 
+_FIT = re.compile(r"[0-9a-f]{64}")
+"""The names of the fits remembered (`remember_fit`)."""
+
+
+def _fit_path(signature: str, directory: str | None) -> str:
+    return os.path.join(directory or cache_dir(), FITS_FOLDER, hashlib.sha256(signature.encode()).hexdigest())
+
+
+def holds_fit(signature: str, directory: str | None = None) -> bool:
+    """Whether a fit of this `signature` (`remember_fit`) finished with the cache in `directory` (default
+    `cache_dir()`): its programs are then most likely in the cache, unless evicted since or cleared by hand."""
+    return os.path.isfile(_fit_path(signature, directory))
+
+
+def remember_fit(signature: str, directory: str | None = None) -> None:
+    """Record that a fit of this `signature` (text of whatever decides the programs it compiles: its frames'
+    sizes, its options, the package's source) finished with the cache in `directory` (default `cache_dir()`),
+    once `enable` made the folder. A folder that cannot be written to only means it is not recorded."""
+    path = _fit_path(signature, directory)
+    try:
+        if not os.path.exists(path):
+            with open(path, "x"):
+                pass
+    except OSError:
+        pass
+
 
 def _entries(directory: str) -> list[os.DirEntry]:
     """The library's entries in the cache folder and in its `EXPORTED_FOLDER`, without following links inside."""
     found = []
-    for folder, pattern in ((directory, _COMPILED), (os.path.join(directory, EXPORTED_FOLDER), _STORED)):
+    for folder, pattern in (
+        (directory, _COMPILED),
+        (os.path.join(directory, EXPORTED_FOLDER), _STORED),
+        (os.path.join(directory, FITS_FOLDER), _FIT),
+    ):
         if folder != directory and os.path.islink(folder):
             continue  # the stored programs' folder is the library's own: a link there leads elsewhere
         try:
@@ -108,7 +148,8 @@ def cache_size(directory: str | None = None) -> tuple[int, int]:
 
 
 def clear(directory: str | None = None) -> tuple[int, bool]:
-    """Remove the entries the library wrote: JAX's compiled programs and the stored traced ones.
+    """Remove the entries the library wrote: JAX's compiled programs, the stored traced ones and the fits
+    remembered.
 
     Nothing else in the folder is touched, and a link among the entries is
     removed itself, never what it leads to. The folders go too once empty,
@@ -124,7 +165,7 @@ def clear(directory: str | None = None) -> tuple[int, bool]:
         except FileNotFoundError:  # removed meanwhile by JAX's eviction in another process
             pass
     if not os.path.islink(directory):
-        for folder in (os.path.join(directory, EXPORTED_FOLDER), directory):
+        for folder in (os.path.join(directory, EXPORTED_FOLDER), os.path.join(directory, FITS_FOLDER), directory):
             try:
                 os.rmdir(folder)
             except OSError:  # not empty (it holds what the library did not write), a link, or gone

@@ -205,10 +205,13 @@ def _environment() -> str:
     at every call: a `with jax.default_matmul_precision(...)` changes them)."""
     versions = " ".join(f"{dist}={importlib.metadata.version(dist)}" for dist in _VERSIONED)
     device = jax.devices()[0]
-    return f"{versions} {device.platform} {device.device_kind} source={_source_digest()}"
+    return f"{versions} {device.platform} {device.device_kind} source={source_digest()}"
 
 
-def _source_digest() -> str:
+@functools.cache
+def source_digest() -> str:
+    """A digest of this package's source files (their paths and bytes): part of every key, and of what a compiled
+    fit is remembered by (`app.compile_cache.remember_fit`). Read once per process."""
     package = Path(__file__).resolve().parent.parent
     digest = hashlib.sha256()
     for path in sorted(package.rglob("*.py")):

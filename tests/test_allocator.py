@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.app import allocator, cli
+from godrays_jax.app import allocator, cli, fit_command
 
 # In a fresh process: allocate a block far above glibc's mmap threshold, touch every page, free it, and print how
 # many MiB the process still has resident beyond what it had before.
@@ -48,7 +48,8 @@ def test_the_command_keeps_freed_memory_where_it_repeats_its_programs(monkeypatc
     `apply` or larger frames; a call of `main` from a user's process never does. Each command here then stops at
     its own argument check, after the choice."""
     calls = []
-    monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append("tuned") or True)
+    monkeypatch.setattr(allocator, "keep_freed_memory", lambda *, arenas: calls.append("tuned") or True)
+    monkeypatch.setenv("GODRAYS_JAX_CACHE_DIR", str(tmp_path / "cache"))
     small, large = tmp_path / "small.exr", tmp_path / "large.exr"
     gr.write_image(small, np.zeros((36, 64, 3), np.float32))
     gr.write_image(large, np.zeros((520, 520, 3), np.float32))  # just above 2^18 pixels
@@ -150,3 +151,31 @@ def test_off_glibc_the_allocator_is_left_as_it_is(monkeypatch):
     assert allocator.keep_freed_memory() is False
     assert allocator.hand_back_after_compiling() is False
     assert registered == [] and allocator._trimming == []
+
+
+def test_a_fit_the_cache_has_not_seen_finish_compiles_with_several_arenas(monkeypatch, tmp_path):
+    """`godrays-jax fit` takes `COMPILING_ARENAS` arenas until a fit of the same frame sizes and options has
+    finished with the cache (then one), and always without the cache; a fit that fails is not remembered, and
+    another frame of the same size shares what the first one compiled."""
+    monkeypatch.setenv("GODRAYS_JAX_CACHE_DIR", str(tmp_path / "cache"))
+    keep_freed_memory, chosen_arenas = allocator.keep_freed_memory, []
+    monkeypatch.setattr(allocator, "keep_freed_memory", lambda *, arenas: chosen_arenas.append(arenas) or True)
+    statuses = iter([1, 0, 0, 0, 0, 0])
+    monkeypatch.setattr(fit_command, "run", lambda args: next(statuses))
+    frame, other, larger = tmp_path / "frame.exr", tmp_path / "other.exr", tmp_path / "larger.exr"
+    for path, height in ((frame, 36), (other, 36), (larger, 72)):
+        gr.write_image(path, np.zeros((height, 64, 3), np.float32))
+
+    def chosen(*argv):
+        chosen_arenas.clear()
+        status = cli.main(["fit", *map(str, argv), "-o", str(tmp_path / "p.json")], keep_freed_memory=True)
+        return chosen_arenas, status
+
+    assert chosen(frame, frame) == ([allocator.COMPILING_ARENAS], 1)  # failed: nothing remembered
+    assert chosen(frame, frame) == ([allocator.COMPILING_ARENAS], 0)
+    assert chosen(other, frame) == ([1], 0)  # the same size and options: its programs are in the cache
+    assert chosen(larger, larger) == ([allocator.COMPILING_ARENAS], 0)
+    assert chosen(frame, frame, "--no-cache") == ([allocator.COMPILING_ARENAS], 0)
+    assert chosen(frame, frame, "--loss", "l1") == ([allocator.COMPILING_ARENAS], 0)
+    with pytest.raises(ValueError, match="arenas"):
+        keep_freed_memory(arenas=0)

@@ -86,6 +86,7 @@ def test_a_repeated_fit_reads_its_traced_programs_back(tmp_path):
     assert second.returncode == 0, second.stderr
     assert sorted(p.name for p in (cache / compile_cache.EXPORTED_FOLDER).iterdir()) == stored
     assert _programs(cache, "call") == programs, "the second run compiled a stored program again"
+    assert len(list((cache / compile_cache.FITS_FOLDER).iterdir())) == 1  # the fit remembered once, by what it compiles
     assert (tmp_path / "a.json").read_bytes() == (tmp_path / "b.json").read_bytes()
     assert second.stdout.replace("b.json", "a.json") == first.stdout
 
@@ -120,13 +121,15 @@ JAX_ENTRY = "jit_call-" + "0" * 64
 
 
 def _filled(cache: Path) -> list[Path]:
-    """A cache folder with entries of JAX and of `pipeline.exported`; returns them."""
+    """A cache folder with entries of JAX, of `pipeline.exported` and a fit remembered; returns them."""
     (cache / compile_cache.EXPORTED_FOLDER).mkdir(parents=True)
+    (cache / compile_cache.FITS_FOLDER).mkdir()
     entries = [cache / f"{JAX_ENTRY}-cache", cache / f"{JAX_ENTRY}-atime", cache / ".lockfile",
                cache / compile_cache.EXPORTED_FOLDER / "frames-abc.jaxexport"]  # fmt: skip
     for entry in entries:
         entry.write_bytes(b"x")
-    return entries
+    compile_cache.remember_fit("a fit", str(cache))
+    return [*entries, *(cache / compile_cache.FITS_FOLDER).iterdir()]
 
 
 def test_clear_removes_only_what_the_library_wrote(tmp_path, capsys, monkeypatch):
@@ -145,7 +148,7 @@ def test_clear_removes_only_what_the_library_wrote(tmp_path, capsys, monkeypatch
     monkeypatch.setenv(compile_cache.ENVIRONMENT_VARIABLE, str(cache))
     assert main(["cache", "--clear"]) == 0
     out = capsys.readouterr().out
-    assert out.count("\n") == 1 and "kept" in out and "5 cached program file(s)" in out, out
+    assert out.count("\n") == 1 and "kept" in out and "6 cached program file(s)" in out, out
     assert not any(os.path.lexists(p) for p in [*entries, linked])
     assert all(p.read_text() == "mine" for p in [*kept, outside])
     assert compile_cache.cache_size(str(cache)) == (0, 0)

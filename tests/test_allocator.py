@@ -155,12 +155,13 @@ def test_off_glibc_the_allocator_is_left_as_it_is(monkeypatch):
 
 def test_a_fit_the_cache_has_not_seen_finish_compiles_with_several_arenas(monkeypatch, tmp_path):
     """`godrays-jax fit` takes `COMPILING_ARENAS` arenas until a fit of the same frame sizes and options has
-    finished with the cache (then one), and always without the cache; a fit that fails is not remembered, and
-    another frame of the same size shares what the first one compiled."""
+    finished with the cache (then one), and always without the cache, but one where it places its light by whole
+    fits; a fit that fails is not remembered, and another frame of the same size shares what the first one
+    compiled."""
     monkeypatch.setenv("GODRAYS_JAX_CACHE_DIR", str(tmp_path / "cache"))
     keep_freed_memory, chosen_arenas = allocator.keep_freed_memory, []
     monkeypatch.setattr(allocator, "keep_freed_memory", lambda *, arenas: chosen_arenas.append(arenas) or True)
-    statuses = iter([1, 0, 0, 0, 0, 0])
+    statuses = iter([1, 0, 0, 0, 0, 0, 0, 0, 0])
     monkeypatch.setattr(fit_command, "run", lambda args: next(statuses))
     frame, other, larger = tmp_path / "frame.exr", tmp_path / "other.exr", tmp_path / "larger.exr"
     for path, height in ((frame, 36), (other, 36), (larger, 72)):
@@ -177,5 +178,9 @@ def test_a_fit_the_cache_has_not_seen_finish_compiles_with_several_arenas(monkey
     assert chosen(larger, larger) == ([allocator.COMPILING_ARENAS], 0)
     assert chosen(frame, frame, "--no-cache") == ([allocator.COMPILING_ARENAS], 0)
     assert chosen(frame, frame, "--loss", "l1") == ([allocator.COMPILING_ARENAS], 0)
+    # Placing the light by whole fits calls the programs of a dozen fits: one arena even on a first run.
+    assert chosen(larger, frame, "--light", "auto", "--loss", "charbonnier") == ([1], 0)
+    assert chosen(larger, frame, "--light", "3,4", "--fit-light", "--loss", "charbonnier") == ([1], 0)
+    assert chosen(larger, frame, "--light", "3,4", "--loss", "charbonnier") == ([allocator.COMPILING_ARENAS], 0)
     with pytest.raises(ValueError, match="arenas"):
         keep_freed_memory(arenas=0)

@@ -20,8 +20,9 @@ their time. So a fit whose programs the compilation cache does not hold yet
 (`cli.compiles_first`) takes `COMPILING_ARENAS` arenas instead. Its calls
 then fault their largest temporaries in again (glibc maps a block too large
 for a thread's own arena apart, whatever `mmap` is allowed, and unmaps it on
-`free`), which a run that mostly compiles pays back many times over; a run
-whose programs are read back from the cache keeps the one arena. glibc fixes
+`free`), which a single fit's compiles more than pay for; a run whose
+programs are read back from the cache, and one that calls them through a
+dozen fits and more (placing its light), keep the one arena. glibc fixes
 the count once a thread first allocates, so it is chosen before JAX starts.
 
 The price is memory: each compiled program's temporaries stay resident

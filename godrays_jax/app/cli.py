@@ -24,6 +24,7 @@ import godrays_jax
 from godrays_jax.app import allocator, compile_cache
 from godrays_jax.app.options import (
     DEFAULT_PRESET,
+    LIGHT_AUTO,
     SKY_DEPTH_HELP,
     parse_fit_light,
     parse_fov,
@@ -487,9 +488,11 @@ def fit_signature(args: argparse.Namespace) -> str | None:
 
 
 def compiles_first(args: argparse.Namespace) -> bool:
-    """Whether the command will compile its large programs before it runs them: a fit that the compilation cache
-    has not seen finish (`compile_cache.holds_fit` of its `fit_signature`), or any fit without the cache."""
-    if args.command != "fit":
+    """Whether the command spends more of its time compiling its large programs than calling them: a fit that the
+    compilation cache has not seen finish (`compile_cache.holds_fit` of its `fit_signature`), or any fit without the
+    cache; not one that places its lights by whole fits (`--light auto`, `--fit-light`), which calls the programs of
+    a dozen fits and more."""
+    if args.command != "fit" or args.fit_light or LIGHT_AUTO in (args.light or ()):
         return False
     signature = None if args.no_cache else fit_signature(args)
     return signature is None or not compile_cache.holds_fit(signature)

@@ -450,6 +450,15 @@ def _flush_output() -> None:
             pass
 
 
+def fit_frame_sizes(args: argparse.Namespace) -> list[tuple[int, int]]:
+    """`(width, height)` of each frame a `fit` reads (the first, then each of `--frames`), from the files' headers.
+
+    Raises:
+        OSError, ValueError: a frame that cannot be read.
+    """
+    return [image_size(path) for path in [args.buffers, *(pair[0] for pair in args.frames or ())]]
+
+
 def repeats_programs(args: argparse.Namespace) -> bool:
     """Whether the command calls the same compiled programs many times on buffers its process may keep between
     the calls (`allocator.keep_freed_memory`): the tuner (its preview is small), and a batch or a fit of at most
@@ -462,7 +471,7 @@ def repeats_programs(args: argparse.Namespace) -> bool:
         if args.command == "batch":
             sizes = [image_size(expand_frames(args.pattern)[0])]
         elif args.command == "fit":
-            sizes = [image_size(path) for path in [args.buffers, *(pair[0] for pair in args.frames or ())]]
+            sizes = fit_frame_sizes(args)
         else:
             return False
     except (OSError, ValueError, IndexError):
@@ -479,7 +488,7 @@ def fit_signature(args: argparse.Namespace) -> str | None:
     params file and light views are given, the package's source and JAX's version; None where a frame's size
     cannot be read. Two fits of frames alike (another shot of the same size) share it."""
     try:
-        sizes = [image_size(path) for path in [args.buffers, *(pair[0] for pair in args.frames or ())]]
+        sizes = fit_frame_sizes(args)
     except (OSError, ValueError, IndexError):
         return None
     options = sorted((name, value) for name, value in vars(args).items() if name not in _FIT_FILES)

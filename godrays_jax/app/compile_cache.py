@@ -114,12 +114,10 @@ def remember_fit(signature: str, directory: str | None = None) -> None:
     """Record that a fit of this `signature` (text of whatever decides the programs it compiles: its frames'
     sizes, its options, the package's source) finished with the cache in `directory` (default `cache_dir()`),
     once `enable` made the folder. A folder that cannot be written to only means it is not recorded."""
-    path = _fit_path(signature, directory)
     try:
-        if not os.path.exists(path):
-            with open(path, "x"):
-                pass
-    except OSError:
+        with open(_fit_path(signature, directory), "x"):
+            pass
+    except OSError:  # recorded already (FileExistsError), or the folder cannot be written to
         pass
 
 

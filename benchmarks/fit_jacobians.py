@@ -14,13 +14,13 @@ stand-in, `Effect.fit_stand_in`, at the frame's field of view, the scene's light
 A, every field in its bounds fitted, the field of view too) and compares the
 gradient of the loss through `fit_programs.forward_mode` (by the effect's stages, as `fit`
 takes it), compiled, with reverse mode,
-compiled: the largest difference over the fields, relative to the largest
-gradient, over the fields whose columns `fit` takes by derivatives. The
-columns it takes by central differences (`Effect.DIFFERENCED_STAGES`: the
-field of view's) are compared apart, relative to their own exact entries: a
-difference's error, not a mixed lane. Run it after a change to a kernel the fit reaches or to the JAX
-stack; a few minutes for the nine scenes on two cores, each compiling both
-gradients. Exits 1 when a scene's derivatives are beyond `--tolerance`.
+compiled: the largest difference over the unknowns whose columns `fit` takes
+by derivatives, relative to the largest gradient. The columns it takes by
+central differences (`Effect.DIFFERENCED_STAGES`: the field of view's) are
+compared apart, each relative to its exact entry: a difference's error, not
+a mixed lane. Run it after a change to a kernel the fit reaches or to the JAX
+stack; about half an hour for the sixteen scenes on two cores, each compiling
+both gradients. Exits 1 when a scene's derivatives are beyond `--tolerance`.
 """
 
 import argparse

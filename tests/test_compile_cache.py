@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import jax
@@ -14,7 +15,7 @@ import godrays_jax as gr
 from godrays_jax.app import compile_cache
 from godrays_jax.app.cli import main
 from godrays_jax.pipeline import exported
-from godrays_jax.primitives.checks import checked_count, ranges_guaranteed
+from godrays_jax.primitives.checks import checked_count, ranges_are_guaranteed, ranges_guaranteed
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLE = ROOT / "examples" / "data" / "sample_frame.exr"
@@ -242,3 +243,26 @@ def test_a_read_only_parent_means_no_cache(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(os, "makedirs", refused)
     _apply_warns_and_runs(parent / "cache", tmp_path, capsys, monkeypatch, "Permission denied")
+
+
+def test_a_function_carried_to_another_thread_runs_in_the_settings_that_change_a_trace():
+    """JAX keeps its settings per thread: `exported.carried` takes this thread's into another (else a stored
+    program's key, and the program, would be another settings')."""
+
+    def seen():
+        return exported._settings(), ranges_are_guaranteed()
+
+    def on_a_thread(function):
+        found = []
+        thread = threading.Thread(target=lambda: found.append(function()))
+        thread.start()
+        thread.join()
+        return found[0]
+
+    with jax.default_matmul_precision("highest"), jax.numpy_rank_promotion("raise"), jax.enable_x64(True), \
+            ranges_guaranteed():  # fmt: skip
+        here = seen()
+        carried = exported.carried(seen)
+        assert on_a_thread(seen) != here  # the thread's own: JAX's defaults
+    assert here[1] and "highest" in here[0] and "raise" in here[0] and "x64=True" in here[0]
+    assert on_a_thread(carried) == here and on_a_thread(carried) == here  # and again, from a fresh copy

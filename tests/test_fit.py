@@ -3,6 +3,8 @@
 import dataclasses
 import functools
 import json
+import threading
+import time
 
 import equinox as eqx
 import jax
@@ -41,6 +43,7 @@ from godrays_jax.pipeline.problem import (
     warped_start,
 )
 from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
+from godrays_jax.primitives.checks import ranges_are_guaranteed, ranges_guaranteed
 
 HEIGHT, WIDTH = 24, 32
 
@@ -501,6 +504,83 @@ def test_starts_race_by_successive_halving():
     )  # fmt: skip
     assert result.start == 3 and len(losses) == result.steps and result.steps - result.polish_steps <= 16 < 3 * 10
     assert result.loss_after < 1e-3 * result.loss_before
+
+
+def test_the_race_two_starts_at_a_time_ends_as_one_at_a_time(monkeypatch):
+    """The race advances its starts on two threads: every start's losses, the winner and the fit are those of the
+    starts advanced one after another, the steps reported once each and numbered in order."""
+    frame = _frame()
+    target = _rays(**TRUTH)(frame, LIGHT)
+    far, near = _rays(density=0.2, decay=0.5, exposure=0.9), _rays(density=0.78, decay=0.86, exposure=0.29)
+    threads, advance_together = set(), fit_module._advance_together
+
+    def recorded(runs, until, advance):
+        def advance_recorded(run, until, stop=None):
+            threads.add(threading.current_thread().name)
+            advance(run, until, stop)
+
+        advance_together(runs, until, advance_recorded)
+
+    def one_at_a_time(runs, until, advance):
+        for run in runs:
+            advance(run, until)
+
+    results = []
+    for together in (recorded, one_at_a_time):
+        monkeypatch.setattr(fit_module, "_advance_together", together)
+        steps = []
+        results.append(fit(
+            _rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=10, starts=[far, near], probe_steps=2,
+            plateau_steps=0, progress=lambda step, value: steps.append(step),
+        ))  # fmt: skip
+        assert steps == list(range(1, results[-1].steps + results[-1].coarse_steps + 1))
+    assert threads == {"MainThread", "godrays-jax-race"}
+    together, alone = results
+    assert together.start == alone.start
+    np.testing.assert_array_equal(together.loss_history, alone.loss_history)
+    for name in ("density", "decay", "exposure"):
+        np.testing.assert_array_equal(getattr(together.effect, name), getattr(alone.effect, name))
+
+
+class _Steps:
+    """A run of the race as `_advance_together` sees it: its steps, each taking `seconds`."""
+
+    def __init__(self, seconds=0.0):
+        self.steps, self.seconds, self.seen = 0, seconds, []
+
+
+def _advance(run, until, stop=None, fails_on=None):
+    """`_descend`'s `advance` for `_Steps`, what each step's thread sees of the caller's settings recorded; its
+    third step fails on the thread named `fails_on`."""
+    while run.steps < until and not (stop is not None and stop.is_set()):
+        thread = threading.current_thread().name
+        run.seen.append((thread, jax.config.jax_default_matmul_precision, ranges_are_guaranteed()))
+        if run.steps == 2 and thread == fails_on:
+            raise ValueError(f"a step on {thread} failed")
+        time.sleep(run.seconds)
+        run.steps += 1
+
+
+def test_the_race_two_at_a_time_runs_its_helper_in_the_callers_settings():
+    """The helper thread traces as the caller's would: JAX's settings (kept per thread) and the context's carried."""
+    runs = [_Steps(seconds=0.01) for _ in range(4)]
+    with jax.default_matmul_precision("highest"), ranges_guaranteed():
+        fit_module._advance_together(runs, 3, _advance)
+    assert [run.steps for run in runs] == [3] * 4
+    seen = {entry for run in runs for entry in run.seen}
+    assert {thread for thread, _, _ in seen} == {"MainThread", "godrays-jax-race"}
+    assert {(precision, guaranteed) for _, precision, guaranteed in seen} == {("highest", True)}
+
+
+@pytest.mark.parametrize("fails_on", ["MainThread", "godrays-jax-race"])
+def test_an_error_on_either_of_the_races_threads_stops_both_and_is_raised(fails_on):
+    """The other thread stops after its step, no run waiting is started, and the helper has ended."""
+    runs = [_Steps(seconds=0.02) for _ in range(4)]
+    with pytest.raises(ValueError, match=f"a step on {fails_on} failed"):
+        fit_module._advance_together(runs, 50, functools.partial(_advance, fails_on=fails_on))
+    assert sorted(run.steps for run in runs)[:2] == [0, 0]  # two runs waiting, never started
+    assert max(run.steps for run in runs) < 50  # the other thread's run stopped
+    assert "godrays-jax-race" not in {thread.name for thread in threading.enumerate()}
 
 
 def test_levenberg_marquardt_is_polished_with_marquardts_scaling_and_no_other_solver():

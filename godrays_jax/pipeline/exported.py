@@ -45,11 +45,13 @@ this user owns it and nobody else may write to it (a link is never followed).
 """
 
 import contextlib
+import contextvars
 import dataclasses
 import functools
 import hashlib
 import importlib.metadata
 import os
+import threading
 import types
 from collections.abc import Callable
 from pathlib import Path
@@ -85,6 +87,8 @@ _directory: Path | None = None
 _programs: dict[str, Callable[..., Any] | None] = {}
 """This process's compiled programs by key, called with the arguments' arrays; None marks a program that cannot be
 stored (its plain call is used)."""
+_making = threading.RLock()
+"""Held while a program is read back or exported and compiled: threads that call the same new program make it once."""
 
 
 def use_directory(directory: str | os.PathLike | None) -> None:
@@ -122,11 +126,13 @@ def call(name: str, function: Callable[..., Any], *args: Any, closed_over: Any =
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, tree = jax.tree.flatten(dynamic)
     if key not in _programs:
-        program = _read(name, key) or _exported(name, key, function, static, tree, leaves)
-        # Compiled ahead of its call and held here, where the next export's `jax.clear_caches` cannot drop it: a
-        # program jitted lazily is compiled, or read back from the compilation cache, again after every export.
-        # It dispatches like any compiled function; a bare `Exported.call` goes through Python.
-        _programs[key] = None if program is None else _compiled(jax.jit(program.call).lower(*leaves))
+        with _making:
+            if key not in _programs:
+                program = _read(name, key) or _exported(name, key, function, static, tree, leaves)
+                # Compiled ahead of its call and held here, where the next export's `jax.clear_caches` cannot drop
+                # it: a program jitted lazily is compiled, or read back from the compilation cache, again after
+                # every export. It dispatches like any compiled function; a bare `Exported.call` goes through Python.
+                _programs[key] = None if program is None else _compiled(jax.jit(program.call).lower(*leaves))
     program = _programs[key]
     return function(*args) if program is None else program(*leaves)
 
@@ -217,6 +223,23 @@ def source_digest() -> str:
     for path in sorted(package.rglob("*.py")):
         digest.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()
+
+
+def carried(function: Callable[..., Any]) -> Callable[..., Any]:
+    """`function`, to run on another thread as it would on this one: in this thread's values of the JAX settings
+    that change a trace (`_SETTINGS`, which JAX keeps per thread) and in a copy of its context (`ranges_guaranteed`,
+    `values_only`). On a thread of its own a call would otherwise trace, store and compile programs of other
+    settings, and run them."""
+    values = {setting: getattr(jax.config, setting) for setting in _SETTINGS}
+    context = contextvars.copy_context()
+
+    def run(*args):
+        with contextlib.ExitStack() as stack:
+            for setting, value in values.items():
+                stack.enter_context(getattr(jax, setting.removeprefix("jax_"))(value))
+            return context.copy().run(function, *args)
+
+    return run
 
 
 def _settings() -> str:

@@ -45,13 +45,17 @@ How the parameters are fitted:
   residuals and their Jacobian (`residuals_and_jacobian`), shared by the race, the descents, the polish and
   `determination`, kept by the persistent cache (`app.compile_cache`); with `coarse_jacobian` the full resolution
   linearises at the coarse one, its sharp fields by differences of its renders (`fit_programs.rendered_differences`).
+- The race's starts step two at a time, on the caller's thread and a helper (`_advance_together`), each as it
+  would alone: they share compiled programs and nothing else.
 - A fit never ends above its start: where the reduced frames and the stand-in lead it to a higher loss than the
   effect given (a start already at the frames' minimum), it returns the effect given (`FitResult.kept_start`).
 """
 
+import collections
 import dataclasses
 import itertools
 import math
+import threading
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -151,15 +155,18 @@ class FitResult:
 
 
 class _StepCounter:
-    """Counts solver steps over every start and phase and reports each to `progress` (or None)."""
+    """Counts solver steps over every start and phase and reports each to `progress` (or None), one at a time: the
+    race's starts step on two threads (`_advance_together`)."""
 
     def __init__(self, progress):
         self.progress, self.steps = progress, 0
+        self._lock = threading.Lock()
 
     def __call__(self, value):
-        self.steps += 1
-        if self.progress is not None:
-            self.progress(self.steps, value)
+        with self._lock:
+            self.steps += 1
+            if self.progress is not None:
+                self.progress(self.steps, value)
 
 
 def _start_like(effect: Effect, other: Effect, bounds: dict[str, tuple[float, float]]) -> Effect:
@@ -289,8 +296,8 @@ def _descend(
             run.state = (y, leaves, done, succeeded)
             return float(accepted_loss)
 
-    def advance(run, until):
-        while run.steps < until and not run.stopped:
+    def advance(run, until, stop=None):
+        while run.steps < until and not run.stopped and not (stop is not None and stop.is_set()):
             run.solver_losses.append(step(run))
             run.steps += 1
             if run.steps > 1:  # after the first step the state holds the start's loss, already recorded
@@ -301,16 +308,62 @@ def _descend(
                 or (run.on_host and stalled(run.state, run.solver_losses, plateau_steps, plateau_rtol))
             )
 
+    # With several lights a Jacobian holds each light's temporaries, and two at once outgrow the fit's memory.
+    together = not any(frame_data[5])
     alive, budget = list(range(len(runs))), probe_steps
     while len(alive) > 1:
         budget = min(budget, max_steps)
-        for index in alive:
-            advance(runs[index], budget)
+        if together:
+            _advance_together([runs[index] for index in alive], budget, advance)
+        else:
+            for index in alive:
+                advance(runs[index], budget)
         keep = 1 if budget == max_steps else (len(alive) + 1) // 2
         alive = sorted(alive, key=lambda index: runs[index].history[-1])[:keep]
         budget *= 2
     advance(runs[alive[0]], max_steps)
     return runs, alive[0]
+
+
+def _advance_together(runs: list[_Run], until: int, advance: Callable) -> None:
+    """Each of `runs` advanced to `until` steps (`advance(run, until, stop)`), two at a time: this thread and a
+    helper take the runs in turn, each running one to its end before taking the next.
+
+    The runs share their compiled programs and nothing else, so each ends as it would alone. Two at once keep both
+    cores of a small machine busy where one run's steps leave part of them idle (XLA on the CPU runs a loop's body
+    on one core, and each step's linear algebra is on the host; benchmarks/README.md, "The race's starts two at a
+    time"). The helper runs in this thread's JAX settings (`exported.carried`). An error on either thread stops
+    the other after its step and is raised here, this thread's first."""
+    waiting = collections.deque(runs)
+    stop = threading.Event()
+    failures = []
+
+    def work():
+        while not stop.is_set():
+            try:
+                run = waiting.popleft()
+            except IndexError:
+                return
+            advance(run, until, stop)
+
+    def helper():
+        try:
+            work()
+        except BaseException as error:  # raised on the caller's thread once it has stopped too
+            failures.append(error)
+            stop.set()
+
+    thread = threading.Thread(target=exported.carried(helper), name="godrays-jax-race", daemon=True)
+    thread.start()
+    try:
+        work()
+        thread.join()
+    except BaseException:  # an interrupt too: the helper stops after its step
+        stop.set()
+        thread.join()
+        raise
+    if failures:
+        raise failures[0]
 
 
 def _effect_of_run(run: _Run) -> Effect:
@@ -393,7 +446,9 @@ def fit(
             the largest given): `FitResult.light_tints`. False: the tints stay as given.
         progress: called as `progress(step, loss)` after every step (steps
             counted over every start and both phases; the coarse phase's losses
-            are at its resolution).
+            are at its resolution), one call at a time but not always from the
+            caller's thread: the race's starts step two at a time, on this
+            thread and a helper.
         starts: other starts, effects of `effect`'s type (a model's presets, a
             start read from the frame): their fitted fields clipped to their
             fitting ranges, the rest `effect`'s. `effect` and each of them race

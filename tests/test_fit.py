@@ -18,7 +18,7 @@ from godrays_jax.app.cli import main
 from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.effects.fields import round_counts
 from godrays_jax.pipeline import fit as fit_module
-from godrays_jax.pipeline import fit_programs
+from godrays_jax.pipeline import fit_phases, fit_programs
 from godrays_jax.pipeline.fit import fit
 from godrays_jax.pipeline.fit_phases import plateaued, stalled
 from godrays_jax.pipeline.fit_programs import (
@@ -512,7 +512,7 @@ def test_the_race_two_starts_at_a_time_ends_as_one_at_a_time(monkeypatch):
     frame = _frame()
     target = _rays(**TRUTH)(frame, LIGHT)
     far, near = _rays(density=0.2, decay=0.5, exposure=0.9), _rays(density=0.78, decay=0.86, exposure=0.29)
-    threads, advance_together = set(), fit_module._advance_together
+    threads, advance_together = set(), fit_phases.advance_two_at_a_time
 
     def recorded(runs, until, advance):
         def advance_recorded(run, until, stop=None):
@@ -527,7 +527,7 @@ def test_the_race_two_starts_at_a_time_ends_as_one_at_a_time(monkeypatch):
 
     results = []
     for together in (recorded, one_at_a_time):
-        monkeypatch.setattr(fit_module, "_advance_together", together)
+        monkeypatch.setattr(fit_module, "advance_two_at_a_time", together)
         steps = []
         results.append(fit(
             _rays(**START), frame, LIGHT, target, fixed=FIXED_RAYS, max_steps=10, starts=[far, near], probe_steps=2,
@@ -543,7 +543,7 @@ def test_the_race_two_starts_at_a_time_ends_as_one_at_a_time(monkeypatch):
 
 
 class _Steps:
-    """A run of the race as `_advance_together` sees it: its steps, each taking `seconds`."""
+    """A run of the race as `advance_two_at_a_time` sees it: its steps, each taking `seconds`."""
 
     def __init__(self, seconds=0.0):
         self.steps, self.seconds, self.seen = 0, seconds, []
@@ -565,7 +565,7 @@ def test_the_race_two_at_a_time_runs_its_helper_in_the_callers_settings():
     """The helper thread traces as the caller's would: JAX's settings (kept per thread) and the context's carried."""
     runs = [_Steps(seconds=0.01) for _ in range(4)]
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
-        fit_module._advance_together(runs, 3, _advance)
+        fit_phases.advance_two_at_a_time(runs, 3, _advance)
     assert [run.steps for run in runs] == [3] * 4
     seen = {entry for run in runs for entry in run.seen}
     assert {thread for thread, _, _ in seen} == {"MainThread", "godrays-jax-race"}
@@ -577,7 +577,7 @@ def test_an_error_on_either_of_the_races_threads_stops_both_and_is_raised(fails_
     """The other thread stops after its step, no run waiting is started, and the helper has ended."""
     runs = [_Steps(seconds=0.02) for _ in range(4)]
     with pytest.raises(ValueError, match=f"a step on {fails_on} failed"):
-        fit_module._advance_together(runs, 50, functools.partial(_advance, fails_on=fails_on))
+        fit_phases.advance_two_at_a_time(runs, 50, functools.partial(_advance, fails_on=fails_on))
     assert sorted(run.steps for run in runs)[:2] == [0, 0]  # two runs waiting, never started
     assert max(run.steps for run in runs) < 50  # the other thread's run stopped
     assert "godrays-jax-race" not in {thread.name for thread in threading.enumerate()}
@@ -737,7 +737,7 @@ def test_the_race_runs_each_start_again_with_the_medium_reach_by_ratios(monkeypa
                                   folded_positions(linear)[0].astype(np.float32))  # fmt: skip
     common = dict(optimiser=LevenbergMarquardt(rtol=1e-6, atol=1e-9), least_squares=True, loss="mse", space="display",
                   max_steps=2, probe_steps=1, plateau_steps=0, plateau_rtol=0.0)  # fmt: skip
-    counter = fit_module._StepCounter(None)
+    counter = fit_phases.StepCounter(None)
     taken, call = [], fit_programs.exported.call
 
     def counted(name, function, *arguments):

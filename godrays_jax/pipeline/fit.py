@@ -45,17 +45,15 @@ How the parameters are fitted:
   residuals and their Jacobian (`residuals_and_jacobian`), shared by the race, the descents, the polish and
   `determination`, kept by the persistent cache (`app.compile_cache`); with `coarse_jacobian` the full resolution
   linearises at the coarse one, its sharp fields by differences of its renders (`fit_programs.rendered_differences`).
-- The race's starts step two at a time, on the caller's thread and a helper (`_advance_together`), each as it
+- The race's starts step two at a time, on the caller's thread and a helper (`fit_phases.advance_two_at_a_time`), each as it
   would alone: they share compiled programs and nothing else.
 - A fit never ends above its start: where the reduced frames and the stand-in lead it to a higher loss than the
   effect given (a start already at the frames' minimum), it returns the effect given (`FitResult.kept_start`).
 """
 
-import collections
 import dataclasses
 import itertools
 import math
-import threading
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -81,7 +79,7 @@ from godrays_jax.pipeline.fit_programs import (
     solver_init,
     solver_step,
 )
-from godrays_jax.pipeline.fit_phases import Phases, plateaued, stalled
+from godrays_jax.pipeline.fit_phases import Phases, StepCounter, advance_two_at_a_time, plateaued, stalled
 from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState
 from godrays_jax.pipeline.problem import (
     FitProblem,
@@ -152,21 +150,6 @@ class FitResult:
     images_before: list = dataclasses.field(default_factory=list, repr=False)
     images_after: list = dataclasses.field(default_factory=list, repr=False)
     images_rounded: list = dataclasses.field(default_factory=list, repr=False)
-
-
-class _StepCounter:
-    """Counts solver steps over every start and phase and reports each to `progress` (or None), one at a time: the
-    race's starts step on two threads (`_advance_together`)."""
-
-    def __init__(self, progress):
-        self.progress, self.steps = progress, 0
-        self._lock = threading.Lock()
-
-    def __call__(self, value):
-        with self._lock:
-            self.steps += 1
-            if self.progress is not None:
-                self.progress(self.steps, value)
 
 
 def _start_like(effect: Effect, other: Effect, bounds: dict[str, tuple[float, float]]) -> Effect:
@@ -314,7 +297,7 @@ def _descend(
     while len(alive) > 1:
         budget = min(budget, max_steps)
         if together:
-            _advance_together([runs[index] for index in alive], budget, advance)
+            advance_two_at_a_time([runs[index] for index in alive], budget, advance)
         else:
             for index in alive:
                 advance(runs[index], budget)
@@ -323,47 +306,6 @@ def _descend(
         budget *= 2
     advance(runs[alive[0]], max_steps)
     return runs, alive[0]
-
-
-def _advance_together(runs: list[_Run], until: int, advance: Callable) -> None:
-    """Each of `runs` advanced to `until` steps (`advance(run, until, stop)`), two at a time: this thread and a
-    helper take the runs in turn, each running one to its end before taking the next.
-
-    The runs share their compiled programs and nothing else, so each ends as it would alone. Two at once keep both
-    cores of a small machine busy where one run's steps leave part of them idle (XLA on the CPU runs a loop's body
-    on one core, and each step's linear algebra is on the host; benchmarks/README.md, "The race's starts two at a
-    time"). The helper runs in this thread's JAX settings (`exported.carried`). An error on either thread stops
-    the other after its step and is raised here, this thread's first."""
-    waiting = collections.deque(runs)
-    stop = threading.Event()
-    failures = []
-
-    def work():
-        while not stop.is_set():
-            try:
-                run = waiting.popleft()
-            except IndexError:
-                return
-            advance(run, until, stop)
-
-    def helper():
-        try:
-            work()
-        except BaseException as error:  # raised on the caller's thread once it has stopped too
-            failures.append(error)
-            stop.set()
-
-    thread = threading.Thread(target=exported.carried(helper), name="godrays-jax-race", daemon=True)
-    thread.start()
-    try:
-        work()
-        thread.join()
-    except BaseException:  # an interrupt too: the helper stops after its step
-        stop.set()
-        thread.join()
-        raise
-    if failures:
-        raise failures[0]
 
 
 def _effect_of_run(run: _Run) -> Effect:
@@ -532,7 +474,7 @@ def fit(
     phases = dataclasses.replace(phases, descend={**phases.descend, "hold": held})
     check_inside_bounds(effect)
     candidates, origins = _distinct_starts(effect, starts, bounds)
-    counter = _StepCounter(progress)
+    counter = StepCounter(progress)
     # GPUs multiply float32 matrices in TF32 (10-bit mantissas) by default; the solver's linear algebra needs more.
     # Every traced value stays in range (checked above, then mapped into its bounds), so the compiled steps carry
     # no run-time range check: without its host callback, JAX's persistent cache can store them.

@@ -1,12 +1,16 @@
 """How a fit runs: its solver (`SOLVERS`), whether a polish follows (`polishes`), the settings of its phases
-(`Phases`), from `fit`'s keyword arguments, checked, and when a phase stops (`plateaued`, `stalled`)."""
+(`Phases`), from `fit`'s keyword arguments, checked, when a phase stops (`plateaued`, `stalled`), how its steps are
+counted (`StepCounter`) and how the race advances its starts (`advance_two_at_a_time`)."""
 
+import collections
 import dataclasses
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 
 import optimistix as optx
 
 from godrays_jax.kernels.losses import LOSSES, check_space
+from godrays_jax.pipeline import exported
 from godrays_jax.pipeline.marquardt import LevenbergMarquardt, MarquardtState
 
 SOLVERS: tuple[str, ...] = ("auto", "levenberg_marquardt", "gauss_newton", "bfgs")
@@ -103,3 +107,59 @@ def plateaued(solver_losses: Sequence[float], plateau_steps: int, plateau_rtol: 
     if first_fall is None or earlier < first_fall - 1:
         return False
     return solver_losses[earlier] - solver_losses[-1] <= plateau_rtol * solver_losses[earlier]
+
+
+class StepCounter:
+    """Counts solver steps over every start and phase and reports each to `progress` (or None), one at a time: the
+    race's starts step on two threads (`advance_two_at_a_time`)."""
+
+    def __init__(self, progress):
+        self.progress, self.steps = progress, 0
+        self._lock = threading.Lock()
+
+    def __call__(self, value):
+        with self._lock:
+            self.steps += 1
+            if self.progress is not None:
+                self.progress(self.steps, value)
+
+
+def advance_two_at_a_time(runs: Sequence, until: int, advance: Callable) -> None:
+    """Each of `runs` advanced to `until` steps (`advance(run, until, stop)`), two at a time: this thread and a
+    helper take the runs in turn, each running one to its end before taking the next.
+
+    The runs share their compiled programs and nothing else, so each ends as it would alone. Two at once keep both
+    cores of a small machine busy where one run's steps leave part of them idle (XLA on the CPU runs a loop's body
+    on one core, and each step's linear algebra is on the host; benchmarks/README.md, "The fit as users run it").
+    The helper runs in this thread's JAX settings (`exported.carried`). An error on either thread stops the other
+    after its step and is raised here, this thread's first."""
+    waiting = collections.deque(runs)
+    stop = threading.Event()
+    failures = []
+
+    def work():
+        while not stop.is_set():
+            try:
+                run = waiting.popleft()
+            except IndexError:
+                return
+            advance(run, until, stop)
+
+    def helper():
+        try:
+            work()
+        except BaseException as error:  # raised on the caller's thread once it has stopped too
+            failures.append(error)
+            stop.set()
+
+    thread = threading.Thread(target=exported.carried(helper), name="godrays-jax-race", daemon=True)
+    thread.start()
+    try:
+        work()
+        thread.join()
+    except BaseException:  # an interrupt too: the helper stops after its step
+        stop.set()
+        thread.join()
+        raise
+    if failures:
+        raise failures[0]

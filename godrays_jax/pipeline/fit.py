@@ -45,8 +45,8 @@ How the parameters are fitted:
   residuals and their Jacobian (`residuals_and_jacobian`), shared by the race, the descents, the polish and
   `determination`, kept by the persistent cache (`app.compile_cache`); with `coarse_jacobian` the full resolution
   linearises at the coarse one, its sharp fields by differences of its renders (`fit_programs.rendered_differences`).
-- The race's starts step two at a time, on the caller's thread and a helper (`fit_phases.advance_two_at_a_time`), each as it
-  would alone: they share compiled programs and nothing else.
+- The race's starts step two at a time, on the caller's thread and a helper
+  (`fit_phases.advance_two_at_a_time`), each as it would alone: they share compiled programs and nothing else.
 - A fit never ends above its start: where the reduced frames and the stand-in lead it to a higher loss than the
   effect given (a start already at the frames' minimum), it returns the effect given (`FitResult.kept_start`).
 """

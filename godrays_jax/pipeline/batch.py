@@ -1,4 +1,5 @@
-"""Frame sequences in batches, what `godrays-jax batch` runs (the user's guide: README, "Batch processing a shot").
+"""Frame sequences in batches, what `godrays-jax batch` runs (the user's guide: docs/pipelines.md, "Batch processing a
+shot").
 
 A run is planned (`plan_batch`: the frames, where each output goes, which are done) and run (`run_batch`):
 frames are read on threads ahead of the effect and written behind it; the effect is compiled once for the shot

@@ -34,7 +34,7 @@ import godrays_jax as gr
 from godrays_jax.app.options import auto_coarse_factor
 from godrays_jax.pipeline.exported import COMPILER_OPTIONS
 from godrays_jax.pipeline.fit_programs import residuals_and_jacobian
-from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds
+from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, with_frames_read_once
 from godrays_jax.pipeline.reduced import downsample_frames
 from godrays_jax.primitives.checks import ranges_guaranteed
 
@@ -59,6 +59,7 @@ def lowered_jacobian(scene_name: str, fixed: tuple[str, ...]):
     if factor > 1:
         frame_data = downsample_frames(frame_data, factor)
     bounds = fitted_bounds(start, fixed=("fov_x_deg", *fixed))
+    frame_data = with_frames_read_once(start, frame_data, bounds)  # the frames' silhouettes read once, as `fit` does
     problem = FitProblem.of(start, bounds, frame_data[0], loss="mse", space="display")
     positions = problem.positions(jnp.float32)
     with jax.default_matmul_precision("highest"), ranges_guaranteed():  # as `fit` traces its programs

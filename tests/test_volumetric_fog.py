@@ -11,11 +11,13 @@ from frames import slow_where
 
 import godrays_jax as gr
 from godrays_jax.effects.serialization import load_effect, save_effect
+from godrays_jax.effects import volumetric
 from godrays_jax.effects.volumetric import march_factor
 from godrays_jax.kernels import silhouettes
 from godrays_jax.kernels.silhouettes import silhouette_mix
 from godrays_jax.pipeline.compiled import render_compiled
 from godrays_jax.pipeline.fit import fit
+from godrays_jax.primitives.buffers import Silhouettes
 
 HEIGHT, WIDTH = 12, 16
 
@@ -272,6 +274,62 @@ def test_a_frame_at_the_eye_gives_finite_values_and_gradients(preset):
     assert np.isfinite(float(value))
     for name, gradient in zip(names, gradients):
         assert np.all(np.isfinite(np.asarray(gradient))), name
+
+
+def test_frames_with_their_silhouettes_read_once_draw_the_same_frame_and_derivatives(rng):
+    """`frames_read_once` reads each frame's silhouettes (`Buffers.silhouettes`), which the fog then takes instead of
+    reading them again: the same frame and derivatives in its fields, eagerly and under `jit` (to float32 rounding:
+    XLA fuses the reads in other programs). A planar depth whose
+    field of view is fitted keeps its frame as it is (its distances along the rays move with that field); a frame
+    without depth too; and silhouettes of another size are refused, naming the field."""
+    frame = _frame(rng)
+    effect = gr.preset("volumetric_haze")
+    (read,) = effect.frames_read_once([frame], fitted=("medium.extinction",))
+    assert read.silhouettes is not None
+    np.testing.assert_array_equal(read.silhouettes.coverage, silhouette_mix(frame.coverage, frame.depth, frame.color)[0])
+
+    def drawn(extinction, buffers):
+        fog = eqx.tree_at(lambda e: e.medium.extinction, effect, extinction)
+        return fog(buffers, jnp.asarray(LIGHT))
+
+    extinction = jnp.asarray(0.03, jnp.float32)
+    for function in (drawn, jax.jit(drawn)):
+        np.testing.assert_allclose(function(extinction, read), function(extinction, frame), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(
+            jax.jacfwd(function)(extinction, read), jax.jacfwd(function)(extinction, frame), rtol=2e-5, atol=1e-7
+        )  # fmt: skip
+    planar = gr.Buffers(color=frame.color, depth=frame.depth, coverage=frame.coverage, depth_kind="planar")
+    assert effect.frames_read_once([planar], fitted=("fov_x_deg",))[0] is planar
+    assert effect.frames_read_once([planar], fitted=())[0].silhouettes is not None
+    plate = gr.Buffers(color=frame.color, depth=None, coverage=frame.coverage)
+    assert effect.frames_read_once([plate], fitted=())[0] is plate
+    assert gr.preset("xna_crepuscular").frames_read_once([frame], fitted=())[0] is frame
+    with pytest.raises(ValueError, match="silhouettes.coverage"):
+        gr.Buffers(color=frame.color, depth=frame.depth, coverage=frame.coverage,
+                   silhouettes=Silhouettes(coverage=frame.coverage[1:], uncovered_depth=frame.depth))  # fmt: skip
+
+
+@pytest.mark.slow
+def test_a_fit_reads_each_frames_silhouettes_once_and_never_in_a_step(rng, monkeypatch):
+    """`fit` reads the silhouettes off each frame once per resolution (its coarse phase's frames and its own), before
+    any step: no program it traces reads them again, and the fit ends where it ends reading them in every step."""
+    frame = _frame(rng)
+    effect = gr.preset("volumetric_haze")
+    target = np.asarray(effect(frame, jnp.asarray(LIGHT)))[..., :3] * 1.1
+    options = dict(max_steps=2, fixed=["fov_x_deg"], coarse_factor=2)
+    reads = []
+
+    def counted(coverage, depth, color):
+        reads.append(isinstance(depth, jax.core.Tracer))
+        return silhouette_mix(coverage, depth, color)
+
+    monkeypatch.setattr(volumetric, "silhouette_mix", counted)
+    once = fit(effect, frame, jnp.asarray(LIGHT), target, **options)
+    assert reads == [False, False]  # the frame's and the coarse phase's, neither under a trace
+    monkeypatch.setattr(type(effect), "frames_read_once", lambda self, frames, fitted: list(frames))
+    every_step = fit(effect, frame, jnp.asarray(LIGHT), target, **options)
+    assert reads[2:] and all(reads[2:])  # read inside the programs instead
+    np.testing.assert_allclose(once.loss_history, every_step.loss_history, rtol=1e-4)  # to float32 rounding
 
 
 @pytest.mark.parametrize("preset", ["volumetric_haze", "physically_based"])  # shadows read along lines, by samples

@@ -160,6 +160,13 @@ class Effect(Part):
         `fit` fits it in this one's place and returns the fields it fitted in this one."""
         return self
 
+    def frames_read_once(self, frames: typing.Sequence[Buffers], *, fitted: typing.Collection[str]) -> list[Buffers]:
+        """`frames` with what this effect reads off a frame alone read beforehand (`Buffers.silhouettes`), where
+        none of the fields in `fitted` changes it: calls on the frames returned draw what calls on `frames` draw,
+        without reading it again. `fit` reads them once per frame and resolution, not in every step. The frames
+        themselves by default."""
+        return list(frames)
+
     def fit_stand_in(self) -> "Effect":
         """The effect `fit` fits in this one's place (`pipeline.fit.fit`'s `stand_in`): the same fields, read
         more cheaply where a cheaper reading gives nearly the same frame; this effect itself by default."""

@@ -2,7 +2,7 @@
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -27,7 +27,7 @@ from godrays_jax.kernels.volumetric import (
     scattered_aside,
     volumetric_fog_terms,
 )
-from godrays_jax.primitives.buffers import Buffers
+from godrays_jax.primitives.buffers import Buffers, Silhouettes
 from godrays_jax.primitives.checks import check_light
 
 # On frames larger than `REFERENCE_SIDE` the march rays keep their fraction of the frame, so a preset looks and costs
@@ -172,6 +172,17 @@ class VolumetricFog(Effect):
             return self
         return dataclasses.replace(self, shadows="samples", num_shadow_samples=1)
 
+    def frames_read_once(self, frames: Sequence[Buffers], *, fitted: Collection[str]) -> list[Buffers]:
+        """`frames` with their silhouettes read (`kernels.silhouettes.silhouette_mix`), each frame that has depth,
+        where `fitted` leaves its depth as it is (a planar depth's distance along the rays takes the field of
+        view)."""
+        return [
+            frame if frame.depth is None or (frame.depth_kind == "planar" and "fov_x_deg" in fitted)
+            else dataclasses.replace(frame, silhouettes=Silhouettes(
+                *silhouette_mix(frame.coverage, frame_ray_depth(self, frame), frame.color)))
+            for frame in frames
+        ]  # fmt: skip
+
     def fit_stand_in(self) -> "VolumetricFog":
         """Read along lines, the shadows' table and every pixel's own ray are most of a fit's work, and a fit
         matches single frames, where holding still under a moving camera does not count: `fit` fits the same
@@ -189,7 +200,9 @@ class VolumetricFog(Effect):
         light_xy = check_light(light_xy)
         depth = frame_ray_depth(self, buffers)
         factor = march_factor(buffers.height, buffers.width, self.resolution_factor)
-        coverage, uncovered_depth = silhouette_mix(buffers.coverage, depth, buffers.color)
+        silhouettes = buffers.silhouettes
+        if silhouettes is None:
+            silhouettes = Silhouettes(*silhouette_mix(buffers.coverage, depth, buffers.color))
         surface, scattered, ambient = volumetric_fog_terms(
             depth, light_xy, fov_x_deg=self.fov_x_deg, light_depth=light_depth, light_in_front=light_in_front,
             medium=BoundedMedium(
@@ -198,7 +211,7 @@ class VolumetricFog(Effect):
             ),
             slabs=Slabs(thickness=self.thickness, edge_softness=self.edge_softness), shadows=self.shadow_reading,
             direct_fraction=self.direct_fraction, ambient_rise=self.ambient_rise, num_view_steps=self.num_view_steps,
-            resolution_factor=factor, coverage=coverage, uncovered_depth=uncovered_depth,
+            resolution_factor=factor, coverage=silhouettes.coverage, uncovered_depth=silhouettes.uncovered_depth,
             light_view=buffers.light_view,
         )  # fmt: skip
         sigma = SCATTERED_BLUR_SIGMA * max(buffers.height, buffers.width)

@@ -21,6 +21,7 @@ from godrays_jax.pipeline.problem import (
     fitted_bounds,
     light_tints,
     strongly_typed,
+    with_frames_read_once,
 )
 from godrays_jax.pipeline.reduced import downsample_frames, scale_pixel_fields
 from godrays_jax.primitives.buffers import Buffers
@@ -136,6 +137,7 @@ def determination(
     tints = light_tints(frame_data) if fit_light_tints else None
     problem = FitProblem.of(effect.fit_stand_in().same_on(frames), bounds, frames, loss="mse", space=space,
                             light_tints=tints)  # fmt: skip
+    frame_data = with_frames_read_once(problem.effect, frame_data, problem.names)  # as `fit` reads them
     # The positions are the effect's own values, checked inside their bounds above: no run-time range check, so the
     # cache keeps the Jacobian.
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
@@ -228,7 +230,7 @@ def _polish_linearisation(problem: FitProblem, frame_data, factor: int) -> Coars
     sharp = type(problem.effect).SHARP_STAGES
     if factor == 1 or sharp is None:
         return None
-    reduced = downsample_frames(frame_data, factor)
+    reduced = with_frames_read_once(problem.effect, downsample_frames(frame_data, factor), problem.names)
     scaled = scale_pixel_fields(problem.effect, 1.0 / factor)
     coarse_problem = FitProblem.of(scaled, dict(zip(problem.names, problem.bounds)), reduced[0], loss=problem.loss,
                                    space=problem.space, light_tints=problem.light_tints,

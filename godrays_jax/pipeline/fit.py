@@ -92,6 +92,7 @@ from godrays_jax.pipeline.problem import (
     strongly_typed,
     tint_range,
     warped_start,
+    with_frames_read_once,
     with_light_tints,
 )
 from godrays_jax.pipeline.reduced import clip_to_bounds, downsample_frames, scale_pixel_fields
@@ -469,6 +470,7 @@ def fit(
     effect = given if chosen is requested else chosen.same_on(frame_data[0])
     bounds = fitted_bounds(effect, fixed=fixed)
     names = tuple(bounds)
+    frame_data = with_frames_read_once(effect, frame_data, names)
     # Fields fitted in the polish alone are held as given until then, where there is a polish to fit them.
     held = type(effect).POLISH_FIELDS if phases.polisher is not None else ()
     phases = dataclasses.replace(phases, descend={**phases.descend, "hold": held})
@@ -555,7 +557,7 @@ def _coarse_phase(
     factor = phases.coarse_factor
     if factor == 1:
         return candidates, None, None, frame_data
-    reduced = downsample_frames(frame_data, factor)
+    reduced = with_frames_read_once(candidates[0], downsample_frames(frame_data, factor), bounds)
     scaled = [scale_pixel_fields(candidate, 1.0 / factor) for candidate in candidates]
     coarse_runs, winner = _descend(
         scaled, bounds, reduced, counter,

@@ -231,6 +231,12 @@ def _match_channels(image, target):
     return image[..., :channels], target[..., :channels]
 
 
+def with_frames_read_once(effect, frame_data, fitted) -> tuple:
+    """`frame_data` with what `effect` reads off its frames alone read beforehand (`Effect.frames_read_once`, with
+    the field names `fitted`): a fit's programs then take it as data, not read again in every step."""
+    return (effect.frames_read_once(frame_data[0], fitted=tuple(fitted)), *frame_data[1:])
+
+
 def light_tints(frame_data) -> jax.Array | None:
     """The tints of the lights beside each frame's first (`as_frames`' `others`), `(K, 3)`, the first frame's (a fit
     shares them over its frames); None where the frames have no other light."""

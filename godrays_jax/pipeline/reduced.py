@@ -45,6 +45,7 @@ def downsample_buffers(buffers: Buffers, factor: int) -> Buffers:
         glow_pass=box(buffers.glow_pass),
         glow_target=box(buffers.glow_target),
         light_view=buffers.light_view,  # the light's own view: the same scene at any resolution of the frame
+        # No silhouettes: read off a frame, they are read again off the smaller one (`Effect.frames_read_once`).
         depth_kind=buffers.depth_kind,
     )
 

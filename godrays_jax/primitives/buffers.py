@@ -8,6 +8,18 @@ from godrays_jax.primitives.camera import DEPTH_KINDS, DepthKind, planar_to_ray_
 from godrays_jax.primitives.light_view import LightView
 
 
+class Silhouettes(eqx.Module):
+    """A frame's silhouettes as `kernels.silhouettes.silhouette_mix` reads them off its colour, depth and coverage.
+
+    Attributes:
+        coverage: how much of each pixel its surface covers, `(H, W)` in [0, 1].
+        uncovered_depth: what the rest of the pixel sees, `(H, W)`, scene units along the ray (`+inf`: the sky).
+    """
+
+    coverage: Float[Array, "H W"]
+    uncovered_depth: Float[Array, "H W"]
+
+
 class Buffers(eqx.Module):
     """One rendered frame.
 
@@ -31,6 +43,10 @@ class Buffers(eqx.Module):
         light_view: a depth map seen from the light and its camera (`LightView`),
             for what casts shadows outside the frame, if rendered; the
             volumetric fog reads it.
+        silhouettes: the frame's silhouettes read beforehand (`Silhouettes`),
+            which effects that read them take instead of reading them again:
+            they depend on the frame alone, so a fit reads them once per
+            frame (`Effect.frames_read_once`) rather than in every step.
         depth_kind: `"ray"` (the default; `render`, Mitsuba) or `"planar"`
             (Blender's Cycles `Z` pass; `camera.DEPTH_KINDS`), static.
     """
@@ -44,6 +60,7 @@ class Buffers(eqx.Module):
     glow_pass: Float[Array, "H W 4"] | None = None
     glow_target: Float[Array, "H W 3"] | None = None
     light_view: LightView | None = None
+    silhouettes: Silhouettes | None = None
     depth_kind: DepthKind = eqx.field(static=True, default="ray")
 
     def __check_init__(self):
@@ -76,6 +93,11 @@ class Buffers(eqx.Module):
             if actual is not None and not jnp.issubdtype(value.dtype, kind):
                 kind_text = "an integer" if kind is jnp.integer else "a floating-point"
                 raise ValueError(f"buffers.{name} must have {kind_text} dtype, got {value.dtype}")
+        if self.silhouettes is not None:
+            for name in ("coverage", "uncovered_depth"):
+                actual = _shape_of(getattr(self.silhouettes, name))
+                if actual is not None and actual != plane:
+                    raise ValueError(f"buffers.silhouettes.{name} must have shape {plane} to match color, got {actual}")
         if self.light_view is not None and not isinstance(self.light_view, LightView):
             raise ValueError(f"buffers.light_view must be a LightView or None, got {type(self.light_view).__name__}")
 

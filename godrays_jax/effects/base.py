@@ -17,12 +17,15 @@ frame's larger side `max(W, H)`; `blur_power` is in UV units as in the
 sun-overcasting article. An effect built with `units="px"` takes its sizes
 in pixels instead (`size_fields` names them).
 
-Off-screen and behind-camera lights, the same rule for every effect that a
-light drives: the layer is multiplied by `light_visibility(light_xy, ...,
-fade=offscreen_fade)`, 1 while the light is on screen, fading smoothly to 0
-once the light is `offscreen_fade` frame-widths beyond the edge, and 0 when
-the light is behind the camera (`light_in_front` false: the frame comes back
-unchanged). `Bloom` does not depend on the light and ignores both.
+Off-screen and behind-camera lights, one rule for every effect drawn from the
+light's position on screen (the emitters' shafts and flares, the glows, the
+lens dirt, `ScatteringFog`'s shafts): the layer is multiplied by
+`light_visibility(light_xy, ..., fade=offscreen_fade)`, 1 while the light is
+on screen, fading smoothly to 0 once the light is `offscreen_fade`
+frame-widths beyond the edge, and 0 when the light is behind the camera
+(`light_in_front` false: the frame comes back unchanged). `VolumetricFog`
+lights its medium from the light wherever it is, behind the camera included;
+`Bloom` does not depend on the light and ignores both.
 """
 
 import dataclasses

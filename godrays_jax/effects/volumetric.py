@@ -77,7 +77,8 @@ class VolumetricFog(Effect):
     segment, from `num_shadow_lines` lines through the light with
     `num_shadow_bins` bins of the shadow rays' coordinate each
     (`kernels.shadow_lines`): no sampling that crawls with the pixel grid, so
-    shafts hold still under a moving camera, at several times the cost.
+    shafts hold still under a moving camera, at more cost (benchmarks/README.md,
+    "VolumetricFog: speed and memory").
 
     The medium is the `medium` part (a `Medium`, its fields `medium.extinction`,
     ...): `extinction` per scene unit at the camera's height, falling

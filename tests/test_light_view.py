@@ -12,7 +12,7 @@ from jax.test_util import check_grads
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
-from godrays_jax.kernels.light_view_shadows import RAMP_TEXELS
+from godrays_jax.kernels.light_view_shadows import RAMP_TEXELS, on_light_view
 from godrays_jax.primitives.light_view_files import FROM_CAMERA_ATTR
 
 from tune_support import served_tuners
@@ -51,6 +51,19 @@ def _numpy_visibility(points, depth, transform, scale, projection):
     return out
 
 
+def _numpy_on_map(points, shape, transform, scale, projection):
+    """Whether the map's test decides each point: on `[0, w] x [0, h]`, in front of a perspective map's centre."""
+    height, width = shape
+    out = np.zeros(points.shape[:-1], bool)
+    for index in np.ndindex(*points.shape[:-1]):
+        lx, ly, lz = transform[:, :3] @ points[index] + transform[:, 3]
+        if projection == "perspective" and lz <= 0:
+            continue
+        x, y = (lx / lz, ly / lz) if projection == "perspective" else (lx, ly)
+        out[index] = 0 <= width / 2 + scale * x <= width and 0 <= height / 2 - scale * y <= height
+    return out
+
+
 def _points(rng, count=40):
     return rng.uniform([-4.0, 0.0, 1.0], [4.0, 6.0, 9.0], size=(count, 3))
 
@@ -70,6 +83,13 @@ def test_matches_a_numpy_loop_eagerly_under_jit_and_vmap(projection, rng):
     mapped = jax.vmap(lambda p: gr.light_view_visibility(p, light_view=view))(points)
     for values in (eager, jitted, mapped):
         np.testing.assert_allclose(values, expected, atol=2e-5)
+    aside = jnp.asarray([[30.0, 3.0, 4.0], [0.0, 12.0, 5.0]], jnp.float32)  # to the side; above a perspective centre
+    points = jnp.concatenate([points, aside])
+    on_map = _numpy_on_map(np.asarray(points), SLATS.shape, transform, scale, projection)
+    assert 0 < np.mean(on_map) < 1  # points on the map and off it
+    for on in (on_light_view(points, light_view=view), jax.vmap(lambda p: on_light_view(p, light_view=view))(points),
+               jax.jit(lambda p, v: on_light_view(p, light_view=v))(points, view)):  # fmt: skip
+        np.testing.assert_array_equal(on, on_map)
 
 
 def test_off_the_map_behind_its_centre_and_where_it_sees_nothing_the_light_reaches(rng):
@@ -86,6 +106,8 @@ def test_off_the_map_behind_its_centre_and_where_it_sees_nothing_the_light_reach
     values = gr.light_view_visibility(above_the_light, light_view=behind)
     grads = jax.grad(lambda p: gr.light_view_visibility(p, light_view=behind).sum())(above_the_light)
     assert float(values[0]) == 1.0 and np.all(np.isfinite(grads))
+    assert not bool(on_light_view(above_the_light, light_view=behind)[0])  # the frame's shadows decide there
+    assert not np.any(on_light_view(beyond, light_view=view)) and np.all(on_light_view(anywhere, light_view=nothing))
 
 
 def test_gradients_float64(x64):
@@ -161,10 +183,11 @@ def test_a_light_view_says_what_lies_beyond_a_closed_frame():
 
 
 @pytest.mark.slow
-def test_the_fog_reads_the_light_view_beside_the_frames_shadows():
-    """A map that sees nothing changes nothing; a roof over the whole medium leaves only the ambient and the
-    surfaces; slats let some light through, differentiably, under jit and vmap over frames. (The fog's terms
-    compiled: one program for the maps, one without.)"""
+def test_the_fog_reads_the_light_view_on_it_and_the_frames_shadows_off_it():
+    """On the map the map alone shades the fog (it holds what the frame shows too): one that sees nothing lights the
+    post's shadow, one that covers none of the medium changes nothing; a roof over the whole medium leaves only the
+    ambient and the surfaces; slats let some light through, differentiably, under jit and vmap over frames. (The
+    fog's terms compiled: one program for the maps, one without.)"""
     effect = gr.preset("volumetric_haze")
     frame = _frame()
     medium = gr.BoundedMedium(extinction=0.05, max_distance=effect.medium.max_distance, anisotropy=0.7)
@@ -175,7 +198,12 @@ def test_the_fog_reads_the_light_view_beside_the_frames_shadows():
                                        light_view=buffers.light_view)[1]  # fmt: skip
 
     unroofed = np.asarray(scattered(frame))
-    np.testing.assert_allclose(scattered(_with_view(frame, np.full((64, 64), np.inf))), unroofed, rtol=1e-6, atol=1e-7)
+    unshaded = np.asarray(scattered(_with_view(frame, np.full((64, 64), np.inf))))
+    assert np.all(unshaded >= unroofed - 1e-7) and float(np.max(unshaded[:, 14:17] - unroofed[:, 14:17])) > 0.0
+    to_the_side = jnp.asarray(FROM_ABOVE, jnp.float32).at[0, 3].set(1e3)  # a thousand units: none of the medium on it
+    aside = gr.LightView(depth=jnp.full((64, 64), jnp.inf), from_camera=to_the_side, scale=0.5)
+    beside = gr.Buffers(color=frame.color, depth=frame.depth, coverage=frame.coverage, light_view=aside)
+    np.testing.assert_allclose(scattered(beside), unroofed, rtol=1e-6, atol=1e-7)
     roofed = _with_view(frame, np.zeros((64, 64)), height=1e3, scale=0.01)  # a roof over all the medium, above it
     assert float(jnp.max(scattered(roofed))) == 0.0 and float(np.min(unroofed)) > 0.0
     slats = _with_view(frame, np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1)))

@@ -8,14 +8,16 @@ bilinear weights (percentage-closer filtering), so that a shadow's edge moves
 smoothly as the point moves over the map's grid; each comparison is a linear
 ramp `RAMP_TEXELS` texels' footprints deep behind the texel's surface, so that
 the points' positions (the medium's fields that place a view ray's segments)
-have gradients. The volumetric fog multiplies its screen-space reading of a
-segment's shadow (`shadow_reading`) by this one's mean at points along the
-segment: the depth buffer finds the shadows of what the frame shows,
-the map those of what it does not.
+have gradients. The volumetric fog takes a segment's shadow from the map at
+its points that fall on it (`on_light_view`) and from its screen-space reading
+(`shadow_reading`) at the others: the map holds every surface the light sees,
+those the frame shows among them, and both readings of one window's edge,
+multiplied, would shade its beam twice (benchmarks/README.md, "A sunbeam through
+a window in view").
 """
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from godrays_jax.primitives.light_view import LightView
 from godrays_jax.primitives.sampling import bilinear_corners
@@ -50,7 +52,22 @@ def light_view_visibility(points: Float[Array, "*S 3"], *, light_view: LightView
     # replaced by a ramp, so that no infinity reaches a derivative.
     behind = jnp.where(seen, z - texels, -ramp)
     lit = jnp.sum(weights * jnp.clip(1.0 - behind / ramp, 0.0, 1.0), axis=0)
+    return jnp.where(_on_map(x, y, z, height, width, light_view.projection), lit, 1.0)
+
+
+def on_light_view(points: Float[Array, "*S 3"], *, light_view: LightView) -> Bool[Array, "*S"]:
+    """Whether each of `points` (the frame camera's view space, scene units) falls on the map, where its test
+    decides: within `[0, w] x [0, h]` and, for a perspective map, in front of its centre (its texels that see
+    nothing included: they say that nothing blocks). No gradient."""
+    if not isinstance(light_view, LightView):
+        raise ValueError(f"light_view must be a LightView, got {type(light_view).__name__}")
+    if jnp.shape(points)[-1:] != (3,):
+        raise ValueError(f"points must have shape (..., 3), got {jnp.shape(points)}")
+    height, width = light_view.depth.shape[-2:]
+    x, y, z, _ = light_view.project(jnp.asarray(points, jnp.result_type(points, jnp.float32)))
+    return _on_map(x, y, z, height, width, light_view.projection)
+
+
+def _on_map(x, y, z, height, width, projection):
     on_map = (x >= 0.0) & (x <= width) & (y >= 0.0) & (y <= height)
-    if light_view.projection == "perspective":
-        on_map = on_map & (z > 0.0)
-    return jnp.where(on_map, lit, 1.0)
+    return on_map & (z > 0.0) if projection == "perspective" else on_map

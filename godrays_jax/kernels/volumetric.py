@@ -92,7 +92,7 @@ from godrays_jax.kernels.fog_reading import (
     upsample_by_depth,
 )
 from godrays_jax.kernels.lens import rays_through, view_directions
-from godrays_jax.kernels.light_view_shadows import light_view_visibility
+from godrays_jax.kernels.light_view_shadows import light_view_visibility, on_light_view
 from godrays_jax.kernels.shadow_reading import (
     ShadowReading,
     ShadowSamples,
@@ -236,8 +236,11 @@ def volumetric_fog_terms(
             sky (None: the sky everywhere). Used with `coverage`.
         light_view: a depth map seen from the light and its camera
             (`primitives.light_view.LightView`): each segment's visibility
-            is then also the mean of its test at points along the segment
-            (`light_view_shadows`), for what casts shadows outside the frame.
+            is then the mean, at points along the segment, of the map's test
+            where a point falls on the map (`light_view_shadows`: the map
+            holds what the frame shows too) and of the depth buffer's
+            reading where it does not: a map that covers the medium casts
+            all of its shadows, those of what lies outside the frame too.
             None: only the depth buffer casts shadows, and a frame that is
             nearly all surface (`shadow_reading.enclosure`: a room, its
             windows) is read as closed beyond its edges: a shadow ray toward
@@ -445,18 +448,24 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
 
 
 def _seen_by_the_light_too(visibility, light_view, height, width, focal):
-    """`visibility` (a shadow reading's) times the light view's mean over each segment, `_LIGHT_VIEW_SAMPLES` points
-    evenly along it on the view ray through its pixel: a segment is often longer than a shaft through a gap is
-    wide, and one point of it would read the shaft or miss it."""
+    """Each segment's visibility as the mean over `_LIGHT_VIEW_SAMPLES` points evenly along it, on the view ray
+    through its pixel, of the light view's test where a point falls on the map and of `visibility` (a shadow
+    reading's, the segment's) where it does not. A segment is often longer than a shaft through a gap is wide, and
+    one point of it would read the shaft or miss it. The map alone on it: it holds the surfaces the frame shows as
+    well, and a window's edge read twice, softly along the screen's lines and sharply on the map, would shade its
+    beam twice (benchmarks/README.md, "A sunbeam through a window in view")."""
     fractions = (jnp.arange(_LIGHT_VIEW_SAMPLES) + 0.5) / _LIGHT_VIEW_SAMPLES
 
-    def both(pixel_xy, lower, upper, middles):
+    def either(pixel_xy, lower, upper, middles):
         view = unit_vectors(rays_through(pixel_xy[..., 0], pixel_xy[..., 1], height, width, focal))
         distances = lower[..., None] + (upper - lower)[..., None] * fractions.astype(lower.dtype)
-        seen = light_view_visibility(view[..., None, None, :] * distances[..., None], light_view=light_view)
-        return visibility(pixel_xy, lower, upper, middles) * jnp.mean(seen, axis=-1)
+        points = view[..., None, None, :] * distances[..., None]
+        seen = light_view_visibility(points, light_view=light_view)
+        off_map = 1.0 - jnp.mean(on_light_view(points, light_view=light_view).astype(seen.dtype), axis=-1)
+        # `seen` is 1 off the map: its mean there counts what the screen's reading then shades.
+        return jnp.mean(seen, axis=-1) - off_map * (1.0 - visibility(pixel_xy, lower, upper, middles))
 
-    return both
+    return either
 
 
 _compiled_fog_terms = jax.jit(

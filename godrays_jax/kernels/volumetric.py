@@ -113,7 +113,7 @@ from godrays_jax.primitives.light_view import LightView
 # The nearest a point light is taken to the camera, as a fraction of the medium's radius (`volumetric_fog_terms`).
 _NEAREST_LIGHT = 1e-3
 
-# Points a segment's shadow is read at from a depth map seen from the light (`_seen_by_the_light_too`).
+# Points a segment's shadow is read at from a depth map seen from the light (`_light_view_where_it_reaches`).
 _LIGHT_VIEW_SAMPLES = 8
 # The pixels' reads of the march rays are made this many pixels (whole rows) at a time on larger frames: memory
 # O(band x lanes) in a fit's Jacobian instead of O(frame x lanes), the same values.
@@ -332,7 +332,7 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
     )  # fmt: skip
     focal = focal_length_px(width, fov_x_deg, dtype)
     if light_view is not None:
-        visibility = _seen_by_the_light_too(visibility, light_view, height, width, focal)
+        visibility = _light_view_where_it_reaches(visibility, light_view, height, width, focal)
     march_options = dict(
         toward=toward, inverse=inverse, light_depth=light_depth, medium=medium, visibility=visibility,
         num_view_steps=num_view_steps,
@@ -447,7 +447,7 @@ def _fog_terms(depth, light_xy, fov_x_deg, light_depth, light_in_front, medium, 
     return one_side_then_silhouettes(planes)
 
 
-def _seen_by_the_light_too(visibility, light_view, height, width, focal):
+def _light_view_where_it_reaches(visibility, light_view, height, width, focal):
     """Each segment's visibility as the mean over `_LIGHT_VIEW_SAMPLES` points evenly along it, on the view ray
     through its pixel, of the light view's test where a point falls on the map and of `visibility` (a shadow
     reading's, the segment's) where it does not. A segment is often longer than a shaft through a gap is wide, and

@@ -1,9 +1,11 @@
 """A depth map seen from the light: the kernel against a NumPy loop and at its edges, its files, the fog and the
 commands reading it."""
 
+import dataclasses
 import json
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,7 +14,7 @@ from jax.test_util import check_grads
 
 import godrays_jax as gr
 from godrays_jax.app.cli import main
-from godrays_jax.kernels.light_view_shadows import RAMP_TEXELS, on_light_view
+from godrays_jax.kernels.light_view_shadows import RAMP_TEXELS, covers_view, on_light_view
 from godrays_jax.primitives.light_view_files import FROM_CAMERA_ATTR
 
 from tune_support import served_tuners
@@ -110,6 +112,30 @@ def test_off_the_map_behind_its_centre_and_where_it_sees_nothing_the_light_reach
     assert not np.any(on_light_view(beyond, light_view=view)) and np.all(on_light_view(anywhere, light_view=nothing))
 
 
+@pytest.mark.parametrize("projection", ["orthographic", "perspective"])
+def test_a_map_covers_a_view_where_it_holds_every_point_through_the_frame_within_the_reach(projection):
+    """`covers_view` against points through the frame and its margin at every depth up to the reach, the pyramid's
+    corners among them (the map's region is convex: they decide): wide and narrow maps, near and far reaches."""
+    height, width, focal, margin = 9, 16, 17.0, 2.0
+    transform = FROM_ABOVE if projection == "orthographic" else FROM_ABOVE + [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 3]]
+    xs, ys = np.linspace(-margin, width + margin, 7), np.linspace(-margin, height + margin, 5)
+    outcomes = set()
+    for scale in ((0.5, 2.0, 8.0) if projection == "orthographic" else (2.0, 6.0)):
+        view = gr.LightView(depth=jnp.asarray(SLATS, jnp.float32), from_camera=jnp.asarray(transform, jnp.float32),
+                            scale=jnp.float32(scale), projection=projection)  # fmt: skip
+        for reach in (1.0, 4.0, 12.0, 40.0):
+            points = np.asarray([[z * (x - width / 2) / focal, -z * (y - height / 2) / focal, z]
+                                 for x in xs for y in ys for z in np.linspace(0.0, reach, 9)])  # fmt: skip
+            expected = bool(np.all(_numpy_on_map(points, SLATS.shape, transform, scale, projection)))
+            covered = covers_view(view, height=height, width=width, focal=focal, reach=reach, margin=margin)
+            assert covered == expected, (scale, reach)
+            outcomes.add(covered)
+    assert outcomes == {True, False}
+    stacked = gr.LightView(depth=jnp.stack([jnp.full((16, 16), jnp.inf)] * 2), from_camera=jnp.stack([FROM_ABOVE] * 2),
+                           scale=jnp.asarray([0.5, 0.5]))  # fmt: skip
+    assert not covers_view(stacked, height=height, width=width, focal=focal, reach=1.0, margin=margin)
+
+
 def test_gradients_float64(x64):
     """In the points and the map's camera, where a point lies within a ramp and between texel centres."""
     depth = jnp.asarray(np.where(np.arange(16)[None, :] < 8, 4.5, 3.0) * np.ones((16, 1)))
@@ -180,6 +206,34 @@ def test_a_light_view_says_what_lies_beyond_a_closed_frame():
                                   scale=0.5)  # fmt: skip
     opened = scattered(seeing_nothing)
     assert np.all(closed <= opened + 1e-7) and float(np.mean(closed)) < 0.5 * float(np.mean(opened))
+
+
+def test_a_fit_shades_a_room_its_map_covers_by_the_map_alone():
+    """`same_on` a room whose map covers every point its rays reach within `LIGHT_VIEW_COVER_MULTIPLE` times its
+    farthest wall reads one screen sample a segment (no shadows' table) and draws the room as the effect does, values
+    and gradients; a map too narrow, or a frame without one, leaves the effect itself."""
+    from godrays_jax.effects.volumetric import LIGHT_VIEW_COVER_MULTIPLE
+
+    frame = _frame(9, 16)
+    room = dataclasses.replace(frame, depth=np.where(np.isfinite(frame.depth), frame.depth, 20.0))
+    slats = np.where(np.arange(64) % 4 < 2, 3.0, np.inf)[None, :] * np.ones((64, 1))
+    effect = dataclasses.replace(gr.preset("volumetric_haze"), num_shadow_lines=16, num_shadow_bins=16,
+                                 num_view_steps=4)  # fmt: skip
+    covered = _with_view(room, slats)  # 128 units of the scene each way
+    cheaper = effect.same_on([covered])
+    assert (cheaper.shadows, cheaper.num_shadow_samples) == ("samples", 1)
+    narrow = _with_view(room, slats, scale=64 / (LIGHT_VIEW_COVER_MULTIPLE * 20.0))  # short of the reach across
+    assert effect.same_on([narrow]) is effect and effect.same_on([covered, room]) is effect
+
+    def loss(candidate):
+        return jnp.mean(candidate(covered, SUN_ABOVE))
+
+    for one, other in ((effect, cheaper), (jax.grad(loss)(effect), jax.grad(loss)(cheaper))):
+        arrays = [jax.tree.leaves(eqx.filter(tree, eqx.is_array)) for tree in (one, other)]
+        for mine, theirs in zip(*arrays, strict=True):
+            np.testing.assert_allclose(np.asarray(mine), np.asarray(theirs), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(effect(covered, SUN_ABOVE), cheaper(covered, SUN_ABOVE), rtol=1e-6, atol=1e-7)
+    assert float(jnp.mean(effect.layer(covered, SUN_ABOVE))) > 0.0
 
 
 @pytest.mark.slow

@@ -158,8 +158,9 @@ class Effect(Part):
         raise ValueError(f"{type(self).__name__} draws no flare (use a GodRays or FlareOuts effect)")
 
     def same_on(self, frames: typing.Sequence[Buffers]) -> "Effect":
-        """An effect that draws `frames` exactly as this one does, more cheaply where those frames allow it (a
-        `VolumetricFog` on frames where nothing casts a shadow reads no shadows); this effect itself by default.
+        """An effect that draws `frames` as this one does (to float rounding), more cheaply where those frames allow
+        it (a `VolumetricFog` on frames where nothing casts a shadow, or whose depth map seen from the light covers
+        them, reads no shadows off the screen); this effect itself by default.
         `fit` fits it in this one's place and returns the fields it fitted in this one."""
         return self
 

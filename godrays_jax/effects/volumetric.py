@@ -12,6 +12,7 @@ from godrays_jax.effects.base import Effect, frame_ray_depth
 from godrays_jax.effects.fields import param, part, static
 from godrays_jax.effects.medium import FLAT_NAMES, Medium
 from godrays_jax.kernels.bounded_medium import BoundedMedium
+from godrays_jax.kernels.light_view_shadows import covers_view
 from godrays_jax.kernels.shadow_lines import REFERENCE_SIDE
 from godrays_jax.kernels.shadow_reading import (
     ShadowLines,
@@ -28,6 +29,7 @@ from godrays_jax.kernels.volumetric import (
     volumetric_fog_terms,
 )
 from godrays_jax.primitives.buffers import Buffers, Silhouettes
+from godrays_jax.primitives.camera import focal_length_px
 from godrays_jax.primitives.checks import check_light
 
 # On frames larger than `REFERENCE_SIDE` the march rays keep their fraction of the frame, so a preset looks and costs
@@ -38,6 +40,10 @@ SURFACE_BLUR_SIGMA = 0.08
 the frame's larger side: how far the haze of the rooms of the path-traced references, lit by a sunbeam's patch on
 the floor, spreads its halo around the patch (benchmarks/README.md, "A sunbeam through a window behind the
 camera")."""
+LIGHT_VIEW_COVER_MULTIPLE = 2.0
+"""How far a depth map seen from the light must cover a frame's view for a fit to shade it by the map alone
+(`VolumetricFog.same_on`), in multiples of the frame's farthest surface: beyond the surfaces no pixel sees, and
+only a march ray's segment that reaches past its surface, or open sky, reads points there."""
 SCATTERED_BLUR_SIGMA = 0.05
 """The spread of the light scattered again on its way to the camera (`scattered_blur`), a Gaussian's standard
 deviation in the frame's larger side: a glow beside the beams of the path-traced references, narrower than the
@@ -161,17 +167,37 @@ class VolumetricFog(Effect):
     LIGHT_TINT_STAGE: ClassVar[str] = "sum"  # a light's tint multiplies its in-scattering and its share of the surface
 
     def same_on(self, frames: Sequence[Buffers]) -> "VolumetricFog":
-        """On frames with no finite depth above 0 (all sky; surfaces at the eye are slabs of no depth) nothing
-        casts a shadow: every reading sees the light everywhere, and one sample a segment reads that exactly, with
-        no shadows' table to build."""
+        """One sample a segment where the frames leave the screen's shadows nothing to shade: on frames with no finite
+        depth above 0 (all sky; surfaces at the eye are slabs of no depth) nothing casts a shadow, and every reading
+        sees the light everywhere; on frames whose depth map seen from the light covers every point their rays reach
+        within `LIGHT_VIEW_COVER_MULTIPLE` times their farthest surface (`light_view_shadows.covers_view`), the map
+        alone shades those points. Either way no shadows' table is built (benchmarks/README.md, "Several lights, light
+        views and rooms at 480x270"); beyond that reach, where no pixel sees a surface, a light view's points off the
+        map read the screen at one sample a segment."""
         if self.shadows == "samples" and self.num_shadow_samples == 1:
             return self  # already that effect: `fit` then sees no other one to polish with
         if any(frame.depth is None for frame in frames):
             return self  # which says that it needs depth when it draws them
-        depths = [np.asarray(frame.depth) for frame in frames]
-        if any(np.any(np.isfinite(depth) & (depth > 0)) for depth in depths):
+        if not all(self._shaded_without_the_screen(frame) for frame in frames):
             return self
         return dataclasses.replace(self, shadows="samples", num_shadow_samples=1)
+
+    def _shaded_without_the_screen(self, frame: Buffers) -> bool:
+        """Whether no surface of `frame` casts a shadow, or its depth map seen from the light covers every point
+        its fog reads within `LIGHT_VIEW_COVER_MULTIPLE` times its farthest surface, through the frame and its
+        march rays' margin."""
+        depth = np.asarray(frame_ray_depth(self, frame))
+        surfaces = depth[np.isfinite(depth) & (depth > 0)]
+        if surfaces.size == 0:
+            return True
+        if frame.light_view is None:
+            return False
+        spacing = march_factor(frame.height, frame.width, self.resolution_factor)
+        focal = float(focal_length_px(frame.width, self.fov_x_deg))
+        reach = LIGHT_VIEW_COVER_MULTIPLE * float(surfaces.max())
+        return covers_view(
+            frame.light_view, height=frame.height, width=frame.width, focal=focal, reach=reach, margin=2.0 * spacing
+        )
 
     def frames_read_once(self, frames: Sequence[Buffers], *, fitted: Collection[str]) -> list[Buffers]:
         """`frames` with their silhouettes read (`kernels.silhouettes.silhouette_mix`), each frame that has depth,

@@ -13,10 +13,12 @@ its points that fall on it (`on_light_view`) and from its screen-space reading
 (`shadow_reading`) at the others: the map holds every surface the light sees,
 those the frame shows among them, and both readings of one window's edge,
 multiplied, would shade its beam twice (benchmarks/README.md, "A sunbeam through
-a window in view").
+a window in view"). `covers_view` says, on the host, whether a map covers every
+point a frame's fog reads within a reach, where the screen's reading has nothing left to shade.
 """
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from godrays_jax.primitives.light_view import LightView
@@ -66,6 +68,29 @@ def on_light_view(points: Float[Array, "*S 3"], *, light_view: LightView) -> Boo
     height, width = light_view.depth.shape[-2:]
     x, y, z, _ = light_view.project(jnp.asarray(points, jnp.result_type(points, jnp.float32)))
     return _on_map(x, y, z, height, width, light_view.projection)
+
+
+def covers_view(
+    light_view: LightView, *, height: int, width: int, focal: float, reach: float, margin: float
+) -> bool:
+    """Whether every point of the frame camera's view within `reach` scene units of it, through the frame
+    `[-margin, width + margin] x [-margin, height + margin]` (pixels, focal length `focal` pixels), falls on the
+    map (`on_light_view`). Where it does (and on points within `reach`) the map alone shades the fog, and no
+    reading of the screen is needed.
+
+    The points on a map form a convex region (a prism along an orthographic map's axis, a pyramid from a
+    perspective map's centre) and those points lie in the pyramid from the camera to the frame's corners at
+    depth `reach`: the map covers them when it covers that pyramid's five corners. Evaluated on the host, for a
+    static choice: a map with leading batch axes is taken as not covering.
+    """
+    if np.ndim(light_view.depth) != 2:
+        return False
+    corners = [[0.0, 0.0, 0.0]] + [
+        [reach * (x - 0.5 * width) / focal, -reach * (y - 0.5 * height) / focal, reach]
+        for x in (-margin, width + margin)
+        for y in (-margin, height + margin)
+    ]  # fmt: skip
+    return bool(np.all(np.asarray(on_light_view(np.asarray(corners, np.float32), light_view=light_view))))
 
 
 def _on_map(x, y, z, height, width, projection):

@@ -312,11 +312,13 @@ def test_frames_with_their_silhouettes_read_once_draw_the_same_frame_and_derivat
 @pytest.mark.slow
 def test_a_fit_reads_each_frames_silhouettes_once_and_never_in_a_step(rng, monkeypatch):
     """`fit` reads the silhouettes off each frame once per resolution (its coarse phase's frames and its own), before
-    any step: no program it traces reads them again, and the fit ends where it ends reading them in every step."""
+    any step: no program it traces reads them again, and the fit ends where it ends reading them in every step. (Two
+    fields, of the march's stage and the slabs': the Jacobian's other stages read the frame as these do.)"""
     frame = _frame(rng)
     effect = gr.preset("volumetric_haze")
     target = np.asarray(effect(frame, jnp.asarray(LIGHT)))[..., :3] * 1.1
-    options = dict(max_steps=2, fixed=["fov_x_deg"], coarse_factor=2)
+    fixed = [name for name in gr.parameter_bounds(effect) if name not in ("medium.extinction", "thickness")]
+    options = dict(max_steps=2, fixed=fixed, coarse_factor=2)
     reads = []
 
     def counted(coverage, depth, color):
@@ -366,7 +368,8 @@ def test_frames_where_nothing_casts_a_shadow_are_fitted_without_reading_shadows(
     if preset != "volumetric_haze":
         return  # the fit below restores any effect's statics alike; one compiles its programs
     target = np.asarray(effect(sky, jnp.asarray(LIGHT)))[..., :3] * 1.1
-    fitted = fit(effect, sky, jnp.asarray(LIGHT), target, max_steps=1, fixed=["fov_x_deg"]).effect
+    fixed = [name for name in gr.parameter_bounds(effect) if name != "medium.extinction"]  # one field restores alike
+    fitted = fit(effect, sky, jnp.asarray(LIGHT), target, max_steps=1, fixed=fixed).effect
     assert (fitted.shadows, fitted.num_shadow_samples, fitted.num_shadow_lines) == (
         effect.shadows, effect.num_shadow_samples, effect.num_shadow_lines)  # fmt: skip
 

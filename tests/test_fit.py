@@ -477,6 +477,18 @@ def test_a_polish_linearisation_takes_the_sharp_stages_columns_at_full_resolutio
     np.testing.assert_allclose(normal_kept[np.ix_(sharp, sharp)], normal[np.ix_(sharp, sharp)], rtol=1e-12)
     np.testing.assert_allclose(normal_kept[np.ix_(rest, rest)], fresh[np.ix_(rest, rest)], rtol=1e-12)
     assert not np.allclose(fresh[np.ix_(sharp, sharp)], normal[np.ix_(sharp, sharp)], rtol=1e-2)
+    # Every field of the sharp stage held: the coarse columns alone, as without a sharp stage.
+    held = fitted_bounds(effect, fixed=["fov_x_deg", "medium.ambient_color", "layer_top", "height_falloff", "thickness",
+                                        "edge_softness"])  # fmt: skip
+    problem, coarse_problem = (FitProblem.of(effect, held, frames[0], loss="mse", space="display")
+                               for frames in (frame_data, reduced))  # fmt: skip
+    assert not problem.stage_unknowns(("shadows",))
+    positions = problem.positions(jnp.float32)
+    residuals = np.asarray(problem.residuals_of(problem.effect_at_positions(positions), frame_data), np.float64)
+    plain = CoarseLinearisation.of(coarse_problem, reduced, 2)
+    for got, expected in zip(dataclasses.replace(plain, sharp=("shadows",)).normal_equations(
+            positions, residuals, problem, frame_data), plain.normal_equations(positions, residuals, problem, frame_data)):
+        np.testing.assert_array_equal(got, expected)
 
 
 def test_the_fit_begins_from_the_start_with_the_lowest_loss():

@@ -191,9 +191,9 @@ class CoarseLinearisation:
         if sum(block.fine_size for block in blocks) != len(residuals):
             raise ValueError(f"expected the residuals of {len(fine_frame_data[0])} fine frames, got {len(residuals)}")
         rows = self.jacobian(positions, fine_frame_data[0])
-        if not self.sharp:
+        sharp = np.asarray(fine_problem.stage_unknowns(self.sharp), int)
+        if not sharp.size:  # no sharp stage, or every field of one held (`fit --fixed thickness,edge_softness`)
             return normal_equations(rows, _folded(blocks, residuals))
-        sharp = np.asarray(fine_problem.stage_unknowns(self.sharp))
         rest = np.setdiff1d(np.arange(rows.shape[1]), sharp)
         if self.kept is not None and "columns" in self.kept:
             fine = self.kept["columns"]

@@ -112,6 +112,12 @@ def test_every_offset_keeps_every_field_inside_its_range_and_fields_on_a_bound_a
         assert found.offset_change[name] == pytest.approx(found.sensitivity[name] * part_taken)
     # The count sits on its cap: its offset steps down, into the range.
     assert found.offsets["num_samples"]["num_samples"] < 0
+    # A medium's reach is moved by ratios over the top decades of its range: ten units of 1e4 lie well inside them,
+    # a hundredth of a unit on the bound.
+    for reach, on_bound in ((9.9, False), (0.005, True)):
+        near = gr.effect_from_dict({**FOG_SOLUTION, "medium.max_distance": reach})
+        found = determination(near, frame, light, target, fitted=("medium.max_distance", "density"))
+        assert ("medium.max_distance" in found.on_bound) == on_bound, (reach, found.on_bound)
 
 
 @pytest.mark.slow

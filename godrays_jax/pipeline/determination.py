@@ -167,8 +167,13 @@ def determination(
         labels += [name] if size == 1 and not shape else [f"{name}[{k}]" for k in range(size)]
         lows += [float(low)] * size
         spans += [float(high) - float(low)] * size
-    # Where each field sits in its range: 0 on the lower bound, 1 on the upper.
-    position = np.clip(np.asarray(positions, np.float64), 0.0, 1.0)
+    # Where each field sits in its range: 0 on the lower bound, 1 on the upper; a field moved by ratios over its top
+    # decades (`problem.warps`) by where it sits among them, so that a medium reaching 10 units of a range up to 1e4
+    # is not read as on its bound of 0.
+    linear = np.clip(np.asarray(positions, np.float64), 0.0, 1.0)
+    warps = problem.warps
+    warp = np.where(warps > 0, warps, 1.0)
+    position = np.where(warps > 0, np.log1p(linear * np.expm1(warp)) / warp, linear)
     pinned = np.minimum(position, 1.0 - position) <= ON_BOUND
     on_bound = {label: low + span * float(round(where)) for label, low, span, where, on in
                 zip(labels, lows, spans, position, pinned) if on}  # fmt: skip

@@ -278,8 +278,8 @@ def test_a_frame_at_the_eye_gives_finite_values_and_gradients(preset):
 
 def test_frames_with_their_silhouettes_read_once_draw_the_same_frame_and_derivatives(rng):
     """`frames_read_once` reads each frame's silhouettes (`Buffers.silhouettes`), which the fog then takes instead of
-    reading them again: the same frame and derivatives in its fields, eagerly and under `jit` (to float32 rounding:
-    XLA fuses the reads in other programs). A planar depth whose
+    reading them again: the same frame eagerly and under `jit`, and the same derivatives in its fields (to float32
+    rounding: XLA fuses the reads in other programs). A planar depth whose
     field of view is fitted keeps its frame as it is (its distances along the rays move with that field); a frame
     without depth too; and silhouettes of another size are refused, naming the field."""
     frame = _frame(rng)
@@ -295,9 +295,8 @@ def test_frames_with_their_silhouettes_read_once_draw_the_same_frame_and_derivat
     extinction = jnp.asarray(0.03, jnp.float32)
     for function in (drawn, jax.jit(drawn)):
         np.testing.assert_allclose(function(extinction, read), function(extinction, frame), rtol=1e-6, atol=1e-7)
-        np.testing.assert_allclose(
-            jax.jacfwd(function)(extinction, read), jax.jacfwd(function)(extinction, frame), rtol=2e-5, atol=1e-7
-        )  # fmt: skip
+    derivative = jax.jit(jax.jacfwd(drawn))  # compiled: eagerly, op by op, the slowest path of the suite's fast step
+    np.testing.assert_allclose(derivative(extinction, read), derivative(extinction, frame), rtol=2e-5, atol=1e-7)
     planar = gr.Buffers(color=frame.color, depth=frame.depth, coverage=frame.coverage, depth_kind="planar")
     assert effect.frames_read_once([planar], fitted=("fov_x_deg",))[0] is planar
     assert effect.frames_read_once([planar], fitted=())[0].silhouettes is not None

@@ -401,35 +401,16 @@ class _Search(eqx.Module):
         return jnp.ravel(difference) / math.sqrt(difference.size)
 
 
-JACOBIAN_LANES = 6
-"""The search's Jacobian is taken this many columns at a time (forward mode, one compiled program for every group):
-each lane holds the fog's shadows' table, and all of them at once set the search's peak memory
-(benchmarks/README.md, "A light out of view")."""
-
-
-def _residuals_and_jacobian(search, effect, frame, reference, light_depth, y):
-    """The residuals at `y` and their Jacobian, forward mode (a handful of unknowns, thousands of residuals), its
-    columns `JACOBIAN_LANES` at a time."""
-    count = y.shape[0]
-    groups = -(-count // JACOBIAN_LANES)
-    basis = jnp.eye(groups * JACOBIAN_LANES, count, dtype=y.dtype)  # the last group filled with zero tangents
-    values, columns = None, []
-    for group in range(groups):
-        tangents = basis[group * JACOBIAN_LANES : (group + 1) * JACOBIAN_LANES]
-        values, part = _residuals_and_columns(search, effect, frame, reference, light_depth, y, tangents)
-        columns.append(part)
-    return values, jnp.concatenate(columns, axis=1)[:, :count]
-
-
 @eqx.filter_jit
-def _residuals_and_columns(search, effect, frame, reference, light_depth, y, tangents):
-    """The residuals at `y` and their derivatives along each of `tangents` (rows), as columns."""
+def _residuals_and_jacobian(search, effect, frame, reference, light_depth, y):
+    """The residuals at `y` and their Jacobian, forward mode (a handful of unknowns, thousands of residuals)."""
 
-    def along(tangent):
-        return jax.jvp(lambda at: search.residuals(effect, frame, reference, light_depth, at), (y,), (tangent,))
+    def residuals(y):
+        values = search.residuals(effect, frame, reference, light_depth, y)
+        return values, values
 
-    values, columns = jax.vmap(along, out_axes=(None, 1))(tangents)
-    return values, columns
+    jacobian, values = jax.jacfwd(residuals, has_aux=True)(y)
+    return values, jacobian
 
 
 INITIAL_DAMPING = 1e-2

@@ -4,6 +4,7 @@
     python benchmarks/bench_volumetric.py --fit
     python benchmarks/bench_volumetric.py --jacobian [--repeats 5]
     python benchmarks/bench_volumetric.py --profile [--top 25]
+    python benchmarks/bench_volumetric.py --light-view [--repeats 5]
 
 Forward: the `hidden_sun` reference's clean frame at 320x180 and upscaled (nearest) to 1920x1080, the
 `volumetric_haze` preset (shadows read along lines through the light, every pixel's ray at 320 wide), the
@@ -25,7 +26,10 @@ holds) by their mean milliseconds a run, summed over the threads that ran them. 
 forward-mode Jacobian (`fit_programs.forward_mode`) of the display-space residuals at 480x270 (the `--fit` frame and
 target, `volumetric_haze`'s stand-in, which `fit` differentiates, the field of view fixed), compiled: one vectorised JVP of every unknown against one
 per stage (`Effect.FIELD_STAGES`), medians of `--repeats` runs after one that compiles, alternating, and the
-largest difference between the two. `uptime` first: the machine is shared.
+largest difference between the two. `--light-view`: a render of `volumetric_haze` that reads a depth map seen from
+the light (`window_ahead` made 480x270 as `bench_fit_cli.py` makes it, with its map), jitted inside `values_only()`
+as a caller jits it, compiled with XLA's defaults and without YNNPACK's fusions (`exported.COMPILER_OPTIONS`, as the
+commands compile it), alternating, medians of `--repeats` runs. `uptime` first: the machine is shared.
 """
 
 import argparse
@@ -171,6 +175,7 @@ def main() -> None:
     parser.add_argument("--profile", action="store_true", help="split the 1920x1080 forward by compiled kernel instead")
     parser.add_argument("--jacobian", action="store_true", help="time the fit's Jacobian at 480x270, by stages and not")
     parser.add_argument("--top", type=int, default=25, help="kernels listed by --profile")
+    parser.add_argument("--light-view", action="store_true", help="a render reading a light view, by compile options")
     args = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     if args.profile:
@@ -178,6 +183,9 @@ def main() -> None:
         return
     if args.jacobian:
         jacobian_rows(args.repeats)
+        return
+    if args.light_view:
+        light_view_rows(args.repeats)
         return
     if args.fit:
         print("| 480x270 fit | steps (coarse + full) | seconds, compiling | seconds, again (coarse + rest) | "
@@ -239,6 +247,44 @@ def main() -> None:
         spacing = march_factor(270, 480, effect.resolution_factor)
         print(f"| {effect.num_view_steps} view steps x {shadows}, spacing {spacing:g} | {mib[0]:.1f} | {mib[1]:.1f} |",
               flush=True)
+
+def light_view_rows(repeats: int) -> None:
+    """A render that reads a light view, compiled with XLA's defaults and with the commands' options, alternating."""
+    from bench_fit_cli import frame_pair  # noqa: PLC0415  (this folder is the script's own)
+
+    from godrays_jax.pipeline.exported import COMPILER_OPTIONS  # noqa: PLC0415
+    from godrays_jax.primitives.light_metadata import read_light  # noqa: PLC0415
+
+    reference = HERE / "references" / "window_ahead"
+    with tempfile.TemporaryDirectory() as folder:
+        clean, _ = frame_pair(Path(folder), 270, 480, reference)
+        buffers = gr.read_buffers(clean)
+        (x, y), in_front = read_light(clean)
+    light_view = gr.read_light_view(reference.with_name("window_ahead_light_view.exr"))
+    buffers = dataclasses.replace(buffers, light_view=light_view)
+    light = jnp.asarray([x, y], jnp.float32)
+    effect = gr.preset("volumetric_haze")
+
+    def render(frame):
+        with gr.values_only():
+            return effect(frame, light, light_in_front=in_front)
+
+    lowered = jax.jit(render).lower(buffers)
+    programs = {"XLA's defaults": lowered.compile(),
+                "without YNNPACK's fusions": lowered.compile(compiler_options=COMPILER_OPTIONS)}
+    times = {name: [] for name in programs}
+    for program in programs.values():
+        program(buffers).block_until_ready()
+    for _ in range(repeats):
+        for name, program in programs.items():
+            start = time.perf_counter()
+            program(buffers).block_until_ready()
+            times[name].append(time.perf_counter() - start)
+    print("| 480x270 render reading a light view, compiled with | median ms |")
+    print("|---|---|")
+    for name, seconds in times.items():
+        print(f"| {name} | {1e3 * statistics.median(seconds):.0f} |")
+
 
 if __name__ == "__main__":
     main()

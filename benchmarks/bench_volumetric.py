@@ -53,12 +53,16 @@ import godrays_jax as gr
 from godrays_jax.app.fit_command import fit_starts
 from godrays_jax.app.options import auto_coarse_factor, model_presets
 from godrays_jax.effects.volumetric import march_factor
+from godrays_jax.pipeline.exported import COMPILER_OPTIONS
 from godrays_jax.pipeline.fit_programs import forward_mode
 from godrays_jax.pipeline.problem import FitProblem, as_frames, fitted_bounds, start_point
+from godrays_jax.primitives.light_metadata import read_light
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "references"))
 from scenes import BY_NAME  # noqa: E402  (the references' folder joins the path first)
+
+from bench_fit_cli import frame_pair  # noqa: E402  (this script's own folder)
 
 
 SCENE = BY_NAME["hidden_sun"]
@@ -250,11 +254,6 @@ def main() -> None:
 
 def light_view_rows(repeats: int) -> None:
     """A render that reads a light view, compiled with XLA's defaults and with the commands' options, alternating."""
-    from bench_fit_cli import frame_pair  # noqa: PLC0415  (this folder is the script's own)
-
-    from godrays_jax.pipeline.exported import COMPILER_OPTIONS  # noqa: PLC0415
-    from godrays_jax.primitives.light_metadata import read_light  # noqa: PLC0415
-
     reference = HERE / "references" / "window_ahead"
     with tempfile.TemporaryDirectory() as folder:
         clean, _ = frame_pair(Path(folder), 270, 480, reference)

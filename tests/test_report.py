@@ -30,7 +30,7 @@ def test_metrics_are_scikit_images_in_display_space(rng):
     expected = skimage.metrics.structural_similarity(
         truth, shown, data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False
     )
-    assert ssim == pytest.approx(expected, rel=1e-9) and 0.0 < ssim < 1.0
+    assert ssim == pytest.approx(expected, rel=1e-6) and 0.0 < ssim < 1.0  # computed in float32
     assert image_metrics(target, target) == (math.inf, 1.0)
     assert image_metrics(np.concatenate([target, target[..., :1]], -1), target) == (math.inf, 1.0)  # alpha ignored
 

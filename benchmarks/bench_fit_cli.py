@@ -1,8 +1,8 @@
 """`godrays-jax fit ... --report` and `apply` timed as users run them: fresh processes, an empty compilation cache
 and then a warm one, peak memory.
 
-    python benchmarks/bench_fit_cli.py [--sizes 320x180 960x540 1920x1080] [--scenes SCENE ...] [--apply] [--tests]
-        [--json FILE]
+    python benchmarks/bench_fit_cli.py [--sizes 320x180 960x540 1920x1080] [--scenes SCENE ...]
+        [--fit-options "--light auto"] [--apply] [--tests] [--json FILE]
 
 Each case runs the command line in a child process (`_child.py` below: the command's own `script`, with a
 `jax.monitoring` listener that sums the time JAX spends compiling or loading compiled programs, and timers around
@@ -12,20 +12,23 @@ the cache), seconds in `fit`, seconds of the checks after it (metrics, `determin
 the fit's steps, the child's peak RSS (`resource.getrusage(RUSAGE_CHILDREN)`, a fresh process per run), and how
 many of XLA's slow-compile banners its stderr held (summed in a line after the table).
 
-Frames: the `hidden_sun` reference at its own 320x180, and pairs made from it at other sizes (each pixel repeated,
-the light's position scaled, its field of view kept in the header). `--scenes`: other references
-(`benchmarks/references/SCENE_clean.exr`, `SCENE_fog_a.exr`) made the first size's in the same way (every light of
-the header scaled, their distances and tints kept), fitted with their depth map seen from the light
-(`SCENE_light_view.exr`, `--light-view`) where they ship one. `--apply`: `godrays-jax apply` of the default
-fog (`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 5 after one that
-compiles): the effect jitted inside `values_only()` (its fields constants), `apply`'s program (`frames_function`
-on a group of one frame), a fit's render (`render_compiled`: the fields and the light's distance its arguments),
-and the effect jitted as a caller who differentiates it traces it. `--tests`: the README's test command's wall time. `uptime` first: the machine may be shared.
+Frames: the `hidden_sun` reference at its own 320x180, and pairs made from it at other sizes (each pixel repeated, the
+light's position scaled, its field of view kept in the header). `--scenes`: other references
+(`benchmarks/references/SCENE_clean.exr`, `SCENE_fog_a.exr`) made the first size's in the same way (every light of the
+header scaled, their distances and tints kept), fitted with their depth map seen from the light (`SCENE_light_view.exr`,
+`--light-view`) where they ship one. `--fit-options`: options every fit takes besides (`--light auto`: the light's
+search and the fits around it, the headers' lights unused). `--apply`: `godrays-jax apply` of the default fog
+(`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 5 after one that
+compiles): the effect jitted inside `values_only()` (its fields constants), `apply`'s program (`frames_function` on a
+group of one frame), a fit's render (`render_compiled`: the fields and the light's distance its arguments), and the
+effect jitted as a caller who differentiates it traces it. `--tests`: the README's test command's wall time. `uptime`
+first: the machine may be shared.
 """
 
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -148,8 +151,11 @@ def steps_of(stdout: str) -> str:
     return line[line.find("(") + 1 : line.rfind(")")]
 
 
-def fit_rows(sizes: list[str], folder: Path, scenes: tuple[str, ...] = ()) -> list[dict]:
-    """The README's fit at each size, then each of `scenes` (reference names) at the first size."""
+def fit_rows(
+    sizes: list[str], folder: Path, scenes: tuple[str, ...] = (), options: tuple[str, ...] = ()
+) -> list[dict]:
+    """The README's fit at each size, then each of `scenes` (reference names) at the first size, each with the
+    command's `options` besides."""
     rows = []
     cases = [(size, REFERENCE) for size in sizes] + [(sizes[0], REFERENCE.with_name(scene)) for scene in scenes]
     for size, reference in cases:
@@ -162,7 +168,7 @@ def fit_rows(sizes: list[str], folder: Path, scenes: tuple[str, ...] = ()) -> li
         light_view = reference.with_name(f"{reference.name}_light_view.exr")
         light_view = ["--light-view", str(light_view)] if light_view.exists() else []
         arguments = ["fit", str(frame), str(target), "-o", str(case / "params.json"), "--report", str(case / "report.png"),
-                     *light_view]  # fmt: skip
+                     *light_view, *options]  # fmt: skip
         for label, record in zip(("cold", "warm"), measured(arguments, case)):
             loss = next((line for line in record["stdout"].splitlines() if line.startswith("loss before")), "")
             rows.append(dict(case=f"fit{name} {size} + report", cache=label, wall=record["wall"], compiling=record["compiling"],
@@ -256,6 +262,8 @@ def main() -> None:
         "--scenes", nargs="*", default=[],
         help="also fit these references (benchmarks/references/SCENE_*.exr, with its light view) at the first size",
     )  # fmt: skip
+    parser.add_argument("--fit-options", default="", help="options every fit also takes, as a shell would split them: "
+                        "'--light auto' times the light's search and the fits that place it")  # fmt: skip
     parser.add_argument("--apply", action="store_true", help="also time apply of volumetric_haze at 1920x1080")
     parser.add_argument("--tests", action="store_true", help="also time the README's test command")
     parser.add_argument("--json", type=Path, help="write the rows here as JSON")
@@ -264,7 +272,7 @@ def main() -> None:
     print("| case | cache | wall s | compiling s | fit s | after the fit s | steps | peak RSS MiB |")
     print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as folder:
-        rows = fit_rows(args.sizes, Path(folder), tuple(args.scenes))
+        rows = fit_rows(args.sizes, Path(folder), tuple(args.scenes), tuple(shlex.split(args.fit_options)))
         if args.apply:
             rows += apply_rows(Path(folder))
     banners = sum(row.get("slow_compile_banners", 0) for row in rows)

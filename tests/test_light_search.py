@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
-from godrays_jax.app import fit_command
+from godrays_jax.app import allocator, fit_command
 from godrays_jax.app.cli import main
 from godrays_jax.pipeline.light_profile import LightProfile
 
@@ -93,11 +93,17 @@ def test_the_determination_is_small_for_a_sharp_halo_and_large_where_the_target_
 @pytest.mark.slow
 def test_more_fields_race_the_starts_given():
     """Beyond the colours, the light and `fields` descend again, from the effect and from each of `starts`: the
-    start that shares the target's decay wins, and the light, decay and tint are the target's."""
+    start that shares the target's decay wins, and the light, decay and tint are the target's. `progress` hears of
+    every evaluation of every start in both descents, in order, with the loss there: the search's own lies among
+    them."""
     light = np.asarray(LIGHTS["on screen"])
     target = gr.replace_fields(_effect(TINT), {"decay": 0.8})(_frame(), jnp.asarray(light, jnp.float32))
     starts = [gr.replace_fields(_effect(), {"decay": 0.99}), gr.replace_fields(_effect(), {"decay": 0.8})]
-    found = gr.find_light(_effect(), _frame(), target, start_xy=light + 3.0, fields=("tint", "decay"), starts=starts)
+    heard = []
+    found = gr.find_light(_effect(), _frame(), target, start_xy=light + 3.0, fields=("tint", "decay"), starts=starts,
+                          progress=lambda evaluations, loss: heard.append((evaluations, loss)))  # fmt: skip
+    assert [evaluations for evaluations, _ in heard] == list(range(1, found.steps + 1)) and found.steps > 3
+    assert min(loss for _, loss in heard) == pytest.approx(found.loss, rel=1e-12)
     assert np.linalg.norm(found.light_xy - light) < 0.1, found.light_xy
     assert found.fields == ("decay", "tint") and found.start == 2  # the effect's order; starts[1]
     assert abs(float(gr.field_value(found.effect, "decay")) - 0.8) < 1e-3
@@ -154,12 +160,21 @@ def _fit(*arguments) -> list[str]:
     return ["fit", *map(str, arguments), "--preset", "xna_crepuscular", "--fixed", HELD, "--max-steps", "2"]
 
 
-def test_fit_light_auto_finds_the_light_and_apply_params_uses_it(tmp_path, capsys):
+def test_fit_light_auto_finds_the_light_and_apply_params_uses_it(tmp_path, capsys, monkeypatch):
     light = np.asarray(LIGHTS["on screen"])
     frame, target = _files(tmp_path, light)
     params = tmp_path / "params.json"
+    handed_back, searches = [], []  # the heap's free pages: after each search evaluation, the search, each fit
+    monkeypatch.setattr(allocator, "hand_back_free_memory", lambda: handed_back.append(1) or True)
+
+    def find_light(*args, **options):
+        searches.append(gr.find_light(*args, **options))
+        return searches[-1]
+
+    monkeypatch.setattr(fit_command, "find_light", find_light)
     assert main([*_fit(frame, target, "-o", params), "--light", "auto"]) == 0
     out = capsys.readouterr().out
+    assert len(handed_back) == searches[0].steps + 1 + out.count("a fit with the light at "), (len(handed_back), out)
     (line,) = [line for line in out.splitlines() if line.startswith("light of")]
     assert "from the target's halo" in line, out
     # Then placed by whole fits around the light found (`light_profile`), each fit's light and loss a line.

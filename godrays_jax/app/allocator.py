@@ -44,6 +44,13 @@ compiles or reads from the cache, so that the compiler's peak comes on top of
 the live buffers alone, not of the temporaries the programs before it freed
 and the process kept (`hand_back_after_compiling`).
 
+The heap kept is laid out by the order of its allocations: where smaller
+blocks take part of a freed temporary's place, the next call's goes to the
+heap's top, and the places left behind stay resident. Between whole runs of
+its programs that a command repeats many times (`fit --light auto`: each of
+its search's evaluations, each fit around the light) it hands them back
+(`hand_back_free_memory`), as each run then faults in only what it uses.
+
 Applied by the `godrays-jax` command (`cli.console_main`) only: a library
 must not retune the allocator of the process that imports it. Research code
 with the same calling pattern gets the same effect from the environment,
@@ -116,6 +123,19 @@ TRIMMED_COMPILE_SECONDS = 0.5
 the many small ones a command compiles in a fraction of a second each, whose memory is small."""
 
 _trimming = []  # the listener, once registered: one per process
+
+
+def hand_back_free_memory() -> bool:
+    """Hand the heap's free pages back to the kernel now (glibc's `malloc_trim(0)`); returns whether it did (False
+    off glibc). For a command between whole runs of its programs (`fit --light auto`'s search evaluations and its
+    fits around the light): the heap kept (`keep_freed_memory`) grows by whole temporaries where smaller blocks split
+    the place of a freed one, and over many runs its free places added up (docs/findings.md, "The fit's cost: what
+    did not help")."""
+    trim = _glibc_function("malloc_trim")
+    if trim is None:
+        return False
+    trim(0)
+    return True
 
 
 def hand_back_after_compiling() -> bool:

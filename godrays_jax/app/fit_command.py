@@ -2,14 +2,17 @@
 
 import contextlib
 import dataclasses
+import gc
 import math
 import os
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import tqdm
 
+from godrays_jax.app import allocator
 from godrays_jax.app.fit_light import (
     first_light,
     found_lights_text,
@@ -173,7 +176,7 @@ def run(args) -> int:
     for index, (frame, auto) in searched.items():
         path = pairs[index][0]
         _say(f"finding the light of {path} ({'from the target' if auto else 'refining its light'})")
-        search = find_light(
+        search = _search_with_progress(
             effect, frames[index], targets[index], start_xy=None if auto else np.asarray(light_positions[index]),
             fields=tuple(name for name in fitted_bounds(effect, fixed=fixed) if name not in effect.POLISH_FIELDS),
             starts=starts, light_depth=depths[index], space=args.space,
@@ -183,6 +186,12 @@ def run(args) -> int:
         found[path] = (search, frame, depths[index], [])
         light_positions[index] = jnp.asarray(search.light_xy, jnp.float32)
         frames[index] = ready_frame(effect, frame, tuple(search.light_xy), path)
+    if searched:
+        # JAX's caches hold the search's programs, and with them memory that the fits after it never use: as live
+        # as those fits' own buffers, it raised each one's peak (benchmarks/README.md, "A light out of view").
+        jax.clear_caches()
+        gc.collect()
+        allocator.hand_back_free_memory()
     fit_options = {
         "loss": args.loss, "space": args.space, "solver": args.solver, "fixed": fixed, "max_steps": args.max_steps,
         "light_in_front": in_front, "light_depth": depths, "other_lights": others, "fit_light_tints": fit_tints,
@@ -207,6 +216,7 @@ def run(args) -> int:
             if loss < lowest["loss"]:
                 lowest.update(loss=loss, lights=_lights_key(lights_now), result=fitted)
             _say(tried_line(xy, loss))
+            allocator.hand_back_free_memory()  # each fit faults in what it needs once, and no more stays resident
             return loss
 
         step, rise = PROFILE_STEP * max(frame.height, frame.width), VISIBLE_CHANGE**2 if args.loss == "mse" else None
@@ -279,6 +289,27 @@ def _fit_with_progress(effect, frames, light_positions, targets, args, coarse_fa
 
     try:
         return fit(effect, frames, light_positions, targets, progress=progress, **fit_options)
+    finally:
+        bar.close()
+
+
+def _search_with_progress(effect, frame, target, **options):
+    """`find_light` under a progress bar of its evaluations, handing the heap's free pages back after each: the
+    heap the command keeps (`allocator.keep_freed_memory`) grew by whole temporaries of its Jacobian, whose size
+    changes between its descents, where the time to fault one in again is small beside an evaluation's
+    (benchmarks/README.md, "A light out of view")."""
+    bar = tqdm.tqdm(desc="finding the light", unit="step", file=sys.stderr, dynamic_ncols=True)
+    lowest = math.inf  # each start's and each rejected step's loss is heard too: the bar shows the lowest so far
+
+    def progress(evaluations, loss):
+        nonlocal lowest
+        lowest = min(lowest, loss)
+        bar.set_postfix_str(f"lowest loss {lowest:.4g}", refresh=False)
+        bar.update(evaluations - bar.n)
+        allocator.hand_back_free_memory()
+
+    try:
+        return find_light(effect, frame, target, progress=progress, **options)
     finally:
         bar.close()
 

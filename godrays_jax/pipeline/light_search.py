@@ -8,8 +8,9 @@ and the least squares `fit` minimises (the MSE in display space by default) is m
 
 import dataclasses
 import functools
+import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
@@ -188,6 +189,7 @@ def find_light(
     factor: int | None = None,
     max_steps: int = 40,
     stand_in: bool = True,
+    progress: Callable[[int, float], None] | None = None,
 ) -> LightSearch:
     """The light's screen position that makes `effect(buffers, light_xy)` look most like `target`.
 
@@ -228,6 +230,9 @@ def find_light(
         max_steps: a Python int >= 1, the evaluations (residuals and Jacobian) of each descent's winner at most,
             its race's included.
         stand_in: draw `effect.fit_stand_in()` (cheaper, the same fields) instead of `effect`.
+        progress: None, or called after every evaluation of the residuals and Jacobian, of every start and both
+            descents, with the evaluations so far and the loss at the point evaluated (which a rejected step
+            raises): a search takes a minute or more on a small CPU.
 
     Raises:
         ValueError: naming the argument: a target of another size, a `start_xy` that is not two finite numbers,
@@ -258,9 +263,15 @@ def find_light(
     side = max(frame.height, frame.width)  # the light's unknowns are in frame sizes of the reduced frame
     lights = lights / factor / side
     box = (np.min(lights, axis=0) - LIGHT_REACH, np.max(lights, axis=0) + LIGHT_REACH)
+    evaluations = itertools.count(1)
+
+    def evaluated(loss):
+        if progress is not None:
+            progress(next(evaluations), loss)
+
     descend = functools.partial(
         _descend, frame=frame, reference=reference, light_depth=_static_sun(light_depth, frame.color.dtype),
-        space=space, side=float(side), box=box, max_steps=max_steps,
+        space=space, side=float(side), box=box, max_steps=max_steps, evaluated=evaluated,
     )  # fmt: skip
     first = tuple(name for name in names if name in colours)
     with jax.default_matmul_precision("highest"), ranges_guaranteed():
@@ -318,11 +329,11 @@ def _distinct(candidates: list[Effect], names: tuple[str, ...]) -> list[int]:
     return kept
 
 
-def _descend(candidates, names, bounds, *, frame, reference, light_depth, space, side, box, max_steps):
+def _descend(candidates, names, bounds, *, frame, reference, light_depth, space, side, box, max_steps, evaluated):
     """Levenberg-Marquardt over the light and the fields `names` (their `bounds`) from each of `candidates`,
     `(effect, light)` pairs (the light `(2,)` in frame sizes of `frame`): each takes `PROBE_STEPS` evaluations
-    when there are several, the best then goes on to `max_steps` evaluations in all. Returns the search, the best
-    run, its index and the evaluations."""
+    when there are several, the best then goes on to `max_steps` evaluations in all; `evaluated(loss)` after each.
+    Returns the search, the best run, its index and the evaluations."""
     effect = candidates[0][0]
     shapes = tuple(np.shape(field_value(effect, name)) for name in names)
     search = _Search(names=names, bounds=tuple(bounds[n] for n in names), shapes=shapes, side=side, space=space)
@@ -334,7 +345,9 @@ def _descend(candidates, names, bounds, *, frame, reference, light_depth, space,
     def evaluator(effect):
         def evaluate(y):
             values = _residuals_and_jacobian(search, effect, frame, reference, light_depth, jnp.asarray(y, frame.color.dtype))
-            return tuple(np.asarray(value, np.float64) for value in values)
+            residuals, jacobian = (np.asarray(value, np.float64) for value in values)
+            evaluated(float(residuals @ residuals))
+            return residuals, jacobian
 
         return evaluate
 

@@ -43,7 +43,13 @@ REFERENCE = HERE / "references" / "hidden_sun"
 
 CHILD = textwrap.dedent(
     """
-    import atexit, json, sys, time
+    import os, sys
+    import godrays_jax_script
+    # Started again with glibc's huge pages where the `godrays-jax` script is (before anything else is imported).
+    environ = godrays_jax_script.restart_with_huge_pages([sys.argv[0], *sys.argv[2:]], dict(os.environ))
+    if environ is not None:
+        os.execve(sys.executable, sys.orig_argv, environ)
+    import atexit, json, time
     import jax
     compiling = [0.0]
     jax.monitoring.register_event_duration_secs_listener(
@@ -74,7 +80,7 @@ CHILD = textwrap.dedent(
         with open(record_path, "w") as stream:
             json.dump(record, stream)
     atexit.register(write_record)
-    cli.script()  # as the `godrays-jax` script runs it
+    cli.script()  # as the `godrays-jax` script runs it, once started
     """
 )
 

@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 import godrays_jax as gr
+import godrays_jax_script
 from godrays_jax.app import allocator, cli, fit_command
 
-# In a fresh process: allocate a block far above glibc's mmap threshold, touch every page, free it, and print how
-# many MiB the process still has resident beyond what it had before.
+# In a fresh process: allocate a block of the given MiB (256: far above glibc's mmap threshold), touch every page,
+# free it, and print how many MiB the process still has resident beyond what it had before, and how many MiB of huge
+# pages it held while the block was live.
 _PROBE = """
 import ctypes, ctypes.util, os, sys
 from godrays_jax.app import allocator
@@ -22,25 +24,41 @@ libc = ctypes.CDLL(ctypes.util.find_library("c"))
 libc.malloc.restype, libc.malloc.argtypes, libc.free.argtypes = ctypes.c_void_p, [ctypes.c_size_t], [ctypes.c_void_p]
 def resident_mib():
     return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-before, size = resident_mib(), 256 << 20
+def huge_mib():
+    lines = open("/proc/self/smaps_rollup").read().splitlines()
+    return sum(int(line.split()[1]) for line in lines if line.startswith("AnonHugePages:")) / 1024
+before, size = resident_mib(), int(sys.argv[2]) << 20
 block = libc.malloc(size)
 ctypes.memset(block, 1, size)
+huge = huge_mib()
 libc.free(block)
-print(resident_mib() - before)
+print(resident_mib() - before, huge)
 """
+
+_HUGE_PAGES = "/sys/kernel/mm/transparent_hugepage/enabled"
 
 
 @pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="the allocator is tuned through glibc's mallopt; on other C libraries (macOS, musl) "
                     "keep_freed_memory leaves it as it is and returns False")
 @pytest.mark.slow
 def test_freed_memory_stays_with_the_process_only_when_tuned():
-    def kept(mode, **env):
-        done = subprocess.run([sys.executable, "-c", _PROBE, mode], capture_output=True, text=True, check=True,
-                              env={**os.environ, **env})  # fmt: skip
-        return float(done.stdout)
+    """Kept where tuned; where glibc asks for huge pages (the `godrays-jax` script's restart), only blocks below
+    `MAPPED_BLOCK_BYTES`, the larger ones mapped on huge pages and handed back."""
 
-    assert kept("plain", **{allocator.OPT_OUT: "0"}) < 64  # glibc unmaps a large block on free: faulted in again
-    assert kept("tuned") > 192  # kept mapped: the next allocation of its size reuses it
+    def kept(mode, mib=256, **env):
+        environ = {name: value for name, value in os.environ.items() if name != "GLIBC_TUNABLES"}
+        done = subprocess.run([sys.executable, "-c", _PROBE, mode, str(mib)], capture_output=True, text=True,
+                              check=True, env={**environ, **env})  # fmt: skip
+        return tuple(map(float, done.stdout.split()))
+
+    assert kept("plain", **{allocator.OPT_OUT: "0"})[0] < 64  # glibc unmaps a large block on free: faulted in again
+    assert kept("tuned")[0] > 192  # kept mapped: the next allocation of its size reuses it
+    if not os.path.exists(_HUGE_PAGES) or "[never]" in open(_HUGE_PAGES).read():
+        return  # Linux gives no huge pages: the tuned process keeps every block, as above
+    huge_pages = {"GLIBC_TUNABLES": allocator.HUGE_PAGES_TUNABLE}
+    resident, huge = kept("tuned", **huge_pages)
+    assert resident < 64 and huge >= 2, (resident, huge)  # on huge pages while live, handed back on free
+    assert kept("tuned", mib=16, **huge_pages)[0] > 12  # below the threshold: kept
 
 
 def test_the_command_keeps_freed_memory_where_it_repeats_its_programs(monkeypatch, tmp_path):
@@ -81,6 +99,41 @@ def test_the_command_line_entry_points_keep_freed_memory(monkeypatch):
     monkeypatch.setattr(cli, "main", lambda argv=None, **options: chosen.append(options) or 0)
     assert cli.console_main() == 0
     assert chosen == [{"keep_freed_memory": True}]
+
+
+def test_the_script_restarts_with_huge_pages_for_the_commands_that_repeat_their_programs():
+    """`godrays_jax_script.restart_with_huge_pages`: for `fit`, `batch` and `tune` on Linux, the environment with
+    glibc's huge pages added to the tunables given; not for another command, nor where they are set already or the
+    allocator is to be left alone."""
+    assert godrays_jax_script.HUGE_PAGES_TUNABLE == allocator.HUGE_PAGES_TUNABLE
+    restart = godrays_jax_script.restart_with_huge_pages
+    if sys.platform != "linux":
+        assert restart(["godrays-jax", "fit"], {}) is None
+        return
+    huge = allocator.HUGE_PAGES_TUNABLE
+    for command in ("fit", "batch", "tune"):
+        assert restart(["godrays-jax", command, "x"], {"A": "1"}) == {"A": "1", "GLIBC_TUNABLES": huge}
+    given = {"GLIBC_TUNABLES": "glibc.malloc.arena_max=2"}
+    assert restart(["godrays-jax", "fit"], given) == {"GLIBC_TUNABLES": f"glibc.malloc.arena_max=2:{huge}"}
+    assert restart(["godrays-jax", "apply", "x"], {}) is None
+    assert restart(["godrays-jax"], {}) is None
+    assert restart(["godrays-jax", "fit"], {"GLIBC_TUNABLES": "glibc.malloc.hugetlb=0"}) is None
+    assert restart(["godrays-jax", "fit"], {allocator.OPT_OUT: "0"}) is None
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="the script restarts only on Linux")
+def test_the_script_restarts_once_in_the_same_process_then_runs_the_command():
+    """The `godrays-jax` script's entry run as `fit --help`: the interpreter starts again once (the same process, its
+    command line as it was) with the tunable set, then the command runs."""
+    code = ("import os, sys, godrays_jax_script; print(os.getpid(), os.environ.get('GLIBC_TUNABLES'), flush=True); "
+            "sys.argv[1:] = ['fit', '--help']; godrays_jax_script.script()")  # fmt: skip
+    environ = {name: value for name, value in os.environ.items() if name not in ("GLIBC_TUNABLES", allocator.OPT_OUT)}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=environ, timeout=120)
+    assert done.returncode == 0, done.stderr
+    (pid, before), (restarted_pid, after), *help_text = (line.split(maxsplit=1) for line in done.stdout.splitlines())
+    assert (before, restarted_pid, after) == ("None", pid, allocator.HUGE_PAGES_TUNABLE)
+    help_text = [" ".join(words) for words in help_text]
+    assert any("usage: godrays-jax fit" in line for line in help_text), help_text[:3]
 
 
 # In a fresh process: fill the heap with small blocks (as a compiler or a program's temporaries do), keep one block

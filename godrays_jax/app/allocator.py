@@ -46,15 +46,24 @@ and the process kept (`hand_back_after_compiling`).
 
 The heap kept is laid out by the order of its allocations: where smaller
 blocks take part of a freed temporary's place, the next call's goes to the
-heap's top, and the places left behind stay resident. Between whole runs of
-its programs that a command repeats many times (`fit --light auto`: each of
-its search's evaluations, each fit around the light) it hands them back
-(`hand_back_free_memory`), as each run then faults in only what it uses.
+heap's top, and the places left behind stay resident, so the same fit's peak
+moved by half a gigabyte between runs. Where the process started with glibc
+asking for transparent huge pages (`HUGE_PAGES_TUNABLE`, which only
+`GLIBC_TUNABLES` sets, as a process starts: the `godrays-jax` script starts
+its interpreter again with it, `godrays_jax_script`) and Linux gives them
+(`huge_pages_on`), blocks of `MAPPED_BLOCK_BYTES` and more are mapped apart
+instead and handed back on `free`: faulting one in again takes a fault per
+2 MiB instead of per 4 KiB, and the heap keeps only the smaller blocks
+(benchmarks/README.md, "The fit as users run it"). Between whole runs of its
+programs that a command repeats many times (`fit --light auto`: each of its
+search's evaluations, each fit around the light) it also hands back the
+heap's free pages (`hand_back_free_memory`), as each run then faults in only
+what it uses.
 
 Applied by the `godrays-jax` command (`cli.console_main`) only: a library
 must not retune the allocator of the process that imports it. Research code
-with the same calling pattern gets the same effect from the environment,
-`MALLOC_ARENA_MAX=1 MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=2147483647`.
+with the same calling pattern gets the same effect from glibc's tunables in
+its environment, set before it starts (docs/fitting.md gives the line).
 """
 
 import ctypes
@@ -65,8 +74,16 @@ import platform
 import jax.monitoring
 
 # mallopt's parameter numbers (glibc's malloc.h).
-_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -3, -4, -8
 _LARGEST_INT = 2**31 - 1  # mallopt takes a C int
+
+MAPPED_BLOCK_BYTES = 32 << 20
+"""Where glibc's huge pages are on (`huge_pages_on`), the kept heap's blocks are those below this size; larger ones
+are mapped apart and handed back on `free`. glibc takes no larger threshold (half of its 64 MiB heaps)."""
+
+HUGE_PAGES_TUNABLE = "glibc.malloc.hugetlb=1"
+"""The glibc tunable (`GLIBC_TUNABLES`, read when the process starts; the `godrays-jax` script sets it,
+`godrays_jax_script`) by which glibc asks for transparent huge pages on the blocks it maps and on its heap."""
 
 KEPT_FIT_PIXELS = 1 << 18
 """The largest fit (its frames' pixels in all) or batch frame whose process keeps what it frees
@@ -97,8 +114,22 @@ def keep_freed_memory(*, arenas: int = 1) -> bool:
     mallopt = _glibc_function("mallopt")
     if os.environ.get(OPT_OUT, "1") == "0" or mallopt is None:
         return False
-    settings = ((_M_ARENA_MAX, arenas), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, _LARGEST_INT))
+    large_blocks = (_M_MMAP_THRESHOLD, MAPPED_BLOCK_BYTES) if huge_pages_on() else (_M_MMAP_MAX, 0)
+    settings = ((_M_ARENA_MAX, arenas), large_blocks, (_M_TRIM_THRESHOLD, _LARGEST_INT))
     return all(mallopt(parameter, value) == 1 for parameter, value in settings)
+
+
+def huge_pages_on() -> bool:
+    """Whether glibc in this process asks Linux for transparent huge pages (`HUGE_PAGES_TUNABLE` in `GLIBC_TUNABLES`
+    as the process started) and Linux gives them (`always` or `madvise`)."""
+    tunables = os.environ.get("GLIBC_TUNABLES", "").split(":")
+    if HUGE_PAGES_TUNABLE not in tunables:
+        return False
+    try:
+        with open("/sys/kernel/mm/transparent_hugepage/enabled") as setting:
+            return "[never]" not in setting.read()
+    except OSError:
+        return False
 
 
 def _glibc_function(name: str):

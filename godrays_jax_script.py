@@ -24,7 +24,6 @@ REPEATING_COMMANDS = frozenset({"fit", "batch", "tune"})
 """The commands whose process may repeat its programs (`godrays_jax.app.cli.repeats_programs`)."""
 
 
-
 def restart_with_huge_pages(argv: list[str], environ: dict[str, str]) -> dict[str, str] | None:
     """The environment to start the interpreter again in for the command line `argv` (as `sys.argv` gives it):
     `environ` asking glibc for huge pages; None where the process is to run as it is."""
@@ -50,6 +49,7 @@ def script() -> None:
             os.execve(sys.executable, sys.orig_argv, environ)
         except OSError:
             pass
+    # Imported once the process will not start again: importing the package (and JAX) takes about a second.
     from godrays_jax.app.cli import script as command_script
 
     command_script()

@@ -1,13 +1,14 @@
 """The `godrays-jax` script: the process's memory set up before anything is imported, then `godrays_jax.app.cli`.
 
 A fit, a batch and the tuner call the same large programs over and over. Their largest temporaries (a fit's
-Jacobian takes hundreds of MiB a call) are best mapped apart and handed back after each call
-(`godrays_jax.app.allocator`), which costs a fault per page on every call, unless the pages are huge (2 MiB).
-glibc asks the kernel for huge pages for the blocks it maps only where `GLIBC_TUNABLES` says so when the process
-starts (`glibc.malloc.hugetlb=1`). So for those commands the script starts its interpreter once more with that set,
-before the package is imported (which takes about a second). `python -m godrays_jax` has imported the package
-before its first line runs, and does not; nor does a process whose `GLIBC_TUNABLES` sets `glibc.malloc.hugetlb`
-already, or that asks the command to leave its allocator as it is (`GODRAYS_JAX_KEEP_FREED_MEMORY=0`).
+Jacobian's among them) are best mapped apart and handed back after each call (`godrays_jax.app.allocator`), which
+costs a fault per page on every call, unless the pages are huge. glibc asks the kernel for huge pages for the blocks
+it maps only where `GLIBC_TUNABLES` says so when the process starts (`glibc.malloc.hugetlb=1`). So for those
+commands the script starts its interpreter once more with that set, before the package is imported: importing it
+loads JAX, which would then be loaded twice (what each costs: benchmarks/README.md, "Large blocks on huge pages").
+`python -m godrays_jax` has imported the package before its first line runs, and does not; nor does a process whose
+`GLIBC_TUNABLES` sets `glibc.malloc.hugetlb` already, or that asks the command to leave its allocator as it is
+(`GODRAYS_JAX_KEEP_FREED_MEMORY=0`).
 
 This module is outside the package so that importing it imports nothing but the standard library.
 """
@@ -49,7 +50,7 @@ def script() -> None:
             os.execve(sys.executable, sys.orig_argv, environ)
         except OSError:
             pass
-    # Imported once the process will not start again: importing the package (and JAX) takes about a second.
+    # Imported once the process will not start again, so that JAX is loaded once.
     from godrays_jax.app.cli import script as command_script
 
     command_script()

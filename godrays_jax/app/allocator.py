@@ -53,8 +53,9 @@ asking for transparent huge pages (`HUGE_PAGES_TUNABLE`, which only
 its interpreter again with it, `godrays_jax_script`) and Linux gives them
 (`huge_pages_on`), blocks of `MAPPED_BLOCK_BYTES` and more are mapped apart
 instead and handed back on `free`: faulting one in again takes a fault per
-2 MiB instead of per 4 KiB, and the heap keeps only the smaller blocks
-(benchmarks/README.md, "The fit as users run it"). Between whole runs of its
+huge page instead of one per page, and the heap keeps only the smaller
+blocks (benchmarks/README.md, "The fit as users run it", "Large blocks on
+huge pages"). Between whole runs of its
 programs that a command repeats many times (`fit --light auto`: each of its
 search's evaluations, each fit around the light) it also hands back the
 heap's free pages (`hand_back_free_memory`), as each run then faults in only
@@ -79,7 +80,8 @@ _LARGEST_INT = 2**31 - 1  # mallopt takes a C int
 
 MAPPED_BLOCK_BYTES = 32 << 20
 """Where glibc's huge pages are on (`huge_pages_on`), the kept heap's blocks are those below this size; larger ones
-are mapped apart and handed back on `free`. glibc takes no larger threshold (half of its 64 MiB heaps)."""
+are mapped apart and handed back on `free`. glibc's `mallopt` takes no larger threshold: at most half the size of the
+heaps it gives each thread."""
 
 HUGE_PAGES_TUNABLE = "glibc.malloc.hugetlb=1"
 """The glibc tunable (`GLIBC_TUNABLES`, read when the process starts; the `godrays-jax` script sets it,
@@ -121,10 +123,12 @@ def keep_freed_memory(*, arenas: int = 1) -> bool:
 
 def huge_pages_on() -> bool:
     """Whether glibc in this process asks Linux for transparent huge pages (`HUGE_PAGES_TUNABLE` in `GLIBC_TUNABLES`
-    as the process started) and Linux gives them (`always` or `madvise`)."""
-    tunables = os.environ.get("GLIBC_TUNABLES", "").split(":")
-    if HUGE_PAGES_TUNABLE not in tunables:
-        return False
+    as the process started) and Linux gives them (`huge_pages_given`)."""
+    return HUGE_PAGES_TUNABLE in os.environ.get("GLIBC_TUNABLES", "").split(":") and huge_pages_given()
+
+
+def huge_pages_given() -> bool:
+    """Whether Linux gives transparent huge pages to memory that asks for them (its setting `always` or `madvise`)."""
     try:
         with open("/sys/kernel/mm/transparent_hugepage/enabled") as setting:
             return "[never]" not in setting.read()

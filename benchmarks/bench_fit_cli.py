@@ -18,10 +18,12 @@ light's position scaled, its field of view kept in the header). `--scenes`: othe
 header scaled, their distances and tints kept), fitted with their depth map seen from the light (`SCENE_light_view.exr`,
 `--light-view`) where they ship one. `--fit-options`: options every fit takes besides (`--light auto`: the light's
 search and the fits around it, the headers' lights unused). `--apply`: `godrays-jax apply` of the default fog
-(`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 5 after one that
-compiles): the effect jitted inside `values_only()` (its fields constants), `apply`'s program (`frames_function` on a
-group of one frame), a fit's render (`render_compiled`: the fields and the light's distance its arguments), and the
-effect jitted as a caller who differentiates it traces it. `--tests`: the README's test command's wall time. `uptime`
+(`volumetric_haze`) at 1920x1080, cold and warm, and its forward pass in-process (the median of 7 after one that
+compiles, and the page faults a call): the effect jitted inside `values_only()` (its fields constants), `apply`'s
+program (`frames_function` on a group of one frame), a fit's render (`render_compiled`: the fields and the light's
+distance its arguments), and the effect jitted as a caller who differentiates it traces it; in a fresh process with
+glibc's defaults, then in one with the tunables docs/fitting.md gives a user's own process (`USERS_TUNABLES`), the two
+alternated twice. `--tests`: the README's test command's wall time. `uptime`
 first: the machine may be shared.
 """
 
@@ -40,6 +42,15 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 REFERENCE = HERE / "references" / "hidden_sun"
+
+FORWARD_RUNS = 7
+"""Calls of each forward pass timed in-process, after the one that compiles it."""
+
+USERS_TUNABLES = ("glibc.malloc.hugetlb=1:glibc.malloc.arena_max=1:glibc.malloc.mmap_threshold=33554432"
+                  ":glibc.malloc.trim_threshold=2147483647")  # fmt: skip
+"""glibc's tunables docs/fitting.md gives a user's own process that calls the same programs many times: XLA allocates
+a program's temporaries afresh on every call, and with glibc's defaults their pages are faulted in again 4 KiB at a
+time."""
 
 CHILD = textwrap.dedent(
     """
@@ -186,13 +197,6 @@ def fit_rows(
 
 
 def apply_rows(folder: Path) -> list[dict]:
-    import jax
-
-    import godrays_jax as gr
-    from godrays_jax.pipeline.batch import frames_function
-    from godrays_jax.pipeline.compiled import render_compiled
-    from godrays_jax.primitives.light_metadata import read_light
-
     case = folder / "apply_1920x1080"
     case.mkdir()
     frame, _ = frame_pair(case, 1080, 1920)
@@ -204,6 +208,38 @@ def apply_rows(folder: Path) -> list[dict]:
                          peak_rss_mib=record["peak_rss_mib"], loss="",
                          slow_compile_banners=record["slow_compile_banners"]))  # fmt: skip
         print(_row(rows[-1]), flush=True)
+    # Alternated, each twice: the machine's speed moves between minutes.
+    for label, tunables in 2 * (("glibc's defaults", None), ("docs/fitting.md's tunables", USERS_TUNABLES)):
+        environ = {key: value for key, value in os.environ.items() if key != "GLIBC_TUNABLES"}
+        environ.update({"JAX_COMPILATION_CACHE_DIR": str(case / "forward_cache")},
+                       **({"GLIBC_TUNABLES": tunables} if tunables else {}))  # fmt: skip
+        record = case / "forward.json"
+        done = subprocess.run([sys.executable, __file__, "--forward", str(frame), "--json", str(record)],
+                              env=environ, capture_output=True, text=True)  # fmt: skip
+        if done.returncode != 0:
+            raise RuntimeError(f"the forward in-process failed:\n{done.stderr[-2000:]}")
+        for name, seconds, faults in json.loads(record.read_text()):
+            print(f"forward in-process, volumetric_haze 1920x1080, {name}, {label}: median {seconds:.3f} s of "
+                  f"{FORWARD_RUNS}, {faults} page faults a run", flush=True)  # fmt: skip
+            rows.append(dict(case=f"forward volumetric_haze 1920x1080 (in-process, {name}, {label})", cache="",
+                             wall=seconds, compiling=None, fit=None, after_fit=None, steps="", peak_rss_mib=None,
+                             loss="", page_faults=faults))  # fmt: skip
+    return rows
+
+
+def forward_medians(frame: Path) -> list[tuple[str, float, int]]:
+    """The default fog's forward pass over `frame` in this process, four ways, each after one call that compiles:
+    its name, the median seconds of `FORWARD_RUNS` calls and the median page faults a call (the pages of its
+    temporaries faulted in again: `USERS_TUNABLES`)."""
+    import resource
+
+    import jax
+
+    import godrays_jax as gr
+    from godrays_jax.pipeline.batch import frames_function
+    from godrays_jax.pipeline.compiled import render_compiled
+    from godrays_jax.primitives.light_metadata import read_light
+
     buffers = gr.read_buffers(frame)
     (x, y), in_front = read_light(frame)
     effect = gr.preset("volumetric_haze")
@@ -225,18 +261,18 @@ def apply_rows(folder: Path) -> list[dict]:
         "a fit's render": lambda frame: render_compiled(effect, frame, light, in_front),
         "jitted, differentiable": jax.jit(lambda frame: effect(frame, light, light_in_front=in_front)),
     }
+    medians = []
     for name, forward in programs.items():
         jax.block_until_ready(forward(buffers))
-        seconds = []
-        for _ in range(5):
+        seconds, faults = [], []
+        for _ in range(FORWARD_RUNS):
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             start = time.perf_counter()
             jax.block_until_ready(forward(buffers))
             seconds.append(time.perf_counter() - start)
-        print(f"forward in-process, volumetric_haze 1920x1080, {name}: median {np.median(seconds):.3f} s of 5", flush=True)
-        rows.append(dict(case=f"forward volumetric_haze 1920x1080 (in-process, {name})", cache="",
-                         wall=float(np.median(seconds)), compiling=None, fit=None, after_fit=None, steps="",
-                         peak_rss_mib=None, loss=""))  # fmt: skip
-    return rows
+            faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+        medians.append((name, float(np.median(seconds)), int(np.median(faults))))
+    return medians
 
 
 def test_row() -> dict:
@@ -273,7 +309,11 @@ def main() -> None:
     parser.add_argument("--apply", action="store_true", help="also time apply of volumetric_haze at 1920x1080")
     parser.add_argument("--tests", action="store_true", help="also time the README's test command")
     parser.add_argument("--json", type=Path, help="write the rows here as JSON")
+    parser.add_argument("--forward", type=Path, help=argparse.SUPPRESS)  # apply's child: the forward in-process
     args = parser.parse_args()
+    if args.forward:
+        args.json.write_text(json.dumps(forward_medians(args.forward)) + "\n")
+        return
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     print("| case | cache | wall s | compiling s | fit s | after the fit s | steps | peak RSS MiB |")
     print("|---|---|---|---|---|---|---|---|")

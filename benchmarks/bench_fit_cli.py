@@ -23,8 +23,7 @@ compiles, and the page faults a call): the effect jitted inside `values_only()` 
 program (`frames_function` on a group of one frame), a fit's render (`render_compiled`: the fields and the light's
 distance its arguments), and the effect jitted as a caller who differentiates it traces it; in a fresh process with
 glibc's defaults, then in one with the tunables docs/fitting.md gives a user's own process (`USERS_TUNABLES`), the two
-alternated twice. `--tests`: the README's test command's wall time. `uptime`
-first: the machine may be shared.
+alternated twice. `--tests`: the README's test command's wall time. `uptime` first: the machine may be shared.
 """
 
 import argparse
@@ -220,7 +219,7 @@ def apply_rows(folder: Path) -> list[dict]:
             raise RuntimeError(f"the forward in-process failed:\n{done.stderr[-2000:]}")
         for name, seconds, faults in json.loads(record.read_text()):
             print(f"forward in-process, volumetric_haze 1920x1080, {name}, {label}: median {seconds:.3f} s of "
-                  f"{FORWARD_RUNS}, {faults} page faults a run", flush=True)  # fmt: skip
+                  f"{FORWARD_RUNS}, {faults} page faults a call", flush=True)  # fmt: skip
             rows.append(dict(case=f"forward volumetric_haze 1920x1080 (in-process, {name}, {label})", cache="",
                              wall=seconds, compiling=None, fit=None, after_fit=None, steps="", peak_rss_mib=None,
                              loss="", page_faults=faults))  # fmt: skip
